@@ -1,0 +1,22 @@
+"""Errors a user can act on. Each names the offending file (or input) and the problem."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class StgcError(Exception):
+    """Base class for errors that are reported to the user without a traceback."""
+
+
+class DataError(StgcError, ValueError):
+    """Bad or unreadable input data: names the file and what is wrong with it."""
+
+    def __init__(self, path: str | Path | None, problem: str):
+        self.path = None if path is None else Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
+
+
+class FormatError(DataError):
+    """A file in one of our own formats (.stgc, checkpoint, PLY) is invalid."""
