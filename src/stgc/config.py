@@ -1,0 +1,224 @@
+"""Config dataclasses <-> command line and JSON.
+
+Every package owns its config as a dataclass whose fields carry a default and `metadata={"help": ...}`.
+This module turns such a dataclass into argparse options (`--section.field VALUE`), applies dotted
+`key=value` overrides (`--set train.iterations=5000`) with the field's own type, and round-trips configs
+through JSON, so the CLI and the saved `config.json` never drift from the code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import difflib
+import json
+import types
+import typing
+from typing import Any, Iterator, Literal, get_args, get_origin
+
+from stgc.errors import StgcError
+
+
+class ConfigError(StgcError, ValueError):
+    """An override names an unknown field or gives a value of the wrong type."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FieldSpec:
+    dotted: str  # e.g. "densify.grad_threshold" relative to the section
+    type: Any
+    default: Any
+    help: str
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _unwrap_optional(tp: Any) -> tuple[Any, bool]:
+    origin = get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in get_args(tp) if a is not type(None)]
+        if len(args) == 1 and len(get_args(tp)) == 2:
+            return args[0], True
+    return tp, False
+
+
+def iter_fields(obj_or_cls: Any, prefix: str = "") -> Iterator[FieldSpec]:
+    """All leaf fields of a (nested) config dataclass, with dotted names."""
+    cls = obj_or_cls if isinstance(obj_or_cls, type) else type(obj_or_cls)
+    hints = _hints(cls)
+    for f in dataclasses.fields(cls):
+        if not f.init or f.name.startswith("_"):
+            continue
+        tp = hints[f.name]
+        if isinstance(obj_or_cls, type):
+            if f.default is not dataclasses.MISSING:
+                default = f.default
+            elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+                default = f.default_factory()  # type: ignore[misc]
+            else:
+                default = None
+        else:
+            default = getattr(obj_or_cls, f.name)
+        name = f"{prefix}{f.name}"
+        inner, _ = _unwrap_optional(tp)
+        if dataclasses.is_dataclass(inner) and isinstance(inner, type):
+            yield from iter_fields(default if default is not None else inner, prefix=f"{name}.")
+        else:
+            yield FieldSpec(name, tp, default, f.metadata.get("help", ""))
+
+
+def _type_name(tp: Any) -> str:
+    inner, optional = _unwrap_optional(tp)
+    if get_origin(inner) is Literal:
+        s = "|".join(str(a) for a in get_args(inner))
+    elif isinstance(inner, type):
+        s = inner.__name__
+    else:
+        s = str(inner).replace("typing.", "")
+    return f"{s}|none" if optional else s
+
+
+def coerce(value: Any, tp: Any, name: str) -> Any:
+    """Convert a command-line string (or a JSON value) to the field type `tp`."""
+    inner, optional = _unwrap_optional(tp)
+    if isinstance(value, str) and optional and value.lower() in ("none", "null", ""):
+        return None
+    if value is None:
+        if optional:
+            return None
+        raise ConfigError(f"{name}: None is not allowed (expected {_type_name(tp)})")
+    origin = get_origin(inner)
+    try:
+        if origin is Literal:
+            choices = get_args(inner)
+            for c in choices:
+                if value == c or (isinstance(value, str) and str(c) == value):
+                    return c
+            raise ConfigError(f"{name}: {value!r} is not one of {', '.join(map(str, choices))}")
+        if inner is bool:
+            if isinstance(value, bool):
+                return value
+            s = str(value).lower()
+            if s in ("1", "true", "yes", "on"):
+                return True
+            if s in ("0", "false", "no", "off"):
+                return False
+            raise ConfigError(f"{name}: {value!r} is not a boolean (true/false)")
+        if inner is int:
+            if isinstance(value, float) and not value.is_integer():
+                raise ConfigError(f"{name}: {value!r} is not an integer")
+            return int(float(value)) if isinstance(value, str) and "e" in value.lower() else int(value)
+        if inner is float:
+            return float(value)
+        if inner is str:
+            return str(value)
+        if origin in (list, tuple) or inner in (list, tuple):
+            items = json.loads(value) if isinstance(value, str) and value.strip().startswith("[") else value
+            if isinstance(items, str):
+                items = [s for s in items.split(",") if s.strip()]
+            args = get_args(inner)
+            elem = args[0] if args else str
+            out = [coerce(v, elem, name) for v in items]
+            return tuple(out) if (origin is tuple or inner is tuple) else out
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{name}: cannot read {value!r} as {_type_name(tp)} ({exc})") from None
+    return value
+
+
+def apply_overrides(obj: Any, overrides: dict[str, Any], section: str = "") -> Any:
+    """Return a copy of the config dataclass `obj` with dotted-name overrides applied."""
+    if not overrides:
+        return obj
+    specs = {s.dotted: s for s in iter_fields(obj)}
+    grouped: dict[str, Any] = {}
+    for key, value in overrides.items():
+        if key not in specs:
+            where = f"{section}." if section else ""
+            close = difflib.get_close_matches(key, list(specs), n=1)
+            hint = f" (did you mean {where}{close[0]}?)" if close else ""
+            raise ConfigError(f"unknown option {where}{key}{hint}")
+        grouped[key] = coerce(value, specs[key].type, f"{section}.{key}" if section else key)
+    return _replace_nested(obj, grouped)
+
+
+def _replace_nested(obj: Any, values: dict[str, Any]) -> Any:
+    direct = {k: v for k, v in values.items() if "." not in k}
+    nested: dict[str, dict[str, Any]] = {}
+    for k, v in values.items():
+        if "." in k:
+            head, rest = k.split(".", 1)
+            nested.setdefault(head, {})[rest] = v
+    for head, sub in nested.items():
+        direct[head] = _replace_nested(getattr(obj, head), sub)
+    return dataclasses.replace(obj, **direct)
+
+
+def to_dict(obj: Any) -> dict[str, Any]:
+    return dataclasses.asdict(obj)
+
+
+def from_dict(cls: type, data: dict[str, Any]) -> Any:
+    """Rebuild a config dataclass from `to_dict` output; unknown keys are an error, missing keys take defaults."""
+    flat: dict[str, Any] = {}
+
+    def walk(d: dict[str, Any], prefix: str) -> None:
+        for k, v in d.items():
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}.")
+            else:
+                flat[f"{prefix}{k}"] = v
+
+    walk(data, "")
+    return apply_overrides(cls(), flat)
+
+
+def parse_set_arguments(items: list[str] | None) -> dict[str, str]:
+    """`["train.iterations=5000", ...]` -> {"train.iterations": "5000"}."""
+    out: dict[str, str] = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ConfigError(f"--set expects key=value, got {item!r}")
+        key, value = item.split("=", 1)
+        out[key.strip()] = value.strip()
+    return out
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, section: str, cls_or_obj: Any, title: str) -> None:
+    """Add one `--section.field` option per leaf field; given values are collected by `collect_overrides`."""
+    group = parser.add_argument_group(title)
+    for spec in iter_fields(cls_or_obj):
+        default = spec.default
+        shown = "none" if default is None else (str(default).lower() if isinstance(default, bool) else default)
+        group.add_argument(
+            f"--{section}.{spec.dotted}",
+            dest=f"cfg:{section}:{spec.dotted}",
+            metavar=_type_name(spec.type).upper() if get_origin(_unwrap_optional(spec.type)[0]) is not Literal
+            else "{" + _type_name(spec.type) + "}",
+            default=argparse.SUPPRESS,
+            help=f"{spec.help} (default: {shown})".strip(),
+        )
+
+
+def collect_overrides(namespace: argparse.Namespace) -> dict[str, dict[str, str]]:
+    """{section: {dotted: raw_value}} for every `--section.field` given on the command line."""
+    out: dict[str, dict[str, str]] = {}
+    for key, value in vars(namespace).items():
+        if key.startswith("cfg:"):
+            _, section, dotted = key.split(":", 2)
+            out.setdefault(section, {})[dotted] = value
+    return out
+
+
+def split_sections(flat: dict[str, str], sections: set[str]) -> dict[str, dict[str, str]]:
+    """Group `--set` overrides `section.field=value` by their leading section name."""
+    out: dict[str, dict[str, str]] = {}
+    for key, value in flat.items():
+        head, _, rest = key.partition(".")
+        if head not in sections or not rest:
+            raise ConfigError(f"--set {key}: keys start with one of {', '.join(sorted(sections))}")
+        out.setdefault(head, {})[rest] = value
+    return out

@@ -1,0 +1,75 @@
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, field
+from typing import Literal, Optional
+
+import pytest
+
+from stgc.config import (
+    ConfigError,
+    add_config_arguments,
+    apply_overrides,
+    collect_overrides,
+    from_dict,
+    iter_fields,
+    parse_set_arguments,
+    to_dict,
+)
+
+
+@dataclass(frozen=True)
+class Inner:
+    threshold: float = field(default=2e-4, metadata={"help": "gradient threshold"})
+    rounds: int = field(default=6, metadata={"help": "rounds"})
+
+
+@dataclass(frozen=True)
+class Outer:
+    iterations: int = field(default=30000, metadata={"help": "total iterations"})
+    criterion: Literal["timestamp", "scale"] = field(default="timestamp", metadata={"help": "which to drop"})
+    enabled: bool = field(default=True, metadata={"help": "on/off"})
+    limit: Optional[int] = field(default=None, metadata={"help": "optional"})
+    times: tuple[float, ...] = field(default=(0.5,), metadata={"help": "sample times"})
+    inner: Inner = field(default_factory=Inner)
+
+
+def test_fields_are_flattened_with_dotted_names():
+    names = [s.dotted for s in iter_fields(Outer)]
+    assert names == ["iterations", "criterion", "enabled", "limit", "times", "inner.threshold", "inner.rounds"]
+
+
+def test_overrides_are_coerced_to_the_field_type():
+    cfg = apply_overrides(
+        Outer(),
+        {"iterations": "5000", "criterion": "scale", "enabled": "false", "limit": "none",
+         "times": "0.1,0.9", "inner.threshold": "1e-3"},
+    )
+    assert cfg.iterations == 5000 and cfg.criterion == "scale" and cfg.enabled is False
+    assert cfg.limit is None and cfg.times == (0.1, 0.9) and cfg.inner.threshold == pytest.approx(1e-3)
+    assert cfg.inner.rounds == 6
+
+
+@pytest.mark.parametrize(
+    "key,value,message",
+    [("iterations", "abc", "cannot read"), ("criterion", "size", "not one of"), ("enabled", "maybe", "boolean"),
+     ("inner.thresold", "1", "did you mean inner.threshold"), ("nope", "1", "unknown option")],
+)
+def test_bad_overrides_name_the_field(key, value, message):
+    with pytest.raises(ConfigError, match=message):
+        apply_overrides(Outer(), {key: value})
+
+
+def test_json_round_trip():
+    cfg = apply_overrides(Outer(), {"inner.rounds": "3", "times": "[0.25, 0.75]"})
+    assert from_dict(Outer, to_dict(cfg)) == cfg
+
+
+def test_argparse_options_are_generated_with_defaults_in_help():
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser, "train", Outer, "training")
+    help_text = parser.format_help()
+    assert "--train.inner.threshold" in help_text and "(default: 0.0002)" in help_text
+    ns = parser.parse_args(["--train.iterations", "10", "--train.inner.rounds", "2"])
+    assert collect_overrides(ns) == {"train": {"iterations": "10", "inner.rounds": "2"}}
+    assert parse_set_arguments(["a.b=1", "c=x=y"]) == {"a.b": "1", "c": "x=y"}
