@@ -1,0 +1,205 @@
+"""Image quality metrics as 3DGS / Spacetime Gaussians compute them: PSNR, SSIM, (optional) LPIPS.
+
+Layouts: a 2-D tensor is [H, W] (one channel), a 3-D tensor is [H, W, C] (what renderers and image loaders
+give), a 4-D tensor is a batch [B, C, H, W] (what losses usually see). Images are floats in [0, 1]; uint8
+inputs are divided by 255. Everything is differentiable torch; numpy arrays are accepted and converted.
+
+SSIM is the 3DGS definition (`gaussian_splatting/utils/loss_utils.py: ssim`): an 11x11 Gaussian window with
+sigma 1.5, normalised to sum 1, applied per channel with *zero* padding of 5 pixels, C1 = 0.01^2,
+C2 = 0.03^2, population (not sample) statistics, and the SSIM map averaged over *every* pixel including the
+5-pixel border where the window hangs over the zero padding. scikit-image's `structural_similarity`
+(gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1) uses the same window but
+reflect padding and averages only the interior (it crops 5 pixels per side), so the two agree exactly on the
+interior and differ slightly on the whole-image mean; see docs/evaluation.md.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+SSIM_WINDOW_SIZE = 11
+SSIM_SIGMA = 1.5
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
+
+
+def _as_float_tensor(x: Any) -> torch.Tensor:
+    if isinstance(x, np.ndarray):
+        x = torch.from_numpy(np.ascontiguousarray(x))
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"expected a torch.Tensor or numpy array, got {type(x).__name__}")
+    if x.dtype == torch.uint8:
+        return x.to(torch.float32) / 255.0
+    if not x.is_floating_point():
+        return x.to(torch.float32)
+    return x
+
+
+def _check_pair(img: torch.Tensor, ref: torch.Tensor) -> None:
+    if img.shape != ref.shape:
+        raise ValueError(f"image shapes differ: {tuple(img.shape)} vs reference {tuple(ref.shape)}")
+    if img.ndim not in (2, 3, 4):
+        raise ValueError(f"expected [H,W], [H,W,C] or [B,C,H,W], got shape {tuple(img.shape)}")
+
+
+def _to_bchw(x: torch.Tensor) -> torch.Tensor:
+    if x.ndim == 2:
+        return x[None, None]
+    if x.ndim == 3:
+        return x.permute(2, 0, 1)[None]
+    return x
+
+
+def mse(img: Any, ref: Any) -> torch.Tensor:
+    """Mean squared error over all pixels and channels (and batch items)."""
+    img, ref = _as_float_tensor(img), _as_float_tensor(ref)
+    _check_pair(img, ref)
+    return ((img - ref.to(img.dtype)) ** 2).mean()
+
+
+def psnr(img: Any, ref: Any, max_value: float = 1.0) -> torch.Tensor:
+    """PSNR in dB: 20·log10(max / sqrt(MSE)), MSE over all pixels and channels (STG `test.py`).
+
+    For a batch this is the PSNR of the pooled MSE; evaluation averages per-image PSNRs instead (use
+    `psnr_per_image`). Identical images give +inf."""
+    err = mse(img, ref)
+    return 20.0 * torch.log10(max_value / torch.sqrt(err))
+
+
+def psnr_per_image(img: Any, ref: Any, max_value: float = 1.0) -> torch.Tensor:
+    """PSNR of each item of a [B,C,H,W] batch, shape [B] (the 3DGS `image_utils.psnr`)."""
+    img, ref = _as_float_tensor(img), _as_float_tensor(ref)
+    _check_pair(img, ref)
+    if img.ndim != 4:
+        return psnr(img, ref, max_value).reshape(1)
+    err = ((img - ref.to(img.dtype)) ** 2).flatten(1).mean(1)
+    return 20.0 * torch.log10(max_value / torch.sqrt(err))
+
+
+@functools.lru_cache(maxsize=8)
+def _gaussian_taps(window_size: int, sigma: float, dtype: torch.dtype) -> torch.Tensor:
+    centre = window_size // 2
+    taps = torch.tensor(
+        [math.exp(-((i - centre) ** 2) / (2.0 * sigma**2)) for i in range(window_size)], dtype=torch.float64
+    )
+    return (taps / taps.sum()).to(dtype)
+
+
+def gaussian_window(window_size: int = SSIM_WINDOW_SIZE, sigma: float = SSIM_SIGMA) -> torch.Tensor:
+    """The normalised 1-D Gaussian taps (float64); the 2-D SSIM window is their outer product."""
+    return _gaussian_taps(window_size, sigma, torch.float64).clone()
+
+
+def _blur(stack: torch.Tensor, window_size: int, sigma: float) -> torch.Tensor:
+    """Separable zero-padded Gaussian blur of every [H, W] plane of `stack` [N, 1, H, W].
+
+    Two 1-D passes cost 2·11 multiply-adds per pixel instead of 121; zero padding composes exactly
+    because the 2-D window is the outer product of the 1-D taps."""
+    taps = _gaussian_taps(window_size, sigma, stack.dtype).to(stack.device)
+    pad = window_size // 2
+    out = F.conv2d(stack, taps.view(1, 1, window_size, 1), padding=(pad, 0))
+    return F.conv2d(out, taps.view(1, 1, 1, window_size), padding=(0, pad))
+
+
+def ssim_map(
+    img: Any, ref: Any, window_size: int = SSIM_WINDOW_SIZE, sigma: float = SSIM_SIGMA
+) -> torch.Tensor:
+    """Per-pixel SSIM, shape [B, C, H, W] (a 2-D/3-D input is treated as a batch of one)."""
+    img, ref = _as_float_tensor(img), _as_float_tensor(ref)
+    _check_pair(img, ref)
+    x, y = _to_bchw(img), _to_bchw(ref).to(img.dtype)
+    b, c, h, w = x.shape
+    # One convolution call for the five local moments, every channel as its own plane.
+    stack = torch.stack([x, y, x * x, y * y, x * y]).reshape(5 * b * c, 1, h, w)
+    mu_x, mu_y, exx, eyy, exy = _blur(stack, window_size, sigma).reshape(5, b, c, h, w)
+    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+    var_x, var_y, cov_xy = exx - mu_xx, eyy - mu_yy, exy - mu_xy
+    num = (2.0 * mu_xy + SSIM_C1) * (2.0 * cov_xy + SSIM_C2)
+    den = (mu_xx + mu_yy + SSIM_C1) * (var_x + var_y + SSIM_C2)
+    return num / den
+
+
+def ssim(img: Any, ref: Any, window_size: int = SSIM_WINDOW_SIZE, sigma: float = SSIM_SIGMA) -> torch.Tensor:
+    """Mean SSIM over all pixels, channels and batch items (3DGS `ssim(..., size_average=True)`)."""
+    return ssim_map(img, ref, window_size, sigma).mean()
+
+
+def ssim_per_image(img: Any, ref: Any) -> torch.Tensor:
+    """Mean SSIM of each batch item, shape [B]."""
+    return ssim_map(img, ref).flatten(1).mean(1)
+
+
+# --------------------------------------------------------------------------------------------- LPIPS
+
+
+def _torch_hub_checkpoints() -> Path:
+    return Path(torch.hub.get_dir()) / "checkpoints"
+
+
+# Backbone checkpoints the `lpips` package pulls through torchvision on first use.
+_LPIPS_BACKBONE_FILES = {
+    "alex": "alexnet-owt-7be5be79.pth",
+    "vgg": "vgg16-397923af.pth",
+}
+
+
+def lpips_status(net: str = "alex") -> tuple[bool, str]:
+    """Whether LPIPS can be computed *without downloading anything*, and if not, why.
+
+    Needs the `lpips` and `torchvision` packages, lpips' own linear-layer weights (shipped inside the
+    package) and the torchvision backbone checkpoint already in the torch hub cache."""
+    if net not in _LPIPS_BACKBONE_FILES:
+        return False, f"unknown LPIPS network {net!r}; expected one of {sorted(_LPIPS_BACKBONE_FILES)}"
+    for package in ("lpips", "torchvision"):
+        if importlib.util.find_spec(package) is None:
+            return False, f"skipped: python package {package!r} is not installed"
+    spec = importlib.util.find_spec("lpips")
+    assert spec is not None and spec.origin is not None
+    linear = Path(spec.origin).parent / "weights" / "v0.1" / f"{net}.pth"
+    if not linear.is_file():
+        return False, f"skipped: lpips linear weights missing ({linear})"
+    backbone = _torch_hub_checkpoints() / _LPIPS_BACKBONE_FILES[net]
+    if not backbone.is_file():
+        return False, f"skipped: {net} backbone weights not in the torch hub cache ({backbone}); not downloading"
+    return True, "available"
+
+
+class LPIPS:
+    """LPIPS with locally available weights only. Construct via `LPIPS.create(net)`, which returns None
+    (and a reason) when the weights are not on this machine.
+
+    `rescale=True` maps [0,1] images to [-1,1] as the lpips package expects; the 3DGS/STG evaluation feeds
+    [0,1] directly (rescale=False reproduces their numbers)."""
+
+    def __init__(self, net: str = "alex", rescale: bool = True):
+        import lpips as lpips_pkg  # noqa: PLC0415 - optional dependency
+
+        self.net = net
+        self.rescale = rescale
+        # pretrained=True loads the linear layers from the package; the backbone comes from the hub cache.
+        self._model = lpips_pkg.LPIPS(net=net, verbose=False).eval()
+
+    @classmethod
+    def create(cls, net: str = "alex", rescale: bool = True) -> tuple["LPIPS | None", str]:
+        ok, reason = lpips_status(net)
+        if not ok:
+            return None, reason
+        try:
+            return cls(net, rescale), "available"
+        except Exception as exc:  # a broken optional install must not break evaluation
+            return None, f"skipped: could not load LPIPS-{net}: {exc}"
+
+    @torch.no_grad()
+    def __call__(self, img: Any, ref: Any) -> float:
+        img, ref = _as_float_tensor(img), _as_float_tensor(ref)
+        _check_pair(img, ref)
+        x, y = _to_bchw(img).float(), _to_bchw(ref).float()
+        return float(self._model(x, y, normalize=self.rescale).mean())

@@ -1,0 +1,116 @@
+"""PSNR / SSIM against independent implementations: scikit-image and a plain 2-D-window transcription of
+the 3DGS formula."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+from stgc.eval import lpips_status, psnr, psnr_per_image, ssim, ssim_map, ssim_per_image
+
+
+def _pair(seed: int, h: int = 37, w: int = 45, c: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    ref = rng.random((h, w, c))
+    # A correlated, clipped distortion so SSIM sits well away from 0 and 1.
+    img = np.clip(ref + 0.15 * rng.standard_normal((h, w, c)), 0.0, 1.0)
+    return img, ref
+
+
+def _ssim_3dgs_2d_window(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """The 3DGS loss_utils definition written out directly: a full 11x11 window, one grouped conv per moment."""
+    x, y = img.permute(2, 0, 1)[None], ref.permute(2, 0, 1)[None]
+    c = x.shape[1]
+    g = torch.tensor([np.exp(-((i - 5) ** 2) / (2 * 1.5**2)) for i in range(11)], dtype=x.dtype)
+    g = g / g.sum()
+    window = (g[:, None] @ g[None, :]).expand(c, 1, 11, 11).contiguous()
+
+    def conv(t: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(t, window, padding=5, groups=c)
+
+    mu1, mu2 = conv(x), conv(y)
+    s11 = conv(x * x) - mu1**2
+    s22 = conv(y * y) - mu2**2
+    s12 = conv(x * y) - mu1 * mu2
+    c1, c2 = 0.01**2, 0.03**2
+    m = ((2 * mu1 * mu2 + c1) * (2 * s12 + c2)) / ((mu1**2 + mu2**2 + c1) * (s11 + s22 + c2))
+    return m
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_psnr_matches_skimage(seed: int) -> None:
+    img, ref = _pair(seed)
+    ours = float(psnr(torch.from_numpy(img), torch.from_numpy(ref)))
+    assert ours == pytest.approx(peak_signal_noise_ratio(ref, img, data_range=1.0), abs=1e-9)
+
+
+def test_psnr_uint8_and_per_image() -> None:
+    img, ref = _pair(3)
+    img8, ref8 = (img * 255).round().astype(np.uint8), (ref * 255).round().astype(np.uint8)
+    expected = peak_signal_noise_ratio(ref8, img8, data_range=255)
+    assert float(psnr(img8, ref8)) == pytest.approx(expected, abs=1e-4)
+    batch_img = torch.from_numpy(np.stack([img, ref])).permute(0, 3, 1, 2)
+    batch_ref = torch.from_numpy(np.stack([ref, ref])).permute(0, 3, 1, 2)
+    per = psnr_per_image(batch_img, batch_ref)
+    assert float(per[0]) == pytest.approx(peak_signal_noise_ratio(ref, img, data_range=1.0), abs=1e-9)
+    assert torch.isinf(per[1])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_ssim_interior_equals_skimage(seed: int) -> None:
+    """Same window, constants and population statistics: on pixels whose window stays inside the image the
+    two maps are identical; skimage's mean is exactly the interior mean (it crops 5 px per side)."""
+    img, ref = _pair(seed)
+    sk_mean, sk_map = structural_similarity(
+        ref, img, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0,
+        channel_axis=-1, full=True,
+    )
+    ours = ssim_map(torch.from_numpy(img), torch.from_numpy(ref))[0].permute(1, 2, 0).numpy()
+    np.testing.assert_allclose(ours[5:-5, 5:-5], sk_map[5:-5, 5:-5], atol=1e-10)
+    assert ours[5:-5, 5:-5].mean() == pytest.approx(sk_mean, abs=1e-10)
+    # The documented difference: 3DGS averages the zero-padded border too, which drags the mean down here.
+    whole = float(ssim(torch.from_numpy(img), torch.from_numpy(ref)))
+    assert whole != pytest.approx(sk_mean, abs=1e-4)
+
+
+def test_ssim_whole_image_equals_3dgs_formula() -> None:
+    img, ref = _pair(5, h=23, w=31)
+    a, b = torch.from_numpy(img), torch.from_numpy(ref)
+    expected = _ssim_3dgs_2d_window(a, b)
+    ours = ssim_map(a, b)
+    torch.testing.assert_close(ours, expected, atol=1e-12, rtol=0)
+    assert float(ssim(a, b)) == pytest.approx(float(expected.mean()), abs=1e-12)
+
+
+def test_ssim_layouts_agree_and_identity() -> None:
+    img, ref = _pair(6, h=20, w=24)
+    a, b = torch.from_numpy(img), torch.from_numpy(ref)
+    hwc = float(ssim(a, b))
+    bchw = ssim_per_image(a.permute(2, 0, 1)[None].repeat(2, 1, 1, 1), b.permute(2, 0, 1)[None].repeat(2, 1, 1, 1))
+    assert torch.allclose(bchw, torch.full((2,), hwc, dtype=torch.float64))
+    assert float(ssim(b, b)) == pytest.approx(1.0, abs=1e-12)
+    gray = float(ssim(a[..., 0], b[..., 0]))
+    assert gray == pytest.approx(float(ssim_map(a, b)[0, 0].mean()), abs=1e-12)
+
+
+def test_ssim_gradient_matches_finite_differences() -> None:
+    img, ref = _pair(7, h=12, w=13, c=2)
+    x = torch.from_numpy(img).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: ssim(t, torch.from_numpy(ref)), (x,), eps=1e-6, atol=1e-6)
+
+
+def test_shape_mismatch_is_reported() -> None:
+    with pytest.raises(ValueError, match="shapes differ"):
+        ssim(torch.zeros(8, 8, 3), torch.zeros(8, 9, 3))
+
+
+def test_lpips_reports_a_reason_when_unavailable() -> None:
+    ok, reason = lpips_status("alex")
+    assert isinstance(ok, bool)
+    if not ok:
+        assert reason.startswith("skipped:")
+    bad, why = lpips_status("squeezenet-nope")
+    assert not bad and "unknown" in why
