@@ -1,0 +1,210 @@
+"""Training configuration: optimisation, densification, floater control, EMS, logging, checkpoints.
+
+Every iteration number that belongs to the *schedule* (total iterations, densification start/interval, pruning and
+reset windows, EMS start, PLY save points) is written on the official 30k-iteration scale and multiplied by ONE
+factor, `schedule_scale`, when the run starts (`resolve_schedule`). The `paper` preset is scale 1 (the official
+STG schedule); the `cpu` preset shrinks the same schedule so a 2-core CPU finishes in well under an hour.
+Operational counters (logging, checkpointing, `stop_after`) are in real iterations and are not scaled.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Optional
+
+
+@dataclass(frozen=True)
+class LearningRates:
+    """Adam learning rates per parameter group (official STG `training_setup` defaults)."""
+
+    xyz_init: float = field(default=1.6e-4, metadata={"help": "xyz lr at iteration 0, times the scene extent E"})
+    xyz_final: float = field(
+        default=1.6e-6, metadata={"help": "xyz lr at the last iteration (log-linear decay), times E"}
+    )
+    motion: float = field(default=2.8e-4, metadata={"help": "polynomial motion lr, times E (official 1.6e-4*0.5*3.5)"})
+    features_dc: float = field(default=2.5e-3, metadata={"help": "base colour / feature lr"})
+    features_t: float = field(default=1e-3, metadata={"help": "time-feature lr (full variant)"})
+    opacity: float = field(default=5e-2, metadata={"help": "opacity logit lr"})
+    scaling: float = field(default=5e-3, metadata={"help": "log-scale lr (official configs use 1.5e-3 to 5e-3)"})
+    rotation: float = field(default=1e-3, metadata={"help": "quaternion lr"})
+    omega: float = field(default=1e-4, metadata={"help": "angular velocity lr"})
+    trbf_center: float = field(default=1e-4, metadata={"help": "temporal centre mu_t lr"})
+    trbf_scale: float = field(default=3e-2, metadata={"help": "log temporal scale lr"})
+    decoder: float = field(default=1e-4, metadata={"help": "feature decoder MLP lr (full variant)"})
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    """Clone/split, opacity pruning and opacity reset (official `controlgaussians`, densify mode 1)."""
+
+    enabled: bool = field(default=True, metadata={"help": "run clone/split densification at all"})
+    start: int = field(default=500, metadata={"help": "first densification iteration (schedule units)"})
+    interval: int = field(default=100, metadata={"help": "iterations between densify/prune steps (schedule units)"})
+    rounds: int = field(default=6, metadata={"help": "number of clone/split rounds (official desicnt: 6 N3D, 12 Technicolor)"})
+    grad_threshold: float = field(
+        default=2e-4, metadata={"help": "mean NDC screen-space gradient norm above which a Gaussian is densified"}
+    )
+    percent_dense: float = field(
+        default=0.01, metadata={"help": "max scale (fraction of E) below which a Gaussian is cloned, above split"}
+    )
+    split_count: int = field(default=2, metadata={"help": "Gaussians a split one becomes"})
+    prune_opacity: float = field(
+        default=0.005, metadata={"help": "after the densification rounds, prune Gaussians with opacity below this"}
+    )
+    prune_until: int = field(
+        default=7000, metadata={"help": "opacity pruning stops at this iteration (schedule units; official 7000)"}
+    )
+    opacity_reset_interval: int = field(
+        default=3000, metadata={"help": "reset opacities every this many iterations (schedule units; 0 = never)"}
+    )
+    opacity_reset_until: int = field(
+        default=9000, metadata={"help": "no opacity reset at or after this iteration (schedule units)"}
+    )
+    opacity_reset_value: float = field(default=0.01, metadata={"help": "opacities are clamped to at most this value"})
+
+
+@dataclass(frozen=True)
+class FloaterConfig:
+    """CPU-scale floater control (not in official STG; see docs/training.md). Zero disables a rule."""
+
+    near_camera: float = field(
+        default=0.0,
+        metadata={"help": "prune Gaussians whose centre is closer than this fraction of E to a training camera"},
+    )
+    max_world_scale: float = field(
+        default=0.0, metadata={"help": "prune Gaussians whose largest axis exceeds this fraction of E"}
+    )
+    until: int = field(
+        default=30000, metadata={"help": "apply the rules at densification intervals until this iteration (schedule units)"}
+    )
+
+
+@dataclass(frozen=True)
+class EMSConfig:
+    """Error-guided sampling: add Gaussians along the rays of badly reconstructed patches (official train.py)."""
+
+    enabled: bool = field(default=False, metadata={"help": "enable error-guided sampling"})
+    start: int = field(default=1600, metadata={"help": "first EMS iteration (schedule units)"})
+    select_ssim: float = field(default=0.91, metadata={"help": "cameras below this SSIM are EMS candidates"})
+    trigger_ssim: float = field(default=0.88, metadata={"help": "add points when a candidate's SSIM is below this"})
+    error_quantile: float = field(default=0.6, metadata={"help": "pixels above this error quantile are errors"})
+    patch: int = field(default=16, metadata={"help": "patch size in pixels"})
+    patch_fraction: float = field(default=0.85, metadata={"help": "fraction of error pixels that marks a patch"})
+    depth_near: float = field(default=0.7, metadata={"help": "near sample depth as a fraction of the view depth"})
+    depth_far: float = field(default=7.5, metadata={"help": "far sample depth as a fraction of the view depth"})
+    max_events: int = field(default=2, metadata={"help": "at most this many EMS insertions per run"})
+    min_gap: int = field(default=100, metadata={"help": "iterations between two EMS insertions (schedule units)"})
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything the trainer needs besides data, model and compaction configs."""
+
+    preset: str = field(default="custom", metadata={"help": "name of the preset these values came from (informational)"})
+    iterations: int = field(default=30000, metadata={"help": "total iterations (schedule units)"})
+    schedule_scale: float = field(
+        default=1.0, metadata={"help": "multiplies every schedule iteration (1 = official 30k schedule)"}
+    )
+    batch: int = field(default=2, metadata={"help": "training views of one timestamp per iteration (grads averaged)"})
+    lambda_dssim: float = field(default=0.2, metadata={"help": "loss = (1-l)*L1 + l*(1-SSIM)"})
+    seed: int = field(default=0, metadata={"help": "seed of every random stream (frame/view sampling, densification)"})
+    backend: str = field(default="auto", metadata={"help": "rasterizer backend passed to stgc.render"})
+    threads: int = field(default=0, metadata={"help": "torch threads (0 = leave as is)"})
+    lr: LearningRates = field(default_factory=LearningRates)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    floaters: FloaterConfig = field(default_factory=FloaterConfig)
+    ems: EMSConfig = field(default_factory=EMSConfig)
+    save_iterations: tuple[int, ...] = field(
+        default=(7000, 10000, 12000, 25000, 30000),
+        metadata={"help": "write an official PLY at these iterations (schedule units); the last one is always written"},
+    )
+    checkpoint_every: int = field(default=500, metadata={"help": "write RUN/checkpoint.pt every N iterations (0 = end only)"})
+    log_every: int = field(default=50, metadata={"help": "append to RUN/metrics.jsonl every N iterations"})
+    eval_every: int = field(default=0, metadata={"help": "evaluate on the test views every N iterations (0 = end only)"})
+    eval_at_end: bool = field(default=True, metadata={"help": "evaluate on all test views x frames at the end"})
+    progress: bool = field(default=True, metadata={"help": "show a progress bar"})
+    tensorboard: bool = field(default=True, metadata={"help": "log to TensorBoard when it is importable"})
+    stop_after: Optional[int] = field(
+        default=None,
+        metadata={"help": "stop (checkpoint, unfinished) after this many iterations, as if killed; resume continues"},
+    )
+
+
+# Measured on this 2-core CPU (docs/training.md): the full model on blender_toys 160x120 runs at about
+# 2 it/s, so 0.15 x 30k = 4500 iterations take ~40 min.
+CPU_SCHEDULE_SCALE = 0.15
+
+
+def paper_preset() -> TrainConfig:
+    """The official STG schedule (30k iterations, N3D densify mode 1)."""
+    return TrainConfig(preset="paper")
+
+
+def cpu_preset() -> TrainConfig:
+    """The official schedule shrunk by `CPU_SCHEDULE_SCALE` for a 2-core CPU."""
+    return TrainConfig(preset="cpu", schedule_scale=CPU_SCHEDULE_SCALE)
+
+
+PRESETS = {"paper": paper_preset, "cpu": cpu_preset}
+
+
+def train_preset(name: str) -> TrainConfig:
+    """The named preset ("paper" or "cpu")."""
+    try:
+        return PRESETS[name]()
+    except KeyError:
+        raise ValueError(f"unknown training preset {name!r}; expected one of {sorted(PRESETS)}") from None
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """The schedule in real iterations (the config's schedule units times `schedule_scale`)."""
+
+    iterations: int
+    densify_start: int
+    densify_interval: int
+    densify_end: int  # last iteration that may clone/split
+    prune_until: int
+    opacity_reset_interval: int
+    opacity_reset_until: int
+    floaters_until: int
+    ems_start: int
+    ems_min_gap: int
+    save_iterations: tuple[int, ...]
+
+    def is_densify_step(self, iteration: int) -> bool:
+        return iteration > self.densify_start and (iteration - self.densify_start) % self.densify_interval == 0
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def resolve_schedule(cfg: TrainConfig) -> Schedule:
+    """Scale every schedule point by `cfg.schedule_scale` (never below one iteration)."""
+    s = cfg.schedule_scale
+    if s <= 0:
+        raise ValueError(f"train.schedule_scale must be positive, got {s}")
+
+    def scaled(x: int) -> int:
+        return max(1, int(round(x * s)))
+
+    d = cfg.densify
+    iterations = scaled(cfg.iterations)
+    start, interval = scaled(d.start), scaled(d.interval)
+    saves = sorted({min(scaled(x), iterations) for x in cfg.save_iterations} | {iterations})
+    return Schedule(
+        iterations=iterations,
+        densify_start=start,
+        densify_interval=interval,
+        # Official: the first `desicnt` densification steps clone/split (start + interval * k, k = 1..rounds,
+        # because its counter skips the very first call at `start`), later steps only prune.
+        densify_end=start + interval * d.rounds if d.enabled else -1,
+        prune_until=scaled(d.prune_until),
+        opacity_reset_interval=scaled(d.opacity_reset_interval) if d.opacity_reset_interval > 0 else 0,
+        opacity_reset_until=scaled(d.opacity_reset_until),
+        floaters_until=scaled(cfg.floaters.until),
+        ems_start=scaled(cfg.ems.start),
+        ems_min_gap=scaled(cfg.ems.min_gap),
+        save_iterations=tuple(saves),
+    )

@@ -1,0 +1,182 @@
+"""Adaptive density control of Spacetime Gaussians: gradient statistics, clone/split, pruning, opacity reset.
+
+Follows the official STG (`GS/scene/oursfull.py` densify_and_clone / densify_and_split, `helper_train.controlgaussians`),
+which is 3DGS density control plus one change: every new Gaussian gets a fresh temporal centre mu_t ~ U[0, 1].
+All row edits go through `model.prune` / `model.extend`, which keep Adam's moments aligned; the trainer's own
+per-Gaussian arrays (`DensificationStats`) are edited here with the same masks.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+
+
+class DensificationStats:
+    """Per-Gaussian sum of NDC screen-space mean-gradient norms and the number of views that saw it."""
+
+    def __init__(self, num_gaussians: int):
+        self.grad_sum = torch.zeros(num_gaussians, dtype=torch.float64)
+        self.count = torch.zeros(num_gaussians, dtype=torch.int64)
+
+    def __len__(self) -> int:
+        return self.grad_sum.shape[0]
+
+    def add(self, index: torch.Tensor, grad_norm: torch.Tensor, visible: torch.Tensor) -> None:
+        """Accumulate one view: `index` maps the rasterized subset to model rows; only visible ones count."""
+        rows = index[visible]
+        self.grad_sum.index_add_(0, rows, grad_norm[visible].detach().to(torch.float64))
+        self.count.index_add_(0, rows, torch.ones_like(rows))
+
+    def mean_grad(self) -> torch.Tensor:
+        return torch.where(self.count > 0, self.grad_sum / self.count.clamp(min=1), torch.zeros_like(self.grad_sum))
+
+    def keep(self, mask: torch.Tensor) -> None:
+        self.grad_sum, self.count = self.grad_sum[mask], self.count[mask]
+
+    def append(self, n: int) -> None:
+        self.grad_sum = torch.cat([self.grad_sum, torch.zeros(n, dtype=self.grad_sum.dtype)])
+        self.count = torch.cat([self.count, torch.zeros(n, dtype=self.count.dtype)])
+
+    def reset(self, num_gaussians: int) -> None:
+        self.__init__(num_gaussians)
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {"grad_sum": self.grad_sum.clone(), "count": self.count.clone()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        self.grad_sum, self.count = state["grad_sum"].clone(), state["count"].clone()
+
+
+def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices [N,3,3] of (w, x, y, z) quaternions (normalised here)."""
+    w, x, y, z = torch.nn.functional.normalize(q, dim=-1).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(-1, 3, 3)
+
+
+def _rows(model: Any, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+    return {k: p.detach()[mask].clone() for k, p in model.params.items()}
+
+
+@torch.no_grad()
+def clone_and_split(
+    model: Any,
+    stats: DensificationStats,
+    grad_threshold: float,
+    percent_dense: float,
+    split_count: int,
+    generator: torch.Generator,
+) -> dict[str, int]:
+    """One official densification round. Returns counts {"cloned", "split"}; `stats` is reset afterwards.
+
+    Clone: small Gaussians (max scale <= percent_dense * E) with a large mean gradient are copied exactly, except
+    mu_t ~ U[0,1]. Split: large ones are replaced by `split_count` Gaussians whose positions are drawn from the
+    original Gaussian, scales divided by 0.8 * split_count, mu_t ~ U[0,1].
+    """
+    n0 = model.num_gaussians
+    grads = stats.mean_grad().to(torch.float32)
+    max_scale = model.scales.detach().max(dim=1).values
+    size_limit = percent_dense * model.scene_extent
+    high = grads >= grad_threshold
+    clone_mask = high & (max_scale <= size_limit)
+    split_mask = high & (max_scale > size_limit)
+    n_clone, n_split = int(clone_mask.sum()), int(split_mask.sum())
+
+    new_parts: list[dict[str, torch.Tensor]] = []
+    if n_clone:
+        clones = _rows(model, clone_mask)
+        clones["trbf_center"] = torch.rand(n_clone, 1, generator=generator, dtype=clones["trbf_center"].dtype)
+        new_parts.append(clones)
+    if n_split:
+        base = _rows(model, split_mask)
+        stds = torch.exp(base["scaling"]).repeat(split_count, 1)
+        samples = torch.randn(stds.shape, generator=generator, dtype=stds.dtype) * stds
+        rot = _quat_to_rotmat(base["rotation"]).repeat(split_count, 1, 1)
+        split = {k: v.repeat(split_count, *([1] * (v.ndim - 1))) for k, v in base.items()}
+        split["xyz"] = torch.bmm(rot, samples.unsqueeze(-1)).squeeze(-1) + split["xyz"]
+        split["scaling"] = torch.log(stds / (0.8 * split_count))
+        split["trbf_center"] = torch.rand(
+            n_split * split_count, 1, generator=generator, dtype=split["trbf_center"].dtype
+        )
+        new_parts.append(split)
+    if new_parts:
+        new = {k: torch.cat([part[k] for part in new_parts]) for k in model.params}
+        model.extend(new)
+    if n_split:
+        # The split originals go; clones and split children (appended at the end) stay.
+        keep = torch.ones(model.num_gaussians, dtype=torch.bool)
+        keep[:n0] = ~split_mask
+        model.prune(keep)
+    stats.reset(model.num_gaussians)
+    return {"cloned": n_clone, "split": n_split}
+
+
+@torch.no_grad()
+def prune_mask_low_opacity(model: Any, threshold: float) -> torch.Tensor:
+    """Rows to REMOVE: opacity sigmoid(o) below `threshold`."""
+    return torch.sigmoid(model.params["opacity"].detach()).squeeze(-1) < threshold
+
+
+@torch.no_grad()
+def prune_mask_nonfinite(model: Any) -> torch.Tensor:
+    """Rows to REMOVE: any parameter is NaN or infinite (rare Adam blow-ups; harmless to drop)."""
+    bad = torch.zeros(model.num_gaussians, dtype=torch.bool)
+    for p in model.params.values():
+        bad |= ~torch.isfinite(p.detach()).reshape(p.shape[0], -1).all(dim=1)
+    return bad
+
+
+@torch.no_grad()
+def prune_mask_floaters(
+    model: Any, camera_centers: np.ndarray, near_camera: float, max_world_scale: float
+) -> torch.Tensor:
+    """Rows to REMOVE by the CPU-scale floater rules (fractions of the scene extent E; 0 disables a rule).
+
+    near_camera: the Gaussian's centre (its position at its own temporal centre) lies within near_camera * E of a
+    training camera centre; such Gaussians cover held-out views with blur although training views barely see them.
+    max_world_scale: its largest axis exceeds max_world_scale * E.
+    """
+    remove = torch.zeros(model.num_gaussians, dtype=torch.bool)
+    extent = model.scene_extent
+    if near_camera > 0 and len(camera_centers):
+        xyz = model.params["xyz"].detach()
+        centers = torch.as_tensor(np.asarray(camera_centers), dtype=xyz.dtype)
+        nearest = torch.cdist(xyz, centers).min(dim=1).values
+        remove |= nearest < near_camera * extent
+    if max_world_scale > 0:
+        remove |= model.scales.detach().max(dim=1).values > max_world_scale * extent
+    return remove
+
+
+@torch.no_grad()
+def reset_opacity(model: Any, optimizer: torch.optim.Optimizer, max_opacity: float) -> None:
+    """Clamp every opacity to at most `max_opacity` and zero the opacity group's Adam moments (as 3DGS does when it
+    swaps in the reset tensor), so stale momentum cannot push the fresh opacities straight back up."""
+    opacity = model.params["opacity"]
+    limit = math.log(max_opacity / (1.0 - max_opacity))
+    opacity.data.clamp_(max=limit)
+    state = optimizer.state.get(opacity)
+    if state:
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in state:
+                state[key].zero_()
+
+
+def apply_prune(model: Any, stats: DensificationStats, remove: torch.Tensor) -> int:
+    """Remove rows from the model (and its Adam state) and from the trainer statistics; returns how many."""
+    n = int(remove.sum())
+    if n:
+        keep = ~remove
+        model.prune(keep)
+        stats.keep(keep)
+    return n
