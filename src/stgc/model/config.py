@@ -1,0 +1,58 @@
+"""Configuration of the Spacetime Gaussians model (read by the CLI generator and the trainer)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from stgc.model.layout import VARIANTS
+
+DECODER_ACTIVATIONS = ("sigmoid", "clamp", "none")
+
+
+@dataclass
+class ModelConfig:
+    variant: str = field(
+        default="full",
+        metadata={
+            "help": "STG variant: 'full' (35 floats/Gaussian, 9-channel features + MLP decoder, the paper's model) "
+            "or 'lite' (29 floats/Gaussian, RGB splatted directly)."
+        },
+    )
+    decoder_activation: str = field(
+        default="sigmoid",
+        metadata={
+            "help": "Output activation of the full model's decoder: 'sigmoid' (official 'sandwich', N3DV), "
+            "'clamp' (official 'sandwichnoact', Technicolor) or 'none'."
+        },
+    )
+    trbf_scale_init: float = field(
+        default=0.0,
+        metadata={
+            "help": "Initial stored (log) temporal scale s_t of every Gaussian; the temporal RBF width is exp(s_t). "
+            "Equals minus the official --trbfslinit (N3DV 0, Technicolor -2)."
+        },
+    )
+    opacity_init: float = field(
+        default=0.1,
+        metadata={"help": "Initial opacity sigmoid(o) of every Gaussian (official 0.1)."},
+    )
+    init_neighbours: int = field(
+        default=3,
+        metadata={"help": "Neighbours for the initial scale: log(sqrt(mean squared distance to the k nearest))."},
+    )
+    decoder_seed: int = field(
+        default=0,
+        metadata={"help": "Seed of the decoder's random initial weights (full variant)."},
+    )
+
+    def __post_init__(self) -> None:
+        if self.variant not in VARIANTS:
+            raise ValueError(f"model.variant must be one of {VARIANTS}, got {self.variant!r}")
+        if self.decoder_activation not in DECODER_ACTIVATIONS:
+            raise ValueError(
+                f"model.decoder_activation must be one of {DECODER_ACTIVATIONS}, got {self.decoder_activation!r}"
+            )
+        if not 0.0 < self.opacity_init < 1.0:
+            raise ValueError(f"model.opacity_init must be in (0, 1), got {self.opacity_init}")
+        if self.init_neighbours < 1:
+            raise ValueError(f"model.init_neighbours must be >= 1, got {self.init_neighbours}")

@@ -1,0 +1,596 @@
+"""Spacetime Gaussians (Li et al., CVPR'24): parameters, evaluation at time t, rendering, topology edits, checkpoints.
+
+All parameters are stored pre-activation exactly as the official code stores them (see `layout.py` and
+docs/model.md). With Δ = t − μ_t and Δ' = Δ.detach() (as the official renderer):
+    temporal opacity  α(t) = sigmoid(o) · exp(−(Δ / exp(s_t))²)        μ_t, s_t get gradient only through this
+    position          x(t) = x + m[0:3]·Δ' + m[3:6]·Δ'² + m[6:9]·Δ'³
+    rotation          q(t) = normalize(q + ω·Δ')
+    features          full: [f_dc (6), Δ'·f_t (3)]   lite: f_dc (3) = RGB
+    scale             exp(s), time independent
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import nn
+
+from stgc.errors import DataError, FormatError
+from stgc.model import ply as _ply
+from stgc.model.config import ModelConfig
+from stgc.model.decoder import SandwichDecoder, camera_rays
+from stgc.model.layout import NORMAL_FIELDS, VARIANTS, ply_fields
+from stgc.model.optim import replace_group_param
+
+PARAM_KEYS = (
+    "xyz",
+    "scaling",
+    "rotation",
+    "omega",
+    "opacity",
+    "trbf_center",
+    "trbf_scale",
+    "motion",
+    "features_dc",
+    "features_t",
+)
+
+# A Gaussian's composited alpha is min(alpha_max, opacity·exp(−σ)) with σ >= 0, and the rasterizer skips
+# alpha < 1/255; so one whose temporal opacity is below this threshold cannot touch any pixel at that time.
+MIN_VISIBLE_OPACITY = 1.0 / 255.0
+
+# Official clamp of the initial log scale (oursfull/ourslite create_from_pcd) and floor of the squared distance.
+INIT_LOG_SCALE_RANGE = (-10.0, 1.0)
+INIT_MIN_SQUARED_DISTANCE = 1e-7
+
+_CAMERA_CACHE_SIZE = 128
+
+
+def param_widths(variant: str) -> dict[str, int]:
+    """Columns per Gaussian of every parameter of `variant` (full sums to 35, lite to 29)."""
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown STG variant {variant!r}; expected one of {VARIANTS}")
+    widths = {
+        "xyz": 3,
+        "scaling": 3,
+        "rotation": 4,
+        "omega": 4,
+        "opacity": 1,
+        "trbf_center": 1,
+        "trbf_scale": 1,
+        "motion": 9,
+        "features_dc": 6 if variant == "full" else 3,
+        "features_t": 3,
+    }
+    if variant == "lite":
+        del widths["features_t"]
+    return widths
+
+
+def ply_columns(variant: str) -> dict[str, list[str]]:
+    """Official PLY field names of each parameter's columns."""
+    widths = param_widths(variant)
+    columns = {
+        "xyz": ["x", "y", "z"],
+        "trbf_center": ["trbf_center"],
+        "trbf_scale": ["trbf_scale"],
+        "motion": [f"motion_{i}" for i in range(9)],
+        "features_dc": [f"f_dc_{i}" for i in range(widths["features_dc"])],
+        "opacity": ["opacity"],
+        "scaling": [f"scale_{i}" for i in range(3)],
+        "rotation": [f"rot_{i}" for i in range(4)],
+        "omega": [f"omega_{i}" for i in range(4)],
+    }
+    if variant == "full":
+        columns["features_t"] = [f"f_t_{i}" for i in range(3)]
+    return columns
+
+
+def initial_log_scales(xyz: np.ndarray, neighbours: int = 3) -> np.ndarray:
+    """log(sqrt(mean squared distance to the `neighbours` nearest other points)), clamped as the official init.
+
+    The official code uses simple-knn's distCUDA2 (an approximate 3-NN); this is the exact KNN from a k-d tree.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    count = xyz.shape[0]
+    if count < 2:
+        return np.full(count, INIT_LOG_SCALE_RANGE[1], dtype=np.float32)
+    k = min(neighbours, count - 1)
+    distances, _ = cKDTree(xyz).query(xyz, k=k + 1)  # column 0 is the point itself (distance 0)
+    mean_sq = np.mean(np.square(distances[:, 1:]), axis=1)
+    log_scale = np.log(np.sqrt(np.maximum(mean_sq, INIT_MIN_SQUARED_DISTANCE)))
+    return np.clip(log_scale, *INIT_LOG_SCALE_RANGE).astype(np.float32)
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+@dataclass
+class ModelRender:
+    """One rendered view.
+
+    rgb:    [H, W, 3] colour, not clamped (full: decoder output; lite: splatted f_dc).
+    alpha:  [H, W] accumulated opacity.
+    depth:  [H, W] or None (when requested; what the rasterizer returns).
+    raster: the rasterizer's RenderOutput for the Gaussians in `index` (its per-Gaussian outputs — radii,
+            visible, means2d, weights — are rows of `index`, not of the model).
+    index:  LongTensor [M] of model rows that were rasterized (temporal opacity >= 1/255 at t).
+    features: [H, W, C] the raw splatted feature image (equal to rgb for lite).
+    """
+
+    rgb: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor | None
+    raster: Any
+    index: torch.Tensor
+    features: torch.Tensor
+
+
+class STGModel:
+    """A set of Spacetime Gaussians plus (full variant) the colour decoder.
+
+    params: {key: nn.Parameter [N, width]} pre-activation, keys in PARAM_KEYS (lite has no features_t).
+    After `make_optimizer`, `prune`, `extend`, `reset_opacity` and `replace_param` keep the attached Adam state
+    aligned with the rows.
+    """
+
+    def __init__(
+        self,
+        params: dict[str, torch.Tensor],
+        variant: str,
+        scene_extent: float = 1.0,
+        decoder: SandwichDecoder | None = None,
+    ):
+        widths = param_widths(variant)
+        if set(params) != set(widths):
+            raise ValueError(f"{variant} model needs params {sorted(widths)}, got {sorted(params)}")
+        count = params["xyz"].shape[0]
+        for key, width in widths.items():
+            if tuple(params[key].shape) != (count, width):
+                raise ValueError(f"param {key!r} has shape {tuple(params[key].shape)}, expected ({count}, {width})")
+        if (variant == "full") != (decoder is not None):
+            raise ValueError("the full variant needs a decoder and the lite variant has none")
+        self.variant = variant
+        self.scene_extent = float(scene_extent)
+        device = params["xyz"].device
+        self.params: dict[str, nn.Parameter] = {
+            key: nn.Parameter(params[key].detach().to(device=device, dtype=torch.float32).contiguous().clone())
+            for key in widths
+        }
+        self.decoder = decoder.to(device) if decoder is not None else None
+        self.optimizer: torch.optim.Adam | None = None
+        self._camera_cache: OrderedDict[tuple, dict[str, torch.Tensor]] = OrderedDict()
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_points(
+        cls,
+        cloud: Any,
+        variant: str = "full",
+        scene_extent: float = 1.0,
+        trbf_scale_init: float = 0.0,
+        *,
+        decoder_activation: str = "sigmoid",
+        opacity_init: float = 0.1,
+        init_neighbours: int = 3,
+        decoder_seed: int = 0,
+        device: str | torch.device | None = None,
+    ) -> "STGModel":
+        """Official initialisation from a point cloud with .xyz [N,3], .rgb [N,3] in [0,1] and .time [N]."""
+        config = ModelConfig(
+            variant=variant,
+            decoder_activation=decoder_activation,
+            trbf_scale_init=trbf_scale_init,
+            opacity_init=opacity_init,
+            init_neighbours=init_neighbours,
+            decoder_seed=decoder_seed,
+        )
+        return cls.from_config(cloud, config, scene_extent=scene_extent, device=device)
+
+    @classmethod
+    def from_config(
+        cls,
+        cloud: Any,
+        config: ModelConfig,
+        scene_extent: float = 1.0,
+        device: str | torch.device | None = None,
+    ) -> "STGModel":
+        xyz, rgb, time = _cloud_arrays(cloud)
+        count = xyz.shape[0]
+        log_scale = initial_log_scales(xyz, config.init_neighbours)
+        rotation = np.zeros((count, 4), dtype=np.float32)
+        rotation[:, 0] = 1.0
+        params = {
+            "xyz": xyz,
+            "scaling": np.repeat(log_scale[:, None], 3, axis=1),
+            "rotation": rotation,
+            "omega": np.zeros((count, 4), np.float32),
+            "opacity": np.full((count, 1), _logit(config.opacity_init), np.float32),
+            "trbf_center": time[:, None],
+            "trbf_scale": np.full((count, 1), config.trbf_scale_init, np.float32),
+            "motion": np.zeros((count, 9), np.float32),
+            "features_dc": np.concatenate([rgb, rgb], axis=1) if config.variant == "full" else rgb,
+        }
+        if config.variant == "full":
+            params["features_t"] = np.zeros((count, 3), np.float32)
+        tensors = {key: torch.as_tensor(np.ascontiguousarray(value), dtype=torch.float32) for key, value in params.items()}
+        if device is not None:
+            tensors = {key: value.to(device) for key, value in tensors.items()}
+        decoder = None
+        if config.variant == "full":
+            generator = torch.Generator().manual_seed(config.decoder_seed)
+            decoder = SandwichDecoder(config.decoder_activation, generator=generator)
+        return cls(tensors, config.variant, scene_extent=scene_extent, decoder=decoder)
+
+    # ------------------------------------------------------------------ basic properties
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.params["xyz"].shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        return self.params["xyz"].device
+
+    @property
+    def decoder_activation(self) -> str | None:
+        return None if self.decoder is None else self.decoder.activation
+
+    @property
+    def scales(self) -> torch.Tensor:
+        return torch.exp(self.params["scaling"])
+
+    @property
+    def opacity(self) -> torch.Tensor:
+        """Base opacity sigmoid(o), [N] (before the temporal factor)."""
+        return torch.sigmoid(self.params["opacity"][:, 0])
+
+    def __repr__(self) -> str:
+        return f"STGModel(variant={self.variant!r}, num_gaussians={self.num_gaussians}, device={self.device})"
+
+    # ------------------------------------------------------------------ evaluation at time t
+    def temporal_opacity(self, t: float) -> torch.Tensor:
+        """sigmoid(o) · exp(−((t − μ_t) / exp(s_t))²), [N]; differentiable in o, μ_t and s_t."""
+        return _temporal_opacity(self.params, t)
+
+    def means_at(self, t: float) -> torch.Tensor:
+        return _means_at(self.params, t)
+
+    def rotations_at(self, t: float) -> torch.Tensor:
+        return _rotations_at(self.params, t)
+
+    def features_at(self, t: float) -> torch.Tensor:
+        return _features_at(self.params, t)
+
+    # ------------------------------------------------------------------ rendering
+    def render(
+        self,
+        camera: Any,
+        t: float | None = None,
+        background: torch.Tensor | Sequence[float] | None = None,
+        backend: str = "auto",
+        return_depth: bool = False,
+        return_weights: bool = False,
+        **raster_options: Any,
+    ) -> ModelRender:
+        """Render `camera` at time t (default camera.time).
+
+        background is in the splatted feature space: 3 values for lite; for full either 9 values or 3 (taken as the
+        albedo channels, the rest zero). Extra keyword arguments go to `stgc.render.rasterize`.
+        """
+        from stgc import render as _render  # the render package may land after this one; resolve at call time
+
+        t = float(camera.time if t is None else t)
+        opacity = self.temporal_opacity(t)
+        index = torch.nonzero(opacity.detach() >= MIN_VISIBLE_OPACITY, as_tuple=False)[:, 0]
+        rows = {key: value[index] for key, value in self.params.items()}
+        cached = self._camera_tensors(camera)
+        raster = _render.rasterize(
+            _means_at(rows, t),
+            _rotations_at(rows, t),
+            torch.exp(rows["scaling"]),
+            opacity[index],
+            _features_at(rows, t),
+            cached["K"],
+            cached["viewmat"],
+            int(camera.width),
+            int(camera.height),
+            self._background(background),
+            backend=backend,
+            return_depth=return_depth,
+            return_weights=return_weights,
+            **raster_options,
+        )
+        features = raster.image
+        if self.decoder is not None:
+            rgb = self.decoder(features, self._rays(camera, cached))
+        else:
+            rgb = features
+        depth = raster.depth if return_depth else None
+        return ModelRender(rgb=rgb, alpha=raster.alpha, depth=depth, raster=raster, index=index, features=features)
+
+    def _background(self, background: torch.Tensor | Sequence[float] | None) -> torch.Tensor | None:
+        if background is None:
+            return None
+        bg = torch.as_tensor(background, dtype=torch.float32, device=self.device).reshape(-1)
+        channels = self.params["features_dc"].shape[1] + (3 if self.variant == "full" else 0)
+        if bg.numel() == 3 and channels == 9:
+            bg = torch.cat([bg, bg.new_zeros(6)])
+        if bg.numel() != channels:
+            raise ValueError(f"background has {bg.numel()} values; the {self.variant} model splats {channels} channels")
+        return bg
+
+    def _camera_tensors(self, camera: Any) -> dict[str, torch.Tensor]:
+        K = np.asarray(camera.K, dtype=np.float64)
+        w2c = np.asarray(camera.w2c, dtype=np.float64)
+        key = (K.tobytes(), w2c.tobytes(), int(camera.width), int(camera.height), str(self.device))
+        cached = self._camera_cache.get(key)
+        if cached is None:
+            cached = {
+                "K": torch.as_tensor(K, dtype=torch.float32, device=self.device),
+                "viewmat": torch.as_tensor(w2c, dtype=torch.float32, device=self.device),
+            }
+            self._camera_cache[key] = cached
+            while len(self._camera_cache) > _CAMERA_CACHE_SIZE:
+                self._camera_cache.popitem(last=False)
+        else:
+            self._camera_cache.move_to_end(key)
+        return cached
+
+    def _rays(self, camera: Any, cached: dict[str, torch.Tensor]) -> torch.Tensor:
+        if "rays" not in cached:
+            rays = camera_rays(camera.K, camera.w2c, int(camera.width), int(camera.height))
+            cached["rays"] = rays.to(self.device)
+        return cached["rays"]
+
+    # ------------------------------------------------------------------ optimizer and topology
+    def make_optimizer(self, lrs: dict[str, float], decoder_lr: float = 1e-4) -> torch.optim.Adam:
+        """Adam (eps 1e-15) with one group per param named by its key, plus a 'decoder' group (full)."""
+        missing = [key for key in self.params if key not in lrs]
+        unknown = [key for key in lrs if key not in self.params and key != "decoder"]
+        if missing or unknown:
+            raise ValueError(f"learning rates: missing {missing}, unknown {unknown}; keys are {list(self.params)}")
+        groups = [{"params": [param], "lr": float(lrs[key]), "name": key} for key, param in self.params.items()]
+        if self.decoder is not None:
+            lr = float(lrs.get("decoder", decoder_lr))
+            groups.append({"params": list(self.decoder.parameters()), "lr": lr, "name": "decoder"})
+        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        return self.optimizer
+
+    def prune(self, keep: torch.Tensor) -> None:
+        """Keep only the rows where `keep` is True; their Adam moments move with them."""
+        keep = torch.as_tensor(keep, device=self.device)
+        if keep.dtype != torch.bool or tuple(keep.shape) != (self.num_gaussians,):
+            raise ValueError(f"keep must be a bool tensor of shape ({self.num_gaussians},), got {keep.dtype} {tuple(keep.shape)}")
+        for key in list(self.params):
+            self._swap(key, self.params[key].detach()[keep], lambda state: state[keep])
+
+    def extend(self, new: dict[str, torch.Tensor]) -> None:
+        """Append Gaussians (all params, pre-activation); their Adam moments start at zero."""
+        widths = param_widths(self.variant)
+        if set(new) != set(widths):
+            raise ValueError(f"extend needs exactly the params {sorted(widths)}, got {sorted(new)}")
+        count = int(torch.as_tensor(new["xyz"]).shape[0])
+        rows = {}
+        for key, width in widths.items():
+            value = torch.as_tensor(new[key], dtype=torch.float32, device=self.device).detach()
+            if tuple(value.shape) != (count, width):
+                raise ValueError(f"extend: {key!r} has shape {tuple(value.shape)}, expected ({count}, {width})")
+            rows[key] = value
+        for key, value in rows.items():
+            grown = torch.cat([self.params[key].detach(), value])
+            self._swap(key, grown, lambda state, m=count: torch.cat([state, state.new_zeros((m,) + state.shape[1:])]))
+
+    def gather(self, selection: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Detached copies of the selected rows (bool mask or indices), e.g. to clone Gaussians via extend()."""
+        return {key: value.detach()[selection].clone() for key, value in self.params.items()}
+
+    def replace_param(self, key: str, value: torch.Tensor, reset_moments: bool = True) -> None:
+        """Overwrite one parameter (same shape); its Adam moments are zeroed unless reset_moments is False."""
+        if key not in self.params:
+            raise KeyError(f"no param {key!r}; keys are {list(self.params)}")
+        value = torch.as_tensor(value, dtype=torch.float32, device=self.device).detach()
+        if value.shape != self.params[key].shape:
+            raise ValueError(f"{key!r} must keep shape {tuple(self.params[key].shape)}, got {tuple(value.shape)}")
+        self._swap(key, value, None if reset_moments else (lambda state: state))
+
+    def reset_opacity(self, max_value: float = 0.01) -> None:
+        """3DGS opacity reset: sigmoid(o) <- min(sigmoid(o), max_value), with the opacity moments zeroed."""
+        with torch.no_grad():
+            capped = torch.clamp(torch.sigmoid(self.params["opacity"]), max=max_value)
+            self.replace_param("opacity", torch.log(capped / (1.0 - capped)), reset_moments=True)
+
+    def _swap(self, key: str, value: torch.Tensor, edit_rows) -> None:
+        old = self.params[key]
+        new = nn.Parameter(value.contiguous().clone() if value.data_ptr() == old.data_ptr() else value.contiguous())
+        if self.optimizer is not None:
+            replace_group_param(self.optimizer, old, new, edit_rows)
+        self.params[key] = new
+
+    def to(self, device: str | torch.device) -> "STGModel":
+        """Move to `device` in place (before make_optimizer)."""
+        if self.optimizer is not None:
+            raise RuntimeError("move the model before make_optimizer(); the optimizer holds the old tensors")
+        self.params = {key: nn.Parameter(value.detach().to(device)) for key, value in self.params.items()}
+        if self.decoder is not None:
+            self.decoder.to(device)
+        self._camera_cache.clear()
+        return self
+
+    # ------------------------------------------------------------------ serialisation
+    def to_ply_arrays(self) -> dict[str, np.ndarray]:
+        """{official field name: float32 [N]} in layout order; the normals are zeros."""
+        columns = ply_columns(self.variant)
+        arrays: dict[str, np.ndarray] = {}
+        for key, names in columns.items():
+            values = self.params[key].detach().cpu().numpy().astype(np.float32, copy=False)
+            for i, name in enumerate(names):
+                arrays[name] = np.ascontiguousarray(values[:, i])
+        for name in NORMAL_FIELDS:
+            arrays[name] = np.zeros(self.num_gaussians, dtype=np.float32)
+        return {name: arrays[name] for name in ply_fields(self.variant)}
+
+    @classmethod
+    def from_ply_arrays(
+        cls,
+        arrays: dict[str, np.ndarray],
+        variant: str,
+        decoder_state: dict[str, Any] | None,
+        scene_extent: float = 1.0,
+        decoder_activation: str = "sigmoid",
+        device: str | torch.device | None = None,
+    ) -> "STGModel":
+        """Inverse of to_ply_arrays (+ decoder_state for full). Raises FormatError on missing/NaN/non-float32."""
+        _ply.validate_arrays(arrays, variant)
+        params = {}
+        for key, names in ply_columns(variant).items():
+            stacked = np.stack([np.asarray(arrays[name]) for name in names], axis=1)
+            params[key] = torch.from_numpy(np.ascontiguousarray(stacked))
+        if device is not None:
+            params = {key: value.to(device) for key, value in params.items()}
+        decoder = None
+        if variant == "full":
+            if decoder_state is None:
+                raise FormatError(None, "a full-variant model needs decoder_state (mlp1.weight, mlp2.weight)")
+            weights = _ply.validate_decoder_state(decoder_state)
+            decoder = SandwichDecoder(decoder_activation)
+            decoder.load_state_dict({key: torch.from_numpy(value) for key, value in weights.items()})
+        return cls(params, variant, scene_extent=scene_extent, decoder=decoder)
+
+    def decoder_state(self) -> dict[str, np.ndarray] | None:
+        """The decoder weights under the official names and shapes, or None for lite."""
+        if self.decoder is None:
+            return None
+        return {key: value.detach().cpu().numpy().copy() for key, value in self.decoder.state_dict().items()}
+
+    def save(self, iteration_dir: str | Path) -> Path:
+        """Write iteration_dir/point_cloud.ply (+ point_cloud.pt for full) atomically; return the PLY path."""
+        iteration_dir = Path(iteration_dir)
+        ply_path = iteration_dir / _ply.PLY_NAME
+        _ply.write_ply(ply_path, self.to_ply_arrays(), self.variant)
+        if self.decoder is not None:
+            _ply.write_decoder(iteration_dir / _ply.DECODER_NAME, self.decoder.state_dict())
+        return ply_path
+
+    @classmethod
+    def load(
+        cls,
+        path: str | Path,
+        scene_extent: float = 1.0,
+        decoder_activation: str | None = None,
+        device: str | torch.device | None = None,
+    ) -> "STGModel":
+        """Load a run dir (its highest iteration), an iteration dir or a .ply file; full/lite from the fields.
+
+        The decoder activation is not stored in the official files: it comes from the argument, else from the run's
+        config.json (model.decoder_activation) when the PLY sits in a run dir, else 'sigmoid'.
+        """
+        ply_path = _ply.resolve_ply_path(path)
+        arrays, variant = _ply.read_ply(ply_path)
+        decoder_state = None
+        if variant == "full":
+            decoder_state = _ply.read_decoder(ply_path.with_suffix(".pt"))
+            if decoder_activation is None:
+                decoder_activation = _activation_from_run_config(ply_path)
+        return cls.from_ply_arrays(
+            arrays,
+            variant,
+            decoder_state,
+            scene_extent=scene_extent,
+            decoder_activation=decoder_activation or "sigmoid",
+            device=device,
+        )
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to rebuild the model exactly (for training checkpoints)."""
+        return {
+            "variant": self.variant,
+            "scene_extent": self.scene_extent,
+            "params": {key: value.detach().cpu().clone() for key, value in self.params.items()},
+            "decoder": None if self.decoder is None else {k: v.detach().cpu().clone() for k, v in self.decoder.state_dict().items()},
+            "decoder_activation": self.decoder_activation,
+        }
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, Any], device: str | torch.device | None = None) -> "STGModel":
+        params = {key: torch.as_tensor(value) for key, value in state["params"].items()}
+        if device is not None:
+            params = {key: value.to(device) for key, value in params.items()}
+        decoder = None
+        if state["decoder"] is not None:
+            decoder = SandwichDecoder(state["decoder_activation"])
+            decoder.load_state_dict(state["decoder"])
+        return cls(params, state["variant"], scene_extent=state["scene_extent"], decoder=decoder)
+
+
+# ---------------------------------------------------------------------- formulas on a dict of rows
+def _temporal_opacity(params: dict[str, torch.Tensor], t: float) -> torch.Tensor:
+    delta = t - params["trbf_center"]
+    return (torch.sigmoid(params["opacity"]) * torch.exp(-torch.square(delta / torch.exp(params["trbf_scale"]))))[:, 0]
+
+
+def _detached_delta(params: dict[str, torch.Tensor], t: float) -> torch.Tensor:
+    return (t - params["trbf_center"]).detach()
+
+
+def _means_at(params: dict[str, torch.Tensor], t: float) -> torch.Tensor:
+    d = _detached_delta(params, t)
+    motion = params["motion"]
+    return params["xyz"] + motion[:, 0:3] * d + motion[:, 3:6] * (d * d) + motion[:, 6:9] * (d * d * d)
+
+
+def _rotations_at(params: dict[str, torch.Tensor], t: float) -> torch.Tensor:
+    d = _detached_delta(params, t)
+    return torch.nn.functional.normalize(params["rotation"] + d * params["omega"], dim=1)
+
+
+def _features_at(params: dict[str, torch.Tensor], t: float) -> torch.Tensor:
+    if "features_t" not in params:
+        return params["features_dc"]
+    return torch.cat([params["features_dc"], _detached_delta(params, t) * params["features_t"]], dim=1)
+
+
+def _cloud_arrays(cloud: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    try:
+        xyz = np.asarray(cloud.xyz, dtype=np.float64)
+        rgb = np.asarray(cloud.rgb)
+        time = np.asarray(cloud.time, dtype=np.float64).reshape(-1)
+    except AttributeError as exc:
+        raise DataError(None, f"initial point cloud must have xyz, rgb and time ({exc})") from None
+    count = xyz.shape[0] if xyz.ndim == 2 else -1
+    if xyz.shape != (count, 3) or rgb.shape != (count, 3) or time.shape != (count,):
+        raise DataError(
+            None,
+            f"initial point cloud shapes disagree: xyz {xyz.shape}, rgb {rgb.shape}, time {time.shape}",
+        )
+    if count == 0:
+        raise DataError(None, "initial point cloud is empty")
+    if np.issubdtype(rgb.dtype, np.integer):
+        rgb = rgb / 255.0
+    rgb = rgb.astype(np.float64)
+    for name, values in (("xyz", xyz), ("rgb", rgb), ("time", time)):
+        if not np.all(np.isfinite(values)):
+            raise DataError(None, f"initial point cloud has non-finite {name}")
+    return xyz.astype(np.float32), rgb.astype(np.float32), time.astype(np.float32)
+
+
+def _activation_from_run_config(ply_path: Path) -> str | None:
+    # RUN/point_cloud/iteration_<N>/point_cloud.ply -> RUN/config.json
+    for parent in list(ply_path.parents)[:3]:
+        config_path = parent / "config.json"
+        if config_path.is_file():
+            try:
+                model_section = json.loads(config_path.read_text()).get("model", {})
+            except (OSError, ValueError, AttributeError):
+                return None
+            activation = model_section.get("decoder_activation") if isinstance(model_section, dict) else None
+            return activation if isinstance(activation, str) else None
+    return None
