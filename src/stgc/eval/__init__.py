@@ -1,6 +1,31 @@
 """Evaluation: image metrics, model size / bitrate / speed accounting, the evaluation driver, Bjøntegaard
 deltas and paper-style reports."""
 
+from stgc.eval.accounting import (
+    ModelSize,
+    RenderSpeed,
+    bitstream_size,
+    duration_seconds,
+    mbps,
+    measure_render_speed,
+    mib,
+    model_size,
+    model_size_of,
+    paper_model_bytes,
+    read_train_summary,
+    size_of_saved_model,
+    training_seconds,
+)
+from stgc.eval.evaluate import (
+    EvalResult,
+    ViewScore,
+    eval_paths,
+    eval_record,
+    evaluate,
+    evaluate_run,
+    format_eval_table,
+    write_eval,
+)
 from stgc.eval.metrics import (
     LPIPS,
     gaussian_window,
@@ -14,6 +39,27 @@ from stgc.eval.metrics import (
 )
 
 __all__ = [
+    "EvalResult",
+    "ModelSize",
+    "RenderSpeed",
+    "ViewScore",
+    "bitstream_size",
+    "duration_seconds",
+    "eval_paths",
+    "eval_record",
+    "evaluate",
+    "evaluate_run",
+    "format_eval_table",
+    "mbps",
+    "measure_render_speed",
+    "mib",
+    "model_size",
+    "model_size_of",
+    "paper_model_bytes",
+    "read_train_summary",
+    "size_of_saved_model",
+    "training_seconds",
+    "write_eval",
     "LPIPS",
     "gaussian_window",
     "lpips_status",

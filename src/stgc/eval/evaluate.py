@@ -1,0 +1,342 @@
+"""The evaluation driver: render every test camera at every frame, score it, time it, write RUN/eval.json.
+
+STG protocol (`test.py`): the render is clamped to [0, 1], PSNR and SSIM are computed per image and averaged
+over all test images (cameras x frames); FPS is 1 / mean render time after warm-up.
+"""
+
+from __future__ import annotations
+
+import csv
+import inspect
+import io
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from stgc.errors import DataError, FormatError
+from stgc.eval.accounting import (
+    ModelSize,
+    RenderSpeed,
+    bitstream_size,
+    read_train_summary,
+    size_of_saved_model,
+    speed_from_times,
+    training_seconds,
+)
+from stgc.eval.metrics import LPIPS, psnr, ssim
+from stgc.fileio import atomic_open, write_json
+
+PER_VIEW_COLUMNS = ("camera", "frame", "time", "psnr", "ssim", "lpips", "render_ms")
+
+
+@dataclass
+class ViewScore:
+    camera: str
+    frame: int
+    time: float
+    psnr: float
+    ssim: float
+    lpips: float | None
+    render_ms: float
+
+
+@dataclass
+class EvalResult:
+    views: list[ViewScore]
+    lpips_note: str
+    speed: RenderSpeed | None
+    per_camera: dict[str, dict[str, float | None]] = field(default_factory=dict)
+    overall: dict[str, float | None] = field(default_factory=dict)
+
+    @property
+    def psnr(self) -> float:
+        return float(self.overall["psnr"])  # type: ignore[arg-type]
+
+    @property
+    def ssim(self) -> float:
+        return float(self.overall["ssim"])  # type: ignore[arg-type]
+
+
+def _mean(values: Iterable[float | None]) -> float | None:
+    vals = [v for v in values if v is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+def _aggregate(views: Sequence[ViewScore]) -> dict[str, float | None]:
+    return {
+        "psnr": _mean(v.psnr for v in views),
+        "ssim": _mean(v.ssim for v in views),
+        "lpips": _mean(v.lpips for v in views),
+        "views": len(views),
+    }
+
+
+def _as_image(rendered: Any) -> torch.Tensor:
+    """A render result ([H,W,3] tensor/array, or an object with `.rgb` such as ModelRender) as float [H,W,3]."""
+    if hasattr(rendered, "rgb"):
+        rendered = rendered.rgb
+    if isinstance(rendered, np.ndarray):
+        rendered = torch.from_numpy(np.ascontiguousarray(rendered))
+    if not isinstance(rendered, torch.Tensor):
+        raise TypeError(f"render function returned {type(rendered).__name__}, expected an image tensor")
+    rendered = rendered.detach().cpu()
+    if rendered.dtype == torch.uint8:
+        return rendered.float() / 255.0
+    return rendered.float()
+
+
+@torch.no_grad()
+def evaluate(
+    render_fn: Callable[[Any], Any],
+    cameras: Sequence[Any],
+    load_image: Callable[[Any], np.ndarray],
+    *,
+    lpips_net: str | None = None,
+    warmup: int = 2,
+    clamp: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+) -> EvalResult:
+    """Score `render_fn(camera)` against `load_image(camera)` (uint8 [H,W,3]) for every camera.
+
+    `cameras` holds one entry per test view *and frame* (Dataset.test). The first `warmup` render times are
+    left out of the FPS figure. LPIPS is computed only when `lpips_net` is given and its weights are on this
+    machine; otherwise `lpips_note` says why it was skipped."""
+    if not cameras:
+        raise ValueError("evaluate() needs at least one test camera")
+    lpips_model, lpips_note = (None, "skipped: not requested") if lpips_net is None else LPIPS.create(lpips_net)
+    views: list[ViewScore] = []
+    times: list[float] = []
+    for i, cam in enumerate(cameras):
+        start = time.perf_counter()
+        rendered = _as_image(render_fn(cam))
+        elapsed = time.perf_counter() - start
+        times.append(elapsed)
+        if clamp:
+            rendered = rendered.clamp(0.0, 1.0)
+        gt = torch.from_numpy(np.ascontiguousarray(load_image(cam)))
+        gt = gt.float() / 255.0 if gt.dtype == torch.uint8 else gt.float()
+        gt = gt[..., :3]
+        if rendered.shape != gt.shape:
+            raise DataError(
+                getattr(cam, "image", None) if isinstance(getattr(cam, "image", None), (str, Path)) else None,
+                f"camera {getattr(cam, 'name', i)} frame {getattr(cam, 'frame', '?')}: render is "
+                f"{tuple(rendered.shape)} but the ground-truth image is {tuple(gt.shape)}",
+            )
+        views.append(
+            ViewScore(
+                camera=str(getattr(cam, "name", i)),
+                frame=int(getattr(cam, "frame", 0)),
+                time=float(getattr(cam, "time", 0.0)),
+                psnr=float(psnr(rendered.double(), gt.double())),
+                ssim=float(ssim(rendered, gt)),
+                lpips=lpips_model(rendered, gt) if lpips_model is not None else None,
+                render_ms=1e3 * elapsed,
+            )
+        )
+        if progress:
+            progress(i + 1, len(cameras))
+    by_camera: dict[str, list[ViewScore]] = {}
+    for v in views:
+        by_camera.setdefault(v.camera, []).append(v)
+    return EvalResult(
+        views=views,
+        lpips_note=lpips_note,
+        speed=speed_from_times(times, min(warmup, max(0, len(times) - 1))),
+        per_camera={name: _aggregate(vs) for name, vs in sorted(by_camera.items())},
+        overall=_aggregate(views),
+    )
+
+
+def eval_paths(target: str | Path) -> tuple[Path, Path]:
+    """Where the evaluation of `target` goes: RUN/eval.json + RUN/eval_per_view.csv for a run directory,
+    RUN/eval_<stem>.json + RUN/eval_<stem>_per_view.csv for a bitstream RUN/<stem>.stgc."""
+    target = Path(target)
+    if target.suffix == ".stgc":
+        base = target.parent / f"eval_{target.stem}"
+        return base.with_suffix(".json"), target.parent / f"{base.name}_per_view.csv"
+    return target / "eval.json", target / "eval_per_view.csv"
+
+
+def _finite(x: Any) -> Any:
+    # JSON has no inf/nan; a perfect reconstruction's PSNR is reported as null.
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def eval_record(
+    result: EvalResult, model_info: ModelSize | Mapping[str, Any] | None, extra: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    """The eval.json object: overall metrics first, then size/rate, speed, per-camera aggregates."""
+    info = model_info.as_dict() if isinstance(model_info, ModelSize) else dict(model_info or {})
+    record: dict[str, Any] = {
+        "psnr": _finite(result.overall["psnr"]),
+        "ssim": result.overall["ssim"],
+        "lpips": result.overall["lpips"],
+        "lpips_note": result.lpips_note,
+        "num_gaussians": info.get("num_gaussians"),
+        "size_mb": info.get("size_mb"),
+        "mbps": info.get("mbps"),
+        "fps": result.speed.fps if result.speed else None,
+        "num_views": len(result.views),
+        "cameras": sorted({v.camera for v in result.views}),
+        "frames": sorted({v.frame for v in result.views}),
+    }
+    record.update({k: v for k, v in info.items() if k not in record})
+    record["render_speed"] = result.speed.as_dict() if result.speed else None
+    record["per_camera"] = {k: {kk: _finite(vv) for kk, vv in v.items()} for k, v in result.per_camera.items()}
+    record["units"] = {
+        "size_mb": "MiB (2^20 bytes), the paper's 'MB'",
+        "size_mb_si": "10^6 bytes",
+        "mbps": "10^6 bits per second of video covered (= MiB x 8.388608 / seconds)",
+        "fps": "renders per second after warm-up, this machine",
+    }
+    if extra:
+        record.update(extra)
+    return record
+
+
+def write_eval(
+    run_dir: str | Path,
+    result: EvalResult,
+    model_info: ModelSize | Mapping[str, Any] | None = None,
+    *,
+    target: str | Path | None = None,
+    extra: Mapping[str, Any] | None = None,
+) -> str:
+    """Write eval.json and eval_per_view.csv atomically (paths from `eval_paths(target or run_dir)`) and
+    return a compact table as text. Training time is read from RUN/train_summary.json when present."""
+    run_dir = Path(run_dir)
+    json_path, csv_path = eval_paths(target if target is not None else run_dir)
+    summary = read_train_summary(run_dir) if run_dir.is_dir() else None
+    more = {"train_seconds": training_seconds(summary)}
+    if summary and "iterations" in summary:
+        more["iterations"] = summary["iterations"]
+    more.update(extra or {})
+    record = eval_record(result, model_info, more)
+    write_json(json_path, record)
+    with atomic_open(csv_path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(PER_VIEW_COLUMNS)
+        for v in result.views:
+            writer.writerow([v.camera, v.frame, f"{v.time:.6f}", _fmt(v.psnr, 4), _fmt(v.ssim, 5),
+                             _fmt(v.lpips, 5), _fmt(v.render_ms, 2)])
+    return format_eval_table(record)
+
+
+def _fmt(x: float | None, digits: int) -> str:
+    if x is None:
+        return ""
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    return f"{x:.{digits}f}"
+
+
+def format_eval_table(record: Mapping[str, Any]) -> str:
+    """A compact rich table of an eval.json record, as plain text."""
+    from rich.console import Console  # noqa: PLC0415
+    from rich.table import Table  # noqa: PLC0415
+
+    table = Table(title="evaluation", show_header=True, header_style="bold")
+    for col in ("views", "PSNR", "SSIM", "LPIPS", "#Gaussians", "size MiB", "Mbps", "FPS"):
+        table.add_column(col, justify="right")
+
+    def row(name: str, agg: Mapping[str, Any], whole: bool) -> None:
+        table.add_row(
+            f"{name} ({agg.get('views', agg.get('num_views', ''))})",
+            _fmt(agg.get("psnr"), 2), _fmt(agg.get("ssim"), 4), _fmt(agg.get("lpips"), 4) or "-",
+            f"{record['num_gaussians']:,}" if whole and record.get("num_gaussians") is not None else "",
+            _fmt(record.get("size_mb"), 2) if whole else "", _fmt(record.get("mbps"), 2) if whole else "",
+            _fmt(record.get("fps"), 1) if whole else "",
+        )
+
+    for name, agg in (record.get("per_camera") or {}).items():
+        row(name, agg, False)
+    row("all", {**record, "views": record.get("num_views")}, True)
+    buf = io.StringIO()
+    console = Console(file=buf, width=100, color_system=None, force_terminal=False)
+    console.print(table)
+    note = record.get("lpips_note")
+    if note and record.get("lpips") is None:
+        console.print(f"LPIPS {note}")
+    return buf.getvalue()
+
+
+# ------------------------------------------------------------------------------------- whole runs
+
+
+def _open_run_dataset(run_dir: Path, data_path: str | Path | None) -> Any:
+    from stgc.data import open_dataset  # noqa: PLC0415 - the data package is only needed here
+
+    config_path = run_dir / "config.json"
+    data_cfg: dict[str, Any] = {}
+    if config_path.is_file():
+        try:
+            data_cfg = dict(json.loads(config_path.read_text()).get("data", {}))
+        except (OSError, json.JSONDecodeError, AttributeError) as exc:
+            raise FormatError(config_path, f"cannot read run config ({exc})") from None
+    path = data_path if data_path is not None else data_cfg.get("path")
+    if path is None:
+        raise DataError(config_path, "no data path: config.json has no data.path; pass the dataset path")
+    accepted = set(inspect.signature(open_dataset).parameters) - {"path"}
+    kwargs = {k: v for k, v in data_cfg.items() if k in accepted}
+    return open_dataset(path, **kwargs)
+
+
+def dataset_duration_s(dataset: Any) -> float:
+    """Seconds of video the dataset's frame window covers (frames / fps)."""
+    frames = dataset.frames
+    count = len(frames) if hasattr(frames, "__len__") else int(frames)
+    return count / float(dataset.fps)
+
+
+def evaluate_run(
+    target: str | Path,
+    data_path: str | Path | None = None,
+    *,
+    lpips_net: str | None = None,
+    warmup: int = 2,
+    load_model: Callable[[Path], Any] | None = None,
+    open_dataset: Callable[[Path], Any] | None = None,
+) -> tuple[dict[str, Any], str]:
+    """Evaluate a run directory (its latest iteration) or a `.stgc` bitstream inside a run directory, write
+    the eval files, and return (eval.json record, table text). What `stgc eval RUN` does.
+
+    `load_model` / `open_dataset` default to `stgc.model.STGModel.load` (or `stgc.codec.decode` for .stgc)
+    and the dataset named in RUN/config.json; tests inject fakes."""
+    target = Path(target)
+    run_dir = target.parent if target.suffix == ".stgc" else target
+    if not target.exists():
+        raise DataError(target, "no such run directory or bitstream")
+    dataset = open_dataset(run_dir) if open_dataset else _open_run_dataset(run_dir, data_path)
+    if load_model is None:
+        load_model = _default_model_loader
+    model = load_model(target)
+    duration_s = dataset_duration_s(dataset)
+    if target.suffix == ".stgc":
+        info = bitstream_size(target, model.num_gaussians, model.variant, duration_s)
+    else:
+        info = size_of_saved_model(target, duration_s)
+    result = evaluate(
+        lambda cam: model.render(cam, t=cam.time), dataset.test, dataset.load_image,
+        lpips_net=lpips_net, warmup=warmup,
+    )
+    text = write_eval(run_dir, result, info, target=target)
+    json_path, _ = eval_paths(target)
+    return json.loads(json_path.read_text()), text
+
+
+def _default_model_loader(target: Path) -> Any:
+    if target.suffix == ".stgc":
+        from stgc import codec  # noqa: PLC0415
+
+        return codec.decode(target)  # type: ignore[attr-defined]
+    from stgc.model import STGModel  # noqa: PLC0415
+
+    return STGModel.load(target)

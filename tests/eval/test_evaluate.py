@@ -1,0 +1,123 @@
+"""The evaluation driver on a fake renderer: per-view numbers against numpy, aggregates, written files."""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData, PlyElement
+
+from stgc.errors import DataError
+from stgc.eval import eval_paths, evaluate, evaluate_run, model_size, write_eval
+from stgc.model.layout import ply_fields
+
+
+@dataclass
+class FakeCam:
+    name: str
+    frame: int
+    time: float
+
+
+def _gt(cam: FakeCam) -> np.ndarray:
+    rng = np.random.default_rng(100 * int(cam.name[-1]) + cam.frame)
+    return (rng.random((16, 20, 3)) * 255).astype(np.uint8)
+
+
+def _noisy_render(cam: FakeCam) -> torch.Tensor:
+    noise = 0.02 * (1 + int(cam.name[-1]))
+    rng = np.random.default_rng(cam.frame)
+    img = _gt(cam) / 255.0 + noise * rng.standard_normal((16, 20, 3))
+    return torch.from_numpy(img).float()  # unclamped, as a renderer gives it
+
+
+CAMS = [FakeCam(f"cam{c}", f, f / 4) for c in (0, 1) for f in range(4)]
+
+
+def _numpy_psnr(cam: FakeCam) -> float:
+    a = np.clip(_noisy_render(cam).numpy().astype(np.float64), 0, 1)
+    b = _gt(cam) / 255.0
+    return float(10 * np.log10(1.0 / np.mean((a - b) ** 2)))
+
+
+def test_evaluate_scores_every_view() -> None:
+    result = evaluate(_noisy_render, CAMS, _gt, warmup=1)
+    assert len(result.views) == 8
+    for view, cam in zip(result.views, CAMS):
+        assert view.psnr == pytest.approx(_numpy_psnr(cam), abs=1e-4)
+        assert 0 < view.ssim < 1
+    assert result.psnr == pytest.approx(np.mean([_numpy_psnr(c) for c in CAMS]), abs=1e-4)
+    # Noisier camera scores worse; per-camera means are means of their own views.
+    assert result.per_camera["cam0"]["psnr"] > result.per_camera["cam1"]["psnr"]
+    assert result.per_camera["cam1"]["psnr"] == pytest.approx(np.mean([_numpy_psnr(c) for c in CAMS[4:]]), abs=1e-4)
+    assert result.speed is not None and result.speed.frames_timed == 7
+    assert result.lpips_note.startswith("skipped")
+
+
+def test_evaluate_accepts_model_render_objects_and_rejects_size_mismatch() -> None:
+    class Out:
+        def __init__(self, rgb: torch.Tensor) -> None:
+            self.rgb = rgb
+
+    r = evaluate(lambda c: Out(torch.from_numpy(_gt(c) / 255.0)), CAMS[:2], _gt)
+    assert r.views[0].psnr == float("inf") and r.ssim == pytest.approx(1.0)
+    with pytest.raises(DataError, match="ground-truth"):
+        evaluate(lambda c: torch.zeros(8, 8, 3), CAMS[:1], _gt)
+
+
+def test_write_eval_files(tmp_path: Path) -> None:
+    (tmp_path / "train_summary.json").write_text(json.dumps({"iterations": 50, "wall_seconds": 3.0, "finished": True}))
+    result = evaluate(_noisy_render, CAMS, _gt)
+    text = write_eval(tmp_path, result, model_size(1000, "full", duration_s=1.0, decoder_floats=90))
+    record = json.loads((tmp_path / "eval.json").read_text())
+    for key in ("psnr", "ssim", "num_gaussians", "size_mb", "mbps", "fps", "size_mib", "size_mb_si", "train_seconds"):
+        assert key in record
+    assert record["num_gaussians"] == 1000 and record["train_seconds"] == 3.0
+    assert record["size_mb"] == pytest.approx((1000 * 152 + 360) / 2**20)
+    assert record["psnr"] == pytest.approx(result.psnr)
+    with open(tmp_path / "eval_per_view.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 8 and rows[0]["camera"] == "cam0" and float(rows[0]["psnr"]) == pytest.approx(
+        result.views[0].psnr, abs=1e-4)
+    assert "PSNR" in text and "all" in text
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_eval_paths_for_bitstreams(tmp_path: Path) -> None:
+    assert eval_paths(tmp_path) == (tmp_path / "eval.json", tmp_path / "eval_per_view.csv")
+    j, c = eval_paths(tmp_path / "model_q5.stgc")
+    assert j == tmp_path / "eval_model_q5.json" and c == tmp_path / "eval_model_q5_per_view.csv"
+
+
+def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
+    it = tmp_path / "point_cloud" / "iteration_10"
+    it.mkdir(parents=True)
+    rows = np.zeros(7, dtype=[(n, "f4") for n in ply_fields("lite")])
+    PlyData([PlyElement.describe(rows, "vertex")]).write(str(it / "point_cloud.ply"))
+
+    class FakeModel:
+        num_gaussians, variant = 7, "lite"
+
+        def render(self, cam: FakeCam, t: float) -> torch.Tensor:
+            assert t == cam.time
+            return _noisy_render(cam)
+
+    class FakeDataset:
+        test, frames, fps = CAMS, list(range(4)), 2.0
+
+        def load_image(self, cam: FakeCam) -> np.ndarray:
+            return _gt(cam)
+
+    record, text = evaluate_run(tmp_path, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset())
+    assert record["num_gaussians"] == 7 and record["duration_s"] == 2.0
+    assert record["mbps"] == pytest.approx(7 * 128 * 8 / 1e6 / 2.0)
+    assert (tmp_path / "eval.json").is_file() and "all" in text
+    stgc = tmp_path / "model_q3.stgc"
+    stgc.write_bytes(b"x" * 500)
+    record, _ = evaluate_run(stgc, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset())
+    assert record["size_bytes"] == 500 and (tmp_path / "eval_model_q3.json").is_file()
