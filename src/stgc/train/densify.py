@@ -8,7 +8,6 @@ per-Gaussian arrays (`DensificationStats`) are edited here with the same masks.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -156,20 +155,6 @@ def prune_mask_floaters(
     if max_world_scale > 0:
         remove |= model.scales.detach().max(dim=1).values > max_world_scale * extent
     return remove
-
-
-@torch.no_grad()
-def reset_opacity(model: Any, optimizer: torch.optim.Optimizer, max_opacity: float) -> None:
-    """Clamp every opacity to at most `max_opacity` and zero the opacity group's Adam moments (as 3DGS does when it
-    swaps in the reset tensor), so stale momentum cannot push the fresh opacities straight back up."""
-    opacity = model.params["opacity"]
-    limit = math.log(max_opacity / (1.0 - max_opacity))
-    opacity.data.clamp_(max=limit)
-    state = optimizer.state.get(opacity)
-    if state:
-        for key in ("exp_avg", "exp_avg_sq"):
-            if key in state:
-                state[key].zero_()
 
 
 def apply_prune(model: Any, stats: DensificationStats, remove: torch.Tensor) -> int:

@@ -1,0 +1,289 @@
+"""Stills, videos and contact sheets of a trained model.
+
+- `render_still`: one camera of the dataset at any time t -> PNG.
+- `render_video`: a fixed camera over a frame range, or an orbit: a smooth path through the training cameras
+  (centres on a cubic spline over chord length, orientations by slerp, the dataset's intrinsics) while time
+  sweeps [0, 1] -> MP4 (imageio-ffmpeg, H.264) or GIF.
+- `contact_sheet`: ground truth beside render for a few frames of the test views -> PNG.
+Every file is written through `stgc.fileio.atomic_path`, so a reader never sees half a video.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import json
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+import torch
+
+from stgc.errors import DataError, FormatError
+from stgc.fileio import atomic_path
+
+
+# ------------------------------------------------------------------------------------------------ loading
+def _open_dataset_of_run(run_dir: Path) -> Any:
+    from stgc.data import open_dataset
+
+    config_path = run_dir / "config.json"
+    if not config_path.is_file():
+        raise DataError(run_dir, "no config.json: pass the dataset explicitly")
+    try:
+        data_cfg = dict(json.loads(config_path.read_text()).get("data") or {})
+    except (OSError, json.JSONDecodeError) as exc:
+        raise FormatError(config_path, f"cannot read run config ({exc})") from None
+    if "path" not in data_cfg:
+        raise DataError(config_path, "config.json has no data.path: pass the dataset explicitly")
+    accepted = set(inspect.signature(open_dataset).parameters) - {"path"}
+    return open_dataset(data_cfg["path"], **{k: v for k, v in data_cfg.items() if k in accepted})
+
+
+def load_model_and_dataset(run_or_model: Any, dataset: Any | None = None) -> tuple[Any, Any]:
+    """(model, dataset) from a run directory / iteration dir / PLY path, or an in-memory model."""
+    if isinstance(run_or_model, (str, Path)):
+        from stgc.model import STGModel
+
+        path = Path(run_or_model)
+        model = STGModel.load(path)
+        if dataset is None:
+            run_dir = path if path.is_dir() and (path / "config.json").exists() else None
+            for parent in [path, *path.parents][:4]:
+                if (parent / "config.json").is_file():
+                    run_dir = parent
+                    break
+            if run_dir is None:
+                raise DataError(path, "cannot find the run's config.json: pass the dataset explicitly")
+            dataset = _open_dataset_of_run(run_dir)
+        return model, dataset
+    if dataset is None:
+        raise ValueError("rendering an in-memory model needs the dataset (for cameras and intrinsics)")
+    return run_or_model, dataset
+
+
+def find_camera(dataset: Any, camera_name: str, time: float | None = None) -> Any:
+    """The dataset camera named `camera_name` (train or test) whose frame time is nearest `time`, with its time
+    set to `time` (so any t in [0, 1] can be rendered, not only frame times)."""
+    matches = [c for c in [*dataset.test, *dataset.train] if str(c.name) == str(camera_name)]
+    if not matches:
+        names = sorted({str(c.name) for c in [*dataset.test, *dataset.train]})
+        raise DataError(None, f"no camera named {camera_name!r}; cameras are {', '.join(names)}")
+    if time is None:
+        return matches[0]
+    best = min(matches, key=lambda c: abs(float(c.time) - float(time)))
+    return dataclasses.replace(best, time=float(time))
+
+
+@torch.no_grad()
+def render_image(model: Any, camera: Any, time: float | None = None, background: Sequence[float] | None = None) -> np.ndarray:
+    """uint8 [H, W, 3] render of `camera` at `time` (default the camera's), clamped to [0, 1]."""
+    t = float(camera.time if time is None else time)
+    rgb = model.render(camera, t=t, background=None if background is None else torch.tensor(background)).rgb
+    return (rgb.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+
+
+# ------------------------------------------------------------------------------------------------ writers
+def write_png(path: str | Path, image: np.ndarray) -> Path:
+    from PIL import Image
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(image)).save(tmp, format="PNG")
+    return path
+
+
+def _even(image: np.ndarray) -> np.ndarray:
+    """H.264 with 4:2:0 chroma needs even sizes: pad odd ones by one edge row/column."""
+    h, w = image.shape[:2]
+    return np.pad(image, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge") if (h % 2 or w % 2) else image
+
+
+def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> Path:
+    """MP4 (H.264, yuv420p, quality 8) or GIF by the suffix of `path`; atomic."""
+    import imageio.v2 as imageio
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    with atomic_path(path) as tmp:
+        if suffix == ".gif":
+            imageio.mimsave(tmp, [np.asarray(f) for f in frames], format="GIF", duration=1000.0 / fps, loop=0)
+        elif suffix in (".mp4", ".mov", ".mkv"):
+            # The temporary name ends in .tmp, so the container is named explicitly; macro_block_size=2 keeps
+            # imageio from rescaling small frames to multiples of 16.
+            writer = imageio.get_writer(
+                tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=8,
+                pixelformat="yuv420p", macro_block_size=2, output_params=["-f", suffix[1:]],
+            )
+            try:
+                for f in frames:
+                    writer.append_data(_even(np.asarray(f)))
+            finally:
+                writer.close()
+        else:
+            raise ValueError(f"{path}: unsupported video type {suffix!r} (use .mp4 or .gif)")
+    return path
+
+
+# ------------------------------------------------------------------------------------------------ paths
+def _principal_angle_order(centers: np.ndarray) -> np.ndarray:
+    """Order cameras around the rig: by angle in the plane of the two main axes of their centres (works for arcs
+    and rings; a plain name order is arbitrary for many datasets)."""
+    centred = centers - centers.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    u, v = centred @ vt[0], centred @ vt[1]
+    angles = np.arctan2(v, u)
+    order = np.argsort(angles)
+    # Start after the largest angular gap, so an arc is traversed end to end rather than across its opening.
+    sorted_angles = angles[order]
+    gaps = np.diff(np.concatenate([sorted_angles, sorted_angles[:1] + 2 * np.pi]))
+    start = (int(np.argmax(gaps)) + 1) % len(order)
+    return np.roll(order, -start)
+
+
+def orbit_cameras(dataset: Any, num_frames: int) -> list[Any]:
+    """`num_frames` cameras on a smooth path through the training cameras (one per view, frame 0 poses).
+
+    Centres follow a cubic spline parameterised by chord length, orientations are slerped between neighbouring
+    cameras at the same parameter, intrinsics and size are those of the first training camera; time sweeps
+    [0, 1] along the path."""
+    from scipy.interpolate import CubicSpline
+    from scipy.spatial.transform import Rotation, Slerp
+
+    if num_frames < 1:
+        raise ValueError("an orbit needs at least one frame")
+    by_name: dict[str, Any] = {}
+    for cam in dataset.train:
+        by_name.setdefault(str(cam.name), cam)
+    views = list(by_name.values())
+    if len(views) < 2:
+        raise DataError(None, "an orbit needs at least two training cameras")
+    centers = np.array([c.center for c in views])
+    views = [views[i] for i in _principal_angle_order(centers)]
+    centers = np.array([c.center for c in views])
+    chord = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centers, axis=0), axis=1))])
+    # Coincident centres would make the parameter non-increasing; nudge them apart.
+    chord = chord + np.arange(len(chord)) * 1e-9
+    u = chord / chord[-1]
+    spline = CubicSpline(u, centers, bc_type="natural") if len(views) > 2 else None
+    rotations = Rotation.from_matrix(np.array([c.w2c[:3, :3].T for c in views]))  # camera-to-world rotations
+    slerp = Slerp(u, rotations)
+    s = np.linspace(0.0, 1.0, num_frames)
+    path_centers = spline(s) if spline is not None else np.outer(1 - s, centers[0]) + np.outer(s, centers[1])
+    path_rot = slerp(s).as_matrix()
+    ref = views[0]
+    cams = []
+    for i in range(num_frames):
+        R_w2c = path_rot[i].T
+        w2c = np.eye(4)
+        w2c[:3, :3] = R_w2c
+        w2c[:3, 3] = -R_w2c @ path_centers[i]
+        t = float(s[i])
+        cams.append(dataclasses.replace(ref, name=f"orbit{i:04d}", frame=i, time=t, w2c=w2c, image=None))
+    return cams
+
+
+def _frame_selection(frames: Any, available: Sequence[int]) -> list[int]:
+    if frames is None:
+        return list(available)
+    if isinstance(frames, str):
+        if ":" in frames:
+            a, b = frames.split(":", 1)
+            frames = slice(int(a) if a else None, int(b) if b else None)
+        else:
+            frames = [int(x) for x in frames.split(",") if x.strip()]
+    if isinstance(frames, slice):
+        lo = frames.start if frames.start is not None else min(available)
+        hi = frames.stop if frames.stop is not None else max(available) + 1
+        chosen = [f for f in available if lo <= f < hi]
+    else:
+        chosen = [int(f) for f in frames]
+        missing = [f for f in chosen if f not in set(available)]
+        if missing:
+            raise DataError(None, f"frames {missing} are not in the dataset (frames {min(available)}..{max(available)})")
+    if not chosen:
+        raise DataError(None, f"frame selection {frames!r} is empty (dataset frames {min(available)}..{max(available)})")
+    return chosen
+
+
+def _camera_at(dataset: Any, name: str, frame: int) -> Any:
+    for cam in [*dataset.test_at(frame), *dataset.train_at(frame)]:
+        if str(cam.name) == str(name):
+            return cam
+    raise DataError(None, f"camera {name!r} has no view at frame {frame}")
+
+
+# ------------------------------------------------------------------------------------------------ public API
+def render_still(
+    run_or_model: Any,
+    camera_name: str,
+    time: float,
+    out_png: str | Path,
+    *,
+    dataset: Any | None = None,
+    background: Sequence[float] | None = None,
+) -> Path:
+    """Render the dataset camera `camera_name` at time `time` in [0, 1] to `out_png`."""
+    model, dataset = load_model_and_dataset(run_or_model, dataset)
+    camera = find_camera(dataset, camera_name, time)
+    return write_png(out_png, render_image(model, camera, time, background))
+
+
+def render_video(
+    run_or_model: Any,
+    out: str | Path,
+    *,
+    dataset: Any | None = None,
+    camera_name: str | None = None,
+    frames: Any = None,
+    orbit: bool = False,
+    num_frames: int | None = None,
+    fps: float | None = None,
+    background: Sequence[float] | None = None,
+) -> Path:
+    """A video of the model.
+
+    Fixed view (default): `camera_name` (default the first test camera) at every frame in `frames` ("A:B",
+    "0,5,9", a slice or a list of frame indices; default all), one video frame per dataset frame.
+    orbit=True: `num_frames` (default 2 x dataset frames) views on a smooth path through the training cameras
+    while time sweeps [0, 1]. fps defaults to the dataset's."""
+    model, dataset = load_model_and_dataset(run_or_model, dataset)
+    rate = float(fps or getattr(dataset, "fps", 30) or 30)
+    if orbit:
+        n = int(num_frames or 2 * len(list(dataset.frames)))
+        cameras = orbit_cameras(dataset, n)
+    else:
+        name = camera_name or str((dataset.test or dataset.train)[0].name)
+        cameras = [_camera_at(dataset, name, f) for f in _frame_selection(frames, list(dataset.frames))]
+    images = (render_image(model, cam, None, background) for cam in cameras)
+    return write_video(out, images, rate)
+
+
+def contact_sheet(
+    model: Any,
+    dataset: Any,
+    frames: Any,
+    out_png: str | Path,
+    *,
+    cameras: Sequence[str] | None = None,
+    background: Sequence[float] | None = None,
+    gap: int = 2,
+) -> Path:
+    """One row per (test camera, frame): ground truth | render | |error| x4, separated by `gap` black pixels."""
+    model, dataset = load_model_and_dataset(model, dataset)
+    names = list(cameras) if cameras else sorted({str(c.name) for c in dataset.test}) or [str(dataset.train[0].name)]
+    rows = []
+    for frame in _frame_selection(frames, list(dataset.frames)):
+        for name in names:
+            cam = _camera_at(dataset, name, frame)
+            gt = np.asarray(dataset.load_image(cam))[..., :3]
+            pred = render_image(model, cam, None, background)
+            err = np.clip(np.abs(gt.astype(np.int16) - pred.astype(np.int16)) * 4, 0, 255).astype(np.uint8)
+            h = gt.shape[0]
+            sep = np.zeros((h, gap, 3), np.uint8)
+            rows.append(np.concatenate([gt, sep, pred, sep, err], axis=1))
+    width = rows[0].shape[1]
+    sheet = []
+    for r in rows:
+        sheet += [r, np.zeros((gap, width, 3), np.uint8)]
+    return write_png(out_png, np.concatenate(sheet[:-1], axis=0))

@@ -1,0 +1,474 @@
+"""The STG training loop (official `train.py`), with resumable checkpoints and compaction hooks.
+
+One iteration: draw one timestamp and `batch` training views of it; render each view, loss
+0.8·L1 + 0.2·(1 − SSIM), backward of loss/batch (so the parameter gradients are the batch mean); one Adam step.
+Then density control, opacity reset, the compaction controller, EMS, logging and checkpoints.
+
+Determinism: every random draw of iteration i comes from streams seeded by (seed, i) (frame and view choice,
+clone/split sampling, and the global python/numpy/torch generators that other packages may use), so a run resumed
+from RUN/checkpoint.pt makes exactly the draws an uninterrupted run would have made.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import random
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from stgc.fileio import write_json
+from stgc.train.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_rng_states, save_checkpoint
+from stgc.train.config import Schedule, TrainConfig, resolve_schedule
+from stgc.train.densify import (
+    DensificationStats,
+    apply_prune,
+    clone_and_split,
+    prune_mask_floaters,
+    prune_mask_low_opacity,
+    prune_mask_nonfinite,
+)
+from stgc.train.monitor import JsonLines, Progress, TensorBoard
+
+IterationCallback = Callable[[int, dict[str, Any]], None]
+
+
+def _config_dict(cfg: Any) -> Any:
+    if cfg is None:
+        return None
+    if dataclasses.is_dataclass(cfg):
+        return dataclasses.asdict(cfg)
+    return dict(cfg)
+
+
+def _derive_seed(seed: int, iteration: int, stream: int) -> int:
+    """A 63-bit seed for (run seed, iteration, stream) that does not depend on any earlier draw."""
+    return int(np.random.SeedSequence([seed, iteration, stream]).generate_state(2, dtype=np.uint32).view(np.uint64)[0]) >> 1
+
+
+def _seed_globals(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed & 0xFFFFFFFF)
+    torch.manual_seed(seed)
+
+
+def learning_rates(cfg: TrainConfig, extent: float) -> dict[str, float]:
+    """Initial lr per parameter group (position-like groups scale with the scene extent, as official)."""
+    lr = cfg.lr
+    return {
+        "xyz": lr.xyz_init * extent,
+        "scaling": lr.scaling,
+        "rotation": lr.rotation,
+        "omega": lr.omega,
+        "opacity": lr.opacity,
+        "trbf_center": lr.trbf_center,
+        "trbf_scale": lr.trbf_scale,
+        "motion": lr.motion * extent,
+        "features_dc": lr.features_dc,
+        "features_t": lr.features_t,
+    }
+
+
+def xyz_learning_rate(cfg: TrainConfig, extent: float, iteration: int, total: int) -> float:
+    """Log-linear decay from xyz_init·E at iteration 0 to xyz_final·E at the last iteration (3DGS expon_lr, no delay)."""
+    p = min(max(iteration / max(total, 1), 0.0), 1.0)
+    a, b = cfg.lr.xyz_init * extent, cfg.lr.xyz_final * extent
+    return math.exp(math.log(a) * (1 - p) + math.log(b) * p)
+
+
+def build_initial_model(dataset: Any, data_cfg: Any, model_cfg: Any) -> Any:
+    """The STG model initialised from the dataset's point cloud as the data config asks."""
+    from stgc.data import initial_points_from_config  # the data engineer's helper: DataConfig -> PointCloud
+    from stgc.model import STGModel
+
+    cloud = initial_points_from_config(dataset, data_cfg)
+    return STGModel.from_config(cloud, model_cfg, scene_extent=dataset.scene_extent())
+
+
+class ImageCache:
+    """Ground-truth images kept as uint8 tensors (4x smaller than float32), converted per use."""
+
+    def __init__(self, dataset: Any):
+        self.dataset = dataset
+        self._images: dict[tuple[str, int], torch.Tensor] = {}
+
+    def get(self, camera: Any) -> torch.Tensor:
+        key = (camera.name, camera.frame)
+        img = self._images.get(key)
+        if img is None:
+            img = torch.from_numpy(np.ascontiguousarray(self.dataset.load_image(camera)))
+            self._images[key] = img
+        return img.to(torch.float32) / 255.0
+
+
+class _PruneObserver:
+    """Sees the rows another component (the compaction controller) removes with `model.prune`, so the trainer's
+    per-Gaussian statistics stay aligned with the model."""
+
+    def __init__(self, model: Any, stats: DensificationStats):
+        self.model, self.stats = model, stats
+
+    def __enter__(self) -> "_PruneObserver":
+        original = self.model.prune
+
+        def observed_prune(keep: torch.Tensor) -> Any:
+            result = original(keep)
+            self.stats.keep(torch.as_tensor(keep, dtype=torch.bool))
+            return result
+
+        self._original = original
+        self.model.prune = observed_prune
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        # Restore the class method (the instance attribute shadowed it).
+        del self.model.prune
+
+
+class Trainer:
+    """Holds the state of one run. `train()` is the public entry point; tests drive `Trainer` directly."""
+
+    def __init__(
+        self,
+        dataset: Any,
+        data_cfg: Any,
+        model_cfg: Any,
+        train_cfg: TrainConfig,
+        compaction_cfg: Any,
+        out_dir: str | Path,
+        *,
+        model: Any | None = None,
+        resume: bool = False,
+        callback: IterationCallback | None = None,
+    ):
+        self.dataset, self.data_cfg, self.model_cfg = dataset, data_cfg, model_cfg
+        self.cfg, self.compaction_cfg = train_cfg, compaction_cfg
+        self.out = Path(out_dir)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.callback = callback
+        self.schedule: Schedule = resolve_schedule(train_cfg)
+        if train_cfg.threads > 0:
+            torch.set_num_threads(train_cfg.threads)
+        self.metrics_log = JsonLines(self.out / "metrics.jsonl")
+        self.compaction_log = JsonLines(self.out / "compaction.jsonl")
+        self.images = ImageCache(dataset)
+        self.frames = list(dataset.frames)
+        self.train_centers = np.array([c.center for c in dataset.train], dtype=np.float64).reshape(-1, 3)
+        bg = torch.zeros(3)
+        self.background = bg
+        self.elapsed_before = 0.0
+        self.start_iteration = 0
+        self.densify_rounds_done = 0
+        self.ems_state: dict[str, Any] = {}
+
+        checkpoint = None
+        if resume and (self.out / CHECKPOINT_NAME).exists():
+            checkpoint = load_checkpoint(self.out)
+            self.model = self._model_from_checkpoint(checkpoint)
+        else:
+            self.model = model if model is not None else build_initial_model(dataset, data_cfg, model_cfg)
+            self.metrics_log.clear()
+            self.compaction_log.clear()
+            self._write_config()
+        self.extent = float(self.model.scene_extent)
+        self.optimizer = self.model.make_optimizer(learning_rates(train_cfg, self.extent), train_cfg.lr.decoder)
+        self.stats = DensificationStats(self.model.num_gaussians)
+        self.compactor = self._make_compactor()
+        if checkpoint is not None:
+            self._restore(checkpoint)
+
+    # ------------------------------------------------------------------------------------------- setup
+    def _write_config(self) -> None:
+        data = _config_dict(self.data_cfg) or {}
+        path = getattr(self.dataset, "path", None) or data.get("path")
+        if path is not None:
+            data["path"] = str(path)
+        train = _config_dict(self.cfg)
+        train["resolved_schedule"] = self.schedule.to_dict()
+        write_json(
+            self.out / "config.json",
+            {
+                "data": data,
+                "model": _config_dict(self.model_cfg),
+                "train": train,
+                "compaction": _config_dict(self.compaction_cfg),
+            },
+        )
+
+    def _make_compactor(self) -> Any | None:
+        cfg = self.compaction_cfg
+        if cfg is None or not getattr(cfg, "enabled", True):
+            return None
+        from stgc.compaction import STKNNCompactor
+
+        return STKNNCompactor(cfg, total_iterations=self.schedule.iterations)
+
+    def _model_from_checkpoint(self, ckpt: dict[str, Any]) -> Any:
+        from stgc.model import STGModel
+
+        return STGModel.from_state_dict(ckpt["model"])
+
+    def _restore(self, ckpt: dict[str, Any]) -> None:
+        self.optimizer.load_state_dict(ckpt["optimizer"])
+        self.stats.load_state_dict(ckpt["densify_stats"])
+        self.start_iteration = int(ckpt["iteration"])
+        self.elapsed_before = float(ckpt["elapsed_s"])
+        self.densify_rounds_done = int(ckpt["densify_rounds_done"])
+        self.ems_state = dict(ckpt.get("ems") or {})
+        if self.compactor is not None and ckpt.get("compactor") is not None:
+            self.compactor.load_state_dict(ckpt["compactor"])
+        restore_rng_states(ckpt["rng"])
+        self.metrics_log.truncate_after(self.start_iteration)
+        self.compaction_log.truncate_after(self.start_iteration)
+
+    def checkpoint_payload(self, iteration: int, elapsed: float) -> dict[str, Any]:
+        model = self.model
+        return {
+            "iteration": iteration,
+            "elapsed_s": elapsed,
+            "model": model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "densify_stats": self.stats.state_dict(),
+            "densify_rounds_done": self.densify_rounds_done,
+            "compactor": None if self.compactor is None else self.compactor.state_dict(),
+            "ems": self.ems_state,
+        }
+
+    # ------------------------------------------------------------------------------------------- one step
+    def _set_xyz_lr(self, iteration: int) -> float:
+        lr = xyz_learning_rate(self.cfg, self.extent, iteration, self.schedule.iterations)
+        for group in self.optimizer.param_groups:
+            if group.get("name") == "xyz":
+                group["lr"] = lr
+        return lr
+
+    def _loss(self, render_rgb: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+        from stgc.eval import ssim
+
+        lam = self.cfg.lambda_dssim
+        l1 = (render_rgb - gt).abs().mean()
+        if lam == 0:
+            return l1
+        return (1.0 - lam) * l1 + lam * (1.0 - ssim(render_rgb, gt))
+
+    def train_step(self, iteration: int) -> dict[str, Any]:
+        """Render, backpropagate and update once; returns the iteration's numbers."""
+        rng = np.random.default_rng(_derive_seed(self.cfg.seed, iteration, 0))
+        frame = self.frames[int(rng.integers(len(self.frames)))]
+        cameras = list(self.dataset.train_at(frame))
+        batch = self.cfg.batch
+        picks = rng.choice(len(cameras), size=batch, replace=len(cameras) < batch)
+        views = [cameras[int(i)] for i in picks]
+        t = float(views[0].time)
+        lr_xyz = self._set_xyz_lr(iteration)
+
+        total_loss, total_mse = 0.0, 0.0
+        last = None
+        for cam in views:
+            gt = self.images.get(cam)
+            out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend)
+            loss = self._loss(out.rgb, gt)
+            (loss / batch).backward()
+            total_loss += float(loss.detach())
+            total_mse += float(((out.rgb.detach().clamp(0, 1) - gt) ** 2).mean())
+            last = out
+        # Official: the screen-space gradient of the LAST view of the batch feeds the densification statistics.
+        # Its gradient was computed from loss/batch, hence the factor batch to get the per-view gradient.
+        if self.densify_rounds_done < self.cfg.densify.rounds and self.cfg.densify.enabled and last is not None:
+            grad_norm = last.raster.means2d_grad_ndc_norm() * batch
+            self.stats.add(last.index, grad_norm, last.raster.visible)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        mean_loss = total_loss / batch
+        mean_mse = total_mse / batch
+        return {"t": t, "frame": frame, "loss": mean_loss, "psnr": -10.0 * math.log10(max(mean_mse, 1e-12)), "lr_xyz": lr_xyz}
+
+    def density_control(self, iteration: int, generator: torch.Generator) -> dict[str, int]:
+        sched, d, fl = self.schedule, self.cfg.densify, self.cfg.floaters
+        report: dict[str, int] = {}
+        if sched.is_densify_step(iteration):
+            if d.enabled and self.densify_rounds_done < d.rounds:
+                report.update(
+                    clone_and_split(self.model, self.stats, d.grad_threshold, d.percent_dense, d.split_count, generator)
+                )
+                self.densify_rounds_done += 1
+            elif iteration < sched.prune_until:
+                report["pruned_opacity"] = apply_prune(
+                    self.model, self.stats, prune_mask_low_opacity(self.model, d.prune_opacity)
+                )
+            if iteration <= sched.floaters_until and (fl.near_camera > 0 or fl.max_world_scale > 0):
+                report["pruned_floaters"] = apply_prune(
+                    self.model,
+                    self.stats,
+                    prune_mask_floaters(self.model, self.train_centers, fl.near_camera, fl.max_world_scale),
+                )
+            report["pruned_nonfinite"] = apply_prune(self.model, self.stats, prune_mask_nonfinite(self.model))
+        if (
+            sched.opacity_reset_interval
+            and iteration % sched.opacity_reset_interval == 0
+            and iteration < sched.opacity_reset_until
+        ):
+            self.model.reset_opacity(d.opacity_reset_value)
+            report["opacity_reset"] = 1
+        return report
+
+    def importance(self) -> torch.Tensor:
+        """Accumulated blending weight of every Gaussian over all training views (for compaction 'importance')."""
+        weights = torch.zeros(self.model.num_gaussians, dtype=torch.float64)
+        with torch.no_grad():
+            for cam in self.dataset.train:
+                out = self.model.render(cam, t=float(cam.time), background=self.background,
+                                        backend=self.cfg.backend, return_weights=True)
+                w = out.raster.weights
+                if w is not None:
+                    weights.index_add_(0, out.index, w.to(torch.float64))
+        return weights
+
+    # ------------------------------------------------------------------------------------------- the run
+    def save_model(self, iteration: int) -> Path:
+        iteration_dir = self.out / "point_cloud" / f"iteration_{iteration}"
+        self.model.save(iteration_dir)
+        return iteration_dir
+
+    def evaluate(self) -> Any:
+        """All test cameras x frames, clamped renders (stgc.eval's driver); returns its EvalResult."""
+        from stgc.eval.evaluate import evaluate
+
+        def render(cam: Any) -> torch.Tensor:
+            with torch.no_grad():
+                return self.model.render(cam, t=float(cam.time), background=self.background,
+                                         backend=self.cfg.backend).rgb
+
+        return evaluate(render, self.dataset.test, self.dataset.load_image)
+
+    def write_evaluation(self, result: Any) -> None:
+        from stgc.eval.accounting import model_size_of
+        from stgc.eval.evaluate import dataset_duration_s, write_eval
+
+        try:
+            info = model_size_of(self.model, dataset_duration_s(self.dataset))
+        except (ValueError, AttributeError, ZeroDivisionError):
+            info = {"num_gaussians": self.model.num_gaussians}
+        write_eval(self.out, result, info)
+
+    def run(self) -> dict[str, Any]:
+        cfg, sched = self.cfg, self.schedule
+        start = self.start_iteration
+        end = sched.iterations
+        if cfg.stop_after is not None:
+            end = min(end, start + int(cfg.stop_after)) if start < end else end
+        progress = Progress(sched.iterations, start, cfg.progress)
+        tb = TensorBoard(self.out / "tensorboard", cfg.tensorboard)
+        t0 = time.perf_counter()
+        elapsed = self.elapsed_before
+        last_log_time, last_log_it = t0, start
+        row: dict[str, Any] = {}
+        try:
+            for iteration in range(start + 1, end + 1):
+                _seed_globals(_derive_seed(cfg.seed, iteration, 1))
+                generator = torch.Generator().manual_seed(_derive_seed(cfg.seed, iteration, 2))
+                step = self.train_step(iteration)
+                control = self.density_control(iteration, generator)
+                if self.compactor is not None:
+                    with _PruneObserver(self.model, self.stats):
+                        event = self.compactor.step(iteration, step["t"], self.model, step["loss"],
+                                                    importance_fn=self.importance)
+                    if event:
+                        self.compaction_log.append(_jsonable({"iteration": iteration, **event}))
+                elapsed = self.elapsed_before + (time.perf_counter() - t0)
+                progress.update(step["loss"], step["psnr"], self.model.num_gaussians)
+                if self.callback is not None:
+                    self.callback(iteration, {**step, **control})
+                if cfg.log_every and (iteration % cfg.log_every == 0 or iteration == end):
+                    now = time.perf_counter()
+                    row = {
+                        "iteration": iteration,
+                        "loss": step["loss"],
+                        "psnr": step["psnr"],
+                        "num_gaussians": self.model.num_gaussians,
+                        "lr_xyz": step["lr_xyz"],
+                        "elapsed_s": round(elapsed, 3),
+                        "it_per_s": (iteration - last_log_it) / max(now - last_log_time, 1e-9),
+                        **control,
+                    }
+                    last_log_time, last_log_it = now, iteration
+                    if cfg.eval_every and iteration % cfg.eval_every == 0 and iteration != sched.iterations:
+                        e0 = time.perf_counter()
+                        ev = self.evaluate()
+                        row["test_psnr"], row["test_ssim"] = ev.psnr, ev.ssim
+                        # Training time excludes evaluation: shift the clock by the evaluation's duration.
+                        spent = time.perf_counter() - e0
+                        t0 += spent
+                        last_log_time += spent
+                    self.metrics_log.append(row)
+                    tb.scalars(iteration, {k: v for k, v in row.items() if k != "iteration"})
+                if iteration in sched.save_iterations:
+                    self.save_model(iteration)
+                if iteration == end or (cfg.checkpoint_every and iteration % cfg.checkpoint_every == 0):
+                    save_checkpoint(self.out, self.checkpoint_payload(iteration, elapsed))
+        finally:
+            progress.close()
+            tb.close()
+        finished = end >= sched.iterations
+        done = max(end, start)
+        summary: dict[str, Any] = {
+            "iterations": done,
+            "target_iterations": sched.iterations,
+            "wall_seconds": round(elapsed, 3),
+            "it_per_s": done / elapsed if elapsed > 0 else None,
+            "num_gaussians": self.model.num_gaussians,
+            "variant": self.model.variant,
+            "finished": finished,
+        }
+        if finished:
+            # The summary goes first: the evaluation record reads the training time from it.
+            write_json(self.out / "train_summary.json", summary)
+        if finished and cfg.eval_at_end:
+            e0 = time.perf_counter()
+            result = self.evaluate()
+            self.write_evaluation(result)
+            summary["test_psnr"], summary["test_ssim"] = result.psnr, result.ssim
+            summary["eval_seconds"] = round(time.perf_counter() - e0, 3)
+            write_json(self.out / "train_summary.json", summary)
+        return summary
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, torch.Tensor):
+        return obj.item() if obj.numel() == 1 else obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return obj
+
+
+def train(
+    dataset: Any,
+    data_cfg: Any,
+    model_cfg: Any,
+    train_cfg: TrainConfig,
+    compaction_cfg: Any,
+    out_dir: str | Path,
+    resume: bool = False,
+    *,
+    model: Any | None = None,
+    callback: IterationCallback | None = None,
+) -> dict[str, Any]:
+    """Train an STG model on `dataset` into the run directory `out_dir`; returns the summary.
+
+    resume: continue from out_dir/checkpoint.pt when it exists (else start afresh). model: start from this model
+    instead of building one from the data config's initial points. callback(iteration, numbers) runs after every
+    iteration. Writes config.json, metrics.jsonl, compaction.jsonl, checkpoint.pt, point_cloud/iteration_<N>/,
+    eval.json, eval_per_view.csv and train_summary.json (see docs/training.md)."""
+    trainer = Trainer(dataset, data_cfg, model_cfg, train_cfg, compaction_cfg, out_dir,
+                      model=model, resume=resume, callback=callback)
+    return trainer.run()
