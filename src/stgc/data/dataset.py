@@ -1,0 +1,385 @@
+"""`Dataset`: one multi-view video segment, the same object for every source format.
+
+Readers (readers.py) describe everything a source holds at native resolution as a `SourceScene`;
+`assemble` selects a frame segment, applies the downscale and the train/test split, and checks that
+every view has every frame of the segment.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..errors import DataError
+from .cameras import Camera
+from .images import ImageCache, image_size, read_image, resize_image
+
+DEFAULT_FPS = 30.0
+DEFAULT_CACHE_BYTES = 2 << 30
+
+
+@dataclass(frozen=True)
+class VideoFrame:
+    """Frame `index` (0-based) of a video file decoded with imageio-ffmpeg; callable -> uint8 RGB."""
+
+    path: Path
+    index: int
+
+    def __call__(self) -> np.ndarray:
+        return decode_video(self.path, [self.index])[self.index]
+
+
+@dataclass(frozen=True)
+class YuvFrame:
+    """Frame `index` of a planar YUV 4:2:0 file; callable -> uint8 RGB."""
+
+    path: Path
+    index: int
+    width: int
+    height: int
+    bit_depth: int
+    color_range: str = "limited"
+
+    def __call__(self) -> np.ndarray:
+        from .yuv import read_frame
+
+        return read_frame(self.path, self.width, self.height, self.index, self.bit_depth, self.color_range)
+
+
+def decode_video(path: Path, indices: list[int]) -> dict[int, np.ndarray]:
+    """Decode the frames `indices` of a video in one sequential pass (uint8 RGB)."""
+    import imageio_ffmpeg
+
+    wanted = set(indices)
+    last = max(wanted)
+    out: dict[int, np.ndarray] = {}
+    try:
+        reader = imageio_ffmpeg.read_frames(str(path), pix_fmt="rgb24")
+        meta = next(reader)
+        width, height = meta["size"]
+        for i, raw in enumerate(reader):
+            if i in wanted:
+                out[i] = np.frombuffer(raw, dtype=np.uint8).reshape(height, width, 3).copy()
+            if i >= last:
+                break
+        reader.close()
+    except (OSError, RuntimeError, StopIteration) as exc:
+        raise DataError(path, f"cannot decode video: {exc}") from None
+    missing = sorted(wanted - set(out))
+    if missing:
+        raise DataError(path, f"video ends before frame {missing[0]}")
+    return out
+
+
+@dataclass
+class SourceScene:
+    """What a reader found, at native resolution, before choosing a segment.
+
+    cameras: one per (view, available frame); `time` is filled in by `assemble`.
+    multiview: every view is expected to have every frame (False for monocular D-NeRF).
+    points: frame -> (xyz float [M,3], rgb float [M,3] in [0,1]) of points shipped with the data, or None.
+    """
+
+    name: str
+    format: str
+    root: Path
+    cameras: list[Camera]
+    default_test: list[str]
+    meta_file: Path
+    fps: float | None = None
+    multiview: bool = True
+    points: Callable[[int], tuple[np.ndarray, np.ndarray] | None] | None = None
+    points_description: str | None = None
+    default_start: int | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def segments(total_frames: int, duration: int, first: int = 0) -> list[tuple[int, int]]:
+    """Split frames [first, first + total_frames) into consecutive (start, duration) segments, as STG
+    trains a 300-frame video as six 50-frame models; the last segment may be shorter."""
+    if total_frames <= 0 or duration <= 0:
+        raise ValueError("total_frames and duration must be positive")
+    return [(s, min(duration, first + total_frames - s)) for s in range(first, first + total_frames, duration)]
+
+
+class Dataset:
+    """A segment of a multi-view video: cameras per (view, frame), lazily loaded images.
+
+    Time convention (STG): t = (frame − start) / duration for frame in [start, start + duration).
+    """
+
+    def __init__(self, scene: SourceScene, *, start: int, duration: int, frames: list[int], train: list[Camera],
+                 test: list[Camera], downscale: float, native_size: dict[int, tuple[int, int]], fps: float,
+                 cache_bytes: int, background: tuple[float, float, float]):
+        self._scene = scene
+        self.name = scene.name
+        self.format = scene.format
+        self.root = scene.root
+        self.fps = fps
+        self.start = start
+        self.duration = duration
+        self.frames = frames
+        self.train = train
+        self.test = test
+        self.downscale = downscale
+        self.background = background
+        self._native_size = native_size  # id(camera) -> native (width, height) of its image source
+        self._cache = ImageCache(cache_bytes)
+        self._train_by_frame = _group(train)
+        self._test_by_frame = _group(test)
+
+    # ------------------------------------------------------------------ cameras and time
+    @property
+    def times(self) -> list[float]:
+        return [self.time_of(f) for f in self.frames]
+
+    def time_of(self, frame: int) -> float:
+        return (frame - self.start) / self.duration
+
+    def train_at(self, frame: int) -> list[Camera]:
+        return self._train_by_frame.get(frame, [])
+
+    def test_at(self, frame: int) -> list[Camera]:
+        return self._test_by_frame.get(frame, [])
+
+    @property
+    def cameras(self) -> list[Camera]:
+        return self.train + self.test
+
+    @property
+    def train_views(self) -> list[str]:
+        return _unique_names(self.train)
+
+    @property
+    def test_views(self) -> list[str]:
+        return _unique_names(self.test)
+
+    def scene_extent(self) -> float:
+        """STG's cameras_extent: 1.1 × the largest distance of a train camera centre from their mean."""
+        cams = self.train or self.test
+        centres = np.stack([c.center for c in cams])
+        return float(1.1 * np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
+
+    def segment(self, start: int, duration: int) -> "Dataset":
+        """The same source, another frame segment (same downscale, split and cache size)."""
+        return assemble(self._scene, downscale=self.downscale, start=start, duration=duration,
+                        test_cameras=self.test_views, fps=self.fps, cache_bytes=self._cache.max_bytes,
+                        background=self.background)
+
+    # ------------------------------------------------------------------ images
+    def load_image(self, camera: Camera) -> np.ndarray:
+        """uint8 [H, W, 3] at the camera's (downscaled) size. Read-only array shared with the cache."""
+        key = (camera.name, camera.frame, camera.width, camera.height)
+        return self._cache.get(key, lambda: self._load_uncached(camera))
+
+    def _load_uncached(self, camera: Camera) -> np.ndarray:
+        source = camera.image
+        if source is None:
+            raise DataError(self.root, f"camera {camera.name} frame {camera.frame} has no image source")
+        if isinstance(source, VideoFrame):
+            self._decode_video_segment(camera)
+            key = (camera.name, camera.frame, camera.width, camera.height)
+            cached = self._cache._items.get(key)
+            if cached is not None:
+                return cached
+        native = self._decode_source(source)
+        return self._fit(native, camera, source)
+
+    def _decode_source(self, source) -> np.ndarray:
+        if isinstance(source, (str, Path)):
+            return read_image(Path(source), self.background)
+        image = source()
+        return np.asarray(image, dtype=np.uint8)
+
+    def _fit(self, native: np.ndarray, camera: Camera, source) -> np.ndarray:
+        expected = self._native_size.get(id(camera))
+        h, w = native.shape[:2]
+        if expected is not None and (w, h) != expected:
+            where = source.path if hasattr(source, "path") else source
+            raise DataError(where, f"image is {w}x{h} but {expected[0]}x{expected[1]} was expected "
+                                   f"(camera {camera.name}, from {self._scene.meta_file.name})")
+        if expected is None and abs(w / h - camera.width / camera.height) > 0.02:
+            raise DataError(None, f"image of camera {camera.name} frame {camera.frame} is {w}x{h}, which cannot "
+                                  f"be resized to {camera.width}x{camera.height} without distortion")
+        return resize_image(native, camera.width, camera.height)
+
+    def _decode_video_segment(self, camera: Camera) -> None:
+        """Decode every frame of this camera's video in the segment in one pass into the cache: videos
+        cannot be seeked cheaply, and training visits frames in random order."""
+        same_view = [c for c in self.cameras if c.name == camera.name and isinstance(c.image, VideoFrame)]
+        path = camera.image.path
+        decoded = decode_video(path, [c.image.index for c in same_view])
+        for cam in same_view:
+            image = self._fit(decoded[cam.image.index], cam, cam.image)
+            self._cache.get((cam.name, cam.frame, cam.width, cam.height), lambda image=image: image)
+
+    def image_float(self, camera: Camera) -> np.ndarray:
+        """float32 [H, W, 3] in [0, 1]."""
+        return self.load_image(camera).astype(np.float32) / 255.0
+
+    def clear_cache(self) -> None:
+        self._cache.clear()
+
+    # ------------------------------------------------------------------ points and summary
+    @property
+    def has_points(self) -> bool:
+        return self._scene.points is not None
+
+    def data_points(self, frame: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Points shipped with the data for `frame` (xyz, rgb in [0,1]), or None."""
+        if self._scene.points is None:
+            return None
+        return self._scene.points(frame)
+
+    def memory_bytes(self, dtype_bytes: int = 1) -> int:
+        """Memory for all images of the segment (train + test) at `dtype_bytes` per channel."""
+        return sum(c.width * c.height * 3 * dtype_bytes for c in self.cameras)
+
+    def summary(self) -> dict:
+        sizes = sorted({(c.width, c.height) for c in self.cameras})
+        native = sorted(set(self._native_size.values()))
+        return {
+            "name": self.name,
+            "format": self.format,
+            "root": str(self.root),
+            "fps": self.fps,
+            "start": self.start,
+            "duration": self.duration,
+            "frames": [self.frames[0], self.frames[-1]] if self.frames else [],
+            "num_frames": len(self.frames),
+            "views": len(self.train_views) + len(self.test_views),
+            "train_views": self.train_views,
+            "test_views": self.test_views,
+            "train_images": len(self.train),
+            "test_images": len(self.test),
+            "resolution": [list(s) for s in sizes],
+            "native_resolution": [list(s) for s in native],
+            "downscale": self.downscale,
+            "scene_extent": round(self.scene_extent(), 6),
+            "memory_uint8_bytes": self.memory_bytes(1),
+            "memory_float32_bytes": self.memory_bytes(4),
+            "points": self._scene.points_description,
+            "notes": list(self._scene.notes),
+        }
+
+    def __repr__(self) -> str:
+        return (f"Dataset({self.name!r}, format={self.format!r}, frames=[{self.start}, {self.start + self.duration}), "
+                f"train={len(self.train_views)} views, test={len(self.test_views)} views)")
+
+
+def _group(cameras: list[Camera]) -> dict[int, list[Camera]]:
+    out: dict[int, list[Camera]] = {}
+    for cam in cameras:
+        out.setdefault(cam.frame, []).append(cam)
+    return out
+
+
+def _unique_names(cameras: list[Camera]) -> list[str]:
+    return list(dict.fromkeys(c.name for c in cameras))
+
+
+def assemble(scene: SourceScene, *, downscale: float = 1, start: int | None = None, duration: int | None = None,
+             test_cameras: list[str] | str | None = None, fps: float | None = None,
+             cache_bytes: int = DEFAULT_CACHE_BYTES, background=(0.0, 0.0, 0.0),
+             check_images: bool = True) -> Dataset:
+    """Select the segment [start, start + duration), split, downscale and check a `SourceScene`."""
+    if not scene.cameras:
+        raise DataError(scene.meta_file, "no cameras found")
+    available = sorted({c.frame for c in scene.cameras})
+    if start is None:
+        start = scene.default_start if scene.default_start is not None else available[0]
+    if duration is None:
+        duration = available[-1] + 1 - start
+    if duration <= 0 or start > available[-1] or start + duration <= available[0]:
+        raise DataError(scene.root, f"empty frame range: start={start}, duration={duration}, but the data holds "
+                                    f"frames {available[0]}..{available[-1]}")
+    frames = [f for f in available if start <= f < start + duration]
+    if scene.multiview:
+        wanted = list(range(start, start + duration))
+        absent = sorted(set(wanted) - set(frames))
+        if absent:
+            raise DataError(scene.root, f"frames {_ranges(absent)} of the range [{start}, {start + duration}) are "
+                                        f"not in the data (it holds {_ranges(available)})")
+    if not frames:
+        raise DataError(scene.root, f"empty frame range [{start}, {start + duration})")
+
+    in_segment = [c for c in scene.cameras if start <= c.frame < start + duration]
+    views = list(dict.fromkeys(c.name for c in scene.cameras))
+    if scene.multiview:
+        _check_complete(scene, in_segment, views, frames)
+
+    if isinstance(test_cameras, str):
+        test_cameras = [n.strip() for n in test_cameras.split(",") if n.strip()]
+    test_names = list(scene.default_test if test_cameras is None else test_cameras)
+    unknown = [n for n in test_names if n not in views]
+    if unknown and test_cameras is not None:
+        raise DataError(scene.meta_file, f"test camera(s) {unknown} not in the data (views: {views})")
+
+    if downscale <= 0 or not math.isfinite(downscale):
+        raise ValueError(f"downscale must be positive, not {downscale}")
+    native_size: dict[int, tuple[int, int]] = {}
+    train, test = [], []
+    for cam in in_segment:
+        out = replace(cam, time=(cam.frame - start) / duration)
+        if downscale != 1:
+            out = out.scaled(1.0 / downscale)
+        native_size[id(out)] = (cam.width, cam.height)
+        (test if cam.name in test_names else train).append(out)
+    key = lambda c: (c.frame, views.index(c.name))
+    train.sort(key=key)
+    test.sort(key=key)
+    if not train:
+        raise DataError(scene.meta_file, f"no training cameras left after holding out {test_names}")
+
+    dataset = Dataset(scene, start=start, duration=duration, frames=frames, train=train, test=test,
+                      downscale=downscale, native_size=native_size, fps=float(fps or scene.fps or DEFAULT_FPS),
+                      cache_bytes=cache_bytes, background=tuple(background))
+    if check_images:
+        _check_image_headers(dataset, native_size)
+    return dataset
+
+
+def _check_complete(scene: SourceScene, cameras: list[Camera], views: list[str], frames: list[int]) -> None:
+    have = {(c.name, c.frame) for c in cameras}
+    for view in views:
+        missing = [f for f in frames if (view, f) not in have]
+        if missing:
+            raise DataError(scene.meta_file, f"camera {view} has no image for frame(s) {_ranges(missing)} "
+                                             "that other cameras have (missing images)")
+
+
+def _check_image_headers(dataset: Dataset, native_size: dict[int, tuple[int, int]]) -> None:
+    """Fail early on missing, unreadable or wrongly sized image files: every file when there are few,
+    else the first frame of each view (the rest are checked when loaded)."""
+    cams = [c for c in dataset.cameras if isinstance(c.image, (str, Path))]
+    if len(cams) > 5000:
+        first = {}
+        for c in cams:
+            first.setdefault(c.name, c)
+        cams = list(first.values())
+    for cam in cams:
+        path = Path(cam.image)
+        if not path.is_file():
+            raise DataError(path, f"image file is missing (camera {cam.name}, frame {cam.frame})")
+        w, h = image_size(path)
+        if (w, h) != native_size[id(cam)]:
+            ew, eh = native_size[id(cam)]
+            raise DataError(path, f"image is {w}x{h} but {ew}x{eh} was expected (camera {cam.name}, "
+                                  f"from {dataset._scene.meta_file.name})")
+
+
+def _ranges(values: list[int]) -> str:
+    """'0-4, 7, 9-10' for [0,1,2,3,4,7,9,10]."""
+    values = sorted(values)
+    parts, i = [], 0
+    while i < len(values):
+        j = i
+        while j + 1 < len(values) and values[j + 1] == values[j] + 1:
+            j += 1
+        parts.append(str(values[i]) if i == j else f"{values[i]}-{values[j]}")
+        i = j + 1
+    return ", ".join(parts) if len(parts) <= 6 else ", ".join(parts[:6]) + ", ..."
