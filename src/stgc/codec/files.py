@@ -1,0 +1,208 @@
+"""File-level codec operations: compress a trained run to .stgc, restore a run from it, size helpers."""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from stgc.errors import DataError, FormatError
+from stgc.fileio import atomic_path, write_json
+from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
+
+from .format import (
+    DEFAULT_QUALITY,
+    DEFAULT_ZSTD_LEVEL,
+    MAX_GAUSSIANS,
+    QUALITY_LEVELS,
+    DecodedModel,
+    StgcHeader,
+    decode,
+    encode,
+    read_header,
+)
+
+# A generous ceiling on what we read from disk before parsing: a valid file never approaches it
+# (MAX_GAUSSIANS x 152 B, before compression).
+_MAX_FILE_BYTES = MAX_GAUSSIANS * 152
+
+
+@dataclass
+class CodecConfig:
+    """How a trained model is written to the .stgc bitstream."""
+
+    quality: int = field(default=DEFAULT_QUALITY, metadata={
+        "help": "rate point 1 (smallest) .. 5 (most precise); picks the bit depth of every attribute group "
+                "(docs/stgc-format.md, table 'Bit depths'). 3 keeps renders within ~0.1 dB"})
+    zstd_level: int = field(default=DEFAULT_ZSTD_LEVEL, metadata={
+        "help": "zstd compression level 1..22 for every section (higher: a little smaller, slower to encode; "
+                "decoding speed barely changes)"})
+    position_bits: int = field(default=0, metadata={
+        "help": "bits per position axis over the bounding box, 2..24; 0 = the quality level's value"})
+    adaptive_delta: bool = field(default=True, metadata={
+        "help": "per section, also try delta coding along the Morton order and keep whichever is smaller"})
+    embed_run_config: bool = field(default=True, metadata={
+        "help": "store the run's config.json (about 1 KB compressed) so `decompress` restores an evaluable run"})
+
+    def validate(self) -> None:
+        if self.quality not in QUALITY_LEVELS:
+            raise ValueError(f"quality must be one of {QUALITY_LEVELS}, got {self.quality}")
+        if not 1 <= self.zstd_level <= 22:
+            raise ValueError(f"zstd_level must be in 1..22, got {self.zstd_level}")
+        if self.position_bits and not 2 <= self.position_bits <= 24:
+            raise ValueError(f"position_bits must be 0 or in 2..24, got {self.position_bits}")
+
+
+@dataclass(frozen=True)
+class CompressResult:
+    path: Path
+    num_gaussians: int
+    variant: str
+    file_bytes: int
+    ply_bytes: int  # the official float32 PLY rows (152 B full / 128 B lite per Gaussian), the paper's anchor
+
+    @property
+    def bytes_per_gaussian(self) -> float:
+        return self.file_bytes / self.num_gaussians if self.num_gaussians else float("nan")
+
+    @property
+    def ratio_vs_ply(self) -> float:
+        return self.ply_bytes / self.file_bytes
+
+
+def encode_with_config(arrays: dict, variant: str, decoder_state: dict | None, config: CodecConfig,
+                       metadata: dict[str, Any] | None = None) -> bytes:
+    config.validate()
+    return encode(arrays, variant, decoder_state, config.quality, zstd_level=config.zstd_level,
+                  position_bits=config.position_bits or None, adaptive_delta=config.adaptive_delta,
+                  metadata=metadata)
+
+
+def write_stgc(path: str | Path, data: bytes) -> Path:
+    """Write an encoded bitstream atomically (a failed write leaves no partial file)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return path
+
+
+def _read_bytes(path: str | Path) -> bytes:
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise DataError(path, f"cannot read .stgc file ({exc.strerror})") from None
+    if size > _MAX_FILE_BYTES:
+        raise FormatError(path, f"{size} bytes is larger than any valid .stgc file")
+    return path.read_bytes()
+
+
+def read_stgc(path: str | Path) -> DecodedModel:
+    """Decode a .stgc file; any defect raises FormatError naming the file."""
+    return decode(_read_bytes(path), source=str(path))
+
+
+def read_stgc_header(path: str | Path) -> StgcHeader:
+    """Header and section table only (sizes per section, counts); payloads are not decompressed."""
+    return read_header(_read_bytes(path), source=str(path))
+
+
+def stgc_file_bytes(path: str | Path) -> int:
+    """The real size on disk of a .stgc file, in bytes (what rate/Mbps numbers must be computed from)."""
+    return Path(path).stat().st_size
+
+
+def stgc_bytes_per_gaussian(path: str | Path) -> float:
+    """File bytes divided by the number of Gaussians stored in it."""
+    return read_stgc_header(path).bytes_per_gaussian
+
+
+_ITERATION_DIR = re.compile(r"iteration_(\d+)$")
+
+
+def _iteration_of(path: Path) -> int | None:
+    """The training iteration a model path refers to (run dir: its latest saved iteration)."""
+    for candidate in (path, path.parent):
+        m = _ITERATION_DIR.search(candidate.name)
+        if m:
+            return int(m.group(1))
+    iterations = [int(m.group(1)) for p in (path / "point_cloud").glob("iteration_*")
+                  if (m := _ITERATION_DIR.search(p.name))]
+    return max(iterations) if iterations else None
+
+
+def _run_dir_of(path: Path) -> Path | None:
+    for candidate in (path, *path.parents):
+        if (candidate / "config.json").is_file():
+            return candidate
+    return None
+
+
+def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: int | None = None,
+                 config: CodecConfig | None = None) -> CompressResult:
+    """Compress a trained model (a run dir -> its latest iteration, an iteration dir, or a point_cloud.ply)."""
+    from stgc.model import STGModel  # the model package owns the run layout and PLY reading
+
+    config = CodecConfig(**vars(config)) if config is not None else CodecConfig()
+    if quality is not None:
+        config.quality = quality
+    source = Path(run_or_model_path)
+    model = STGModel.load(source)
+    arrays = model.to_ply_arrays()
+    metadata: dict[str, Any] = {"scene_extent": float(model.scene_extent), "source": source.name}
+    if model.decoder_activation is not None:  # not in the official files; renders depend on it
+        metadata["decoder_activation"] = model.decoder_activation
+    iteration = _iteration_of(source)
+    if iteration is not None:
+        metadata["iteration"] = iteration
+    run_dir = _run_dir_of(source)
+    if config.embed_run_config and run_dir is not None:
+        try:
+            metadata["run_config"] = json.loads((run_dir / "config.json").read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise DataError(run_dir / "config.json", f"unreadable run config ({exc})") from None
+    data = encode_with_config(arrays, model.variant, model.decoder_state(), config, metadata)
+    out = write_stgc(out_path, data)
+    n = model.num_gaussians
+    return CompressResult(out, n, model.variant, len(data), n * ply_bytes_per_gaussian(model.variant))
+
+
+def _model_from_decoded(decoded: DecodedModel, source: str | Path) -> Any:
+    from stgc.model import STGModel  # the model package owns the parameter layout and the decoder
+
+    meta = decoded.metadata
+    extent = meta.get("scene_extent", 1.0)
+    if isinstance(extent, bool) or not isinstance(extent, (int, float)) or not extent > 0:
+        raise FormatError(source, f"metadata scene_extent {extent!r} is not a positive number")
+    activation = meta.get("decoder_activation", "sigmoid")
+    if not isinstance(activation, str):
+        raise FormatError(source, f"metadata decoder_activation {activation!r} is not a string")
+    try:
+        return STGModel.from_ply_arrays(decoded.arrays, decoded.variant, decoded.decoder_state,
+                                        scene_extent=float(extent), decoder_activation=activation)
+    except ValueError as exc:  # includes DataError/FormatError from validation of the decoder state
+        raise FormatError(source, f"decoded model is invalid ({exc})") from None
+
+
+def load_model(stgc_path: str | Path) -> Any:
+    """Decode a .stgc file straight into an `stgc.model.STGModel` (e.g. to render or evaluate it)."""
+    return _model_from_decoded(read_stgc(stgc_path), stgc_path)
+
+
+def decompress(stgc_path: str | Path, out_run_dir: str | Path) -> Path:
+    """Restore a run directory from a .stgc file: point_cloud/iteration_<N>/ (official PLY + decoder) and, when
+    the file embeds it, config.json. Returns the iteration directory."""
+    decoded = read_stgc(stgc_path)
+    iteration = decoded.metadata.get("iteration", 0)
+    if isinstance(iteration, bool) or not isinstance(iteration, int) or iteration < 0:
+        raise FormatError(stgc_path, f"metadata iteration {iteration!r} is not a non-negative integer")
+    model = _model_from_decoded(decoded, stgc_path)
+    out_run_dir = Path(out_run_dir)
+    iteration_dir = out_run_dir / "point_cloud" / f"iteration_{iteration}"
+    model.save(iteration_dir)
+    run_config = decoded.metadata.get("run_config")
+    if isinstance(run_config, dict):
+        write_json(out_run_dir / "config.json", run_config)
+    return iteration_dir

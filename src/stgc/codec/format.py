@@ -1,0 +1,560 @@
+"""The .stgc bitstream: encode an STG model (official PLY field arrays) to bytes and decode it back.
+
+Byte-level specification: docs/stgc-format.md. Summary: a 32-byte header (magic, version, variant, quality,
+Gaussian count, section table size, CRC32s), a section table (one entry per attribute group with its bit depth
+and per-component quantizer), then the section payloads (zstd frames of byte-plane-ordered integer codes, the
+fp16 decoder MLP, and optional JSON metadata). Gaussians are stored in Morton order of their quantized positions.
+
+Decoding treats the input as hostile: every size is checked against the file and against the Gaussian count
+before anything large is allocated, and every problem surfaces as `stgc.errors.FormatError`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import zlib
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+import zstandard
+
+from stgc.errors import DataError, FormatError
+from stgc.model.layout import NORMAL_FIELDS, VARIANTS, ply_fields
+
+from .quantize import (
+    MAX_BITS,
+    MIN_BITS,
+    Quantizer,
+    container_dtype,
+    delta_decode,
+    delta_encode,
+    dequantize,
+    fit_quantizer,
+    from_byte_planes,
+    morton_order,
+    quantize,
+    to_byte_planes,
+)
+
+MAGIC = b"STGC\r\n\x1a\n"  # the CR-LF / ^Z / LF tail catches text-mode and line-ending mangling, as PNG's does
+VERSION = 1
+QUALITY_LEVELS = (1, 2, 3, 4, 5)
+DEFAULT_QUALITY = 3
+DEFAULT_ZSTD_LEVEL = 12
+# Decoder-side caps: a file may not make us allocate more than this, whatever it claims.
+MAX_GAUSSIANS = 1 << 27
+MAX_SECTIONS = 64
+MAX_DECODER_BYTES = 64 << 20
+MAX_META_BYTES = 1 << 20
+# A zstd block holds at most 128 KiB of content and costs at least 4 bytes (3-byte header + 1 RLE byte), so a
+# frame cannot expand by more than 32768x; a claimed raw size beyond that is a lie and is rejected unread.
+ZSTD_MAX_EXPANSION = 1 << 15
+ZSTD_SLACK = 1 << 17
+
+_HEADER = struct.Struct("<8sHBBIHHII")  # magic version variant quality N sections flags table_size table_crc
+_HEADER_CRC = struct.Struct("<I")
+HEADER_SIZE = _HEADER.size + _HEADER_CRC.size  # 32
+_ENTRY = struct.Struct("<4sBBBBIII")  # tag codec bits components flags raw_size payload_size payload_crc
+_QPARAM = struct.Struct("<dq")  # step (float64), zero_point (int64)
+
+_VARIANT_CODES = {"full": 1, "lite": 2}
+_VARIANT_NAMES = {v: k for k, v in _VARIANT_CODES.items()}
+
+CODEC_STORED = 0
+CODEC_ZSTD = 1
+FLAG_DELTA = 1  # codes are delta + zigzag coded along the stored (Morton) order
+
+# Domains: how a component is mapped before uniform quantization (and back after).
+LINEAR = "linear"
+SIGMOID = "sigmoid"  # opacity: quantized as sigmoid(logit) in [0,1], the quantity the renderer blends with
+_OPACITY_CLAMP = 1e-7  # logit(1 - 1e-7) = 16.1: beyond that the opacity is 1 in float32 anyway
+
+
+@dataclass(frozen=True)
+class AttributeGroup:
+    tag: bytes
+    fields_full: tuple[str, ...]
+    fields_lite: tuple[str, ...]
+    domain: str
+    bits_by_quality: tuple[int, int, int, int, int]
+
+    def fields(self, variant: str) -> tuple[str, ...]:
+        return self.fields_full if variant == "full" else self.fields_lite
+
+
+def _names(prefix: str, n: int) -> tuple[str, ...]:
+    return tuple(f"{prefix}_{i}" for i in range(n))
+
+
+# Bit depth per quality level 1..5. Positions need the most: the error is a world-space offset that must stay
+# far below a pixel (see docs/stgc-format.md, "Position precision"). trbf_center gets more bits than the other
+# scalars because temporal opacity exp(-((t - mu_t) / s_t)^2) turns a small mu_t shift into a large opacity
+# change for short-lived Gaussians. Rotation is normalised first, so its range is at most [-1, 1].
+GROUPS: tuple[AttributeGroup, ...] = (
+    AttributeGroup(b"POSI", ("x", "y", "z"), ("x", "y", "z"), LINEAR, (14, 15, 16, 17, 18)),
+    AttributeGroup(b"TCEN", ("trbf_center",), ("trbf_center",), LINEAR, (8, 10, 11, 12, 14)),
+    AttributeGroup(b"TSCL", ("trbf_scale",), ("trbf_scale",), LINEAR, (6, 7, 8, 9, 11)),
+    AttributeGroup(b"MOTN", _names("motion", 9), _names("motion", 9), LINEAR, (6, 7, 8, 9, 11)),
+    AttributeGroup(b"FDC_", _names("f_dc", 6), _names("f_dc", 3), LINEAR, (6, 7, 8, 9, 10)),
+    AttributeGroup(b"OPAC", ("opacity",), ("opacity",), SIGMOID, (6, 7, 8, 9, 10)),
+    AttributeGroup(b"SCAL", _names("scale", 3), _names("scale", 3), LINEAR, (6, 7, 8, 9, 10)),
+    AttributeGroup(b"ROTN", _names("rot", 4), _names("rot", 4), LINEAR, (6, 7, 8, 9, 11)),
+    AttributeGroup(b"OMGA", _names("omega", 4), _names("omega", 4), LINEAR, (6, 7, 8, 9, 11)),
+    AttributeGroup(b"FT__", _names("f_t", 3), (), LINEAR, (5, 6, 7, 8, 10)),
+)
+GROUP_BY_TAG = {g.tag: g for g in GROUPS}
+TAG_DECODER = b"DECO"
+TAG_META = b"META"
+_DECO, _META = TAG_DECODER.decode("latin-1"), TAG_META.decode("latin-1")
+
+_DTYPE_CODES = {np.dtype(np.float16): 1, np.dtype(np.float32): 2}
+_DTYPE_BY_CODE = {v: k for k, v in _DTYPE_CODES.items()}
+_FP16_MAX = 65504.0
+
+
+def groups_for(variant: str) -> tuple[AttributeGroup, ...]:
+    return tuple(g for g in GROUPS if g.fields(variant))
+
+
+def bits_for(group: AttributeGroup, quality: int) -> int:
+    if quality not in QUALITY_LEVELS:
+        raise ValueError(f"quality must be one of {QUALITY_LEVELS}, got {quality!r}")
+    return group.bits_by_quality[quality - 1]
+
+
+@dataclass(frozen=True)
+class SectionInfo:
+    """One entry of the section table, as read from (or written to) a file."""
+
+    tag: str
+    codec: int
+    bits: int
+    components: int
+    flags: int
+    raw_size: int
+    payload_size: int
+    payload_crc: int
+    quantizers: tuple[Quantizer, ...] = ()
+
+
+@dataclass(frozen=True)
+class StgcHeader:
+    version: int
+    variant: str
+    quality: int
+    num_gaussians: int
+    file_size: int
+    sections: tuple[SectionInfo, ...]
+
+    @property
+    def bytes_per_gaussian(self) -> float:
+        return self.file_size / self.num_gaussians if self.num_gaussians else float("nan")
+
+    def section_bytes(self) -> dict[str, int]:
+        """Payload bytes per section tag (the table and header are not included)."""
+        return {s.tag: s.payload_size for s in self.sections}
+
+
+@dataclass
+class DecodedModel:
+    """A decoded .stgc file. `arrays` follows ply_fields(variant) (normals are zeros), Gaussians in Morton order."""
+
+    arrays: dict[str, np.ndarray]
+    variant: str
+    decoder_state: dict[str, np.ndarray] | None
+    header: StgcHeader
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.header.num_gaussians
+
+
+# =====================================================================================================================
+# Encoder
+# =====================================================================================================================
+
+def canonical_rotation(rot: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Scale (q, omega) jointly by sign(w)/|q| so that |q| = 1 and w >= 0.
+
+    STG rotates by normalize(q + omega * dt), which is invariant to any positive common factor of q and omega, and
+    maps to the same rotation under a common sign flip; so this changes nothing rendered while bounding q to
+    [-1, 1] (w to [0, 1]). A zero quaternion (the official error-guided sampling creates them) is left as is."""
+    norm = np.linalg.norm(rot, axis=1, keepdims=True)
+    sign = np.where(rot[:, :1] < 0, -1.0, 1.0)
+    factor = np.where(norm > 0, sign / np.where(norm > 0, norm, 1.0), 1.0)
+    return rot * factor, omega * factor
+
+
+def _to_domain(values: np.ndarray, domain: str) -> np.ndarray:
+    if domain == SIGMOID:
+        return 0.5 * (1.0 + np.tanh(0.5 * values))  # overflow-free sigmoid
+    return values
+
+
+def _from_domain(values: np.ndarray, domain: str) -> np.ndarray:
+    if domain == SIGMOID:
+        p = np.clip(values, _OPACITY_CLAMP, 1.0 - _OPACITY_CLAMP)
+        return np.log(p) - np.log1p(-p)
+    return values
+
+
+def _validated_columns(arrays: Mapping[str, np.ndarray], variant: str) -> tuple[int, dict[str, np.ndarray]]:
+    if variant not in VARIANTS:
+        raise DataError(None, f"unknown STG variant {variant!r}; expected one of {VARIANTS}")
+    needed = [f for f in ply_fields(variant) if f not in NORMAL_FIELDS]
+    missing = [f for f in needed if f not in arrays]
+    if missing:
+        raise DataError(None, f"model arrays lack the {variant} fields {missing}")
+    cols = {f: np.asarray(arrays[f], dtype=np.float64).reshape(-1) for f in needed}
+    n = len(cols[needed[0]])
+    for f, c in cols.items():
+        if len(c) != n:
+            raise DataError(None, f"field {f!r} has {len(c)} values, field {needed[0]!r} has {n}")
+        bad = int(np.count_nonzero(~np.isfinite(c)))
+        if bad:
+            raise DataError(None, f"field {f!r} has {bad} non-finite values; refusing to encode")
+    if n > MAX_GAUSSIANS:
+        raise DataError(None, f"{n} Gaussians exceed the format limit of {MAX_GAUSSIANS}")
+    return n, cols
+
+
+def _compress(raw: bytes, level: int) -> tuple[int, bytes]:
+    packed = zstandard.ZstdCompressor(level=level, write_content_size=True, write_checksum=False).compress(raw)
+    if len(packed) >= len(raw):
+        return CODEC_STORED, raw
+    return CODEC_ZSTD, packed
+
+
+def _encode_codes(codes: np.ndarray, bits: int, level: int, adaptive_delta: bool) -> tuple[int, int, bytes, int]:
+    """codes [C, N] -> (codec, flags, payload, raw_size). With adaptive_delta both forms are tried, smaller kept."""
+    candidates = [(0, codes)]
+    if adaptive_delta and codes.shape[1] > 1:
+        candidates.append((FLAG_DELTA, delta_encode(codes, bits)))
+    best = None
+    for flags, stream in candidates:
+        raw = to_byte_planes(stream)
+        codec, payload = _compress(raw, level)
+        if best is None or len(payload) < len(best[2]):
+            best = (codec, flags, payload, len(raw))
+    assert best is not None
+    return best
+
+
+def _pack_decoder(state: Mapping[str, Any]) -> bytes:
+    """Manifest (name, dtype, shape per tensor) followed by the tensors' little-endian data."""
+    head = [struct.pack("<H", len(state))]
+    blobs = []
+    for name, value in state.items():
+        arr = np.asarray(value.detach().cpu().numpy() if hasattr(value, "detach") else value, dtype=np.float32)
+        if not np.all(np.isfinite(arr)):
+            raise DataError(None, f"decoder tensor {name!r} has non-finite values; refusing to encode")
+        # Half precision unless a weight would overflow it (|w| > 65504); then that tensor stays float32.
+        dtype = np.dtype(np.float16) if (arr.size == 0 or np.abs(arr).max() <= _FP16_MAX) else np.dtype(np.float32)
+        key = name.encode("utf-8")
+        if len(key) > 0xFFFF or arr.ndim > 8:
+            raise DataError(None, f"decoder tensor {name!r} cannot be stored (name too long or ndim > 8)")
+        head.append(struct.pack("<H", len(key)) + key + struct.pack("<BB", _DTYPE_CODES[dtype], arr.ndim))
+        head.append(struct.pack(f"<{arr.ndim}I", *arr.shape))
+        blobs.append(arr.astype(dtype.newbyteorder("<")).tobytes())
+    return b"".join(head + blobs)
+
+
+def encode(
+    arrays: Mapping[str, np.ndarray],
+    variant: str,
+    decoder_state: Mapping[str, Any] | None = None,
+    quality: int = DEFAULT_QUALITY,
+    *,
+    zstd_level: int = DEFAULT_ZSTD_LEVEL,
+    position_bits: int | None = None,
+    adaptive_delta: bool = True,
+    metadata: Mapping[str, Any] | None = None,
+) -> bytes:
+    """Encode official-layout PLY arrays (float32 [N] per field; normals ignored) into a .stgc bitstream.
+
+    quality 1..5 selects the bit depths (GROUPS); position_bits overrides the position depth. The Gaussians are
+    reordered along the Morton curve of their quantized positions. metadata: small JSON-able dict kept verbatim."""
+    n, cols = _validated_columns(arrays, variant)
+    if quality not in QUALITY_LEVELS:
+        raise ValueError(f"quality must be one of {QUALITY_LEVELS}, got {quality!r}")
+    if variant == "full" and decoder_state is None:
+        raise DataError(None, "a full-variant model needs its decoder state")
+    rot = np.stack([cols[f"rot_{i}"] for i in range(4)], axis=1)
+    omega = np.stack([cols[f"omega_{i}"] for i in range(4)], axis=1)
+    rot, omega = canonical_rotation(rot, omega)
+    for i in range(4):
+        cols[f"rot_{i}"], cols[f"omega_{i}"] = rot[:, i], omega[:, i]
+
+    sections: list[tuple[bytes, int, int, int, int, int, bytes, tuple[Quantizer, ...]]] = []
+    order: np.ndarray | None = None
+    for group in groups_for(variant):
+        bits = bits_for(group, quality)
+        if group.tag == b"POSI" and position_bits is not None:
+            bits = int(position_bits)
+        container_dtype(bits)  # validates the range
+        values = np.stack([_to_domain(cols[f], group.domain) for f in group.fields(variant)], axis=0)
+        quantizers = tuple(fit_quantizer(v, bits) for v in values)
+        codes = np.stack([quantize(v, q) for v, q in zip(values, quantizers)], axis=0)
+        if order is None:  # POSI comes first: its codes define the Morton order used by every section
+            order = morton_order(codes.T, bits)
+        codes = codes[:, order]
+        codec, flags, payload, raw_size = _encode_codes(codes, bits, zstd_level, adaptive_delta)
+        sections.append((group.tag, codec, bits, len(quantizers), flags, raw_size, payload, quantizers))
+
+    if decoder_state is not None:
+        raw = _pack_decoder(decoder_state)
+        codec, payload = _compress(raw, zstd_level)
+        sections.append((TAG_DECODER, codec, 16, 0, 0, len(raw), payload, ()))
+    if metadata:
+        raw = json.dumps(dict(metadata), sort_keys=True, separators=(",", ":")).encode("utf-8")
+        if len(raw) > MAX_META_BYTES:
+            raise DataError(None, f"metadata is {len(raw)} bytes; the limit is {MAX_META_BYTES}")
+        codec, payload = _compress(raw, zstd_level)
+        sections.append((TAG_META, codec, 8, 0, 0, len(raw), payload, ()))
+
+    table = bytearray()
+    for tag, codec, bits, comps, flags, raw_size, payload, quantizers in sections:
+        table += _ENTRY.pack(tag, codec, bits, comps, flags, raw_size, len(payload), zlib.crc32(payload))
+        for q in quantizers:
+            table += _QPARAM.pack(q.step, q.zero_point)
+    head = _HEADER.pack(MAGIC, VERSION, _VARIANT_CODES[variant], quality, n, len(sections), 0, len(table),
+                        zlib.crc32(table))
+    return b"".join([head, _HEADER_CRC.pack(zlib.crc32(head)), bytes(table)] + [s[6] for s in sections])
+
+
+# =====================================================================================================================
+# Decoder
+# =====================================================================================================================
+
+def _fail(problem: str, source: str | None) -> FormatError:
+    return FormatError(source, problem)
+
+
+def read_header(data: bytes, source: str | None = None) -> StgcHeader:
+    """Parse and validate the header and section table (payload checksums are checked by decode)."""
+    if len(data) < HEADER_SIZE:
+        raise _fail(f"not an .stgc file: {len(data)} bytes is shorter than the {HEADER_SIZE}-byte header", source)
+    magic, version, variant_code, quality, n, num_sections, flags, table_size, table_crc = _HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise _fail("not an .stgc file (bad magic bytes)", source)
+    (header_crc,) = _HEADER_CRC.unpack_from(data, _HEADER.size)
+    if zlib.crc32(data[: _HEADER.size]) != header_crc:
+        raise _fail("header checksum mismatch (file corrupted)", source)
+    if version != VERSION:
+        raise _fail(f"unsupported .stgc version {version} (this reader knows version {VERSION})", source)
+    if variant_code not in _VARIANT_NAMES:
+        raise _fail(f"unknown model variant code {variant_code}", source)
+    if quality not in QUALITY_LEVELS:
+        raise _fail(f"quality {quality} is outside {QUALITY_LEVELS}", source)
+    if n > MAX_GAUSSIANS:
+        raise _fail(f"claims {n} Gaussians, above the limit of {MAX_GAUSSIANS}", source)
+    if num_sections > MAX_SECTIONS:
+        raise _fail(f"claims {num_sections} sections, above the limit of {MAX_SECTIONS}", source)
+    if flags != 0:
+        raise _fail(f"unknown header flags {flags:#06x}", source)
+    if table_size > len(data) - HEADER_SIZE:
+        raise _fail(f"section table ({table_size} bytes) runs past the end of the file (truncated?)", source)
+    table = data[HEADER_SIZE: HEADER_SIZE + table_size]
+    if zlib.crc32(table) != table_crc:
+        raise _fail("section table checksum mismatch (file corrupted)", source)
+
+    sections = []
+    pos = 0
+    for _ in range(num_sections):
+        if pos + _ENTRY.size > table_size:
+            raise _fail("section table is shorter than its entries", source)
+        tag, codec, bits, comps, sflags, raw_size, payload_size, payload_crc = _ENTRY.unpack_from(table, pos)
+        pos += _ENTRY.size
+        if pos + comps * _QPARAM.size > table_size:
+            raise _fail(f"section {tag!r} quantizer list runs past the section table", source)
+        quantizers = []
+        for _c in range(comps):
+            step, zero_point = _QPARAM.unpack_from(table, pos)
+            pos += _QPARAM.size
+            quantizers.append(Quantizer(step=step, zero_point=zero_point, bits=bits))
+        sections.append(SectionInfo(tag.decode("latin-1"), codec, bits, comps, sflags, raw_size, payload_size,
+                                    payload_crc, tuple(quantizers)))
+    if pos != table_size:
+        raise _fail(f"section table has {table_size - pos} unexplained trailing bytes", source)
+    payload_total = sum(s.payload_size for s in sections)
+    if HEADER_SIZE + table_size + payload_total != len(data):
+        actual = len(data) - HEADER_SIZE - table_size
+        what = "truncated" if actual < payload_total else "has trailing bytes"
+        raise _fail(f"file {what}: sections hold {payload_total} payload bytes, file has {actual}", source)
+    return StgcHeader(version, _VARIANT_NAMES[variant_code], quality, n, len(data), tuple(sections))
+
+
+def _check_section(sec: SectionInfo, source: str | None) -> None:
+    if sec.codec == CODEC_STORED:
+        if sec.raw_size != sec.payload_size:
+            raise _fail(f"stored section {sec.tag!r}: raw size {sec.raw_size} != payload {sec.payload_size}", source)
+    elif sec.codec == CODEC_ZSTD:
+        if sec.raw_size > sec.payload_size * ZSTD_MAX_EXPANSION + ZSTD_SLACK:
+            raise _fail(f"section {sec.tag!r} claims {sec.raw_size} bytes from a {sec.payload_size}-byte zstd "
+                        "frame, more than zstd can expand", source)
+    else:
+        raise _fail(f"section {sec.tag!r} uses unknown codec {sec.codec}", source)
+
+
+def _unpack_payload(data: bytes, offset: int, sec: SectionInfo, source: str | None) -> bytes:
+    payload = data[offset: offset + sec.payload_size]
+    if zlib.crc32(payload) != sec.payload_crc:
+        raise _fail(f"section {sec.tag!r} checksum mismatch (file corrupted)", source)
+    if sec.codec == CODEC_STORED:
+        return payload
+    # Stream in bounded chunks: memory grows only as real content decodes, never past raw_size + 1.
+    window = 1 << max(20, min(27, max(sec.raw_size, 1).bit_length()))
+    out = bytearray()
+    try:
+        reader = zstandard.ZstdDecompressor(max_window_size=window).stream_reader(payload)
+        while len(out) <= sec.raw_size:
+            chunk = reader.read(min(1 << 20, sec.raw_size + 1 - len(out)))
+            if not chunk:
+                break
+            out += chunk
+    except zstandard.ZstdError as exc:
+        raise _fail(f"section {sec.tag!r} is not a valid zstd frame ({exc})", source) from None
+    if len(out) != sec.raw_size:
+        raise _fail(f"section {sec.tag!r} decompresses to {len(out)} bytes, expected {sec.raw_size}", source)
+    return bytes(out)
+
+
+def _decode_attribute(raw: bytes, sec: SectionInfo, group: AttributeGroup, n: int,
+                      source: str | None) -> np.ndarray:
+    dtype = container_dtype(sec.bits)
+    codes = from_byte_planes(raw, sec.components, n, dtype)
+    if sec.flags & FLAG_DELTA:
+        codes = delta_decode(codes, sec.bits)
+    elif n and int(codes.max()) >= (1 << sec.bits):
+        raise _fail(f"section {sec.tag!r} holds codes beyond its {sec.bits}-bit range", source)
+    values = np.stack([dequantize(c, q) for c, q in zip(codes, sec.quantizers)], axis=0)
+    return _from_domain(values, group.domain)
+
+
+def _check_quantizers(sec: SectionInfo, source: str | None) -> None:
+    top = (1 << sec.bits) - 1
+    f32_max = float(np.finfo(np.float32).max)
+    for q in sec.quantizers:
+        if not (np.isfinite(q.step) and q.step > 0):
+            raise _fail(f"section {sec.tag!r} has an invalid quantizer step {q.step!r}", source)
+        if abs(q.zero_point) > 1 << 53:
+            raise _fail(f"section {sec.tag!r} has an absurd quantizer zero point {q.zero_point}", source)
+        extreme = max(abs(q.zero_point), abs(q.zero_point + top)) * q.step
+        if not extreme <= f32_max:
+            raise _fail(f"section {sec.tag!r} quantizer reaches {extreme:.3g}, beyond float32", source)
+
+
+def _unpack_decoder(raw: bytes, source: str | None) -> dict[str, np.ndarray]:
+    def need(pos: int, size: int) -> None:
+        if pos + size > len(raw):
+            raise _fail("decoder section is truncated inside its manifest or data", source)
+
+    need(0, 2)
+    (count,) = struct.unpack_from("<H", raw, 0)
+    pos = 2
+    manifest = []
+    for _ in range(count):
+        need(pos, 2)
+        (name_len,) = struct.unpack_from("<H", raw, pos)
+        pos += 2
+        need(pos, name_len + 2)
+        try:
+            name = raw[pos: pos + name_len].decode("utf-8")
+        except UnicodeDecodeError:
+            raise _fail("decoder tensor name is not UTF-8", source) from None
+        pos += name_len
+        dtype_code, ndim = struct.unpack_from("<BB", raw, pos)
+        pos += 2
+        if dtype_code not in _DTYPE_BY_CODE or ndim > 8:
+            raise _fail(f"decoder tensor {name!r} has an unknown dtype code {dtype_code} or ndim {ndim}", source)
+        need(pos, 4 * ndim)
+        shape = struct.unpack_from(f"<{ndim}I", raw, pos)
+        pos += 4 * ndim
+        manifest.append((name, _DTYPE_BY_CODE[dtype_code], shape))
+    state = {}
+    for name, dtype, shape in manifest:
+        size = int(np.prod(shape, dtype=object)) * dtype.itemsize  # python ints: no overflow on absurd shapes
+        need(pos, size)
+        arr = np.frombuffer(raw, dtype=dtype.newbyteorder("<"), count=size // dtype.itemsize, offset=pos)
+        state[name] = arr.astype(np.float32).reshape(shape)
+        pos += size
+    if pos != len(raw):
+        raise _fail(f"decoder section has {len(raw) - pos} unexplained trailing bytes", source)
+    if len(state) != count:
+        raise _fail("decoder section repeats a tensor name", source)
+    return state
+
+
+def decode(data: bytes | str | os.PathLike, source: str | None = None) -> DecodedModel:
+    """Decode a .stgc bitstream (bytes, or a file path). Raises FormatError naming `source` for any invalid input.
+
+    To get a renderable `stgc.model.STGModel`, use `stgc.codec.load_model(path)`."""
+    if isinstance(data, (str, os.PathLike)):
+        from .files import read_stgc  # the file reader applies the on-disk size cap, then comes back here
+
+        return read_stgc(data)
+    data = bytes(data)
+    header = read_header(data, source)
+    n, variant = header.num_gaussians, header.variant
+    expected = {g.tag.decode("latin-1"): g for g in groups_for(variant)}
+    seen: set[str] = set()
+    for sec in header.sections:
+        if sec.tag in seen:
+            raise _fail(f"section {sec.tag!r} appears twice", source)
+        seen.add(sec.tag)
+        _check_section(sec, source)
+        if sec.tag in expected:
+            group = expected[sec.tag]
+            want = len(group.fields(variant))
+            if sec.components != want:
+                raise _fail(f"section {sec.tag!r} has {sec.components} components, {variant} needs {want}", source)
+            if not MIN_BITS <= sec.bits <= MAX_BITS:
+                raise _fail(f"section {sec.tag!r} has an invalid bit depth {sec.bits}", source)
+            if sec.raw_size != n * want * container_dtype(sec.bits).itemsize:
+                raise _fail(f"section {sec.tag!r} size {sec.raw_size} does not match {n} Gaussians", source)
+            _check_quantizers(sec, source)
+        elif sec.tag == _DECO:
+            if sec.raw_size > MAX_DECODER_BYTES or sec.components:
+                raise _fail(f"decoder section is malformed ({sec.raw_size} bytes)", source)
+        elif sec.tag == _META:
+            if sec.raw_size > MAX_META_BYTES or sec.components:
+                raise _fail(f"metadata section is malformed ({sec.raw_size} bytes)", source)
+        else:
+            raise _fail(f"unknown section {sec.tag!r}", source)
+    missing = sorted(set(expected) - seen)
+    if missing:
+        raise _fail(f"{variant} model lacks sections {missing}", source)
+    if variant == "full" and _DECO not in seen:
+        raise _fail("full-variant model lacks its decoder section", source)
+
+    columns: dict[str, np.ndarray] = {}
+    decoder_state = None
+    metadata: dict[str, Any] = {}
+    offset = HEADER_SIZE + sum(_ENTRY.size + s.components * _QPARAM.size for s in header.sections)
+    for sec in header.sections:
+        raw = _unpack_payload(data, offset, sec, source)
+        offset += sec.payload_size
+        if sec.tag in expected:
+            group = expected[sec.tag]
+            values = _decode_attribute(raw, sec, group, n, source)
+            for name, col in zip(group.fields(variant), values):
+                columns[name] = col
+        elif sec.tag == _DECO:
+            decoder_state = _unpack_decoder(raw, source)
+        else:
+            try:
+                metadata = json.loads(raw.decode("utf-8"))
+            except (UnicodeDecodeError, json.JSONDecodeError):
+                raise _fail("metadata section is not UTF-8 JSON", source) from None
+            if not isinstance(metadata, dict):
+                raise _fail("metadata section is not a JSON object", source)
+
+    arrays = {}
+    for name in ply_fields(variant):
+        col = columns.get(name)
+        arrays[name] = np.zeros(n, np.float32) if col is None else col.astype(np.float32)
+    return DecodedModel(arrays, variant, decoder_state, header, metadata)

@@ -1,0 +1,141 @@
+"""Numeric building blocks of the .stgc codec: uniform quantizer, Morton order, delta/zigzag, byte planes.
+
+Everything here is pure numpy and knows nothing of files; `format.py` assembles it into a bitstream.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+MIN_BITS = 2  # one bit leaves no room for the zero-snapping slack level
+MAX_BITS = 24
+
+
+@dataclass(frozen=True)
+class Quantizer:
+    """Uniform scalar quantizer of one component: value = (code + zero_point) * step.
+
+    The grid is anchored at integer multiples of `step`, so 0.0 is reproduced exactly whenever the fitted
+    range contains it (static Gaussians keep motion/omega exactly 0 instead of drifting by half a step)."""
+
+    step: float
+    zero_point: int
+    bits: int
+
+    @property
+    def levels(self) -> int:
+        return 1 << self.bits
+
+    @property
+    def max_error(self) -> float:
+        """Largest reconstruction error for any input inside the fitted range (before the float32 cast)."""
+        return 0.5 * self.step
+
+
+def container_dtype(bits: int) -> np.dtype:
+    """Smallest unsigned integer type holding `bits`-bit codes."""
+    if not MIN_BITS <= bits <= MAX_BITS:
+        raise ValueError(f"bit depth must be in {MIN_BITS}..{MAX_BITS}, got {bits}")
+    return np.dtype(np.uint8 if bits <= 8 else np.uint16 if bits <= 16 else np.uint32)
+
+
+def fit_quantizer(values: np.ndarray, bits: int) -> Quantizer:
+    """Quantizer covering [min, max] of `values` (finite) with 2**bits levels.
+
+    step = (max - min) / (2**bits - 2): one level of slack pays for snapping the grid origin to a multiple of
+    step (zero_point = floor(min / step)); then every code fits in `bits` bits and |error| <= step / 2."""
+    container_dtype(bits)
+    lo = float(np.min(values)) if values.size else 0.0
+    hi = float(np.max(values)) if values.size else 0.0
+    if hi > lo:
+        step = (hi - lo) / ((1 << bits) - 2)
+        return Quantizer(step=step, zero_point=int(np.floor(lo / step)), bits=bits)
+    # Constant component: the constant itself is represented exactly as (+-1) * step.
+    step = abs(lo) if lo != 0.0 else 1.0
+    return Quantizer(step=step, zero_point=int(np.sign(lo)), bits=bits)
+
+
+def quantize(values: np.ndarray, q: Quantizer) -> np.ndarray:
+    """Codes in [0, 2**bits) (values outside the fitted range are clamped)."""
+    codes = np.rint(values.astype(np.float64) / q.step) - q.zero_point
+    np.clip(codes, 0, q.levels - 1, out=codes)
+    return codes.astype(container_dtype(q.bits))
+
+
+def dequantize(codes: np.ndarray, q: Quantizer) -> np.ndarray:
+    """float64 reconstruction; (code + zero_point) is an exact integer, so a zero on the grid comes back as 0.0."""
+    return (codes.astype(np.int64) + q.zero_point).astype(np.float64) * q.step
+
+
+# --- Morton (Z-order) -------------------------------------------------------------------------------------------
+
+def _spread_bits_21(v: np.ndarray) -> np.ndarray:
+    """Insert two zero bits between each of the low 21 bits of v (uint64)."""
+    v = v & np.uint64(0x1FFFFF)
+    v = (v | (v << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
+    v = (v | (v << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
+    v = (v | (v << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
+    v = (v | (v << np.uint64(2))) & np.uint64(0x1249249249249249)
+    return v
+
+
+def morton_codes(grid: np.ndarray, bits: int) -> np.ndarray:
+    """63-bit Morton codes of integer grid coordinates [N,3] with `bits` bits per axis (top 21 bits used)."""
+    shift = np.uint64(max(bits - 21, 0))
+    g = grid.astype(np.uint64) >> shift
+    return _spread_bits_21(g[:, 0]) | (_spread_bits_21(g[:, 1]) << np.uint64(1)) | (
+        _spread_bits_21(g[:, 2]) << np.uint64(2))
+
+
+def morton_order(grid: np.ndarray, bits: int) -> np.ndarray:
+    """Permutation sorting points along the Z-order curve (stable, so ties keep their input order)."""
+    return np.argsort(morton_codes(grid, bits), kind="stable")
+
+
+# --- delta + zigzag along the stored order ------------------------------------------------------------------------
+
+def delta_encode(codes: np.ndarray, bits: int) -> np.ndarray:
+    """Per-row differences modulo 2**bits, zigzag-mapped so small steps of either sign become small codes.
+
+    `codes` is [C, N]; each row is coded independently; the first element is kept as is."""
+    modulus = np.int64(1) << np.int64(bits)
+    c = codes.astype(np.int64)
+    d = np.empty_like(c)
+    d[:, :1] = c[:, :1]
+    np.subtract(c[:, 1:], c[:, :-1], out=d[:, 1:])
+    d %= modulus
+    signed = np.where(d >= modulus // 2, d - modulus, d)  # in [-2**(b-1), 2**(b-1))
+    zig = np.where(signed >= 0, 2 * signed, -2 * signed - 1)
+    return zig.astype(codes.dtype)
+
+
+def delta_decode(zig: np.ndarray, bits: int) -> np.ndarray:
+    """Inverse of delta_encode; any input (even corrupted) yields codes in [0, 2**bits)."""
+    modulus = np.int64(1) << np.int64(bits)
+    z = zig.astype(np.int64)
+    signed = np.where(z & 1, -(z >> 1) - 1, z >> 1)
+    out = np.cumsum(signed, axis=1) % modulus
+    return out.astype(zig.dtype)
+
+
+# --- byte planes ----------------------------------------------------------------------------------------------------
+
+def to_byte_planes(codes: np.ndarray) -> bytes:
+    """[C, N] unsigned ints -> bytes ordered (component, byte significance, gaussian): low bytes of component 0,
+    then its high bytes, ... Separating planes lets zstd see the nearly constant high bytes as long runs."""
+    c, n = codes.shape
+    width = codes.dtype.itemsize
+    le = np.ascontiguousarray(codes, dtype=codes.dtype.newbyteorder("<"))
+    planes = le.view(np.uint8).reshape(c, n, width).transpose(0, 2, 1)
+    return np.ascontiguousarray(planes).tobytes()
+
+
+def from_byte_planes(raw: bytes, components: int, n: int, dtype: np.dtype) -> np.ndarray:
+    """Inverse of to_byte_planes; len(raw) must equal components * n * itemsize (the caller checks)."""
+    width = dtype.itemsize
+    planes = np.frombuffer(raw, dtype=np.uint8).reshape(components, width, n)
+    le = np.ascontiguousarray(planes.transpose(0, 2, 1)).view(dtype.newbyteorder("<"))
+    return le.reshape(components, n).astype(dtype, copy=False)
