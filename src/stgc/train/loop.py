@@ -201,7 +201,7 @@ class Trainer:
 
     def _make_compactor(self) -> Any | None:
         cfg = self.compaction_cfg
-        if cfg is None or not getattr(cfg, "enabled", True):
+        if cfg is None or getattr(cfg, "method", "st-knn") == "none" or not getattr(cfg, "enabled", True):
             return None
         from stgc.compaction import STKNNCompactor
 

@@ -1,0 +1,152 @@
+"""Density control keeps the model, Adam's moments and the trainer's statistics aligned row by row."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from stgc.model import STGModel
+from stgc.train.config import TrainConfig, resolve_schedule
+from stgc.train.densify import (
+    DensificationStats,
+    apply_prune,
+    clone_and_split,
+    prune_mask_floaters,
+    prune_mask_low_opacity,
+    prune_mask_nonfinite,
+)
+from stgc.train.loop import learning_rates, xyz_learning_rate
+
+
+def _model(n: int = 40, seed: int = 0) -> STGModel:
+    rng = np.random.default_rng(seed)
+    cloud = SimpleNamespace(
+        xyz=rng.normal(size=(n, 3)).astype(np.float32),
+        rgb=rng.uniform(size=(n, 3)).astype(np.float32),
+        time=rng.uniform(size=n).astype(np.float32),
+    )
+    return STGModel.from_points(cloud, variant="full", scene_extent=2.0)
+
+
+def _optimizer_with_moments(model: STGModel) -> torch.optim.Adam:
+    """An optimizer whose per-row moments encode the row identity: row i has exp_avg == i (+ column offset)."""
+    opt = model.make_optimizer(learning_rates(TrainConfig(), model.scene_extent), 1e-4)
+    for p in model.params.values():
+        p.grad = torch.ones_like(p)
+    opt.step()
+    n = model.num_gaussians
+    for p in model.params.values():
+        st = opt.state[p]
+        rows = torch.arange(n, dtype=torch.float32)[:, None]
+        st["exp_avg"].copy_(rows.expand_as(p) + 0.5)
+        st["exp_avg_sq"].copy_(rows.expand_as(p) + 1.5)
+    return opt
+
+
+def _row_ids(opt: torch.optim.Adam, model: STGModel) -> dict[str, torch.Tensor]:
+    return {k: opt.state[p]["exp_avg"][:, 0] - 0.5 for k, p in model.params.items()}
+
+
+def test_clone_and_split_moves_moments_with_rows_and_zeroes_new_ones():
+    model = _model()
+    opt = _optimizer_with_moments(model)
+    n0 = model.num_gaussians
+    # Half small (cloned), half large (split); only rows with index % 3 == 0 have a large gradient.
+    with torch.no_grad():
+        model.params["scaling"][: n0 // 2] = np.log(0.001)
+        model.params["scaling"][n0 // 2 :] = np.log(0.5)
+    stats = DensificationStats(n0)
+    grads = torch.where(torch.arange(n0) % 3 == 0, 1e-3, 1e-5)
+    stats.add(torch.arange(n0), grads, torch.ones(n0, dtype=torch.bool))
+    before = {k: p.detach().clone() for k, p in model.params.items()}
+    clone_rows = [i for i in range(n0 // 2) if i % 3 == 0]
+    split_rows = [i for i in range(n0 // 2, n0) if i % 3 == 0]
+
+    report = clone_and_split(model, stats, 2e-4, 0.01, 2, torch.Generator().manual_seed(0))
+
+    assert report == {"cloned": len(clone_rows), "split": len(split_rows)}
+    n1 = n0 + len(clone_rows) + len(split_rows)  # each split row becomes 2 and the original goes
+    assert model.num_gaussians == n1 and len(stats) == n1
+    survivors = [i for i in range(n0) if i not in split_rows]
+    ids = _row_ids(opt, model)
+    for key, p in model.params.items():
+        assert opt.state[p]["exp_avg"].shape == p.shape
+        # Surviving originals keep their own moments, in order; every new row starts at zero.
+        assert torch.equal(ids[key][: len(survivors)], torch.tensor(survivors, dtype=torch.float32))
+        assert torch.all(opt.state[p]["exp_avg"][len(survivors):] == 0)
+        assert torch.all(opt.state[p]["exp_avg_sq"][len(survivors):] == 0)
+    # Clones: exact copies except a fresh temporal centre in [0, 1].
+    k = len(survivors)
+    clone = {key: p.detach()[k : k + len(clone_rows)] for key, p in model.params.items()}
+    assert torch.equal(clone["xyz"], before["xyz"][clone_rows])
+    assert torch.equal(clone["features_dc"], before["features_dc"][clone_rows])
+    assert torch.all((clone["trbf_center"] >= 0) & (clone["trbf_center"] <= 1))
+    # Split children: scale / (0.8 * 2), positions near the parent (within 5 parent sigmas).
+    children = {key: p.detach()[k + len(clone_rows) :] for key, p in model.params.items()}
+    parents = torch.tensor(split_rows * 2)
+    assert torch.allclose(children["scaling"], before["scaling"][parents] - np.log(1.6), atol=1e-6)
+    assert torch.all((children["xyz"] - before["xyz"][parents]).norm(dim=1) < 5 * 0.5 * np.sqrt(3))
+    assert torch.all(stats.count == 0)  # statistics restart after each round
+
+
+def test_prunes_remove_rows_from_model_moments_and_statistics_alike():
+    model = _model()
+    opt = _optimizer_with_moments(model)
+    n0 = model.num_gaussians
+    stats = DensificationStats(n0)
+    stats.add(torch.arange(n0), torch.arange(n0, dtype=torch.float32), torch.ones(n0, dtype=torch.bool))
+    with torch.no_grad():
+        model.params["opacity"][::4] = -10.0  # sigmoid ~ 4.5e-5 < 0.005
+        model.params["motion"][5, 2] = float("nan")
+    remove = prune_mask_low_opacity(model, 0.005) | prune_mask_nonfinite(model)
+    expected = [i for i in range(n0) if i % 4 != 0 and i != 5]
+    assert apply_prune(model, stats, remove) == n0 - len(expected)
+    for ids in _row_ids(opt, model).values():
+        assert torch.equal(ids, torch.tensor(expected, dtype=torch.float32))
+    assert torch.equal(stats.grad_sum, torch.tensor(expected, dtype=torch.float64))
+
+
+def test_opacity_reset_caps_opacity_and_clears_its_moments_only():
+    model = _model()
+    opt = _optimizer_with_moments(model)
+    with torch.no_grad():
+        model.params["opacity"][:5] = -6.0  # below the cap stays
+    low = model.params["opacity"].detach()[:5].clone()
+    model.reset_opacity(0.01)
+    op = model.params["opacity"]
+    assert torch.all(torch.sigmoid(op) <= 0.01 + 1e-7)
+    assert torch.equal(op.detach()[:5], low)
+    assert torch.all(opt.state[op]["exp_avg"] == 0) and torch.all(opt.state[op]["exp_avg_sq"] == 0)
+    assert torch.all(opt.state[model.params["xyz"]]["exp_avg"][:, 0] == torch.arange(40) + 0.5)
+    # The optimizer still updates the (new) opacity tensor.
+    op.grad = torch.ones_like(op)
+    before = op.detach().clone()
+    opt.step()
+    assert not torch.equal(model.params["opacity"].detach(), before)
+
+
+def test_floater_rules():
+    model = _model()
+    with torch.no_grad():
+        model.params["xyz"][0] = torch.tensor([5.0, 0.0, 0.0])
+        model.params["scaling"][1] = np.log(3.0)
+    centers = np.array([[5.05, 0.0, 0.0]])
+    remove = prune_mask_floaters(model, centers, near_camera=0.05, max_world_scale=0.0)
+    assert remove.tolist() == [True] + [False] * 39  # 0.05 < 0.05*E = 0.1
+    remove = prune_mask_floaters(model, centers, near_camera=0.0, max_world_scale=1.0)
+    assert remove[1] and int(remove.sum()) == int((model.scales.max(dim=1).values > 2.0).sum())
+
+
+def test_schedule_scaling_and_xyz_decay():
+    sched = resolve_schedule(TrainConfig(schedule_scale=0.1))
+    assert sched.iterations == 3000 and sched.densify_start == 50 and sched.densify_interval == 10
+    assert sched.densify_end == 50 + 6 * 10 and sched.opacity_reset_interval == 300
+    assert sched.save_iterations[-1] == 3000 and 700 in sched.save_iterations
+    assert not sched.is_densify_step(50) and sched.is_densify_step(60) and not sched.is_densify_step(65)
+    cfg = TrainConfig()
+    assert xyz_learning_rate(cfg, 2.0, 0, 100) == pytest.approx(3.2e-4)
+    assert xyz_learning_rate(cfg, 2.0, 100, 100) == pytest.approx(3.2e-6)
+    assert xyz_learning_rate(cfg, 2.0, 50, 100) == pytest.approx(np.sqrt(3.2e-4 * 3.2e-6))
