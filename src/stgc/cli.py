@@ -1,13 +1,335 @@
-"""`stgc` command line. Verbs and their options are generated from the config dataclasses."""
+"""`stgc` command line. Verbs and their options are generated from the config dataclasses.
+
+Every option of a config section appears as `--<section>.<field>` (see `stgc train --help`), and any of them
+can also be given as `--set <section>.<field>=<value>`. Order of precedence: preset < options < --set.
+"""
 
 from __future__ import annotations
 
+import argparse
+import inspect
+import json
+import os
 import sys
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Callable
+
+from stgc.config import (
+    add_config_arguments,
+    apply_overrides,
+    collect_overrides,
+    from_dict,
+    parse_set_arguments,
+    split_sections,
+    to_dict,
+)
+from stgc.errors import StgcError
+
+
+# --------------------------------------------------------------------------------------------- config sections
+def _section_classes() -> dict[str, type]:
+    """The config dataclass of each section, imported lazily so `stgc --help` stays fast."""
+    from stgc.compaction import CompactionConfig
+    from stgc.data import DataConfig
+    from stgc.model import ModelConfig
+    from stgc.train.config import TrainConfig
+
+    return {"data": DataConfig, "model": ModelConfig, "train": TrainConfig, "compaction": CompactionConfig}
+
+
+SECTION_TITLES = {
+    "data": "data options (stgc.data.DataConfig)",
+    "model": "model options (stgc.model.ModelConfig)",
+    "train": "training options (stgc.train.TrainConfig; defaults shown are the preset's)",
+    "compaction": "compaction options (stgc.compaction.CompactionConfig)",
+}
+
+
+def default_configs(preset: str = "cpu") -> dict[str, Any]:
+    """Config objects of a `stgc train` run before any option: the preset, and no compaction."""
+    from stgc.train.config import train_preset
+
+    classes = _section_classes()
+    configs = {name: cls() for name, cls in classes.items()}
+    configs["train"] = train_preset(preset)
+    configs["compaction"] = replace(configs["compaction"], method="none")
+    return configs
+
+
+def resolve_configs(
+    preset: str,
+    shortcuts: dict[str, dict[str, Any]],
+    options: dict[str, dict[str, str]],
+    sets: dict[str, str],
+) -> dict[str, Any]:
+    """preset < shortcut flags < --section.field options < --set overrides."""
+    configs = default_configs(preset)
+    for layer in (shortcuts, options, split_sections(sets, set(configs))):
+        for section, overrides in layer.items():
+            configs[section] = apply_overrides(configs[section], overrides, section)
+    return configs
+
+
+def configs_from_run(run_dir: Path) -> dict[str, Any]:
+    """The configs a run was started with (RUN/config.json)."""
+    path = run_dir / "config.json"
+    if not path.is_file():
+        raise StgcError(f"{path}: not found; is {run_dir} a stgc run directory?")
+    saved = json.loads(path.read_text())
+    classes = _section_classes()
+    out: dict[str, Any] = {}
+    for name, cls in classes.items():
+        section = dict(saved.get(name) or {})
+        section.pop("path", None)
+        section.pop("resolved_schedule", None)
+        out[name] = from_dict(cls, section)
+    out["data_path"] = (saved.get("data") or {}).get("path")
+    return out
+
+
+def open_dataset_for(path: str | Path, data_cfg: Any) -> Any:
+    """Open DATA with the DataConfig fields that `open_dataset` accepts."""
+    from stgc.data import open_dataset
+
+    accepted = inspect.signature(open_dataset).parameters
+    kwargs = {k: v for k, v in to_dict(data_cfg).items() if k in accepted and k != "path"}
+    return open_dataset(path, **kwargs)
+
+
+# --------------------------------------------------------------------------------------------- verbs
+def cmd_train(args: argparse.Namespace) -> int:
+    from stgc.train import train
+
+    out = Path(args.out)
+    if args.resume and (out / "config.json").is_file():
+        saved = configs_from_run(out)
+        data_path = args.data or saved["data_path"]
+        configs = {k: saved[k] for k in ("data", "model", "train", "compaction")}
+    else:
+        shortcuts: dict[str, dict[str, Any]] = {}
+        if args.variant:
+            shortcuts.setdefault("model", {})["variant"] = args.variant
+        if args.compaction:
+            shortcuts.setdefault("compaction", {})["method"] = args.compaction
+        if args.case is not None:
+            shortcuts.setdefault("compaction", {})["case"] = str(args.case)
+        if args.criterion:
+            shortcuts.setdefault("compaction", {})["criterion"] = args.criterion
+        configs = resolve_configs(args.preset, shortcuts, collect_overrides(args), parse_set_arguments(args.set))
+        data_path = args.data
+    if data_path is None:
+        raise StgcError("no DATA given and the run has no saved data path")
+    dataset = open_dataset_for(data_path, configs["data"])
+    summary = train(
+        dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=args.resume
+    )
+    print(f"run written to {out}")
+    if summary.get("eval"):
+        print(json.dumps(summary["eval"], indent=1))
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from stgc.eval import evaluate_run, format_eval_table
+
+    record = evaluate_run(args.target, data_path=args.data, measure_fps=not args.no_fps)
+    if args.json:
+        print(json.dumps(record))
+    else:
+        print(format_eval_table(record))
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from stgc.eval.video import render_still, render_video
+
+    out = Path(args.out)
+    if out.suffix.lower() == ".png":
+        if args.orbit or args.frames:
+            raise StgcError(f"{out}: a .png is one still; use .mp4 for --orbit or --frames")
+        render_still(args.run, args.camera, args.time, out)
+    elif out.suffix.lower() in (".mp4", ".gif"):
+        render_video(args.run, out, camera_name=args.camera, frames=args.frames, orbit=args.orbit)
+    else:
+        raise StgcError(f"{out}: output must end in .png or .mp4")
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_compress(args: argparse.Namespace) -> int:
+    from stgc.codec import compress_run
+
+    result = compress_run(args.run, args.out, quality=args.quality)
+    print(result)
+    return 0
+
+
+def cmd_decompress(args: argparse.Namespace) -> int:
+    from stgc.codec import decompress
+
+    path = decompress(args.file, args.out)
+    print(f"decoded model written to {path}")
+    return 0
+
+
+def cmd_data_inspect(args: argparse.Namespace) -> int:
+    from stgc.data import inspect_text
+
+    print(inspect_text(args.path, format=args.format))
+    return 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from stgc.compaction import plot_compaction
+
+    run = Path(args.run)
+    out = Path(args.out) if args.out else run / "compaction.png"
+    plot_compaction(run, out)
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_experiment(args: argparse.Namespace) -> int:
+    from stgc.experiment import run_plan
+
+    result = run_plan(
+        args.data, args.plan, args.out, preset=args.preset, extra_overrides=args.set or [],
+        codec_qualities=args.codec_quality or [],
+    )
+    print(result)
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from stgc.eval.report import report_from_runs
+
+    result = report_from_runs(args.runs, args.out, baseline=args.baseline)
+    print(result)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from stgc.experiment.demo import run_demo
+
+    return run_demo(Path(args.out))
+
+
+# --------------------------------------------------------------------------------------------- parser
+def _add_train_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "train",
+        help="train an STG model (optionally with ST-KNN compaction) into a run directory",
+        description="Train Spacetime Gaussians on DATA into RUN. Presets: cpu (2-core CPU schedule), paper "
+        "(official 30k). Any option below can also be given as --set section.field=value.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("data", nargs="?", help="dataset directory (any supported layout; see `stgc data inspect`)")
+    p.add_argument("--out", required=True, help="run directory to write (or to resume)")
+    p.add_argument("--preset", default="cpu", choices=["cpu", "paper"], help="training schedule preset")
+    p.add_argument("--variant", choices=["full", "lite"], help="STG variant (shortcut for --model.variant)")
+    p.add_argument("--compaction", choices=["none", "st-knn"], help="compaction method (default none)")
+    p.add_argument("--case", type=int, choices=[1, 2, 3, 4], help="paper pruning window case (compaction.case)")
+    p.add_argument(
+        "--criterion", choices=["timestamp", "scale", "importance"], help="which member of a pair is removed"
+    )
+    p.add_argument("--resume", action="store_true", help="continue RUN from its last checkpoint")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override any option, e.g. train.iterations=3000")
+    try:
+        configs = default_configs("cpu")
+    except ImportError as exc:  # keep the rest of the CLI usable while a package is broken
+        p.epilog = f"(config options unavailable: {exc})"
+        configs = {}
+    for name, cfg in configs.items():
+        add_config_arguments(p, name, cfg, SECTION_TITLES[name])
+    p.set_defaults(func=cmd_train)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="stgc",
+        description="Spacetime Gaussians with spatiotemporal KNN compaction: train, compact, evaluate, compress, report.",
+    )
+    sub = parser.add_subparsers(dest="verb", metavar="VERB")
+    sub.required = True
+
+    _add_train_parser(sub)
+
+    p = sub.add_parser("eval", help="evaluate a run or a .stgc file on the test views")
+    p.add_argument("target", help="run directory or .stgc file")
+    p.add_argument("--data", help="dataset directory (default: the one recorded in the run)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    p.add_argument("--no-fps", action="store_true", help="skip the render-speed measurement")
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("render", help="render a still or a video from a run")
+    p.add_argument("run", help="run directory or .stgc file")
+    p.add_argument("--out", required=True, help="FILE.png (still) or FILE.mp4 (video)")
+    p.add_argument("--camera", help="camera name (default: the first test camera)")
+    p.add_argument("--orbit", action="store_true", help="smooth camera path through the training cameras")
+    p.add_argument("--time", type=float, help="normalised time of a still (default 0)")
+    p.add_argument("--frames", help="frame range A:B of a video (default: all)")
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("compress", help="write a trained run as a compact .stgc bitstream")
+    p.add_argument("run", help="run directory, iteration directory or .ply")
+    p.add_argument("--out", required=True, help="output .stgc file")
+    p.add_argument("--quality", type=int, help="quality level (higher = more bits; default: the codec's default)")
+    p.set_defaults(func=cmd_compress)
+
+    p = sub.add_parser("decompress", help="decode a .stgc file into an official-layout run directory")
+    p.add_argument("file", help=".stgc file")
+    p.add_argument("--out", required=True, help="output run directory")
+    p.set_defaults(func=cmd_decompress)
+
+    p = sub.add_parser("data", help="dataset tools")
+    data_sub = p.add_subparsers(dest="data_verb", metavar="ACTION")
+    data_sub.required = True
+    q = data_sub.add_parser("inspect", help="print what a dataset directory holds")
+    q.add_argument("path", help="dataset directory")
+    q.add_argument("--format", default="auto", help="force a reader instead of detecting the layout")
+    q.set_defaults(func=cmd_data_inspect)
+
+    p = sub.add_parser("plot", help="plot pruning ratio, loss and Gaussian count of a run over iterations")
+    p.add_argument("run", help="run directory")
+    p.add_argument("--out", help="PNG path (default RUN/compaction.png)")
+    p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser("experiment", help="run a plan of trainings (paper tables) and write the report")
+    p.add_argument("data", help="dataset directory")
+    p.add_argument("--plan", required=True, help="table2 | table3 | PLAN.toml")
+    p.add_argument("--out", required=True, help="experiment directory (resumable)")
+    p.add_argument("--preset", default="cpu", choices=["cpu", "paper"], help="training preset of every run")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override applied to every run")
+    p.add_argument("--codec-quality", type=int, action="append", help="also add .stgc rate points at this quality")
+    p.set_defaults(func=cmd_experiment)
+
+    p = sub.add_parser("report", help="tables, RD plots and BD deltas from any set of runs")
+    p.add_argument("runs", nargs="+", help="run directories")
+    p.add_argument("--out", required=True, help="report directory")
+    p.add_argument("--baseline", help="name of the baseline run (default: the first)")
+    p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser("demo", help="the whole pipeline on the small embedded scene (what `make demo` runs)")
+    p.add_argument("--out", default="demo_out", help="output directory (resumable)")
+    p.set_defaults(func=cmd_demo)
+    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    print("stgc: work in progress", file=sys.stderr)
-    return 0
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except StgcError as exc:
+        print(f"stgc: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("\nstgc: interrupted; run the same command again (train: add --resume) to continue", file=sys.stderr)
+        return 130
+    except (FileNotFoundError, PermissionError, IsADirectoryError) as exc:
+        print(f"stgc: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":
