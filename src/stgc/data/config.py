@@ -1,0 +1,73 @@
+"""Options of the data stage (path-independent; the dataset path is given separately)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class DataConfig:
+    format: str = field(default="auto", metadata={
+        "help": "dataset layout: auto (detect from the files), panoptic, blender, n3dv, stg-colmap, technicolor, miv"})
+    downscale: float = field(default=1.0, metadata={
+        "help": "divide image width and height by this (area average for whole numbers); K is scaled to match"})
+    start: int | None = field(default=None, metadata={
+        "help": "first frame of the segment (absolute index); default: the first frame of the data"})
+    duration: int | None = field(default=None, metadata={
+        "help": "number of frames in the segment (STG uses 50); default: all frames from start"})
+    test_cameras: str | None = field(default=None, metadata={
+        "help": "comma-separated held-out view names; default: the format's (cam00 N3DV/COLMAP, cam10 "
+                "Technicolor, 0,10,15,30 Panoptic, v06,v08 MIV, transforms_test views Blender)"})
+    fps: float | None = field(default=None, metadata={
+        "help": "frame rate of the video; default: what the format states, else 30"})
+    init_source: str = field(default="auto", metadata={
+        "help": "initial points: auto (data points, else triangulation, else random), data, triangulate, random"})
+    init_frames_every: int = field(default=1, metadata={
+        "help": "take initial points from every k-th frame of the segment (1 = all frames, as STG)"})
+    max_points_per_frame: int | None = field(default=None, metadata={
+        "help": "random subsample of each frame's initial points to at most this many (None = keep all)"})
+    triangulation_upsample: float = field(default=2.0, metadata={
+        "help": "upsample images by this factor before SIFT extraction (2 gives ~10x more points on small frames)"})
+    min_track_length: int = field(default=3, metadata={
+        "help": "keep triangulated points seen by at least this many images (track-2 points are mostly mismatches)"})
+    preprocess: str = field(default="none", metadata={
+        "help": "point reduction before training: none, stg-isolated (official STG code: keep the ~25 percent most "
+                "isolated points of every frame but the first), closest-pairs (paper: drop one point of each "
+                "of the closest fraction of nearest-neighbour pairs)"})
+    preprocess_fraction: float = field(default=0.25, metadata={
+        "help": "fraction used by the preprocess rule (0.25 in STG and the paper)"})
+    background: str = field(default="black", metadata={
+        "help": "colour that transparent pixels of RGBA images are composited on: black or white"})
+    yuv_range: str = field(default="limited", metadata={
+        "help": "MIV YUV sample range: limited (video, 16-235 at 8 bits) or full"})
+    image_cache_mb: int = field(default=2048, metadata={
+        "help": "memory bound of the decoded-image cache in MiB (least recently used images are dropped)"})
+    seed: int = field(default=0, metadata={"help": "seed for subsampling and random initial points"})
+
+    def open(self, path):
+        """Open `path` with these options."""
+        from .readers import open_dataset
+
+        return open_dataset(path, format=self.format, downscale=self.downscale, start=self.start,
+                            duration=self.duration, test_cameras=self.test_cameras, fps=self.fps,
+                            cache_bytes=self.image_cache_mb << 20, background=_colour(self.background),
+                            yuv_range=self.yuv_range)
+
+    def initial_points(self, dataset):
+        """Initial points of `dataset` with these options, then the preprocess rule: (cloud, report)."""
+        from .points import initial_points
+        from .preprocess import preprocess_points
+
+        frames = dataset.frames[:: max(1, self.init_frames_every)]
+        cloud = initial_points(dataset, source=self.init_source, frames=frames,
+                               max_points_per_frame=self.max_points_per_frame, seed=self.seed,
+                               triangulation_upsample=self.triangulation_upsample,
+                               min_track_length=self.min_track_length)
+        return preprocess_points(cloud, self.preprocess, self.preprocess_fraction)
+
+
+def _colour(name: str) -> tuple[float, float, float]:
+    colours = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
+    if name not in colours:
+        raise ValueError(f"background must be black or white, not {name!r}")
+    return colours[name]

@@ -1,0 +1,177 @@
+"""Initial point clouds, one set of points per frame tagged with the frame's time (STG's initialisation)."""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import DataError
+from .dataset import Dataset
+
+log = logging.getLogger(__name__)
+
+SOURCES = ("auto", "data", "triangulate", "random")
+
+
+@dataclass
+class PointCloud:
+    """Points with colour and time: xyz float32 [M, 3], rgb float32 [M, 3] in [0, 1], time float32 [M]."""
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    time: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.xyz = np.asarray(self.xyz, dtype=np.float32).reshape(-1, 3)
+        self.rgb = np.asarray(self.rgb, dtype=np.float32).reshape(-1, 3)
+        self.time = np.asarray(self.time, dtype=np.float32).reshape(-1)
+        if not (len(self.xyz) == len(self.rgb) == len(self.time)):
+            raise ValueError(f"xyz, rgb and time lengths differ: {len(self.xyz)}, {len(self.rgb)}, {len(self.time)}")
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    @staticmethod
+    def empty() -> "PointCloud":
+        return PointCloud(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+
+    @staticmethod
+    def concatenate(clouds: list["PointCloud"]) -> "PointCloud":
+        if not clouds:
+            return PointCloud.empty()
+        return PointCloud(np.concatenate([c.xyz for c in clouds]), np.concatenate([c.rgb for c in clouds]),
+                          np.concatenate([c.time for c in clouds]))
+
+    def select(self, mask: np.ndarray) -> "PointCloud":
+        return PointCloud(self.xyz[mask], self.rgb[mask], self.time[mask])
+
+    def counts_per_time(self) -> dict[float, int]:
+        values, counts = np.unique(self.time, return_counts=True)
+        return {float(v): int(c) for v, c in zip(values, counts)}
+
+
+def _subsample(xyz: np.ndarray, rgb: np.ndarray, limit: int | None, rng: np.random.Generator):
+    if limit is None or len(xyz) <= limit:
+        return xyz, rgb
+    keep = np.sort(rng.choice(len(xyz), size=limit, replace=False))
+    return xyz[keep], rgb[keep]
+
+
+def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | None = None,
+                   max_points_per_frame: int | None = None, seed: int = 0, *, triangulation_upsample: float = 2.0,
+                   min_track_length: int = 3, random_points_per_frame: int = 2000) -> PointCloud:
+    """Initial points of the frames `frames` (absolute indices; default: all frames of the segment).
+
+    source: "data" = points shipped with the data (COLMAP points3D, points3d/NNNN.npy, init_pt_cld.npz);
+    "triangulate" = SIFT + known-pose triangulation with pycolmap from the training views; "random" =
+    uniform points in the region the cameras see (with a warning); "auto" = data if present, else
+    triangulation if pycolmap imports, else random."""
+    if source not in SOURCES:
+        raise ValueError(f"source must be one of {SOURCES}, not {source!r}")
+    frames = list(dataset.frames if frames is None else frames)
+    outside = [f for f in frames if f not in dataset.frames]
+    if outside:
+        raise DataError(dataset.root, f"frames {outside} are not in the segment [{dataset.start}, "
+                                      f"{dataset.start + dataset.duration})")
+    if not frames:
+        raise DataError(dataset.root, "empty frame list for initial points")
+    if source == "auto":
+        if dataset.has_points:
+            source = "data"
+        else:
+            try:
+                import pycolmap  # noqa: F401
+
+                source = "triangulate"
+            except ImportError:
+                source = "random"
+    rng = np.random.default_rng(seed)
+    clouds = []
+    for frame in frames:
+        t = dataset.time_of(frame)
+        if source == "data":
+            if not dataset.has_points:
+                raise DataError(dataset.root, "no initial points ship with this dataset (use source='triangulate' "
+                                              "or 'random')")
+            got = dataset.data_points(frame)
+            if got is None:
+                continue  # e.g. a static cloud given for the first frame only
+            xyz, rgb = got
+        elif source == "triangulate":
+            from .triangulate import triangulate_frame
+
+            result = triangulate_frame(dataset, frame, upsample=triangulation_upsample,
+                                       min_track_length=min_track_length)
+            log.info("frame %d: %d triangulated points, median reprojection error %.3f px", frame,
+                     len(result.xyz), result.median_error)
+            xyz, rgb = result.xyz, result.rgb
+        else:
+            count = max_points_per_frame or random_points_per_frame
+            xyz, rgb = random_points(dataset, frame, count, rng)
+        xyz, rgb = _subsample(np.asarray(xyz), np.asarray(rgb), max_points_per_frame, rng)
+        clouds.append(PointCloud(xyz, rgb, np.full(len(xyz), t)))
+    cloud = PointCloud.concatenate(clouds)
+    if len(cloud) == 0:
+        raise DataError(dataset.root, f"no initial points found for frames {frames} with source {source!r}")
+    return cloud
+
+
+def viewing_region(dataset: Dataset) -> tuple[np.ndarray, float]:
+    """(centre, radius) of the region the training cameras look at: the point closest (least squares)
+    to all optical axes, and the median camera distance to it."""
+    cams = {c.name: c for c in dataset.train}.values()
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    centres = []
+    for cam in cams:
+        d = cam.c2w[:3, 2]
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ cam.center
+        centres.append(cam.center)
+    centres = np.array(centres)
+    try:
+        focus = np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:  # all axes parallel
+        focus = centres.mean(axis=0) + np.mean([c.c2w[:3, 2] for c in cams], axis=0) * dataset.scene_extent()
+    radius = float(np.median(np.linalg.norm(centres - focus, axis=1)))
+    return focus, radius
+
+
+def random_points(dataset: Dataset, frame: int, count: int, rng: np.random.Generator):
+    """`count` points drawn uniformly in a cube around the viewing region, kept where at least two training
+    cameras of `frame` see them, coloured from the first camera that sees each point."""
+    warnings.warn(f"{dataset.name}: initialising frame {frame} with {count} random points (no data points or "
+                  "triangulation); expect slower, worse training", stacklevel=3)
+    focus, radius = viewing_region(dataset)
+    cams = dataset.train_at(frame)
+    xyz_out, rgb_out = [], []
+    got = 0
+    for _ in range(50):
+        xyz = focus + rng.uniform(-radius, radius, size=(4 * count, 3))
+        seen = np.zeros(len(xyz), dtype=int)
+        rgb = np.full((len(xyz), 3), np.nan)
+        for cam in cams:
+            uv, depth = cam.project(xyz)
+            inside = (depth > 0.05 * radius) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (
+                uv[:, 1] < cam.height)
+            seen += inside
+            fill = inside & np.isnan(rgb[:, 0])
+            if fill.any():
+                image = dataset.load_image(cam)
+                px = uv[fill].astype(int)
+                rgb[fill] = image[px[:, 1], px[:, 0]] / 255.0
+        keep = seen >= min(2, len(cams))
+        xyz_out.append(xyz[keep])
+        rgb_out.append(rgb[keep])
+        got += int(keep.sum())
+        if got >= count:
+            break
+    xyz = np.concatenate(xyz_out)[:count]
+    rgb = np.concatenate(rgb_out)[:count]
+    if len(xyz) == 0:
+        raise DataError(dataset.root, "no random point is seen by two training cameras: check the poses")
+    return xyz.astype(np.float32), rgb.astype(np.float32)
