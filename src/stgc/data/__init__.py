@@ -20,7 +20,7 @@ from .cameras import (
     qvec_to_rotmat,
     rotmat_to_qvec,
 )
-from .config import DataConfig
+from .config import DataConfig, initial_points_from_config
 from .dataset import Dataset, SourceScene, segments
 from .inspect import inspect, inspect_text
 from .points import PointCloud, initial_points
@@ -38,6 +38,7 @@ __all__ = [
     "colmap_to_w2c",
     "detect_format",
     "initial_points",
+    "initial_points_from_config",
     "inspect",
     "inspect_text",
     "llff_to_w2c",

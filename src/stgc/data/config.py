@@ -50,7 +50,7 @@ class DataConfig:
 
         return open_dataset(path, format=self.format, downscale=self.downscale, start=self.start,
                             duration=self.duration, test_cameras=self.test_cameras, fps=self.fps,
-                            cache_bytes=self.image_cache_mb << 20, background=_colour(self.background),
+                            image_cache_mb=self.image_cache_mb, background=self.background,
                             yuv_range=self.yuv_range)
 
     def initial_points(self, dataset):
@@ -66,8 +66,14 @@ class DataConfig:
         return preprocess_points(cloud, self.preprocess, self.preprocess_fraction)
 
 
-def _colour(name: str) -> tuple[float, float, float]:
-    colours = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
-    if name not in colours:
-        raise ValueError(f"background must be black or white, not {name!r}")
-    return colours[name]
+
+def initial_points_from_config(dataset, cfg: DataConfig | None = None):
+    """The trainer's entry point: initial points of `dataset` as `cfg` asks, after preprocessing (PointCloud).
+
+    The per-frame counts before/after preprocessing are logged at INFO level."""
+    import logging
+
+    cloud, report = (cfg or DataConfig()).initial_points(dataset)
+    logging.getLogger(__name__).info("initial points: %d -> %d after preprocess %r", report.before, report.after,
+                                     report.mode)
+    return cloud

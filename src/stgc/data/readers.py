@@ -46,13 +46,15 @@ _MIV_TEST_VIEWS = ("v06", "v08")  # the paper's held-out views of the MIV Mirror
 
 def open_dataset(path: str | Path, format: str = "auto", downscale: float = 1, start: int | None = None,
                  duration: int | None = None, test_cameras: list[str] | str | None = None,
-                 fps: float | None = None, *, cache_bytes: int = DEFAULT_CACHE_BYTES,
-                 background: tuple[float, float, float] = (0.0, 0.0, 0.0), yuv_range: str = "limited",
+                 fps: float | None = None, *, image_cache_mb: int = DEFAULT_CACHE_BYTES >> 20,
+                 background: str | tuple[float, float, float] = "black", yuv_range: str = "limited",
                  check_images: bool = True) -> Dataset:
     """Open a multi-view video dataset, picking the reader from the files present (or `format=`).
 
     start/duration select frames [start, start + duration) (default: everything); test_cameras
-    overrides the format's held-out views; fps overrides the format's frame rate (default 30)."""
+    overrides the format's held-out views; fps overrides the format's frame rate (default 30).
+    background ("black", "white" or RGB in [0, 1]) is what RGBA images are composited on; decoded
+    images are kept in an LRU cache of at most image_cache_mb MiB."""
     path = Path(path)
     if not path.exists():
         raise DataError(path, "dataset path does not exist")
@@ -70,7 +72,20 @@ def open_dataset(path: str | Path, format: str = "auto", downscale: float = 1, s
     }[fmt]
     scene = reader(path)
     return assemble(scene, downscale=downscale, start=start, duration=duration, test_cameras=test_cameras,
-                    fps=fps, cache_bytes=cache_bytes, background=background, check_images=check_images)
+                    fps=fps, cache_bytes=int(image_cache_mb) << 20, background=_background(background),
+                    check_images=check_images)
+
+
+def _background(value: str | tuple[float, float, float]) -> tuple[float, float, float]:
+    named = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
+    if isinstance(value, str):
+        if value not in named:
+            raise ValueError(f"background must be 'black', 'white' or an RGB triple, not {value!r}")
+        return named[value]
+    rgb = tuple(float(v) for v in value)
+    if len(rgb) != 3:
+        raise ValueError(f"background must have 3 components, not {value!r}")
+    return rgb
 
 
 def detect_format(path: Path) -> str:
