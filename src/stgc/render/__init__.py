@@ -1,0 +1,23 @@
+"""stgc.render: differentiable 3D Gaussian rasterization behind one function.
+
+    out = rasterize(means, quats, scales, opacities, features, K, viewmat, width, height, background=None,
+                    backend="auto")
+
+Backends share the torch EWA projection (gsplat semantics) and differ only in compositing: "numba" (CPU default,
+hand-written backward), "torch" (pure PyTorch, any device), "gsplat" (CUDA kernels, optional). See
+docs/rasterizer.md for conventions and measured speed.
+"""
+
+from .api import BACKENDS, T_MIN, RenderOutput, available_backends, rasterize, select_backend
+from .projection import ALPHA_MIN, RADIUS_SIGMAS
+
+__all__ = [
+    "ALPHA_MIN",
+    "BACKENDS",
+    "RADIUS_SIGMAS",
+    "T_MIN",
+    "RenderOutput",
+    "available_backends",
+    "rasterize",
+    "select_backend",
+]

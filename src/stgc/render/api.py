@@ -1,0 +1,225 @@
+"""The one rasterizer entry point: `rasterize(...) -> RenderOutput`, backend selection and input validation."""
+
+from __future__ import annotations
+
+import importlib.util
+import numbers
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .projection import ALPHA_MIN, project_gaussians, sigma_cutoff, tile_rects
+
+BACKENDS = ("auto", "numba", "torch", "gsplat")
+# Front-to-back compositing stops before a Gaussian that would take the transmittance to <= T_MIN (exclusive).
+T_MIN = 1e-4
+
+
+@dataclass
+class RenderOutput:
+    """Result of rasterizing one camera. Images are [H, W, ...]; per-Gaussian arrays have the input's N."""
+
+    image: Tensor  # [H, W, C] features composited over the background; differentiable
+    alpha: Tensor  # [H, W] accumulated opacity 1 - T_final; differentiable
+    depth: Tensor | None  # [H, W] median depth (0 where T never drops below 0.5), no gradient; if requested
+    radii: Tensor  # [N, 2] int32 screen radii in pixels, 0 = culled
+    visible: Tensor  # [N] bool, radii > 0
+    means2d: Tensor  # [N, 2] pixel-space means; .grad is dL/dmeans2d after backward (when inputs require grad)
+    weights: Tensor | None  # [N] sum over pixels of alpha * T (blending weight), no gradient; if requested
+    backend: str  # the backend that actually ran
+    num_intersections: int  # (Gaussian, tile) pairs composited
+
+    @property
+    def width(self) -> int:
+        return int(self.alpha.shape[1])
+
+    @property
+    def height(self) -> int:
+        return int(self.alpha.shape[0])
+
+    def means2d_grad_ndc_norm(self) -> Tensor:
+        """[N] ||dL/dmean2d|| in NDC units, as 3DGS/STG accumulate it for densification: the pixel gradient scaled
+        by (W/2, H/2) (d pixel / d ndc), 0 for invisible Gaussians or before any backward."""
+        grad = self.means2d.grad
+        if grad is None:
+            return torch.zeros(self.means2d.shape[0], dtype=self.means2d.dtype, device=self.means2d.device)
+        scale = torch.tensor([0.5 * self.width, 0.5 * self.height], dtype=grad.dtype, device=grad.device)
+        norm = (grad * scale).norm(dim=-1)
+        return torch.where(self.visible, norm, torch.zeros_like(norm))
+
+
+def _numba_installed() -> bool:
+    return importlib.util.find_spec("numba") is not None
+
+
+def available_backends() -> list[str]:
+    """Backends that can run in this process (without importing gsplat: it is only probed on first use)."""
+    names = []
+    if _numba_installed():
+        names.append("numba")
+    names.append("torch")
+    if torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None:
+        from .gsplat_backend import gsplat_failure
+
+        if gsplat_failure() is None:
+            names.append("gsplat")
+    return names
+
+
+def select_backend(requested: str, device: torch.device) -> str:
+    """The backend `rasterize` will try for tensors on `device` ("gsplat" may still fall back to "torch")."""
+    if requested not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {requested!r}")
+    if requested == "auto":
+        if device.type == "cpu":
+            return "numba" if _numba_installed() else "torch"
+        if device.type == "cuda" and "gsplat" in available_backends():
+            return "gsplat"
+        return "torch"
+    if requested == "numba":
+        if device.type != "cpu":
+            raise ValueError(f"backend 'numba' needs CPU tensors, got device {device}")
+        if not _numba_installed():
+            raise ValueError("backend 'numba' requested but numba is not installed")
+    if requested == "gsplat" and device.type != "cuda":
+        raise ValueError(f"backend 'gsplat' needs CUDA tensors, got device {device}")
+    return requested
+
+
+def _to_tensor(name: str, value, shape: tuple, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """Tensor of `shape` (None = any size, checked by the caller) on `device`/`dtype`; ValueError otherwise."""
+    if isinstance(value, np.ndarray):
+        value = torch.from_numpy(value)
+    if not isinstance(value, Tensor):
+        try:
+            value = torch.as_tensor(value)
+        except Exception as exc:
+            raise ValueError(f"{name}: expected a tensor or array, got {type(value).__name__}") from exc
+    if value.dim() != len(shape) or any(s is not None and s != v for s, v in zip(shape, value.shape)):
+        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+        raise ValueError(f"{name}: expected shape {want}, got {list(value.shape)}")
+    if not (value.is_floating_point() or value.dtype in (torch.int32, torch.int64)):
+        raise ValueError(f"{name}: expected a floating point tensor, got {value.dtype}")
+    if value.device != device:
+        raise ValueError(f"{name}: on {value.device}, expected {device} (the device of means)")
+    value = value.to(dtype)
+    if value.numel() and not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{name}: contains NaN or inf")
+    return value
+
+
+def _check_size(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 1:
+        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+    return int(value)
+
+
+def rasterize(
+    means,
+    quats,
+    scales,
+    opacities,
+    features,
+    K,
+    viewmat,
+    width: int,
+    height: int,
+    background=None,
+    *,
+    backend: str = "auto",
+    alpha_max: float = 0.99,
+    near_plane: float = 0.01,
+    eps2d: float = 0.3,
+    return_depth: bool = False,
+    return_weights: bool = False,
+) -> RenderOutput:
+    """Render N Gaussians into one pinhole camera (conventions in docs/rasterizer.md).
+
+    means [N,3] world positions; quats [N,4] (w,x,y,z), any norm; scales [N,3] linear; opacities [N];
+    features [N,C], C >= 1; K [3,3] with pixel centres at +0.5; viewmat [4,4] world-to-camera (OpenCV);
+    background [C] or None (zeros). Computation is float64 when means is float64, float32 otherwise.
+    backend: "auto" (numba on CPU, gsplat on CUDA when it loads, else torch), "numba", "torch" or "gsplat"."""
+    if isinstance(means, np.ndarray):
+        means = torch.from_numpy(means)
+    if not isinstance(means, Tensor):
+        raise ValueError(f"means: expected a tensor or array, got {type(means).__name__}")
+    device = means.device
+    dtype = torch.float64 if means.dtype == torch.float64 else torch.float32
+    means = _to_tensor("means", means, (None, 3), dtype, device)
+    N = means.shape[0]
+    quats = _to_tensor("quats", quats, (N, 4), dtype, device)
+    scales = _to_tensor("scales", scales, (N, 3), dtype, device)
+    opacities = _to_tensor("opacities", opacities, (N,), dtype, device)
+    features = _to_tensor("features", features, (N, None), dtype, device)
+    C = features.shape[1]
+    if C < 1:
+        raise ValueError("features: need at least one channel, got shape [N, 0]")
+    K = _to_tensor("K", K, (3, 3), dtype, device)
+    viewmat = _to_tensor("viewmat", viewmat, (4, 4), dtype, device)
+    if background is not None:
+        background = _to_tensor("background", background, (C,), dtype, device)
+    width = _check_size("width", width)
+    height = _check_size("height", height)
+    if not (ALPHA_MIN < float(alpha_max) < 1.0):
+        raise ValueError(f"alpha_max: expected a value in (1/255, 1), got {alpha_max}")
+    if not (float(near_plane) > 0 and np.isfinite(near_plane)):
+        raise ValueError(f"near_plane: expected a positive finite value, got {near_plane}")
+    if not (float(eps2d) >= 0 and np.isfinite(eps2d)):
+        raise ValueError(f"eps2d: expected a finite value >= 0, got {eps2d}")
+    if float(K[0, 0]) <= 0 or float(K[1, 1]) <= 0:
+        raise ValueError(f"K: focal lengths must be positive, got fx={float(K[0, 0])}, fy={float(K[1, 1])}")
+
+    chosen = select_backend(backend, device)
+    if chosen == "gsplat":
+        from . import gsplat_backend
+
+        module = gsplat_backend.load_gsplat()
+        if module is not None and dtype == torch.float32:
+            parts = gsplat_backend.rasterize_gsplat(
+                module, means, quats, scales, opacities, features, K, viewmat, width, height, background,
+                alpha_max=alpha_max, near_plane=near_plane, eps2d=eps2d,
+                want_depth=return_depth, want_weights=return_weights,
+            )  # fmt: skip
+            if parts["means2d"].requires_grad:
+                parts["means2d"].retain_grad()
+            return RenderOutput(backend="gsplat", **parts)
+        chosen = "torch"
+
+    proj = project_gaussians(
+        means, quats, scales, opacities, K, viewmat, width, height, eps2d=eps2d, near_plane=near_plane
+    )
+    if proj.means2d.requires_grad:
+        proj.means2d.retain_grad()
+    if chosen == "numba":
+        from . import numba_backend as nb
+
+        rect = tile_rects(proj.radii, proj.means2d, width, height, nb.TILE_SIZE)
+        offsets, flat = nb.bin_tiles(rect, proj.depths, width, height, nb.TILE_SIZE)
+        color, trans, depth, weights = nb.composite_numba(
+            proj.means2d, proj.conics, opacities, features, sigma_cutoff(opacities), proj.depths, offsets, flat,
+            width, height, nb.TILE_SIZE, float(alpha_max), ALPHA_MIN, T_MIN, return_depth, return_weights,
+        )  # fmt: skip
+    else:
+        from . import torch_backend as tb
+        from .projection import bin_tiles_torch
+
+        rect = tile_rects(proj.radii, proj.means2d, width, height, tb.TILE_SIZE)
+        offsets, flat = bin_tiles_torch(rect, proj.depths, proj.visible, width, height, tb.TILE_SIZE)
+        color, trans, depth, weights = tb.composite_torch(
+            proj.means2d, proj.conics, opacities, features, proj.depths, offsets, flat,
+            width, height, tb.TILE_SIZE, float(alpha_max), ALPHA_MIN, T_MIN, return_depth, return_weights,
+        )  # fmt: skip
+    image = color if background is None else color + trans[..., None] * background
+    return RenderOutput(
+        image=image,
+        alpha=1.0 - trans,
+        depth=depth,
+        radii=proj.radii,
+        visible=proj.visible,
+        means2d=proj.means2d,
+        weights=weights,
+        backend=chosen,
+        num_intersections=int(flat.numel()),
+    )
