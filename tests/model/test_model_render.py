@@ -1,0 +1,138 @@
+"""model.render: temporal culling, what reaches the rasterizer, the decoder stage, and PLY round-trip renders."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+import stgc.render
+from stgc.model import MIN_VISIBLE_OPACITY, STGModel, camera_rays
+
+from .helpers import look_at_camera, point_cloud
+
+
+def _scene(variant: str) -> STGModel:
+    """Gaussians spread over time with narrow temporal support, so that at t=0.5 many are culled."""
+    model = STGModel.from_points(point_cloud(60, seed=1), variant=variant, trbf_scale_init=float(np.log(0.15)))
+    generator = torch.Generator().manual_seed(2)
+    with torch.no_grad():
+        model.params["motion"].copy_(torch.randn(60, 9, generator=generator) * 0.2)
+        model.params["omega"].copy_(torch.randn(60, 4, generator=generator) * 0.5)
+        model.params["opacity"].copy_(torch.randn(60, 1, generator=generator) + 1.0)
+        if variant == "full":
+            model.params["features_t"].copy_(torch.randn(60, 3, generator=generator))
+    return model
+
+
+class _RecordingRasterizer:
+    """Stands in for stgc.render.rasterize: records its inputs, returns an opacity-weighted sum of the features
+    as a constant image, so gradients flow like through a real one."""
+
+    def __init__(self):
+        self.calls = []
+
+    def __call__(self, means, quats, scales, opacities, features, K, viewmat, width, height, background=None, **kw):
+        self.calls.append(dict(means=means, quats=quats, scales=scales, opacities=opacities, features=features,
+                               K=K, viewmat=viewmat, width=width, height=height, background=background, **kw))
+        pixel = (opacities[:, None] * features).sum(0)
+        image = pixel.expand(height, width, -1)
+        alpha = opacities.sum().expand(height, width)
+        return SimpleNamespace(image=image, alpha=alpha, depth=torch.zeros(height, width))
+
+
+@pytest.mark.parametrize("variant", ["full", "lite"])
+def test_render_culls_by_temporal_opacity_and_passes_time_evaluated_gaussians(monkeypatch, variant):
+    fake = _RecordingRasterizer()
+    monkeypatch.setattr(stgc.render, "rasterize", fake, raising=False)
+    model = _scene(variant)
+    camera = look_at_camera(time=0.5)
+    out = model.render(camera)
+
+    opacity = model.temporal_opacity(0.5).detach()
+    expected_index = torch.nonzero(opacity >= MIN_VISIBLE_OPACITY)[:, 0]
+    assert 0 < len(expected_index) < model.num_gaussians  # the scene really exercises culling
+    assert torch.equal(out.index, expected_index)
+    call = fake.calls[0]
+    torch.testing.assert_close(call["means"], model.means_at(0.5)[expected_index])
+    torch.testing.assert_close(call["quats"], model.rotations_at(0.5)[expected_index])
+    torch.testing.assert_close(call["scales"], model.scales[expected_index])
+    torch.testing.assert_close(call["opacities"], opacity[expected_index])
+    torch.testing.assert_close(call["features"], model.features_at(0.5)[expected_index])
+    assert call["K"].dtype == torch.float32 and np.allclose(call["K"].numpy(), camera.K)
+    assert np.allclose(call["viewmat"].numpy(), camera.w2c)
+    assert (call["width"], call["height"]) == (camera.width, camera.height)
+
+    if variant == "full":
+        rays = camera_rays(camera.K, camera.w2c, camera.width, camera.height)
+        torch.testing.assert_close(out.rgb, model.decoder(out.features, rays))
+    else:
+        assert out.rgb is out.features
+
+    out.rgb.sum().backward()
+    grad_rows = model.params["opacity"].grad[:, 0] != 0
+    culled = torch.ones(model.num_gaussians, dtype=torch.bool)
+    culled[expected_index] = False
+    assert not grad_rows[culled].any()  # culled Gaussians do not take part
+    assert model.params["trbf_center"].grad[expected_index].abs().sum() > 0  # μ_t learns through the opacity
+
+    # an explicit t overrides camera.time; the camera tensors are built once
+    model.render(camera, t=0.1)
+    assert fake.calls[1]["K"] is call["K"]
+    assert not torch.equal(fake.calls[1]["opacities"], call["opacities"])
+
+
+def test_background_is_given_in_feature_space(monkeypatch):
+    fake = _RecordingRasterizer()
+    monkeypatch.setattr(stgc.render, "rasterize", fake, raising=False)
+    camera = look_at_camera()
+    _scene("full").render(camera, background=[0.2, 0.3, 0.4])
+    assert fake.calls[-1]["background"].tolist() == pytest.approx([0.2, 0.3, 0.4, 0, 0, 0, 0, 0, 0])
+    _scene("lite").render(camera, background=torch.ones(3))
+    assert fake.calls[-1]["background"].tolist() == [1.0, 1.0, 1.0]
+    with pytest.raises(ValueError, match="background"):
+        _scene("lite").render(camera, background=torch.ones(9))
+
+
+def _real_rasterizer():
+    rasterize = getattr(stgc.render, "rasterize", None)
+    if rasterize is None:
+        pytest.skip("stgc.render.rasterize is not available yet")
+    return rasterize
+
+
+@pytest.mark.parametrize("variant, backend", [("full", "numba"), ("lite", "torch")])
+def test_temporal_culling_is_exact_against_rasterizing_everything(variant, backend):
+    rasterize = _real_rasterizer()
+    if backend not in stgc.render.available_backends():
+        pytest.skip(f"render backend {backend} unavailable")
+    model = _scene(variant)
+    camera = look_at_camera(width=32, height=24, time=0.5)
+    with torch.no_grad():
+        out = model.render(camera, backend=backend)
+        everything = rasterize(
+            model.means_at(0.5), model.rotations_at(0.5), model.scales, model.temporal_opacity(0.5),
+            model.features_at(0.5), torch.tensor(camera.K, dtype=torch.float32),
+            torch.tensor(camera.w2c, dtype=torch.float32), camera.width, camera.height, backend=backend,
+        )
+    assert len(out.index) < model.num_gaussians
+    assert out.alpha.max() > 0.3  # something is actually drawn
+    torch.testing.assert_close(out.features, everything.image, rtol=0, atol=1e-6)
+    if variant == "full":
+        rays = camera_rays(camera.K, camera.w2c, camera.width, camera.height)
+        torch.testing.assert_close(out.rgb, model.decoder(everything.image, rays), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("variant", ["full", "lite"])
+def test_a_saved_ply_renders_the_same_image(tmp_path, variant):
+    _real_rasterizer()
+    model = _scene(variant)
+    loaded = STGModel.load(model.save(tmp_path / "point_cloud" / "iteration_1"))
+    camera = look_at_camera(width=32, height=24, time=0.5)
+    with torch.no_grad():
+        before = model.render(camera, backend="torch").rgb
+        after = loaded.render(camera, backend="torch").rgb
+    assert before.std() > 0
+    assert torch.equal(before, after)
