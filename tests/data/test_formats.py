@@ -1,0 +1,218 @@
+"""Layouts built in the test from blender_toys frames are read back with the same cameras and images:
+MPEG immersive video (JSON + YUV 4:2:0), N3DV mp4, STG COLMAP (text and binary), Technicolor."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stgc.data import open_dataset
+from stgc.data.cameras import colmap_to_w2c, rotmat_to_qvec, w2c_to_omaf
+from stgc.data.colmap_io import ColmapCamera, ColmapImage, ColmapModel, read_model, write_model
+from stgc.data.yuv import detect_bit_depth, write_yuv420
+
+VIEWS = ["cam00", "cam03", "cam06", "cam09"]
+FRAMES = [0, 1, 2]
+
+
+@pytest.fixture(scope="module")
+def toys(blender_toys):
+    return open_dataset(blender_toys, duration=len(FRAMES))
+
+
+def _cams(toys):
+    return {(c.name, c.frame): c for c in toys.cameras if c.name in VIEWS}
+
+
+def _same_cameras(a, b, tol=1e-9):
+    assert (a.width, a.height) == (b.width, b.height)
+    assert np.abs(a.K - b.K).max() < tol, (a.K, b.K)
+    assert np.abs(a.w2c - b.w2c).max() < tol, (a.w2c, b.w2c)
+
+
+def _blocky(image: np.ndarray) -> np.ndarray:
+    """Colour constant over 2x2 blocks, so that 4:2:0 chroma subsampling loses nothing."""
+    h, w = image.shape[:2]
+    mean = image.reshape(h // 2, 2, w // 2, 2, 3).mean(axis=(1, 3)).round().astype(np.uint8)
+    return np.repeat(np.repeat(mean, 2, 0), 2, 1)
+
+
+def _write_miv(toys, folder: Path, bit_depth: int, named: bool) -> dict:
+    cams = _cams(toys)
+    entries, originals = [], {}
+    for i, view in enumerate(VIEWS):
+        cam = cams[(view, 0)]
+        position, ypr = w2c_to_omaf(cam.w2c)
+        name = f"v{i:02d}"
+        entries.append({"Name": name, "Position": position.tolist(), "Rotation": ypr.tolist(),
+                        "Projection": "Perspective", "Focal": [cam.K[0, 0], cam.K[1, 1]],
+                        "Principle_point": [cam.K[0, 2], cam.K[1, 2]], "Resolution": [cam.width, cam.height],
+                        "Depth_range": [0.5, 20.0], "BitDepthColor": bit_depth})
+        frames = [_blocky(toys.load_image(cams[(view, f)])) for f in FRAMES]
+        originals[name] = (cam, frames)
+        file_name = f"{name}_texture_160x120_yuv420p10le.yuv" if named else f"{name}.yuv"
+        write_yuv420(folder / file_name, frames, bit_depth=bit_depth)
+    if not named:
+        for e in entries:
+            del e["BitDepthColor"]  # force detection from size and content
+    (folder / "Toys.json").write_text(json.dumps({"Version": "4.0", "Content_name": "Toys", "Fps": 32,
+                                                  "Frames_number": len(FRAMES), "cameras": entries}))
+    return originals
+
+
+@pytest.mark.parametrize("bit_depth,named", [(10, True), (8, False)])
+def test_miv_round_trip(toys, tmp_path, bit_depth, named):
+    originals = _write_miv(toys, tmp_path, bit_depth, named)
+    data = open_dataset(tmp_path, test_cameras=["v01"])
+    assert data.format == "miv" and data.name == "Toys" and data.fps == 32
+    assert data.frames == FRAMES and data.test_views == ["v01"]
+    for name, (cam, frames) in originals.items():
+        for f in FRAMES:
+            got = (data.train_at(f) + data.test_at(f))
+            got = next(c for c in got if c.name == name)
+            _same_cameras(got, cam, tol=1e-6)
+            diff = np.abs(data.load_image(got).astype(int) - frames[f].astype(int)).max()
+            assert diff <= (1 if bit_depth == 10 else 3), (name, f, diff)
+    if not named:
+        assert detect_bit_depth(tmp_path / "v00.yuv", 160, 120) == 8
+
+
+def test_yuv_luma_survives_on_real_edges(toys, tmp_path):
+    """Without 2x2-constant colour, chroma is lossy at colour edges but luma is kept to 10-bit precision."""
+    from stgc.data.yuv import KB, KG, KR, read_frame
+
+    image = toys.load_image(toys.test_at(0)[0])
+    write_yuv420(tmp_path / "v00_texture_160x120_yuv420p10le.yuv", [image])
+    back = read_frame(tmp_path / "v00_texture_160x120_yuv420p10le.yuv", 160, 120, 0, 10)
+    luma = lambda x: x.astype(np.float64) @ np.array([KR, KG, KB])
+    assert np.abs(luma(back) - luma(image)).max() <= 1.0
+
+
+def test_miv_default_test_views_follow_the_paper(toys, tmp_path):
+    originals = _write_miv(toys, tmp_path, 10, True)
+    text = (tmp_path / "Toys.json").read_text()
+    (tmp_path / "Toys.json").write_text(text.replace('"v02"', '"v06"').replace('"v03"', '"v08"'))
+    for old, new in (("v02", "v06"), ("v03", "v08")):
+        (tmp_path / f"{old}_texture_160x120_yuv420p10le.yuv").rename(tmp_path / f"{new}_texture_160x120_yuv420p10le.yuv")
+    assert open_dataset(tmp_path / "Toys.json").test_views == ["v06", "v08"]
+    assert originals
+
+
+def test_n3dv_mp4_round_trip(toys, blender_toys, tmp_path):
+    import imageio.v2 as imageio
+
+    cams = _cams(toys)
+    rows = np.load(blender_toys / "poses_bounds.npy")
+    np.save(tmp_path / "poses_bounds.npy", rows[[int(v[3:]) for v in VIEWS]])
+    originals = {}
+    for view in VIEWS:
+        frames = [toys.load_image(cams[(view, f)]) for f in FRAMES]
+        originals[view] = frames
+        with imageio.get_writer(tmp_path / f"{view}.mp4", fps=30, codec="libx264", macro_block_size=8,
+                                ffmpeg_params=["-crf", "10"], ffmpeg_log_level="error") as writer:
+            for frame in frames:
+                writer.append_data(frame)
+    data = open_dataset(tmp_path)
+    assert data.format == "n3dv" and data.test_views == ["cam00"] and data.fps == pytest.approx(30)
+    assert data.frames == FRAMES
+    for cam in data.cameras:
+        _same_cameras(cam, cams[(cam.name, cam.frame)], tol=1e-5)
+        decoded = data.load_image(cam).astype(float)
+        errors = [np.abs(decoded - o.astype(float)).mean() for o in originals[cam.name]]
+        # Lossy codec (H.264 crf 10, 4:2:0 chroma): mean error under 3/255, and each decoded frame is closest
+        # to its own original (frame order and indexing are right).
+        assert errors[cam.frame] < 3.0, errors
+        assert int(np.argmin(errors)) == cam.frame
+
+
+@pytest.mark.parametrize("ext", ["txt", "bin"])
+def test_stg_colmap_round_trip(toys, tmp_path, ext):
+    cams = _cams(toys)
+    model = ColmapModel()
+    for i, view in enumerate(VIEWS, start=1):
+        cam = cams[(view, 0)]
+        K = cam.K
+        model.cameras[i] = ColmapCamera(i, "PINHOLE", cam.width, cam.height, np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]))
+        model.images[i] = ColmapImage(i, rotmat_to_qvec(cam.w2c[:3, :3]), cam.w2c[:3, 3].copy(), i, f"{view}.png")
+    points = {}
+    for f in FRAMES:
+        folder = tmp_path / f"colmap_{f}"
+        (folder / "images").mkdir(parents=True)
+        for view in VIEWS:
+            shutil.copy(cams[(view, f)].image, folder / "images" / f"{view}.png")
+        xyz, rgb = toys.data_points(f)
+        model.xyz = xyz[:100].astype(np.float64)
+        model.rgb = (rgb[:100] * 255).round().astype(np.uint8)
+        model.error = np.zeros(100)
+        points[f] = (model.xyz.copy(), model.rgb.copy())
+        write_model(folder / "sparse" / "0", model, ext)
+    data = open_dataset(tmp_path)
+    assert data.format == "stg-colmap" and data.test_views == ["cam00"] and data.frames == FRAMES
+    for cam in data.cameras:
+        _same_cameras(cam, cams[(cam.name, cam.frame)], tol=1e-6)  # float32 source rotations re-orthonormalised by the quaternion
+        assert np.array_equal(data.load_image(cam), toys.load_image(cams[(cam.name, cam.frame)]))
+    for f in FRAMES:
+        xyz, rgb = data.data_points(f)
+        assert np.allclose(xyz, points[f][0], atol=1e-6) and np.allclose(rgb * 255, points[f][1])
+    # STG passes one colmap_<t> folder: that sets the default start frame.
+    assert open_dataset(tmp_path / "colmap_1").frames == [1, 2]
+
+
+@pytest.mark.parametrize("ext", ["txt", "bin"])
+def test_colmap_files_agree_with_pycolmap(tmp_path, ext):
+    """Our writer's files read by pycolmap, and pycolmap's files read by our reader, give the same model."""
+    pycolmap = pytest.importorskip("pycolmap")
+    rng = np.random.default_rng(0)
+    model = ColmapModel()
+    model.cameras[1] = ColmapCamera(1, "PINHOLE", 160, 120, np.array([100.0, 101.0, 80.0, 60.0]))
+    model.cameras[2] = ColmapCamera(2, "SIMPLE_PINHOLE", 320, 240, np.array([200.0, 160.0, 120.0]))
+    for image_id, cam_id in ((3, 1), (7, 2)):
+        q = rng.normal(size=4)
+        q = q / np.linalg.norm(q) * np.sign(q[0])
+        model.images[image_id] = ColmapImage(image_id, q, rng.normal(size=3), cam_id, f"im{image_id}.png")
+    model.xyz = rng.normal(size=(20, 3))
+    model.rgb = rng.integers(0, 256, size=(20, 3)).astype(np.uint8)
+    model.error = np.zeros(20)
+    write_model(tmp_path / "ours", model, ext)
+    rec = pycolmap.Reconstruction(str(tmp_path / "ours"))
+    for image_id, im in model.images.items():
+        expected = colmap_to_w2c(im.qvec, im.tvec)[:3]
+        assert np.allclose(rec.images[image_id].cam_from_world().matrix(), expected, atol=1e-12)
+    assert np.allclose(rec.cameras[2].params, model.cameras[2].params)
+    assert np.allclose(sorted(p.xyz[0] for p in rec.points3D.values()), sorted(model.xyz[:, 0]))
+    out = tmp_path / "theirs"
+    out.mkdir()
+    rec.write_binary(str(out)) if ext == "bin" else rec.write_text(str(out))
+    back = read_model(out)
+    for image_id, im in model.images.items():
+        assert back.images[image_id].name == im.name
+        assert np.allclose(back.images[image_id].tvec, im.tvec)
+        assert np.allclose(colmap_to_w2c(back.images[image_id].qvec, back.images[image_id].tvec),
+                           colmap_to_w2c(im.qvec, im.tvec), atol=1e-12)
+    assert back.cameras[2].model == "SIMPLE_PINHOLE" and np.allclose(back.cameras[1].params, model.cameras[1].params)
+    assert np.allclose(np.sort(back.xyz[:, 0]), np.sort(model.xyz[:, 0]))
+
+
+def test_technicolor_round_trip(toys, blender_toys, tmp_path):
+    full = open_dataset(blender_toys, duration=2)
+    lines = ["header f cx cy a b qw qx qy qz tx ty tz"]
+    names = [f"cam{i:02d}" for i in range(11)]
+    for i, view in enumerate(names):
+        cam = next(c for c in full.cameras if c.name == view and c.frame == 0)
+        q = rotmat_to_qvec(cam.w2c[:3, :3])
+        values = [cam.K[0, 0], cam.K[0, 2], cam.K[1, 2], 1.0, 0.0, *q, *cam.w2c[:3, 3]]
+        lines.append(" ".join(repr(float(v)) for v in values))
+        for f in (0, 1):
+            src = next(c for c in full.cameras if c.name == view and c.frame == f).image
+            shutil.copy(src, tmp_path / f"Toys_undist_{f + 151:05d}_{i:02d}.png")
+    (tmp_path / "cameras_parameters.txt").write_text("\n".join(lines) + "\n")
+    data = open_dataset(tmp_path)
+    assert data.format == "technicolor" and data.test_views == ["cam10"] and data.frames == [151, 152]
+    assert data.time_of(152) == pytest.approx(0.5)
+    for cam in data.cameras:
+        ref = next(c for c in full.cameras if c.name == cam.name and c.frame == cam.frame - 151)
+        _same_cameras(cam, ref, tol=1e-6)
