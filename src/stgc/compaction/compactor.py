@@ -1,0 +1,132 @@
+"""The trainer-facing compactor: schedule + loss smoothing + adaptive ratio + matching + pruning."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any, Callable, Protocol
+
+import numpy as np
+import torch
+
+from .config import CompactionConfig, PruningSchedule, resolve_schedule
+from .controller import AdaptiveRatio, LossSmoother
+from .matching import SpacetimeModel, match_spatiotemporal_pairs
+from .pruning import removal_scores, select_removals
+
+
+class PrunableModel(SpacetimeModel, Protocol):
+    def prune(self, keep: torch.Tensor) -> None: ...
+
+
+class STKNNCompactor:
+    """Spatiotemporal KNN compaction, stepped by the trainer once per iteration after the optimizer step.
+
+    >>> compactor = STKNNCompactor(CompactionConfig(case=1), total_iterations=4500)
+    >>> event = compactor.step(iteration, t, model, loss)   # None, or a dict for RUN/compaction.jsonl
+    """
+
+    def __init__(self, config: CompactionConfig, total_iterations: int):
+        config.validate()
+        self.config = config
+        self.total_iterations = int(total_iterations)
+        self.schedule: PruningSchedule = resolve_schedule(config, self.total_iterations)
+        self.smoother = LossSmoother(config.loss_smoothing, self.schedule.interval, config.ema_decay)
+        self.controller = AdaptiveRatio(
+            config.ratio_init, config.ratio_step, config.ratio_min, config.ratio_max, config.loss_tolerance
+        )
+        self.steps_done = 0
+        self.total_removed = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.config.method != "none" and self.schedule.num_steps > 0
+
+    @property
+    def ratio(self) -> float:
+        return self.controller.ratio
+
+    def step(
+        self,
+        iteration: int,
+        t: float,
+        model: PrunableModel,
+        loss: float,
+        importance_fn: Callable[[], torch.Tensor | np.ndarray] | None = None,
+    ) -> dict[str, Any] | None:
+        """Record this iteration's training loss; at a pruning iteration adjust the ratio and prune the model.
+
+        Returns the pruning step's log record, or None on other iterations (and always with method 'none')."""
+        if not self.enabled:
+            return None
+        self.smoother.add(loss)
+        if not self.schedule.is_pruning_iteration(iteration):
+            return None
+
+        smoothed = self.smoother.value()
+        previous = self.controller.previous_loss
+        direction = self.controller.update(smoothed)
+        ratio = self.controller.ratio
+
+        n_before = int(model.params["xyz"].shape[0])
+        started = time.perf_counter()
+        pairs = match_spatiotemporal_pairs(model, t, self.config.rotation_weight, self.config.sample_times)
+        matched_at = time.perf_counter()
+        max_removals = max(0, n_before - self.config.min_gaussians)
+        scores = removal_scores(model.params, self.config.criterion, importance_fn) if len(pairs) else np.zeros(n_before)
+        selection = select_removals(pairs, ratio, scores, max_removals)
+        if selection.remove.size:
+            keep = torch.ones(n_before, dtype=torch.bool)
+            keep[torch.from_numpy(selection.remove)] = False
+            model.prune(keep.to(model.params["xyz"].device))
+        finished = time.perf_counter()
+
+        removed = int(selection.remove.size)
+        self.steps_done += 1
+        self.total_removed += removed
+        return {
+            "iteration": int(iteration),
+            "t": float(t),
+            "step": self.steps_done,
+            "ratio": ratio,
+            "ratio_direction": direction,
+            "smoothed_loss": smoothed,
+            "previous_smoothed_loss": previous,
+            "matched_references": pairs.matched_references,
+            "matched_pairs": len(pairs),
+            "selected_pairs": selection.selected_pairs,
+            "conflicts": selection.conflicts,
+            "removed": removed,
+            "gaussians_before": n_before,
+            "gaussians_left": n_before - removed,
+            "total_removed": self.total_removed,
+            "max_selected_distance": None if np.isnan(selection.max_selected_distance) else selection.max_selected_distance,
+            "criterion": self.config.criterion,
+            "match_seconds": round(matched_at - started, 4),
+            "prune_seconds": round(finished - matched_at, 4),
+        }
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume (plain Python values: JSON- and torch.save-friendly)."""
+        return {
+            "config": dataclasses.asdict(self.config),
+            "total_iterations": self.total_iterations,
+            "steps_done": self.steps_done,
+            "total_removed": self.total_removed,
+            "controller": self.controller.state_dict(),
+            "smoother": self.smoother.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a `state_dict()`; the config and schedule must be the ones this compactor was built with."""
+        saved = state.get("config")
+        if saved is not None and saved != dataclasses.asdict(self.config):
+            raise ValueError("compaction state was saved with a different CompactionConfig; resume with the same config")
+        if int(state.get("total_iterations", self.total_iterations)) != self.total_iterations:
+            raise ValueError(
+                f"compaction state was saved for {state['total_iterations']} total iterations, not {self.total_iterations}"
+            )
+        self.steps_done = int(state["steps_done"])
+        self.total_removed = int(state["total_removed"])
+        self.controller.load_state_dict(state["controller"])
+        self.smoother.load_state_dict(state["smoother"])

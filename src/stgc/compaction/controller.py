@@ -1,0 +1,88 @@
+"""Rendering-loss-adaptive pruning ratio (paper Fig. 5) and the loss smoothing it compares.
+
+Smoothing. The default is the mean of the training losses of the last `interval` iterations, which, because pruning
+steps are exactly `interval` apart, is the mean since the previous pruning step: it measures the loss the model had
+after the last prune, and averaging ~interval losses (each from a random frame and random views) divides the
+sampling noise of single losses by about sqrt(interval). An EMA updated every iteration is offered as an
+alternative; it reacts with a lag of ~1/(1-decay) iterations and mixes in losses from before the last prune.
+
+Control. At each pruning step the smoothed loss is compared with the one of the previous step: higher (by more than
+`tolerance` relative) -> ratio - step, lower -> ratio + step, otherwise unchanged; then clamped to [min, max]. The
+first step has nothing to compare with and prunes at the initial ratio. The ratio is updated *before* the step's
+prune, so each step's ratio reflects the effect of the previous prunes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import Any
+
+
+class LossSmoother:
+    """Smoothed training loss: window mean of the last `window` values, or an EMA. Non-finite losses are ignored."""
+
+    def __init__(self, mode: str, window: int, ema_decay: float = 0.98):
+        if mode not in ("window_mean", "ema"):
+            raise ValueError(f"unknown loss smoothing {mode!r}")
+        self.mode = mode
+        self.window = max(1, int(window))
+        self.ema_decay = float(ema_decay)
+        self._recent: deque[float] = deque(maxlen=self.window)
+        self._ema: float | None = None
+        self.ignored = 0  # non-finite losses seen (a diverging run); they must not steer the ratio
+
+    def add(self, loss: float) -> None:
+        loss = float(loss)
+        if not math.isfinite(loss):
+            self.ignored += 1
+            return
+        self._recent.append(loss)
+        self._ema = loss if self._ema is None else self.ema_decay * self._ema + (1.0 - self.ema_decay) * loss
+
+    def value(self) -> float | None:
+        if self.mode == "ema":
+            return self._ema
+        return sum(self._recent) / len(self._recent) if self._recent else None
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"recent": list(self._recent), "ema": self._ema, "ignored": self.ignored}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._recent = deque((float(x) for x in state["recent"]), maxlen=self.window)
+        self._ema = None if state["ema"] is None else float(state["ema"])
+        self.ignored = int(state.get("ignored", 0))
+
+
+class AdaptiveRatio:
+    """The pruning ratio: down one step when the smoothed loss rose, up one step when it fell, clamped."""
+
+    def __init__(self, initial: float, step: float, minimum: float, maximum: float, tolerance: float = 0.0):
+        if not (minimum <= initial <= maximum):
+            raise ValueError(f"initial ratio {initial} outside [{minimum}, {maximum}]")
+        self.ratio = float(initial)
+        self.step = float(step)
+        self.minimum = float(minimum)
+        self.maximum = float(maximum)
+        self.tolerance = float(tolerance)
+        self.previous_loss: float | None = None
+
+    def update(self, loss: float | None) -> int:
+        """Feed this step's smoothed loss; returns the direction taken (-1, 0, +1). `self.ratio` is the new ratio."""
+        direction = 0
+        if loss is not None and self.previous_loss is not None:
+            change = loss - self.previous_loss
+            if abs(change) > self.tolerance * abs(self.previous_loss):
+                direction = -1 if change > 0 else 1
+        # Round away float drift (0.02 + 0.005 - 0.005 != 0.02) so ratios land on the step grid reproducibly.
+        self.ratio = round(min(self.maximum, max(self.minimum, self.ratio + direction * self.step)), 12)
+        if loss is not None:
+            self.previous_loss = loss
+        return direction
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"ratio": self.ratio, "previous_loss": self.previous_loss}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.ratio = float(state["ratio"])
+        self.previous_loss = None if state["previous_loss"] is None else float(state["previous_loss"])

@@ -1,0 +1,72 @@
+"""Plot of a run's compaction log: pruning ratio, smoothed loss and Gaussian count over iterations."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from stgc.errors import DataError
+from stgc.fileio import atomic_path
+
+LOG_NAME = "compaction.jsonl"
+
+
+def read_compaction_log(run_dir_or_jsonl: str | Path) -> list[dict[str, Any]]:
+    """The pruning-step records of RUN/compaction.jsonl (or of the given .jsonl file), in file order."""
+    path = Path(run_dir_or_jsonl)
+    if path.is_dir():
+        path = path / LOG_NAME
+    if not path.is_file():
+        raise DataError(path, "no compaction log (was the run trained with compaction.method st-knn?)")
+    records = []
+    with open(path, encoding="utf-8") as f:
+        for number, line in enumerate(f, start=1):
+            if not line.strip():
+                continue
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError as err:
+                raise DataError(path, f"line {number} is not JSON ({err.msg})") from None
+            if not isinstance(record, dict) or "iteration" not in record:
+                raise DataError(path, f"line {number} is not a pruning-step record (no 'iteration')")
+            records.append(record)
+    if not records:
+        raise DataError(path, "no pruning steps logged")
+    return records
+
+
+def plot_compaction(run_dir_or_jsonl: str | Path, out_png: str | Path) -> Path:
+    """Write a 3-panel PNG (ratio, smoothed loss, #Gaussians against iteration); returns its path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    records = read_compaction_log(run_dir_or_jsonl)
+    iterations = [r["iteration"] for r in records]
+
+    def series(key: str) -> list[float]:
+        return [float("nan") if r.get(key) is None else float(r[key]) for r in records]
+
+    fig, axes = plt.subplots(3, 1, figsize=(7, 7.5), sharex=True)
+    axes[0].step(iterations, series("ratio"), where="post", color="tab:blue")
+    axes[0].set_ylabel("pruning ratio\n(of matched pairs)")
+    axes[1].plot(iterations, series("smoothed_loss"), marker=".", color="tab:red")
+    axes[1].set_ylabel("smoothed training loss")
+    axes[2].plot(iterations, series("gaussians_left"), marker=".", color="tab:green")
+    axes[2].set_ylabel("Gaussians")
+    axes[2].set_xlabel("iteration")
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+    source = Path(run_dir_or_jsonl)
+    removed = sum(int(r.get("removed", 0)) for r in records)
+    axes[0].set_title(f"ST-KNN compaction: {source.name}, {len(records)} steps, {removed} removed")
+    fig.tight_layout()
+    out_png = Path(out_png)
+    try:
+        with atomic_path(out_png) as tmp:
+            fig.savefig(tmp, format="png", dpi=110)
+    finally:
+        plt.close(fig)
+    return out_png

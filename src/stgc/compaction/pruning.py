@@ -1,0 +1,101 @@
+"""Which Gaussians a pruning step removes (paper section III.2).
+
+The matched pairs are sorted by distance (ascending; equal distances in reference order) and the closest
+`ratio` fraction of them is selected (rounded to the nearest count). From each selected pair one member, the *loser*
+chosen by the criterion, is removed and the other, the *keeper*, must survive:
+
+- `timestamp` (paper): the loser has the later most-visible time mu_t;
+- `scale`: the loser is the smaller one by volume, the product of its three activated scales (compared as the sum
+  of log-scales, which is the same order and cannot overflow);
+- `importance`: the loser has less blending weight accumulated over the training views.
+Equal scores: the larger index loses (the older Gaussian of the array survives).
+
+Pairs can share Gaussians (chains i->j, j->k, or one Gaussian nearest to several). Selected pairs are resolved
+greedily, closest first, so the closest pairs decide:
+- the loser is already removed by a closer pair: nothing more to remove, the keeper is marked kept;
+- the keeper is already removed, or the loser is kept by a closer pair: the pair is skipped (a *conflict*), since
+  removing either member would remove both members of a selected pair, remove a Gaussian a closer pair keeps, or go
+  against the criterion;
+- otherwise the loser is removed and the keeper marked kept.
+So no selected pair loses both members and no kept Gaussian is removed. Mutual pairs were merged into one earlier
+(`matching.match_from_neighbors`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from .matching import PairMatches
+
+_FREE, _KEPT, _REMOVED = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class PruneSelection:
+    remove: np.ndarray  # [R] int64, sorted indices of the Gaussians to remove
+    selected_pairs: int  # pairs taken by the ratio
+    conflicts: int  # selected pairs skipped because of a closer pair
+    max_selected_distance: float  # the distance of the farthest selected pair (nan when none)
+
+
+def removal_scores(
+    params: dict[str, torch.Tensor], criterion: str, importance: Callable[[], torch.Tensor | np.ndarray] | None = None
+) -> np.ndarray:
+    """Per-Gaussian score; in a selected pair the member with the higher score is removed."""
+    n = params["xyz"].shape[0]
+    with torch.no_grad():
+        if criterion == "timestamp":
+            return params["trbf_center"].detach().reshape(n).to("cpu", torch.float64).numpy()
+        if criterion == "scale":
+            log_volume = params["scaling"].detach().to("cpu", torch.float64).sum(dim=1)
+            return (-log_volume).numpy()
+        if criterion == "importance":
+            if importance is None:
+                raise ValueError("compaction criterion 'importance' needs importance_fn (blending weight per Gaussian)")
+            weight = importance()
+            weight = weight.detach().to("cpu", torch.float64).numpy() if torch.is_tensor(weight) else np.asarray(weight, np.float64)
+            weight = weight.reshape(-1)
+            if weight.size != n:
+                raise ValueError(f"importance_fn returned {weight.size} values for {n} Gaussians")
+            return -weight
+    raise ValueError(f"unknown compaction criterion {criterion!r}")
+
+
+def select_removals(
+    pairs: PairMatches, ratio: float, scores: np.ndarray, max_removals: int | None = None
+) -> PruneSelection:
+    """Gaussians to remove for the closest `ratio` fraction of `pairs` (rules in the module docstring)."""
+    n_pairs = len(pairs)
+    n_selected = min(n_pairs, int(np.floor(ratio * n_pairs + 0.5)))
+    if n_selected == 0 or (max_removals is not None and max_removals <= 0):
+        return PruneSelection(np.zeros(0, dtype=np.int64), n_selected, 0, float("nan"))
+    order = np.lexsort((pairs.reference, pairs.distance))[:n_selected]
+    a, b = pairs.reference[order], pairs.partner[order]
+    a_loses = (scores[a] > scores[b]) | ((scores[a] == scores[b]) & (a > b))
+    losers = np.where(a_loses, a, b).tolist()
+    keepers = np.where(a_loses, b, a).tolist()
+
+    state = bytearray(scores.shape[0])
+    removed: list[int] = []
+    conflicts = 0
+    limit = n_selected if max_removals is None else max_removals
+    for loser, keeper in zip(losers, keepers):
+        if state[keeper] == _REMOVED or state[loser] == _KEPT:
+            conflicts += 1
+            continue
+        if state[loser] == _FREE:
+            if len(removed) >= limit:
+                break
+            state[loser] = _REMOVED
+            removed.append(loser)
+        state[keeper] = _KEPT
+    return PruneSelection(
+        remove=np.sort(np.asarray(removed, dtype=np.int64)),
+        selected_pairs=n_selected,
+        conflicts=conflicts,
+        max_selected_distance=float(pairs.distance[order[-1]]),
+    )
