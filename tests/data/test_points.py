@@ -1,0 +1,110 @@
+"""Initial points: shipped data, random, triangulation (pycolmap), and the two preprocessing rules."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stgc.data import DataConfig, PointCloud, initial_points, open_dataset, preprocess_points
+from stgc.errors import DataError
+
+# Points on a line at gaps 1, 2, ..., 7: nearest-neighbour distances are 1, 1, 2, 3, 4, 5, 6, 7.
+LINE = np.array([0, 1, 3, 6, 10, 15, 21, 28], dtype=np.float64)
+
+
+def line_cloud(times: list[float], offset: float = 100.0) -> PointCloud:
+    xyz = np.concatenate([np.stack([LINE + k * offset, np.zeros(8), np.zeros(8)], 1) for k in range(len(times))])
+    return PointCloud(xyz, np.zeros_like(xyz), np.repeat(times, 8))
+
+
+def test_stg_isolated_counts_replicate_the_official_rule():
+    cloud, report = preprocess_points(line_cloud([0.0, 0.5]), "stg-isolated", 0.25)
+    # First frame kept whole; second: num_take = int(0.25 * 8) = 2, threshold = 2nd largest distance = 6,
+    # strictly greater -> only the point at 28 (distance 7): num_take - 1 points (the official off-by-one).
+    assert [r["after"] for r in report.per_frame] == [8, 1]
+    assert np.allclose(cloud.xyz[8:, 0], [128.0])
+    # fraction 0.5: num_take = 4, threshold 4 -> distances 5, 6, 7 kept.
+    assert preprocess_points(line_cloud([0.0, 0.5]), "stg-isolated", 0.5)[1].after == 8 + 3
+    # num_take = 0 (fraction 0.1 of 8): official s[-0] = s[0] = 1 -> drops the two points at distance 1.
+    assert preprocess_points(line_cloud([0.0, 0.5]), "stg-isolated", 0.1)[1].after == 8 + 6
+
+
+def test_closest_pairs_counts_and_never_drops_both_of_a_pair():
+    # Pairs (dedup): {0,1} d1, {1,3} d2, {3,6} d3, {6,10} d4, {10,15} d5, {15,21} d6, {21,28} d7 -> 7 pairs.
+    cloud, report = preprocess_points(line_cloud([0.0, 0.5]), "closest-pairs", 0.25)
+    # int(0.25 * 7) = 1 pair in every frame (the first too): drop the larger index of {0, 1}.
+    assert [r["after"] for r in report.per_frame] == [7, 7]
+    assert 1.0 not in cloud.xyz[:, 0] and 0.0 in cloud.xyz[:, 0]
+    # fraction 0.5: int(3.5) = 3 pairs {0,1}, {1,3}, {3,6}. Dropping 1 protects 0 and 3; {1,3} has lost 1
+    # already; {3,6}: 3 is protected, so 6 goes. Kept: 0, 3, 10, 15, 21, 28.
+    cloud, report = preprocess_points(line_cloud([0.3]), "closest-pairs", 0.5)
+    assert sorted(cloud.xyz[:, 0]) == [0, 3, 10, 15, 21, 28]
+    # Every selected pair keeps a member, also on random clouds with many chains.
+    rng = np.random.default_rng(1)
+    xyz = rng.uniform(size=(500, 3))
+    kept, report = preprocess_points(PointCloud(xyz, xyz, np.zeros(500)), "closest-pairs", 1.0)
+    from stgc.data.preprocess import nearest_neighbours
+
+    _, nn = nearest_neighbours(xyz)
+    survivors = {tuple(p) for p in kept.xyz.round(9)}
+    alive = np.array([tuple(p) in survivors for p in xyz.astype(np.float32).round(9)])
+    assert np.all(alive | alive[nn])  # for every pair (i, NN(i)), at least one member survives
+    assert report.after < 500
+
+
+def test_none_keeps_everything_and_counts_per_frame():
+    cloud, report = preprocess_points(line_cloud([0.0, 0.2, 0.4]), "none")
+    assert len(cloud) == 24 and report.as_dict()["per_frame"][2] == {"time": pytest.approx(0.4), "before": 8, "after": 8}
+
+
+def test_data_points_on_blender_toys(blender_toys):
+    data = open_dataset(blender_toys, start=4, duration=4)
+    cloud = initial_points(data, "auto", frames=[4, 6], max_points_per_frame=500)
+    assert len(cloud) == 1000
+    assert cloud.counts_per_time() == {0.0: 500, 0.5: 500}
+    assert cloud.xyz.dtype == np.float32 and 0 <= cloud.rgb.min() and cloud.rgb.max() <= 1
+    raw = np.load(blender_toys / "points3d" / "0006.npy")
+    # Subsampled points are a subset of the frame's shipped points.
+    assert set(map(tuple, cloud.xyz[cloud.time == 0.5])) <= set(map(tuple, raw[:, :3]))
+    with pytest.raises(DataError, match="not in the segment"):
+        initial_points(data, "data", frames=[20])
+    cfg = DataConfig(init_frames_every=2, max_points_per_frame=100, preprocess="stg-isolated")
+    cloud, report = cfg.initial_points(data)
+    assert [r["before"] for r in report.per_frame] == [100, 100]
+    assert report.per_frame[0]["after"] == 100 and report.per_frame[1]["after"] <= 25
+
+
+def test_random_points_are_seen_by_two_cameras(panoptic_basketball):
+    data = open_dataset(panoptic_basketball, duration=2)
+    with pytest.warns(UserWarning, match="random points"):
+        cloud = initial_points(data, "random", frames=[1], max_points_per_frame=300, seed=5)
+    assert len(cloud) == 300 and np.all(cloud.time == 0.5)
+    seen = np.zeros(300, int)
+    for cam in data.train_at(1):
+        uv, depth = cam.project(cloud.xyz)
+        seen += (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    assert seen.min() >= 2
+    with pytest.raises(DataError, match="no initial points ship"):
+        initial_points(data, "data")
+
+
+@pytest.mark.slow
+def test_triangulation_reprojects_below_one_pixel(panoptic_basketball):
+    """pycolmap SIFT triangulation with the known cameras, ONE frame and 9 of the 27 training views (~3 s)."""
+    pytest.importorskip("pycolmap")
+    from stgc.data.triangulate import triangulate_frame
+
+    data = open_dataset(panoptic_basketball, duration=1)
+    views = data.train_views[::3]
+    result = triangulate_frame(data, 0, views=views)
+    print("triangulation stats:", result.stats)
+    assert result.stats["points"] >= 20
+    assert np.all(result.track_length >= 3)
+    # Independent check: reproject with our own cameras (not COLMAP's) against the SIFT keypoints.
+    assert result.median_error < 1.0
+    assert np.percentile(result.errors, 90) < 2.0
+    cams = {c.name: c for c in data.train_at(0)}
+    in_front = np.zeros(len(result.xyz), int)
+    for view in views:
+        in_front += cams[view].project(result.xyz)[1] > 0
+    assert in_front.min() >= 3
