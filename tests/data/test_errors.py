@@ -1,0 +1,163 @@
+"""Bad input gives a DataError that names the offending file and the problem (never a deep traceback)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from stgc.data import open_dataset
+from stgc.data.cameras import w2c_to_llff
+from stgc.errors import DataError
+
+W, H = 16, 12
+rng = np.random.default_rng(0)
+
+
+def _image(path: Path, size=(W, H)) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(rng.integers(0, 256, size=(size[1], size[0], 3), dtype=np.uint8)).save(path)
+
+
+def _w2c(k: int) -> np.ndarray:
+    w2c = np.eye(4)
+    w2c[:3, 3] = [0.3 * k, 0.0, 4.0]
+    return w2c
+
+
+def make_panoptic(root: Path, frames: int = 2, cams: tuple[int, ...] = (0, 1, 2, 3)) -> Path:
+    K = [[20.0, 0, 7.5], [0, 20.0, 5.5], [0, 0, 1]]
+    for name, ids in (("train_meta.json", cams[1:]), ("test_meta.json", cams[:1])):
+        meta = {"w": W, "h": H, "k": [], "w2c": [], "fn": [], "cam_id": []}
+        for t in range(frames):
+            meta["k"].append([K for _ in ids])
+            meta["w2c"].append([_w2c(c).tolist() for c in ids])
+            meta["fn"].append([f"{c}/{t:06d}.jpg" for c in ids])
+            meta["cam_id"].append(list(ids))
+            for c in ids:
+                _image(root / "ims" / f"{c}/{t:06d}.jpg")
+        (root / name).write_text(json.dumps(meta))
+    return root
+
+
+def make_n3dv(root: Path, cams: int = 3, frames: int = 2) -> Path:
+    root.mkdir(parents=True, exist_ok=True)
+    rows = [np.concatenate([w2c_to_llff(_w2c(k), H, W, 20.0).ravel(), [1.0, 10.0]]) for k in range(cams)]
+    np.save(root / "poses_bounds.npy", np.array(rows))
+    for k in range(cams):
+        for f in range(frames):
+            _image(root / f"cam{k:02d}" / f"{f:04d}.png")
+    return root
+
+
+def expect_error(path_part: str, match: str, fn, *args, **kwargs) -> DataError:
+    with pytest.raises(DataError, match=match) as info:
+        fn(*args, **kwargs)
+    assert path_part in str(info.value.path), (info.value.path, path_part)
+    return info.value
+
+
+def test_fixtures_are_valid(tmp_path):
+    data = open_dataset(make_panoptic(tmp_path / "p"))
+    assert data.test_views == ["0"] and len(data.train_views) == 3 and data.frames == [0, 1]
+    data = open_dataset(make_n3dv(tmp_path / "n"))
+    assert data.test_views == ["cam00"] and data.train_views == ["cam01", "cam02"]
+
+
+def test_missing_image(tmp_path):
+    root = make_panoptic(tmp_path)
+    (root / "ims" / "2" / "000001.jpg").unlink()
+    expect_error("2/000001.jpg", "missing", open_dataset, root)
+    root = make_n3dv(tmp_path / "n")
+    (root / "cam01" / "0001.png").unlink()
+    expect_error("poses_bounds.npy", "cam01 has no image for frame.*1", open_dataset, root)
+
+
+def test_extra_images(tmp_path):
+    root = make_panoptic(tmp_path)
+    _image(root / "ims" / "1" / "000002.jpg")
+    expect_error("1/000002.jpg", "extra image", open_dataset, root)
+    root = make_n3dv(tmp_path / "n")
+    _image(root / "cam03" / "0000.png")
+    _image(root / "cam03" / "0001.png")
+    expect_error("poses_bounds.npy", "images without a camera pose: 3 poses but 4 cameras", open_dataset, root)
+
+
+def test_cameras_without_images(tmp_path):
+    root = make_n3dv(tmp_path, cams=3)
+    for f in (root / "cam02").iterdir():
+        f.unlink()
+    (root / "cam02").rmdir()
+    expect_error("poses_bounds.npy", "cameras without images: 3 poses but 2 cameras", open_dataset, root)
+
+
+def test_unreadable_image(tmp_path):
+    root = make_n3dv(tmp_path)
+    (root / "cam01" / "0001.png").write_bytes(b"this is not a png")
+    expect_error("cam01/0001.png", "unreadable image", open_dataset, root)
+    # Without the up-front header check, the error comes when the image is loaded.
+    data = open_dataset(root, check_images=False)
+    cam = next(c for c in data.train if c.name == "cam01" and c.frame == 1)
+    expect_error("cam01/0001.png", "unreadable image", data.load_image, cam)
+
+
+def test_wrong_image_size(tmp_path):
+    root = make_panoptic(tmp_path)
+    _image(root / "ims" / "3" / "000001.jpg", size=(W + 2, H))
+    error = expect_error("3/000001.jpg", "image is 18x12 but 16x12 was expected", open_dataset, root)
+    assert "train_meta.json" in str(error)
+    data = open_dataset(root, check_images=False)
+    cam = next(c for c in data.train if c.name == "3" and c.frame == 1)
+    expect_error("3/000001.jpg", "18x12", data.load_image, cam)
+
+
+def test_nan_in_poses(tmp_path):
+    root = make_panoptic(tmp_path)
+    meta = json.loads((root / "train_meta.json").read_text())
+    meta["w2c"][1][0][0][3] = float("nan")
+    (root / "train_meta.json").write_text(json.dumps(meta))
+    expect_error("train_meta.json", "camera 1 frame 1: non-finite", open_dataset, root)
+    root = make_n3dv(tmp_path / "n")
+    rows = np.load(root / "poses_bounds.npy")
+    rows[2, 3] = np.nan
+    np.save(root / "poses_bounds.npy", rows)
+    expect_error("poses_bounds.npy", "cam02: non-finite", open_dataset, root)
+
+
+def test_non_rotation_pose(tmp_path):
+    root = make_panoptic(tmp_path)
+    meta = json.loads((root / "train_meta.json").read_text())
+    meta["w2c"][0][1][0][0] = 2.0
+    (root / "train_meta.json").write_text(json.dumps(meta))
+    expect_error("train_meta.json", "not orthonormal", open_dataset, root)
+
+
+def test_unknown_layout_and_bad_files(tmp_path):
+    (tmp_path / "notes.txt").write_text("hello")
+    expect_error(tmp_path.name, "unknown layout", open_dataset, tmp_path)
+    expect_error("nowhere", "does not exist", open_dataset, tmp_path / "nowhere")
+    expect_error(tmp_path.name, "unknown format", open_dataset, tmp_path, format="vrml")
+    root = make_panoptic(tmp_path / "p")
+    (root / "train_meta.json").write_text("{not json")
+    expect_error("train_meta.json", "not valid JSON", open_dataset, root)
+
+
+def test_empty_frame_range_and_unknown_test_camera(tmp_path):
+    root = make_n3dv(tmp_path)
+    expect_error(tmp_path.name, "empty frame range", open_dataset, root, duration=0)
+    expect_error(tmp_path.name, "empty frame range", open_dataset, root, start=5)
+    expect_error(tmp_path.name, r"frames 2-3 of the range \[0, 4\) are not in the data", open_dataset, root,
+                 duration=4)
+    expect_error("poses_bounds.npy", "test camera.*cam07", open_dataset, root, test_cameras=["cam07"])
+
+
+def test_miv_camera_without_yuv(tmp_path):
+    entry = {"Name": "v00", "Position": [0, 0, 0], "Rotation": [0, 0, 0], "Projection": "Perspective",
+             "Focal": [10, 10], "Principle_point": [8, 6], "Resolution": [16, 12]}
+    (tmp_path / "seq.json").write_text(json.dumps({"cameras": [entry]}))
+    expect_error("seq.json", "v00 has no YUV file", open_dataset, tmp_path)
+    (tmp_path / "v00.yuv").write_bytes(b"\0" * 100)
+    expect_error("v00.yuv", "not a whole number", open_dataset, tmp_path)
