@@ -11,14 +11,14 @@ chosen by the criterion, is removed and the other, the *keeper*, must survive:
 Equal scores: the larger index loses (the older Gaussian of the array survives).
 
 Pairs can share Gaussians (chains i->j, j->k, or one Gaussian nearest to several). Selected pairs are resolved
-greedily, closest first, so the closest pairs decide:
-- the loser is already removed by a closer pair: nothing more to remove, the keeper is marked kept;
-- the keeper is already removed, or the loser is kept by a closer pair: the pair is skipped (a *conflict*), since
-  removing either member would remove both members of a selected pair, remove a Gaussian a closer pair keeps, or go
-  against the criterion;
-- otherwise the loser is removed and the keeper marked kept.
-So no selected pair loses both members and no kept Gaussian is removed. Mutual pairs were merged into one earlier
-(`matching.match_from_neighbors`).
+greedily, closest first, so the closest pairs decide. When a loser is removed, *every* selected pair it belongs to
+has lost a member, so all its partners in selected pairs are marked kept. Hence, for each selected pair in order:
+- the loser is still free: it is removed and its selected partners are marked kept;
+- the loser is kept (a partner of a removed Gaussian): the pair is skipped, a *conflict*; removing the keeper
+  instead would go against the criterion (and the keeper may itself be kept);
+- the loser is already removed: nothing to do.
+So no selected pair loses both members and no kept Gaussian is removed; the removed set is exactly reproducible.
+Mutual pairs were merged into one earlier (`matching.match_from_neighbors`).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ _FREE, _KEPT, _REMOVED = 0, 1, 2
 class PruneSelection:
     remove: np.ndarray  # [R] int64, sorted indices of the Gaussians to remove
     selected_pairs: int  # pairs taken by the ratio
-    conflicts: int  # selected pairs skipped because of a closer pair
+    conflicts: int  # selected pairs skipped because their loser is kept by a closer pair
     max_selected_distance: float  # the distance of the farthest selected pair (nan when none)
 
 
@@ -77,22 +77,28 @@ def select_removals(
     a, b = pairs.reference[order], pairs.partner[order]
     a_loses = (scores[a] > scores[b]) | ((scores[a] == scores[b]) & (a > b))
     losers = np.where(a_loses, a, b).tolist()
-    keepers = np.where(a_loses, b, a).tolist()
+
+    # Selected partners of every Gaussian (CSR): a removal marks all of them kept.
+    ends = np.concatenate([a, b])
+    others = np.concatenate([b, a])
+    by_end = np.argsort(ends, kind="stable")
+    partners = others[by_end].tolist()
+    offsets = np.searchsorted(ends[by_end], np.arange(scores.shape[0] + 1)).tolist()
 
     state = bytearray(scores.shape[0])
     removed: list[int] = []
     conflicts = 0
     limit = n_selected if max_removals is None else max_removals
-    for loser, keeper in zip(losers, keepers):
-        if state[keeper] == _REMOVED or state[loser] == _KEPT:
+    for loser in losers:
+        if state[loser] == _KEPT:
             conflicts += 1
-            continue
-        if state[loser] == _FREE:
+        elif state[loser] == _FREE:
             if len(removed) >= limit:
                 break
             state[loser] = _REMOVED
             removed.append(loser)
-        state[keeper] = _KEPT
+            for partner in partners[offsets[loser] : offsets[loser + 1]]:
+                state[partner] = _KEPT
     return PruneSelection(
         remove=np.sort(np.asarray(removed, dtype=np.int64)),
         selected_pairs=n_selected,

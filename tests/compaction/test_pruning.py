@@ -1,0 +1,120 @@
+"""Pruning rules: the criteria remove the right member, pair conflicts resolve deterministically, counts follow ratio."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from stgc.compaction import PairMatches, removal_scores, select_removals
+from stgc.compaction.matching import match_from_neighbors
+
+from .compaction_helpers import static_params
+
+
+def _pairs(ref, part, dist) -> PairMatches:
+    return PairMatches(np.asarray(ref, np.int64), np.asarray(part, np.int64), np.asarray(dist, float), len(ref))
+
+
+def test_timestamp_criterion_removes_the_later_mu_t():
+    params = static_params(np.zeros((4, 3)), trbf_center=np.array([0.7, 0.2, 0.1, 0.9]))
+    scores = removal_scores(params, "timestamp")
+    sel = select_removals(_pairs([0, 2], [1, 3], [0.1, 0.2]), 1.0, scores)
+    assert sel.remove.tolist() == [0, 3]
+
+
+def test_scale_criterion_removes_the_smaller_volume_not_the_smaller_max_axis():
+    params = static_params(np.zeros((2, 3)))
+    # Gaussian 0: a needle (max axis 1.0, volume 1e-4); Gaussian 1: a ball (max axis 0.1, volume 1e-3).
+    params["scaling"] = torch.log(torch.tensor([[1.0, 0.01, 0.01], [0.1, 0.1, 0.1]]))
+    sel = select_removals(_pairs([0], [1], [0.1]), 1.0, removal_scores(params, "scale"))
+    assert sel.remove.tolist() == [0]
+
+
+def test_importance_criterion_removes_the_less_important_and_needs_the_function():
+    params = static_params(np.zeros((4, 3)))
+    weights = torch.tensor([5.0, 1.0, 0.5, 2.0])
+    sel = select_removals(_pairs([0, 2], [1, 3], [0.1, 0.2]), 1.0, removal_scores(params, "importance", lambda: weights))
+    assert sel.remove.tolist() == [1, 2]
+    with pytest.raises(ValueError, match="importance_fn"):
+        removal_scores(params, "importance", None)
+    with pytest.raises(ValueError, match="3 values for 4"):
+        removal_scores(params, "importance", lambda: weights[:3])
+
+
+def test_equal_scores_remove_the_larger_index():
+    sel = select_removals(_pairs([5, 1], [2, 9], [0.1, 0.2]), 1.0, np.zeros(10))
+    assert sel.remove.tolist() == [5, 9]
+
+
+def test_ratio_selects_the_closest_pairs():
+    # 10 disjoint pairs (2k, 2k+1) with shuffled distances; the loser is always the odd member.
+    rng = np.random.default_rng(0)
+    dist = rng.permutation(10) / 10.0
+    pairs = _pairs(np.arange(0, 20, 2), np.arange(1, 20, 2), dist)
+    scores = np.tile([0.0, 1.0], 10)
+    sel = select_removals(pairs, 0.3, scores)
+    closest = np.argsort(dist)[:3]
+    assert sel.selected_pairs == 3
+    assert sel.remove.tolist() == sorted((2 * closest + 1).tolist())
+    assert sel.max_selected_distance == pytest.approx(np.sort(dist)[2])
+    assert select_removals(pairs, 0.04, scores).selected_pairs == 0  # 0.4 pairs rounds to none
+    assert select_removals(pairs, 0.05, scores).selected_pairs == 1  # 0.5 rounds up
+    assert select_removals(pairs, 1.0, scores, max_removals=4).remove.size == 4
+
+
+def test_chain_resolution_closest_pair_decides():
+    # Chain 0-1 (d .1), 1-2 (d .2), 2-3 (d .3), 3-4 (d .4); later timestamps lose: mu_t = index.
+    scores = np.arange(6, dtype=float)
+    sel = select_removals(_pairs([0, 1, 2, 3], [1, 2, 3, 4], [0.1, 0.2, 0.3, 0.4]), 1.0, scores)
+    # 0-1: remove 1; its partners 0 and 2 are kept. 1-2: loser 2 is kept -> conflict (else both would go).
+    # 2-3: remove 3; 2 and 4 kept. 3-4: loser 4 is kept -> conflict.
+    assert sel.remove.tolist() == [1, 3]
+    assert sel.conflicts == 2
+    # A kept Gaussian is never removed by a farther pair.
+    scores = np.array([1.0, 0.0, 2.0])  # 0 loses to 1, 2 loses to 0
+    sel = select_removals(_pairs([1, 0], [0, 2], [0.1, 0.2]), 1.0, scores)
+    assert sel.remove.tolist() == [0]  # (1,0) removes 0, so 1 and 2 are kept; (0,2) cannot remove 2
+    scores = np.array([0.0, 1.0, 2.0])  # 0 wins against both 1 and 2
+    sel = select_removals(_pairs([0, 0], [1, 2], [0.1, 0.2]), 1.0, scores)
+    assert sel.remove.tolist() == [1, 2]  # one Gaussian may absorb several neighbours
+    scores = np.array([1.0, 0.0, 0.5])
+    sel = select_removals(_pairs([1, 0], [2, 2], [0.1, 0.2]), 1.0, scores)
+    # (1,2) d .1: 2 loses (0.5 > 0.0); its partners 1 and 0 are kept. (0,2) d .2: loser 0 is kept -> conflict.
+    assert sel.remove.tolist() == [2] and sel.conflicts == 1
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_random_pair_sets_never_lose_both_members_or_a_keeper(seed):
+    rng = np.random.default_rng(seed)
+    n = 300
+    nn = rng.integers(0, n, size=n)
+    nn[nn == np.arange(n)] = (nn[nn == np.arange(n)] + 1) % n
+    dist = rng.random(n)
+    pairs = match_from_neighbors([nn, nn], [dist, dist])
+    scores = rng.random(n)
+    sel = select_removals(pairs, 0.6, scores)
+    removed = np.zeros(n, bool)
+    removed[sel.remove] = True
+    order = np.lexsort((pairs.reference, pairs.distance))[: sel.selected_pairs]
+    a, b = pairs.reference[order], pairs.partner[order]
+    assert not np.any(removed[a] & removed[b])
+    assert sel.remove.size + sel.conflicts <= sel.selected_pairs
+    assert sel.remove.size > 0 and sel.conflicts > 0
+    # Every removal was the loser of some selected pair whose other member survived.
+    loser = np.where((scores[a] > scores[b]) | ((scores[a] == scores[b]) & (a > b)), a, b)
+    keeper = np.where(loser == a, b, a)
+    for r in sel.remove:
+        assert np.any((loser == r) & ~removed[keeper])
+    # Deterministic.
+    np.testing.assert_array_equal(sel.remove, select_removals(pairs, 0.6, scores).remove)
+
+
+def test_mutual_pairs_are_merged_once():
+    nn = np.array([1, 0, 3, 1])
+    dist = np.array([0.5, 0.5, 0.2, 0.3])
+    pairs = match_from_neighbors([nn, nn], [dist, dist])
+    assert list(zip(pairs.reference.tolist(), pairs.partner.tolist())) == [(0, 1), (2, 3), (3, 1)]
+    # A reference whose searches disagree is dropped.
+    pairs = match_from_neighbors([nn, np.array([1, 0, 0, 1])], [dist, dist])
+    assert list(zip(pairs.reference.tolist(), pairs.partner.tolist())) == [(0, 1), (3, 1)]
