@@ -216,3 +216,33 @@ def test_technicolor_round_trip(toys, blender_toys, tmp_path):
     for cam in data.cameras:
         ref = next(c for c in full.cameras if c.name == cam.name and c.frame == cam.frame - 151)
         _same_cameras(cam, ref, tol=1e-6)
+
+
+def test_dnerf_monocular(tmp_path):
+    """D-NeRF: camera_angle_x only, file_path without extension, RGBA images, one view per image."""
+    from PIL import Image
+
+    from stgc.data.cameras import fov_to_focal, w2c_to_opengl_c2w
+
+    times = {"train": [0.0, 0.5, 1.0], "test": [0.25, 0.75]}
+    for split, ts in times.items():
+        frames = []
+        for i, t in enumerate(ts):
+            rgba = np.zeros((8, 10, 4), np.uint8)
+            rgba[:, :5] = [200, 100, 50, 255]  # left half opaque, right half transparent
+            (tmp_path / split).mkdir(exist_ok=True)
+            Image.fromarray(rgba).save(tmp_path / split / f"r_{i:03d}.png")
+            w2c = np.eye(4)
+            w2c[:3, 3] = [0, 0, 3 + t]
+            frames.append({"file_path": f"./{split}/r_{i:03d}", "time": t,
+                           "transform_matrix": w2c_to_opengl_c2w(w2c).tolist()})
+        (tmp_path / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
+    data = open_dataset(tmp_path, background="white")
+    assert data.format == "blender" and data.frames == [0, 1, 2, 3, 4] and data.duration == 5
+    assert [c.name for c in data.test] == ["test_r_000", "test_r_001"]
+    assert [c.frame for c in data.test] == [1, 3]  # ranks of the distinct times 0, .25, .5, .75, 1
+    cam = data.train_at(2)[0]
+    assert cam.name == "train_r_001" and cam.w2c[2, 3] == pytest.approx(3.5)
+    assert cam.K[0, 0] == pytest.approx(fov_to_focal(0.8, 10)) and cam.K[0, 2] == 5 and cam.K[1, 2] == 4
+    image = data.load_image(cam)
+    assert (image[:, :5] == [200, 100, 50]).all() and (image[:, 5:] == 255).all()

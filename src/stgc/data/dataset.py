@@ -183,7 +183,7 @@ class Dataset:
         if isinstance(source, VideoFrame):
             self._decode_video_segment(camera)
             key = (camera.name, camera.frame, camera.width, camera.height)
-            cached = self._cache._items.get(key)
+            cached = self._cache.peek(key)
             if cached is not None:
                 return cached
         native = self._decode_source(source)

@@ -91,6 +91,11 @@ class ImageCache:
                     self.bytes -= old.nbytes
         return image
 
+    def peek(self, key: object) -> np.ndarray | None:
+        """The cached image for `key`, or None (does not count as a use)."""
+        with self._lock:
+            return self._items.get(key)
+
     def clear(self) -> None:
         with self._lock:
             self._items.clear()

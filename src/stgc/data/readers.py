@@ -263,7 +263,7 @@ def read_blender(path: Path) -> SourceScene:
             name = str(fr["camera"])
             frame = int(fr["frame_index"]) if "frame_index" in fr else all_times.index(time)
         else:
-            name = f"{split}/{Path(fr['file_path']).name}"
+            name = f"{split}_{Path(fr['file_path']).name}"  # D-NeRF reuses r_000 in train and test
             frame = all_times.index(time)
         if not np.all(np.isfinite(c2w)):
             raise DataError(f, f"camera {name} frame {frame}: non-finite (NaN or inf) value in transform_matrix")
