@@ -1,0 +1,169 @@
+"""Adaptive ratio, loss smoothing, schedule and resume of the compactor, with scripted losses."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from stgc.compaction import AdaptiveRatio, CompactionConfig, LossSmoother, STKNNCompactor, resolve_schedule
+
+from .compaction_helpers import make_model, random_params
+
+
+def test_ratio_follows_a_scripted_loss_sequence_and_its_bounds():
+    ctrl = AdaptiveRatio(initial=0.03, step=0.01, minimum=0.01, maximum=0.05)
+    losses = [1.0, 0.9, 0.8, 0.7, 0.6, 0.65, 0.7, 0.8, 0.9, 1.0, 0.95, 0.95]
+    # First step: nothing to compare. Then down-loss -> +step, up-loss -> -step, equal -> 0, clamped to [.01, .05].
+    expected_dir = [0, 1, 1, 1, 1, -1, -1, -1, -1, -1, 1, 0]
+    expected_ratio = [0.03, 0.04, 0.05, 0.05, 0.05, 0.04, 0.03, 0.02, 0.01, 0.01, 0.02, 0.02]
+    got = [(ctrl.update(loss), ctrl.ratio) for loss in losses]
+    assert [d for d, _ in got] == expected_dir
+    assert [r for _, r in got] == expected_ratio  # exact: ratios stay on the step grid
+
+
+def test_tolerance_dead_band():
+    ctrl = AdaptiveRatio(0.02, 0.01, 0.0, 0.1, tolerance=0.05)
+    assert [ctrl.update(x) for x in (1.0, 1.04, 1.2, 1.19, 1.0)] == [0, 0, -1, 0, 1]
+
+
+def test_window_mean_and_ema_smoothing():
+    sm = LossSmoother("window_mean", window=3)
+    for x in (10.0, 1.0, 2.0, float("nan"), 3.0):
+        sm.add(x)
+    assert sm.value() == pytest.approx(2.0) and sm.ignored == 1
+    ema = LossSmoother("ema", window=3, ema_decay=0.5)
+    for x in (4.0, 2.0, 1.0):
+        ema.add(x)
+    assert ema.value() == pytest.approx(0.5 * (0.5 * 4 + 0.5 * 2) + 0.5 * 1)
+
+
+def test_case_windows_scale_with_the_total():
+    assert resolve_schedule(CompactionConfig(case=1), 30_000) == resolve_schedule(CompactionConfig(case=1), 30_000)
+    s = resolve_schedule(CompactionConfig(case=1), 30_000)
+    assert (s.start, s.end, s.interval, s.num_steps) == (6000, 12000, 100, 60)
+    s = resolve_schedule(CompactionConfig(case=4), 4500)
+    assert (s.start, s.end, s.interval, s.num_steps) == (900, 3600, 15, 180)
+    steps = [it for it in range(1, 4501) if s.is_pruning_iteration(it)]
+    assert steps[0] == 900 and steps[-1] == 3585 and len(steps) == 180
+    s = resolve_schedule(CompactionConfig(case=0, window_start=0.5, window_end=0.6, interval=7), 100)
+    assert [it for it in range(101) if s.is_pruning_iteration(it)] == [50, 57]
+    with pytest.raises(ValueError, match="ratio_init"):
+        STKNNCompactor(CompactionConfig(ratio_init=0.5, ratio_max=0.2), 100)
+    with pytest.raises(ValueError, match="case"):
+        STKNNCompactor(CompactionConfig(case=7), 100)
+
+
+def _scripted_run(compactor, model, losses, first=1, events=None):
+    events = [] if events is None else events
+    for it in range(first, len(losses) + 1):
+        event = compactor.step(it, (it % 10) / 10, model, losses[it - 1])
+        if event is not None:
+            events.append(event)
+    return events
+
+
+def _loss_script(total: int, interval: int, window_means: list[float]) -> list[float]:
+    """Losses whose mean over each window between pruning steps is scripted (noise that averages out inside)."""
+    rng = np.random.default_rng(0)
+    losses = []
+    for it in range(1, total + 1):
+        k = min(len(window_means) - 1, max(0, (it - 1) // interval))
+        losses.append(window_means[k])
+    for s in range(0, total - 1, 2):  # +-e on consecutive iterations: window means unchanged (even interval)
+        e = rng.uniform(0, 0.01)
+        losses[s] += e
+        losses[s + 1] -= e
+    return losses
+
+
+def test_compactor_follows_scripted_losses_and_prunes_at_the_schedule():
+    cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.1, ratio_step=0.05,
+                           ratio_min=0.05, ratio_max=0.2, criterion="timestamp")
+    total = 100
+    model = make_model(random_params(600, 3, motion_scale=0.02), scene_extent=1.0)
+    compactor = STKNNCompactor(cfg, total)
+    # Window k covers iterations 10k+1 .. 10k+10; pruning steps at 20, 30, ..., 70 see windows 1..6.
+    window_means = [9.0, 5.0, 4.0, 3.0, 3.5, 4.0, 2.0, 1.0, 1.0, 1.0]
+    events = _scripted_run(compactor, model, _loss_script(total, 10, window_means))
+    assert [e["iteration"] for e in events] == [20, 30, 40, 50, 60, 70]
+    np.testing.assert_allclose([e["smoothed_loss"] for e in events], window_means[1:7], rtol=1e-12)
+    assert [e["ratio_direction"] for e in events] == [0, 1, 1, -1, -1, 1]
+    assert [e["ratio"] for e in events] == [0.1, 0.15, 0.2, 0.15, 0.1, 0.15]
+    n = 600
+    for e in events:
+        assert e["gaussians_before"] == n and e["gaussians_left"] == n - e["removed"]
+        assert e["selected_pairs"] == int(np.floor(e["ratio"] * e["matched_pairs"] + 0.5))
+        assert 0 < e["removed"] <= e["selected_pairs"]
+        n = e["gaussians_left"]
+    assert model.params["xyz"].shape[0] == n
+    assert {"t", "matched_pairs", "smoothed_loss", "removed", "gaussians_left", "ratio"} <= set(events[0])
+    json.dumps(events)  # the trainer appends these to RUN/compaction.jsonl
+
+
+def test_resume_gives_identical_events():
+    cfg = CompactionConfig(case=0, window_start=0.1, window_end=0.9, interval=8, ratio_init=0.1, ratio_step=0.02,
+                           ratio_min=0.02, ratio_max=0.3)
+    total = 80
+    losses = list(np.random.default_rng(1).uniform(0.5, 1.0, total))
+    params = random_params(500, 4, motion_scale=0.02)
+    straight = _scripted_run(STKNNCompactor(cfg, total), make_model(params), losses)
+
+    model = make_model(params)
+    first = STKNNCompactor(cfg, total)
+    events = _scripted_run(first, model, losses[:43])
+    state = json.loads(json.dumps(first.state_dict()))
+    second = STKNNCompactor(cfg, total)
+    second.load_state_dict(state)
+    _scripted_run(second, model, losses, first=44, events=events)
+    strip = lambda es: [{k: v for k, v in e.items() if not k.endswith("seconds")} for e in es]  # noqa: E731
+    assert strip(events) == strip(straight)
+    with pytest.raises(ValueError, match="different CompactionConfig"):
+        STKNNCompactor(CompactionConfig(), total).load_state_dict(state)
+
+
+def test_method_none_and_min_gaussians():
+    model = make_model(random_params(300, 5, motion_scale=0.0))
+    off = STKNNCompactor(CompactionConfig(method="none"), 100)
+    assert all(off.step(it, 0.5, model, 1.0) is None for it in range(1, 101))
+    floor = STKNNCompactor(
+        CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=1.0, ratio_max=1.0,
+                         ratio_min=1.0, min_gaussians=280),
+        20,
+    )
+    events = [floor.step(it, 0.5, model, 1.0) for it in range(20)]
+    assert model.params["xyz"].shape[0] == 280
+    assert sum(e["removed"] for e in events if e) == 20
+
+
+def test_optimizer_state_stays_aligned_after_pruning_with_a_real_adam():
+    params = random_params(400, 6, motion_scale=0.02)
+    model = make_model(params)
+    lrs = {k: 1e-3 for k in params}
+    opt = model.make_optimizer(lrs, 1e-4)
+    # Two Adam steps on a per-row loss so every row gets distinct moments.
+    for _ in range(2):
+        opt.zero_grad()
+        loss = sum((p * torch.arange(1, p.shape[0] + 1, dtype=p.dtype)[:, None]).square().sum() for p in model.params.values())
+        loss.backward()
+        opt.step()
+    tag = model.params["xyz"].detach()[:, 0].clone()  # row identity: positions are distinct
+    before = {k: {s: opt.state[p][s].clone() for s in ("exp_avg", "exp_avg_sq")} for k, p in model.params.items()}
+    values = {k: p.detach().clone() for k, p in model.params.items()}
+    cfg = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5, ratio_min=0.5,
+                           ratio_max=0.5)
+    event = STKNNCompactor(cfg, 10).step(0, 0.4, model, 1.0)
+    assert event["removed"] > 0
+    survivors = torch.nonzero(torch.isin(tag, model.params["xyz"].detach()[:, 0])).squeeze(1)
+    assert survivors.numel() == 400 - event["removed"]
+    for key, param in model.params.items():
+        assert opt.state[param]["exp_avg"].shape == param.shape
+        torch.testing.assert_close(param.detach(), values[key][survivors])
+        for s in ("exp_avg", "exp_avg_sq"):
+            torch.testing.assert_close(opt.state[param][s], before[key][s][survivors])
+        assert any(param is g["params"][0] for g in opt.param_groups)
+    opt.zero_grad()
+    sum(p.square().sum() for p in model.params.values()).backward()
+    opt.step()  # still a consistent optimizer

@@ -1,0 +1,45 @@
+"""plot_compaction: a real PNG from a compaction log; bad logs are reported with the file and the problem."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from stgc.compaction import CompactionConfig, STKNNCompactor, plot_compaction, read_compaction_log
+from stgc.errors import DataError
+
+from .compaction_helpers import make_model, random_params
+
+
+def test_plot_from_a_run_directory(tmp_path):
+    model = make_model(random_params(300, 7, motion_scale=0.02))
+    compactor = STKNNCompactor(CompactionConfig(case=0, window_start=0.1, window_end=0.9, interval=5), 60)
+    losses = np.random.default_rng(0).uniform(0.2, 0.3, 60)
+    with open(tmp_path / "compaction.jsonl", "w") as f:
+        for it in range(1, 61):
+            event = compactor.step(it, 0.5, model, float(losses[it - 1]))
+            if event:
+                f.write(json.dumps(event) + "\n")
+    assert len(read_compaction_log(tmp_path)) == 10
+    out = plot_compaction(tmp_path, tmp_path / "plots" / "compaction.png")
+    with Image.open(out) as img:
+        assert img.format == "PNG" and img.width > 300 and img.height > 300
+        pixels = np.asarray(img.convert("RGB"))
+    assert pixels.std() > 10  # something was drawn
+    assert [p.name for p in (tmp_path / "plots").iterdir()] == ["compaction.png"]  # no temporary left behind
+
+
+def test_bad_logs_raise_data_error(tmp_path):
+    with pytest.raises(DataError, match="no compaction log"):
+        read_compaction_log(tmp_path)
+    log = tmp_path / "compaction.jsonl"
+    log.write_text("")
+    with pytest.raises(DataError, match="no pruning steps"):
+        read_compaction_log(log)
+    log.write_text('{"iteration": 5, "ratio": 0.1}\n{"iteration": 6,\n')
+    with pytest.raises(DataError, match="line 2 is not JSON"):
+        plot_compaction(log, tmp_path / "x.png")
+    assert not (tmp_path / "x.png").exists()
