@@ -31,10 +31,11 @@ class SandwichDecoder(nn.Module):
             raise ValueError(f"decoder activation must be one of {DECODER_ACTIVATIONS}, got {activation!r}")
         self.activation = activation
         in_channels = 3 + 3 + RAY_CHANNELS
-        self.mlp1 = nn.Module()
-        self.mlp2 = nn.Module()
-        self.mlp1.weight = nn.Parameter(_conv_default_init(HIDDEN_CHANNELS, in_channels, generator))
-        self.mlp2.weight = nn.Parameter(_conv_default_init(3, HIDDEN_CHANNELS, generator))
+        self.mlp1 = _Conv1x1Weight(_conv_default_init(HIDDEN_CHANNELS, in_channels, generator))
+        self.mlp2 = _Conv1x1Weight(_conv_default_init(3, HIDDEN_CHANNELS, generator))
+
+    def extra_repr(self) -> str:
+        return f"activation={self.activation!r}"
 
     def forward(self, features: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
         if features.shape[-1] != FEATURE_CHANNELS:
@@ -48,6 +49,18 @@ class SandwichDecoder(nn.Module):
         if self.activation == "clamp":
             return out.clamp(0.0, 1.0)
         return out
+
+
+class _Conv1x1Weight(nn.Module):
+    """Holds one bias-free 1x1-convolution kernel [out, in, 1, 1] (state_dict key `<name>.weight`)."""
+
+    def __init__(self, weight: torch.Tensor):
+        super().__init__()
+        self.weight = nn.Parameter(weight)
+
+    def extra_repr(self) -> str:
+        out_channels, in_channels = self.weight.shape[:2]
+        return f"{in_channels} -> {out_channels}, 1x1, no bias"
 
 
 def _conv_default_init(out_channels: int, in_channels: int, generator: torch.Generator | None) -> torch.Tensor:
