@@ -172,9 +172,10 @@ class Dataset:
 
     # ------------------------------------------------------------------ images
     def load_image(self, camera: Camera) -> np.ndarray:
-        """uint8 [H, W, 3] at the camera's (downscaled) size. Read-only array shared with the cache."""
+        """uint8 [H, W, 3] at the camera's (downscaled) size; a private copy of the cached image, so callers
+        may modify it or hand it to torch.from_numpy."""
         key = (camera.name, camera.frame, camera.width, camera.height)
-        return self._cache.get(key, lambda: self._load_uncached(camera))
+        return self._cache.get(key, lambda: self._load_uncached(camera)).copy()
 
     def _load_uncached(self, camera: Camera) -> np.ndarray:
         source = camera.image
