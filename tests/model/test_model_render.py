@@ -105,24 +105,36 @@ def _real_rasterizer():
 
 @pytest.mark.parametrize("variant, backend", [("full", "numba"), ("lite", "torch")])
 def test_temporal_culling_is_exact_against_rasterizing_everything(variant, backend):
+    """Same image and same parameter gradients as rasterizing all Gaussians (the official way)."""
     rasterize = _real_rasterizer()
     if backend not in stgc.render.available_backends():
         pytest.skip(f"render backend {backend} unavailable")
     model = _scene(variant)
     camera = look_at_camera(width=32, height=24, time=0.5)
-    with torch.no_grad():
-        out = model.render(camera, backend=backend)
-        everything = rasterize(
-            model.means_at(0.5), model.rotations_at(0.5), model.scales, model.temporal_opacity(0.5),
-            model.features_at(0.5), torch.tensor(camera.K, dtype=torch.float32),
-            torch.tensor(camera.w2c, dtype=torch.float32), camera.width, camera.height, backend=backend,
-        )
+    weights = torch.rand(camera.height, camera.width, 3, generator=torch.Generator().manual_seed(0))
+
+    out = model.render(camera, backend=backend)
+    (out.rgb * weights).sum().backward()
+    culled_grads = {key: param.grad.clone() for key, param in model.params.items()}
+    for param in model.params.values():
+        param.grad = None
+    everything = rasterize(
+        model.means_at(0.5), model.rotations_at(0.5), model.scales, model.temporal_opacity(0.5),
+        model.features_at(0.5), torch.tensor(camera.K, dtype=torch.float32),
+        torch.tensor(camera.w2c, dtype=torch.float32), camera.width, camera.height, backend=backend,
+    )
+    rgb = everything.image
+    if variant == "full":
+        rgb = model.decoder(rgb, camera_rays(camera.K, camera.w2c, camera.width, camera.height))
+    (rgb * weights).sum().backward()
+
     assert len(out.index) < model.num_gaussians
     assert out.alpha.max() > 0.3  # something is actually drawn
-    torch.testing.assert_close(out.features, everything.image, rtol=0, atol=1e-6)
-    if variant == "full":
-        rays = camera_rays(camera.K, camera.w2c, camera.width, camera.height)
-        torch.testing.assert_close(out.rgb, model.decoder(everything.image, rays), rtol=0, atol=1e-6)
+    torch.testing.assert_close(out.features, everything.image.detach(), rtol=0, atol=1e-6)
+    torch.testing.assert_close(out.rgb.detach(), rgb.detach(), rtol=0, atol=1e-6)
+    for key, param in model.params.items():
+        assert culled_grads[key].abs().sum() > 0, key
+        torch.testing.assert_close(culled_grads[key], param.grad, rtol=1e-5, atol=1e-7, msg=key)
 
 
 @pytest.mark.parametrize("variant", ["full", "lite"])
