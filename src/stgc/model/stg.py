@@ -475,9 +475,10 @@ class STGModel:
         """Write iteration_dir/point_cloud.ply (+ point_cloud.pt for full) atomically; return the PLY path."""
         iteration_dir = Path(iteration_dir)
         ply_path = iteration_dir / _ply.PLY_NAME
-        _ply.write_ply(ply_path, self.to_ply_arrays(), self.variant)
+        # Decoder first: readers find a checkpoint through its PLY, which then never pairs with a stale decoder.
         if self.decoder is not None:
             _ply.write_decoder(iteration_dir / _ply.DECODER_NAME, self.decoder.state_dict())
+        _ply.write_ply(ply_path, self.to_ply_arrays(), self.variant)
         return ply_path
 
     @classmethod
