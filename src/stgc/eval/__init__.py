@@ -16,6 +16,7 @@ from stgc.eval.accounting import (
     size_of_saved_model,
     training_seconds,
 )
+from stgc.eval.bjontegaard import BDError, bd_psnr, bd_rate
 from stgc.eval.evaluate import (
     EvalResult,
     ViewScore,
@@ -39,6 +40,9 @@ from stgc.eval.metrics import (
 )
 
 __all__ = [
+    "BDError",
+    "bd_psnr",
+    "bd_rate",
     "EvalResult",
     "ModelSize",
     "RenderSpeed",
