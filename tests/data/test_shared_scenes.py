@@ -116,6 +116,7 @@ def test_segments_and_downscale(blender_toys, toys):
     assert np.abs(small - full.reshape(60, 2, 80, 2, 3).mean(axis=(1, 3))).max() <= 0.5 + 1e-9
     nxt = part.segment(15, 5)
     assert nxt.frames == list(range(15, 20)) and nxt.test_views == ["cam00"]
-    assert open_dataset(blender_toys, test_cameras="cam03,cam04").test_views == ["cam03", "cam04"]
+    split = open_dataset(blender_toys, test_cameras="cam03,cam04", duration=5)
+    assert split.test_views == ["cam03", "cam04"] and split.segment(5, 5).test_views == ["cam03", "cam04"]
     assert toys.scene_extent() == pytest.approx(
         1.1 * max(np.linalg.norm(c.center - np.mean([d.center for d in toys.train], axis=0)) for c in toys.train))

@@ -114,7 +114,8 @@ class Dataset:
 
     def __init__(self, scene: SourceScene, *, start: int, duration: int, frames: list[int], train: list[Camera],
                  test: list[Camera], downscale: float, native_size: dict[int, tuple[int, int]], fps: float,
-                 cache_bytes: int, background: tuple[float, float, float]):
+                 cache_bytes: int, background: tuple[float, float, float],
+                 test_cameras: list[str] | None = None):
         self._scene = scene
         self.name = scene.name
         self.format = scene.format
@@ -128,6 +129,7 @@ class Dataset:
         self.downscale = downscale
         self.background = background
         self._native_size = native_size  # id(camera) -> native (width, height) of its image source
+        self._test_cameras = test_cameras  # the split as requested (None = the format's default)
         self._cache = ImageCache(cache_bytes)
         self._train_by_frame = _group(train)
         self._test_by_frame = _group(test)
@@ -167,7 +169,7 @@ class Dataset:
     def segment(self, start: int, duration: int) -> "Dataset":
         """The same source, another frame segment (same downscale, split and cache size)."""
         return assemble(self._scene, downscale=self.downscale, start=start, duration=duration,
-                        test_cameras=self.test_views, fps=self.fps, cache_bytes=self._cache.max_bytes,
+                        test_cameras=self._test_cameras, fps=self.fps, cache_bytes=self._cache.max_bytes,
                         background=self.background)
 
     # ------------------------------------------------------------------ images
@@ -338,7 +340,8 @@ def assemble(scene: SourceScene, *, downscale: float = 1, start: int | None = No
 
     dataset = Dataset(scene, start=start, duration=duration, frames=frames, train=train, test=test,
                       downscale=downscale, native_size=native_size, fps=float(fps or scene.fps or DEFAULT_FPS),
-                      cache_bytes=cache_bytes, background=tuple(background))
+                      cache_bytes=cache_bytes, background=tuple(background),
+                      test_cameras=None if test_cameras is None else list(test_cameras))
     if check_images:
         _check_image_headers(dataset, native_size)
     return dataset
