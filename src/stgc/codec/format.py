@@ -43,7 +43,8 @@ MAGIC = b"STGC\r\n\x1a\n"  # the CR-LF / ^Z / LF tail catches text-mode and line
 VERSION = 1
 QUALITY_LEVELS = (1, 2, 3, 4, 5)
 DEFAULT_QUALITY = 3
-DEFAULT_ZSTD_LEVEL = 12
+DEFAULT_ZSTD_LEVEL = 19  # encoding is offline; 19 is ~3 % smaller than 12 and decodes as fast
+_PROBE_LEVEL = 3  # zstd level used only to rank candidate layouts
 # Decoder-side caps: a file may not make us allocate more than this, whatever it claims.
 MAX_GAUSSIANS = 1 << 27
 MAX_SECTIONS = 64
@@ -66,10 +67,16 @@ _VARIANT_NAMES = {v: k for k, v in _VARIANT_CODES.items()}
 CODEC_STORED = 0
 CODEC_ZSTD = 1
 FLAG_DELTA = 1  # codes are delta + zigzag coded along the stored (Morton) order
+FLAG_INTERLEAVE = 2  # byte planes hold each Gaussian's components side by side (else one component after another)
+KNOWN_FLAGS = FLAG_DELTA | FLAG_INTERLEAVE
 
 # Domains: how a component is mapped before uniform quantization (and back after).
 LINEAR = "linear"
 SIGMOID = "sigmoid"  # opacity: quantized as sigmoid(logit) in [0,1], the quantity the renderer blends with
+# Unit quaternion as "smallest three": the three components other than the largest-magnitude one (which the
+# canonical sign makes positive, so it is sqrt(1 - sum of the others' squares)), then that one's index 0..3.
+# The three lie in [-1/sqrt(2), 1/sqrt(2)], so the same bits buy 1.4x finer steps than quantizing all four.
+QUAT_SMALLEST3 = "quat-smallest3"
 _OPACITY_CLAMP = 1e-7  # logit(1 - 1e-7) = 16.1: beyond that the opacity is 1 in float32 anyway
 
 
@@ -89,23 +96,26 @@ def _names(prefix: str, n: int) -> tuple[str, ...]:
     return tuple(f"{prefix}_{i}" for i in range(n))
 
 
-# Bit depth per quality level 1..5. Positions need the most: the error is a world-space offset that must stay
-# far below a pixel (see docs/stgc-format.md, "Position precision"). trbf_center gets more bits than the other
-# scalars because temporal opacity exp(-((t - mu_t) / s_t)^2) turns a small mu_t shift into a large opacity
-# change for short-lived Gaussians. Rotation is normalised first, so its range is at most [-1, 1].
+# Bit depth per quality level 1..5 (default 3). Positions need the most: the error is a world-space offset that
+# must stay far below a pixel (docs/stgc-format.md, "Position precision"). trbf_center gets more bits than the
+# other scalars because temporal opacity exp(-((t - mu_t) / s_t)^2) turns a small mu_t shift into a large
+# opacity change for short-lived Gaussians. Colour (f_dc) and log-scale get one bit more than the rest: a
+# per-group sensitivity sweep (render PSNR with one group coarsened) found them the most visible after position.
+# Omega and f_t, least visible, get one bit less.
 GROUPS: tuple[AttributeGroup, ...] = (
-    AttributeGroup(b"POSI", ("x", "y", "z"), ("x", "y", "z"), LINEAR, (14, 15, 16, 17, 18)),
-    AttributeGroup(b"TCEN", ("trbf_center",), ("trbf_center",), LINEAR, (8, 10, 11, 12, 14)),
-    AttributeGroup(b"TSCL", ("trbf_scale",), ("trbf_scale",), LINEAR, (6, 7, 8, 9, 11)),
-    AttributeGroup(b"MOTN", _names("motion", 9), _names("motion", 9), LINEAR, (6, 7, 8, 9, 11)),
-    AttributeGroup(b"FDC_", _names("f_dc", 6), _names("f_dc", 3), LINEAR, (6, 7, 8, 9, 10)),
-    AttributeGroup(b"OPAC", ("opacity",), ("opacity",), SIGMOID, (6, 7, 8, 9, 10)),
-    AttributeGroup(b"SCAL", _names("scale", 3), _names("scale", 3), LINEAR, (6, 7, 8, 9, 10)),
-    AttributeGroup(b"ROTN", _names("rot", 4), _names("rot", 4), LINEAR, (6, 7, 8, 9, 11)),
-    AttributeGroup(b"OMGA", _names("omega", 4), _names("omega", 4), LINEAR, (6, 7, 8, 9, 11)),
-    AttributeGroup(b"FT__", _names("f_t", 3), (), LINEAR, (5, 6, 7, 8, 10)),
+    AttributeGroup(b"POSI", ("x", "y", "z"), ("x", "y", "z"), LINEAR, (13, 14, 16, 17, 18)),
+    AttributeGroup(b"TCEN", ("trbf_center",), ("trbf_center",), LINEAR, (8, 9, 9, 11, 13)),
+    AttributeGroup(b"TSCL", ("trbf_scale",), ("trbf_scale",), LINEAR, (5, 6, 6, 7, 9)),
+    AttributeGroup(b"MOTN", _names("motion", 9), _names("motion", 9), LINEAR, (5, 6, 6, 7, 9)),
+    AttributeGroup(b"FDC_", _names("f_dc", 6), _names("f_dc", 3), LINEAR, (5, 6, 7, 8, 10)),
+    AttributeGroup(b"OPAC", ("opacity",), ("opacity",), SIGMOID, (5, 6, 6, 7, 9)),
+    AttributeGroup(b"SCAL", _names("scale", 3), _names("scale", 3), LINEAR, (5, 6, 7, 8, 10)),
+    AttributeGroup(b"ROTN", _names("rot", 4), _names("rot", 4), QUAT_SMALLEST3, (5, 6, 6, 7, 9)),
+    AttributeGroup(b"OMGA", _names("omega", 4), _names("omega", 4), LINEAR, (4, 5, 5, 6, 8)),
+    AttributeGroup(b"FT__", _names("f_t", 3), (), LINEAR, (4, 5, 5, 6, 8)),
 )
 GROUP_BY_TAG = {g.tag: g for g in GROUPS}
+GROUP_TAGS = frozenset(g.tag.decode("latin-1") for g in GROUPS)
 TAG_DECODER = b"DECO"
 TAG_META = b"META"
 _DECO, _META = TAG_DECODER.decode("latin-1"), TAG_META.decode("latin-1")
@@ -178,28 +188,52 @@ class DecodedModel:
 # =====================================================================================================================
 
 def canonical_rotation(rot: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Scale (q, omega) jointly by sign(w)/|q| so that |q| = 1 and w >= 0.
+    """Scale (q, omega) jointly by +-1/|q| so that |q| = 1 and q's largest-magnitude component is positive.
 
     STG rotates by normalize(q + omega * dt), which is invariant to any positive common factor of q and omega, and
     maps to the same rotation under a common sign flip; so this changes nothing rendered while bounding q to
-    [-1, 1] (w to [0, 1]). A zero quaternion (the official error-guided sampling creates them) is left as is."""
+    [-1, 1]. A zero quaternion (the official error-guided sampling creates them) is left as is."""
     norm = np.linalg.norm(rot, axis=1, keepdims=True)
-    sign = np.where(rot[:, :1] < 0, -1.0, 1.0)
+    largest = np.take_along_axis(rot, np.argmax(np.abs(rot), axis=1)[:, None], axis=1)
+    sign = np.where(largest < 0, -1.0, 1.0)
     factor = np.where(norm > 0, sign / np.where(norm > 0, norm, 1.0), 1.0)
     return rot * factor, omega * factor
 
 
 def _to_domain(values: np.ndarray, domain: str) -> np.ndarray:
+    """[C, N] field values -> [C', N] values to quantize."""
     if domain == SIGMOID:
         return 0.5 * (1.0 + np.tanh(0.5 * values))  # overflow-free sigmoid
+    if domain == QUAT_SMALLEST3:
+        largest = np.argmax(np.abs(values), axis=0)
+        keep = np.ones_like(values, dtype=bool)
+        keep[largest, np.arange(values.shape[1])] = False
+        rest = values.T[keep.T].reshape(-1, 3).T  # the other three, in component order
+        return np.concatenate([rest, largest[None].astype(np.float64)], axis=0)
     return values
 
 
 def _from_domain(values: np.ndarray, domain: str) -> np.ndarray:
+    """Inverse of _to_domain (values: dequantized [C', N]; for quaternions the last row holds integer indices)."""
     if domain == SIGMOID:
         p = np.clip(values, _OPACITY_CLAMP, 1.0 - _OPACITY_CLAMP)
         return np.log(p) - np.log1p(-p)
+    if domain == QUAT_SMALLEST3:
+        rest, largest = values[:3], values[3].astype(np.int64)
+        n = values.shape[1]
+        out = np.empty((4, n), dtype=np.float64)
+        out[largest, np.arange(n)] = np.sqrt(np.maximum(0.0, 1.0 - np.sum(rest * rest, axis=0)))
+        keep = np.ones((4, n), dtype=bool)
+        keep[largest, np.arange(n)] = False
+        out.T[keep.T] = rest.T.reshape(-1)
+        return out
     return values
+
+
+def _fit_group(values: np.ndarray, domain: str, bits: int) -> tuple[Quantizer, ...]:
+    if domain == QUAT_SMALLEST3:  # the index row is stored as is
+        return tuple(fit_quantizer(v, bits) for v in values[:3]) + (Quantizer(step=1.0, zero_point=0, bits=bits),)
+    return tuple(fit_quantizer(v, bits) for v in values)
 
 
 def _validated_columns(arrays: Mapping[str, np.ndarray], variant: str) -> tuple[int, dict[str, np.ndarray]]:
@@ -229,17 +263,23 @@ def _compress(raw: bytes, level: int) -> tuple[int, bytes]:
     return CODEC_ZSTD, packed
 
 
-def _encode_codes(codes: np.ndarray, bits: int, level: int, adaptive_delta: bool) -> tuple[int, int, bytes, int]:
-    """codes [C, N] -> (codec, flags, payload, raw_size). With adaptive_delta both forms are tried, smaller kept."""
+def _encode_codes(codes: np.ndarray, bits: int, level: int, adaptive: bool) -> tuple[int, int, bytes, int]:
+    """codes [C, N] -> (codec, flags, payload, raw_size). With `adaptive`, the layouts (plain or delta) x
+    (planar or interleaved) are compared and the smallest kept: which wins depends on the data. The comparison
+    runs at a fast zstd level (the ranking barely depends on it); only the winner is compressed at `level`."""
     candidates = [(0, codes)]
-    if adaptive_delta and codes.shape[1] > 1:
+    if adaptive and codes.shape[1] > 1:
         candidates.append((FLAG_DELTA, delta_encode(codes, bits)))
-    best = None
+    layouts = []
     for flags, stream in candidates:
-        raw = to_byte_planes(stream)
-        codec, payload = _compress(raw, level)
-        if best is None or len(payload) < len(best[2]):
-            best = (codec, flags, payload, len(raw))
+        for interleave in ((False, True) if adaptive and codes.shape[0] > 1 else (False,)):
+            layouts.append((flags | (FLAG_INTERLEAVE if interleave else 0), to_byte_planes(stream, interleave)))
+    if len(layouts) > 1:
+        probe = min(level, _PROBE_LEVEL)
+        layouts = [min(layouts, key=lambda item: len(_compress(item[1], probe)[1]))]
+    flags, raw = layouts[0]
+    codec, payload = _compress(raw, level)
+    best = (codec, flags, payload, len(raw))
     assert best is not None
     return best
 
@@ -271,14 +311,19 @@ def encode(
     *,
     zstd_level: int = DEFAULT_ZSTD_LEVEL,
     position_bits: int | None = None,
+    group_bits: Mapping[str, int] | None = None,
     adaptive_delta: bool = True,
     metadata: Mapping[str, Any] | None = None,
 ) -> bytes:
     """Encode official-layout PLY arrays (float32 [N] per field; normals ignored) into a .stgc bitstream.
 
-    quality 1..5 selects the bit depths (GROUPS); position_bits overrides the position depth. The Gaussians are
+    quality 1..5 selects the bit depths (GROUPS); position_bits overrides the position depth, group_bits any
+    group's ({"MOTN": 10, ...}, keyed by section tag). The Gaussians are
     reordered along the Morton curve of their quantized positions. metadata: small JSON-able dict kept verbatim."""
     n, cols = _validated_columns(arrays, variant)
+    unknown = set(group_bits or ()) - {g.tag.decode("latin-1") for g in GROUPS}
+    if unknown:
+        raise ValueError(f"group_bits names unknown groups {sorted(unknown)}")
     if quality not in QUALITY_LEVELS:
         raise ValueError(f"quality must be one of {QUALITY_LEVELS}, got {quality!r}")
     if variant == "full" and decoder_state is None:
@@ -295,9 +340,11 @@ def encode(
         bits = bits_for(group, quality)
         if group.tag == b"POSI" and position_bits is not None:
             bits = int(position_bits)
+        if group_bits and group.tag.decode("latin-1") in group_bits:
+            bits = int(group_bits[group.tag.decode("latin-1")])
         container_dtype(bits)  # validates the range
-        values = np.stack([_to_domain(cols[f], group.domain) for f in group.fields(variant)], axis=0)
-        quantizers = tuple(fit_quantizer(v, bits) for v in values)
+        values = _to_domain(np.stack([cols[f] for f in group.fields(variant)], axis=0), group.domain)
+        quantizers = _fit_group(values, group.domain, bits)
         codes = np.stack([quantize(v, q) for v, q in zip(values, quantizers)], axis=0)
         if order is None:  # POSI comes first: its codes define the Morton order used by every section
             order = morton_order(codes.T, bits)
@@ -389,6 +436,9 @@ def read_header(data: bytes, source: str | None = None) -> StgcHeader:
 
 
 def _check_section(sec: SectionInfo, source: str | None) -> None:
+    allowed = KNOWN_FLAGS if sec.tag in GROUP_TAGS else 0
+    if sec.flags & ~allowed:
+        raise _fail(f"section {sec.tag!r} has unknown flags {sec.flags:#04x}", source)
     if sec.codec == CODEC_STORED:
         if sec.raw_size != sec.payload_size:
             raise _fail(f"stored section {sec.tag!r}: raw size {sec.raw_size} != payload {sec.payload_size}", source)
@@ -426,11 +476,17 @@ def _unpack_payload(data: bytes, offset: int, sec: SectionInfo, source: str | No
 def _decode_attribute(raw: bytes, sec: SectionInfo, group: AttributeGroup, n: int,
                       source: str | None) -> np.ndarray:
     dtype = container_dtype(sec.bits)
-    codes = from_byte_planes(raw, sec.components, n, dtype)
+    codes = from_byte_planes(raw, sec.components, n, dtype, interleave=bool(sec.flags & FLAG_INTERLEAVE))
     if sec.flags & FLAG_DELTA:
         codes = delta_decode(codes, sec.bits)
     elif n and int(codes.max()) >= (1 << sec.bits):
         raise _fail(f"section {sec.tag!r} holds codes beyond its {sec.bits}-bit range", source)
+    if group.domain == QUAT_SMALLEST3:
+        q = sec.quantizers[3]
+        if (q.step, q.zero_point) != (1.0, 0):
+            raise _fail(f"section {sec.tag!r}: the quaternion index row must have step 1, zero point 0", source)
+        if n and int(codes[3].max()) > 3:
+            raise _fail(f"section {sec.tag!r} holds a quaternion component index above 3", source)
     values = np.stack([dequantize(c, q) for c, q in zip(codes, sec.quantizers)], axis=0)
     return _from_domain(values, group.domain)
 

@@ -123,19 +123,28 @@ def delta_decode(zig: np.ndarray, bits: int) -> np.ndarray:
 
 # --- byte planes ----------------------------------------------------------------------------------------------------
 
-def to_byte_planes(codes: np.ndarray) -> bytes:
-    """[C, N] unsigned ints -> bytes ordered (component, byte significance, gaussian): low bytes of component 0,
-    then its high bytes, ... Separating planes lets zstd see the nearly constant high bytes as long runs."""
+def to_byte_planes(codes: np.ndarray, interleave: bool = False) -> bytes:
+    """[C, N] unsigned ints -> bytes, split into byte planes (all low bytes, then the next byte, ...).
+
+    Planar (default): ordered (component, byte significance, gaussian), i.e. each component's planes in turn.
+    Interleaved: ordered (byte significance, gaussian, component), i.e. a Gaussian's components side by side,
+    which lets zstd match whole rows (a static Gaussian's 9 motion codes are the same row every time).
+    Separating planes lets zstd see the nearly constant high bytes as long runs."""
     c, n = codes.shape
     width = codes.dtype.itemsize
     le = np.ascontiguousarray(codes, dtype=codes.dtype.newbyteorder("<"))
-    planes = le.view(np.uint8).reshape(c, n, width).transpose(0, 2, 1)
+    planes = le.view(np.uint8).reshape(c, n, width)
+    planes = planes.transpose(2, 1, 0) if interleave else planes.transpose(0, 2, 1)
     return np.ascontiguousarray(planes).tobytes()
 
 
-def from_byte_planes(raw: bytes, components: int, n: int, dtype: np.dtype) -> np.ndarray:
+def from_byte_planes(raw: bytes, components: int, n: int, dtype: np.dtype, interleave: bool = False) -> np.ndarray:
     """Inverse of to_byte_planes; len(raw) must equal components * n * itemsize (the caller checks)."""
     width = dtype.itemsize
-    planes = np.frombuffer(raw, dtype=np.uint8).reshape(components, width, n)
-    le = np.ascontiguousarray(planes.transpose(0, 2, 1)).view(dtype.newbyteorder("<"))
+    flat = np.frombuffer(raw, dtype=np.uint8)
+    if interleave:
+        per_gaussian = flat.reshape(width, n, components).transpose(2, 1, 0)
+    else:
+        per_gaussian = flat.reshape(components, width, n).transpose(0, 2, 1)
+    le = np.ascontiguousarray(per_gaussian).view(dtype.newbyteorder("<"))
     return le.reshape(components, n).astype(dtype, copy=False)

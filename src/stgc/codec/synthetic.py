@@ -12,8 +12,11 @@ import numpy as np
 
 from stgc.model.layout import ply_fields
 
+__all__ = ["synthetic_model"]
 
-def _positions(rng: np.random.Generator, n: int, extent: float) -> np.ndarray:
+
+def _positions(rng: np.random.Generator, n: int, extent: float) -> tuple[np.ndarray, np.ndarray]:
+    """Positions [n, 3] and the id of the surface patch / cluster each belongs to (far points: their own ids)."""
     n_far = n // 10
     n_cluster = n * 3 // 10
     n_surface = n - n_far - n_cluster
@@ -26,11 +29,15 @@ def _positions(rng: np.random.Generator, n: int, extent: float) -> np.ndarray:
     surface = (origin[plane] + basis[plane, :, 0] * uv[:, :1] + basis[plane, :, 1] * uv[:, 1:]
                + basis[plane, :, 2] * rng.normal(0, 0.002 * extent, (n_surface, 1)))
     centres = rng.uniform(-extent, extent, (max(1, n_cluster // 300), 3))
-    cluster = centres[rng.integers(0, len(centres), n_cluster)] + rng.normal(0, 0.03 * extent, (n_cluster, 3))
     far = rng.normal(size=(n_far, 3))
     far *= (rng.uniform(3, 8, (n_far, 1)) * extent) / np.linalg.norm(far, axis=1, keepdims=True)
+    cluster_id = rng.integers(0, len(centres), n_cluster)
+    cluster = centres[cluster_id] + rng.normal(0, 0.03 * extent, (n_cluster, 3))
+    far_id = rng.integers(0, max(1, n_far // 100), n_far)
     xyz = np.concatenate([surface, cluster, far])
-    return xyz[rng.permutation(n)]
+    group = np.concatenate([plane, n_planes + cluster_id, n_planes + len(centres) + far_id])
+    shuffle = rng.permutation(n)
+    return xyz[shuffle], group[shuffle]
 
 
 def synthetic_model(n: int, variant: str = "full", seed: int = 0, extent: float = 3.0,
@@ -38,7 +45,8 @@ def synthetic_model(n: int, variant: str = "full", seed: int = 0, extent: float 
     """Official-layout float32 arrays (ply_fields order) and, for "full", a sandwich-decoder state dict."""
     rng = np.random.default_rng(seed)
     cols: dict[str, np.ndarray] = {}
-    xyz = _positions(rng, n, extent)
+    xyz, group = _positions(rng, n, extent)
+    n_groups = int(group.max()) + 1
     for i, axis in enumerate("xyz"):
         cols[axis] = xyz[:, i]
     cols["trbf_center"] = rng.integers(0, frames, n) / frames + rng.normal(0, 0.01, n)
@@ -51,7 +59,8 @@ def synthetic_model(n: int, variant: str = "full", seed: int = 0, extent: float 
             m = np.where(dynamic, rng.laplace(0, scale * extent, n), rng.normal(0, 1e-4, n))
             cols[f"motion_{3 * k + axis}"] = m
     n_dc = 6 if variant == "full" else 3
-    base = rng.beta(2.0, 2.5, (n, 3))
+    # Colour and size are coherent per surface patch / cluster (texture varies around a base), as in real scenes.
+    base = rng.beta(2.0, 2.5, (n_groups, 3))[group] + rng.normal(0, 0.1, (n, 3))
     for c in range(n_dc):
         if c < 3:
             cols[f"f_dc_{c}"] = base[:, c] + rng.normal(0, 0.02, n)
@@ -59,7 +68,8 @@ def synthetic_model(n: int, variant: str = "full", seed: int = 0, extent: float 
             cols[f"f_dc_{c}"] = rng.laplace(0, 0.08, n)
     opaque = rng.random(n) < 0.6
     cols["opacity"] = np.where(opaque, rng.normal(3.0, 1.5, n), rng.normal(-3.0, 1.5, n))
-    log_scale = np.log(0.01 * extent) + rng.normal(0, 0.9, (n, 1)) + rng.normal(0, 0.5, (n, 3))
+    log_scale = (np.log(0.01 * extent) + rng.normal(0, 0.6, (n_groups, 1))[group] + rng.normal(0, 0.6, (n, 1))
+                 + rng.normal(0, 0.5, (n, 3)))
     log_scale = np.clip(log_scale, -10.0, 1.0)
     for i in range(3):
         cols[f"scale_{i}"] = log_scale[:, i]
