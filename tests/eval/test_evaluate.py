@@ -103,7 +103,7 @@ def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
     class FakeModel:
         num_gaussians, variant = 7, "lite"
 
-        def render(self, cam: FakeCam, t: float) -> torch.Tensor:
+        def render(self, cam: FakeCam, t: float, background: torch.Tensor) -> torch.Tensor:
             assert t == cam.time
             return _noisy_render(cam)
 

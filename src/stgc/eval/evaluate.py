@@ -7,7 +7,6 @@ over all test images (cameras x frames); FPS is 1 / mean render time after warm-
 from __future__ import annotations
 
 import csv
-import inspect
 import io
 import json
 import math
@@ -272,21 +271,23 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
 
 
 def _open_run_dataset(run_dir: Path, data_path: str | Path | None) -> Any:
-    from stgc.data import open_dataset  # noqa: PLC0415 - the data package is only needed here
+    """The dataset a run was trained on, opened with the run's own data options (RUN/config.json)."""
+    import dataclasses  # noqa: PLC0415
+
+    from stgc.data import DataConfig  # noqa: PLC0415 - the data package is only needed here
 
     config_path = run_dir / "config.json"
     data_cfg: dict[str, Any] = {}
     if config_path.is_file():
         try:
             data_cfg = dict(json.loads(config_path.read_text()).get("data", {}))
-        except (OSError, json.JSONDecodeError, AttributeError) as exc:
+        except (OSError, json.JSONDecodeError, AttributeError, TypeError) as exc:
             raise FormatError(config_path, f"cannot read run config ({exc})") from None
     path = data_path if data_path is not None else data_cfg.get("path")
     if path is None:
         raise DataError(config_path, "no data path: config.json has no data.path; pass the dataset path")
-    accepted = set(inspect.signature(open_dataset).parameters) - {"path"}
-    kwargs = {k: v for k, v in data_cfg.items() if k in accepted}
-    return open_dataset(path, **kwargs)
+    known = {f.name for f in dataclasses.fields(DataConfig)}
+    return DataConfig(**{k: v for k, v in data_cfg.items() if k in known}).open(path)
 
 
 def dataset_duration_s(dataset: Any) -> float:
@@ -308,7 +309,7 @@ def evaluate_run(
     """Evaluate a run directory (its latest iteration) or a `.stgc` bitstream inside a run directory, write
     the eval files, and return (eval.json record, table text). What `stgc eval RUN` does.
 
-    `load_model` / `open_dataset` default to `stgc.model.STGModel.load` (or `stgc.codec.decode` for .stgc)
+    `load_model` / `open_dataset` default to `stgc.model.STGModel.load` (or `stgc.codec.load_model` for .stgc)
     and the dataset named in RUN/config.json; tests inject fakes."""
     target = Path(target)
     run_dir = target.parent if target.suffix == ".stgc" else target
@@ -323,8 +324,9 @@ def evaluate_run(
         info = bitstream_size(target, model.num_gaussians, model.variant, duration_s)
     else:
         info = size_of_saved_model(target, duration_s)
+    background = torch.zeros(3)  # black, as the trainer renders (STG's default)
     result = evaluate(
-        lambda cam: model.render(cam, t=cam.time), dataset.test, dataset.load_image,
+        lambda cam: model.render(cam, t=float(cam.time), background=background), dataset.test, dataset.load_image,
         lpips_net=lpips_net, warmup=warmup,
     )
     text = write_eval(run_dir, result, info, target=target)
@@ -334,9 +336,9 @@ def evaluate_run(
 
 def _default_model_loader(target: Path) -> Any:
     if target.suffix == ".stgc":
-        from stgc import codec  # noqa: PLC0415
+        from stgc.codec import load_model  # noqa: PLC0415
 
-        return codec.decode(target)  # type: ignore[attr-defined]
+        return load_model(target)
     from stgc.model import STGModel  # noqa: PLC0415
 
     return STGModel.load(target)
