@@ -59,13 +59,13 @@ class CompactionConfig:
         },
     )
     ratio_init: float = field(
-        default=0.02, metadata={"help": "fraction of the matched pairs (closest first) pruned at the first step"}
+        default=0.005, metadata={"help": "fraction of the matched pairs (closest first) pruned at the first step"}
     )
     ratio_step: float = field(
-        default=0.005, metadata={"help": "ratio change per step: minus when the smoothed loss rose, plus when it fell"}
+        default=0.001, metadata={"help": "ratio change per step: minus when the smoothed loss rose, plus when it fell"}
     )
-    ratio_min: float = field(default=0.005, metadata={"help": "lower bound of the pruning ratio"})
-    ratio_max: float = field(default=0.05, metadata={"help": "upper bound of the pruning ratio"})
+    ratio_min: float = field(default=0.001, metadata={"help": "lower bound of the pruning ratio"})
+    ratio_max: float = field(default=0.02, metadata={"help": "upper bound of the pruning ratio"})
     loss_tolerance: float = field(
         default=0.0,
         metadata={"help": "relative loss change treated as 'no change' (ratio kept); 0 = paper (any change counts)"},
