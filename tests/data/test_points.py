@@ -89,14 +89,18 @@ def test_random_points_are_seen_by_two_cameras(panoptic_basketball):
 
 
 @pytest.mark.slow
-def test_triangulation_reprojects_below_one_pixel(panoptic_basketball):
+def test_triangulation_reprojects_below_one_pixel(panoptic_basketball, tmp_path, monkeypatch):
     """pycolmap SIFT triangulation with the known cameras, ONE frame and 9 of the 27 training views (~3 s)."""
     pytest.importorskip("pycolmap")
     from stgc.data.triangulate import triangulate_frame
 
     data = open_dataset(panoptic_basketball, duration=1)
     views = data.train_views[::3]
+    monkeypatch.setenv("STGC_CACHE_DIR", str(tmp_path))
     result = triangulate_frame(data, 0, views=views)
+    again = triangulate_frame(data, 0, views=views)  # from the disk cache, identical
+    assert again.stats.get("cached") and "cached" not in result.stats
+    assert np.array_equal(again.xyz, result.xyz) and np.array_equal(again.errors, result.errors)
     print("triangulation stats:", result.stats)
     assert result.stats["points"] >= 20
     assert np.all(result.track_length >= 3)
@@ -120,7 +124,7 @@ def test_triangulated_points_lie_on_the_true_surfaces(blender_toys):
     from stgc.data.triangulate import triangulate_frame
 
     data = open_dataset(blender_toys, duration=1)
-    result = triangulate_frame(data, 0, views=data.train_views[4:12])
+    result = triangulate_frame(data, 0, views=data.train_views[4:12], use_cache=False)
     truth = data.data_points(0)[0]
     distance, _ = cKDTree(truth).query(result.xyz)
     print("toys triangulation:", result.stats, "nearest true sample median", np.median(distance))

@@ -30,6 +30,9 @@ class DataConfig:
         "help": "upsample images by this factor before SIFT extraction (2 gives ~10x more points on small frames)"})
     min_track_length: int = field(default=3, metadata={
         "help": "keep triangulated points seen by at least this many images (track-2 points are mostly mismatches)"})
+    triangulation_cache: bool = field(default=True, metadata={
+        "help": "keep triangulated points on disk ($STGC_CACHE_DIR or ~/.cache/stgc) keyed by cameras, images and "
+                "options, so a segment is triangulated once"})
     preprocess: str = field(default="none", metadata={
         "help": "point reduction before training: none, stg-isolated (official STG code: keep the ~25 percent most "
                 "isolated points of every frame but the first), closest-pairs (paper: drop one point of each "
@@ -62,7 +65,8 @@ class DataConfig:
         cloud = initial_points(dataset, source=self.init_source, frames=frames,
                                max_points_per_frame=self.max_points_per_frame, seed=self.seed,
                                triangulation_upsample=self.triangulation_upsample,
-                               min_track_length=self.min_track_length)
+                               min_track_length=self.min_track_length,
+                               triangulation_cache=self.triangulation_cache)
         return preprocess_points(cloud, self.preprocess, self.preprocess_fraction)
 
 

@@ -62,7 +62,8 @@ def _subsample(xyz: np.ndarray, rgb: np.ndarray, limit: int | None, rng: np.rand
 
 def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | None = None,
                    max_points_per_frame: int | None = None, seed: int = 0, *, triangulation_upsample: float = 2.0,
-                   min_track_length: int = 3, random_points_per_frame: int = 2000) -> PointCloud:
+                   min_track_length: int = 3, random_points_per_frame: int = 2000,
+                   triangulation_cache: bool = True) -> PointCloud:
     """Initial points of the frames `frames` (absolute indices; default: all frames of the segment).
 
     source: "data" = points shipped with the data (COLMAP points3D, points3d/NNNN.npy, init_pt_cld.npz);
@@ -104,7 +105,7 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
             from .triangulate import triangulate_frame
 
             result = triangulate_frame(dataset, frame, upsample=triangulation_upsample,
-                                       min_track_length=min_track_length)
+                                       min_track_length=min_track_length, use_cache=triangulation_cache)
             log.info("frame %d: %d triangulated points, median reprojection error %.3f px", frame,
                      len(result.xyz), result.median_error)
             xyz, rgb = result.xyz, result.rgb
