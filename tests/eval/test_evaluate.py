@@ -13,7 +13,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from stgc.errors import DataError
-from stgc.eval import eval_paths, evaluate, evaluate_run, model_size, write_eval
+from stgc.eval import eval_paths, evaluate, evaluate_run, format_eval_table, model_size, write_eval
 from stgc.model.layout import ply_fields
 
 
@@ -113,11 +113,14 @@ def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
         def load_image(self, cam: FakeCam) -> np.ndarray:
             return _gt(cam)
 
-    record, text = evaluate_run(tmp_path, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset())
+    record = evaluate_run(tmp_path, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset())
     assert record["num_gaussians"] == 7 and record["duration_s"] == 2.0
     assert record["mbps"] == pytest.approx(7 * 128 * 8 / 1e6 / 2.0)
-    assert (tmp_path / "eval.json").is_file() and "all" in text
+    assert record["fps"] > 0
+    assert (tmp_path / "eval.json").is_file() and "all" in format_eval_table(record)
     stgc = tmp_path / "model_q3.stgc"
     stgc.write_bytes(b"x" * 500)
-    record, _ = evaluate_run(stgc, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset())
-    assert record["size_bytes"] == 500 and (tmp_path / "eval_model_q3.json").is_file()
+    record = evaluate_run(stgc, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset(),
+                          measure_fps=False)
+    assert record["size_bytes"] == 500 and record["fps"] is None
+    assert (tmp_path / "eval_model_q3.json").is_file()

@@ -303,11 +303,13 @@ def evaluate_run(
     *,
     lpips_net: str | None = None,
     warmup: int = 2,
+    measure_fps: bool = True,
     load_model: Callable[[Path], Any] | None = None,
     open_dataset: Callable[[Path], Any] | None = None,
-) -> tuple[dict[str, Any], str]:
+) -> dict[str, Any]:
     """Evaluate a run directory (its latest iteration) or a `.stgc` bitstream inside a run directory, write
-    the eval files, and return (eval.json record, table text). What `stgc eval RUN` does.
+    the eval files (`eval_paths`), and return the eval.json record (`format_eval_table` prints it). What
+    `stgc eval RUN` does. With measure_fps=False the record's fps is null.
 
     `load_model` / `open_dataset` default to `stgc.model.STGModel.load` (or `stgc.codec.load_model` for .stgc)
     and the dataset named in RUN/config.json; tests inject fakes."""
@@ -329,9 +331,11 @@ def evaluate_run(
         lambda cam: model.render(cam, t=float(cam.time), background=background), dataset.test, dataset.load_image,
         lpips_net=lpips_net, warmup=warmup,
     )
-    text = write_eval(run_dir, result, info, target=target)
+    if not measure_fps:
+        result.speed = None
+    write_eval(run_dir, result, info, target=target)
     json_path, _ = eval_paths(target)
-    return json.loads(json_path.read_text()), text
+    return json.loads(json_path.read_text())
 
 
 def _default_model_loader(target: Path) -> Any:
