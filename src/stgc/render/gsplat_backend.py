@@ -30,21 +30,25 @@ def gsplat_alpha_max(module: Any) -> float:
     return 0.999 if version.startswith(("1.4", "1.5")) else 0.99
 
 
-def load_gsplat() -> Any | None:
-    """Import gsplat and make sure its CUDA extension loads (triggers the JIT build once).
+def _import_gsplat() -> Any:
+    """Import gsplat and load its CUDA extension (the JIT build happens on this first import)."""
+    import gsplat
+    from gsplat.cuda._backend import _C
 
-    Returns the module, or None (after one warning per process) when it cannot be used."""
+    if _C is None:
+        raise ImportError("gsplat found no CUDA toolkit to build its extension")
+    return gsplat
+
+
+def load_gsplat() -> Any | None:
+    """gsplat with a working CUDA extension, or None (after one warning per process) when it cannot be used."""
     if _state["module"] is not None:
         return _state["module"]
     if _state["failure"] is not None:
         return None
     try:
-        import gsplat
-        from gsplat.cuda._backend import _C  # the JIT build happens here on first import
-
-        if _C is None:
-            raise ImportError("gsplat found no CUDA toolkit to build its extension")
-    except Exception as exc:  # any build/import failure means "not usable here": fall back, loudly, once
+        module = _import_gsplat()
+    except Exception as exc:  # any import/build failure means "not usable here": fall back, loudly, once
         _state["failure"] = f"{type(exc).__name__}: {exc}"
         warnings.warn(
             f"stgc.render: gsplat's CUDA rasterizer is unavailable ({_state['failure']}); "
@@ -53,8 +57,8 @@ def load_gsplat() -> Any | None:
             stacklevel=3,
         )
         return None
-    _state["module"] = gsplat
-    return gsplat
+    _state["module"] = module
+    return module
 
 
 def gsplat_failure() -> str | None:
