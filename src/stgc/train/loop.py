@@ -100,7 +100,8 @@ class ImageCache:
         key = (camera.name, camera.frame)
         img = self._images.get(key)
         if img is None:
-            img = torch.from_numpy(np.ascontiguousarray(self.dataset.load_image(camera)))
+            # A private copy: the dataset hands out read-only arrays shared with its own cache.
+            img = torch.from_numpy(np.array(self.dataset.load_image(camera), dtype=np.uint8, copy=True))
             self._images[key] = img
         return img.to(torch.float32) / 255.0
 
@@ -183,10 +184,14 @@ class Trainer:
 
     # ------------------------------------------------------------------------------------------- setup
     def _write_config(self) -> None:
-        data = _config_dict(self.data_cfg) or {}
-        path = getattr(self.dataset, "path", None) or data.get("path")
-        if path is not None:
-            data["path"] = str(path)
+        # What reopens the same frames later (video, eval): the dataset's own description, then the data config.
+        ds = self.dataset
+        data = {k: getattr(ds, k) for k in ("format", "downscale", "start", "duration") if hasattr(ds, k)}
+        data.update(_config_dict(self.data_cfg) or {})
+        root = getattr(ds, "root", None) or getattr(ds, "path", None)
+        if "path" not in data and root is not None:
+            data["path"] = str(root)
+        data = _jsonable(data)
         train = _config_dict(self.cfg)
         train["resolved_schedule"] = self.schedule.to_dict()
         write_json(
