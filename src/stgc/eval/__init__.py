@@ -27,6 +27,7 @@ from stgc.eval.evaluate import (
     format_eval_table,
     write_eval,
 )
+from stgc.eval.report import BDResult, Report, ReportRow, make_report, report_from_runs
 from stgc.eval.metrics import (
     LPIPS,
     gaussian_window,
@@ -40,6 +41,11 @@ from stgc.eval.metrics import (
 )
 
 __all__ = [
+    "BDResult",
+    "Report",
+    "ReportRow",
+    "make_report",
+    "report_from_runs",
     "BDError",
     "bd_psnr",
     "bd_rate",

@@ -1,0 +1,340 @@
+"""Paper-style reports: a Markdown table laid out like the paper's Table 2/3, rate-distortion plots
+(Mbps vs PSNR, one curve per method family, PNG + SVG) and Bjøntegaard deltas of every curve against a baseline.
+
+A report is made from rows (`ReportRow`), either given directly (`make_report`) or read from run directories
+(`report_from_runs`: each run's eval.json, config.json and, when the experiment runner wrote it,
+experiment.json naming the run's family and label).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+from stgc.errors import DataError, FormatError
+from stgc.eval.bjontegaard import BDError, Method, bd_psnr, bd_rate
+from stgc.fileio import atomic_open, atomic_path, write_json
+
+SIZE_NOTE = ("Size (MB) is MiB (2^20 bytes) of raw float32 PLY rows (152 B per full Gaussian, normals included) "
+             "plus float32 decoder weights, as in the paper; for .stgc rows it is the file size. "
+             "Mbps = 10^6 bits per second of video the model covers (= MiB x 8.388608 for a 1-s model).")
+
+
+@dataclass
+class ReportRow:
+    """One rate point. `family` groups points into one RD curve; `name` labels the point."""
+
+    name: str
+    family: str
+    mbps: float | None
+    psnr: float | None
+    num_gaussians: int | None = None
+    size_mb: float | None = None
+    ssim: float | None = None
+    lpips: float | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any]) -> "ReportRow":
+        known = {"name", "family", "mbps", "psnr", "num_gaussians", "size_mb", "ssim", "lpips"}
+        if "name" not in m:
+            raise ValueError(f"report row without a name: {dict(m)}")
+        return cls(
+            name=str(m["name"]),
+            family=str(m.get("family") or m["name"]),
+            mbps=_num(m.get("mbps")),
+            psnr=_num(m.get("psnr")),
+            num_gaussians=None if m.get("num_gaussians") in (None, "") else int(float(m["num_gaussians"])),
+            size_mb=_num(m.get("size_mb")),
+            ssim=_num(m.get("ssim")),
+            lpips=_num(m.get("lpips")),
+            extra={k: v for k, v in m.items() if k not in known and k != "extra"} | dict(m.get("extra") or {}),
+        )
+
+
+def _num(x: Any) -> float | None:
+    if x is None or x == "":
+        return None
+    v = float(x)
+    return v if math.isfinite(v) else None
+
+
+@dataclass
+class BDResult:
+    family: str
+    baseline: str
+    points: int
+    bd_rate: float | None
+    bd_psnr: float | None
+    note: str = ""
+
+
+@dataclass
+class Report:
+    out_dir: Path
+    markdown: Path
+    plot_png: Path | None
+    plot_svg: Path | None
+    json_path: Path
+    rows: list[ReportRow]
+    bd: list[BDResult]
+    baseline: str | None
+
+    def __str__(self) -> str:
+        files = [self.markdown, self.plot_png, self.plot_svg, self.json_path]
+        return "report written:\n" + "\n".join(f"  {p}" for p in files if p is not None)
+
+
+def _families(rows: Sequence[ReportRow]) -> dict[str, list[ReportRow]]:
+    out: dict[str, list[ReportRow]] = {}
+    for r in rows:
+        out.setdefault(r.family, []).append(r)
+    return out
+
+
+def _curve(rows: Sequence[ReportRow]) -> list[ReportRow]:
+    return sorted((r for r in rows if r.mbps is not None and r.psnr is not None and r.mbps > 0),
+                  key=lambda r: r.mbps)  # type: ignore[arg-type, return-value]
+
+
+def resolve_baseline(rows: Sequence[ReportRow], baseline: str | None) -> str | None:
+    """The baseline family: `baseline` may name a family or a row (run); default: the first row's family."""
+    if not rows:
+        return None
+    if baseline is None:
+        return rows[0].family
+    families = _families(rows)
+    if baseline in families:
+        return baseline
+    for r in rows:
+        if baseline in (r.name, r.extra.get("run"), Path(str(r.extra.get("run_dir", ""))).name):
+            return r.family
+    raise ValueError(f"baseline {baseline!r} is neither a method family ({', '.join(families)}) nor a run name")
+
+
+def bd_table(rows: Sequence[ReportRow], baseline: str | None, method: Method = "pchip") -> list[BDResult]:
+    """BD-rate / BD-PSNR of every other family's curve against the baseline family's curve."""
+    if baseline is None:
+        return []
+    families = _families(rows)
+    base = _curve(families.get(baseline, []))
+    results = []
+    for name, members in families.items():
+        if name == baseline:
+            continue
+        curve = _curve(members)
+        result = BDResult(name, baseline, len(curve), None, None)
+        try:
+            if len(base) < 2 or len(curve) < 2:
+                raise BDError(f"needs >= 2 rate points per curve (baseline {len(base)}, this {len(curve)})")
+            args = ([r.mbps for r in base], [r.psnr for r in base], [r.mbps for r in curve], [r.psnr for r in curve])
+            try:
+                result.bd_rate = bd_rate(*args, method=method)  # type: ignore[arg-type]
+            except BDError as exc:
+                result.note = f"BD-rate n/a: {exc}"
+            try:
+                result.bd_psnr = bd_psnr(*args, method=method)  # type: ignore[arg-type]
+            except BDError as exc:
+                result.note = (result.note + "; " if result.note else "") + f"BD-PSNR n/a: {exc}"
+        except BDError as exc:
+            result.note = f"n/a: {exc}"
+        results.append(result)
+    return results
+
+
+def _f(x: float | None, fmt: str) -> str:
+    return "–" if x is None else format(x, fmt)
+
+
+def markdown_table(rows: Sequence[ReportRow], baseline: str | None, bd: Sequence[BDResult],
+                   title: str = "Rate-distortion results", bd_method: str = "pchip") -> str:
+    """The paper's Table 2 layout: method | setting | # Gaussians | size (MB) | Mbps | PSNR (dB) | SSIM,
+    then change against the baseline's highest-rate point, then the BD deltas."""
+    show_lpips = any(r.lpips is not None for r in rows)
+    ref = _curve(_families(rows).get(baseline, []))[-1:] if baseline else []
+    ref_row = ref[0] if ref else None
+    head = ["Method", "Setting", "# Gaussians", "Size (MB)", "Mbps", "PSNR (dB)", "SSIM"]
+    head += ["LPIPS"] if show_lpips else []
+    head += ["Rate vs ref.", "ΔPSNR vs ref. (dB)"] if ref_row else []
+    lines = [f"## {title}", "", "| " + " | ".join(head) + " |",
+             "|" + "|".join(["---", "---"] + ["---:"] * (len(head) - 2)) + "|"]
+    for family, members in _families(rows).items():
+        for i, r in enumerate(members):
+            cells = [family if i == 0 else "", r.name,
+                     "–" if r.num_gaussians is None else f"{r.num_gaussians:,}",
+                     _f(r.size_mb, ".2f"), _f(r.mbps, ".2f"), _f(r.psnr, ".2f"), _f(r.ssim, ".4f")]
+            if show_lpips:
+                cells.append(_f(r.lpips, ".4f"))
+            if ref_row:
+                ratio = (r.mbps / ref_row.mbps - 1) * 100 if r.mbps and ref_row.mbps else None
+                cells.append("–" if ratio is None else f"{ratio:+.1f} %")
+                cells.append("–" if r.psnr is None or ref_row.psnr is None else f"{r.psnr - ref_row.psnr:+.2f}")
+            lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", SIZE_NOTE]
+    if ref_row:
+        lines.append(f"Reference for the last two columns: {ref_row.family} / {ref_row.name}.")
+    if bd:
+        lines += ["", f"### Bjøntegaard deltas against {baseline} ({bd_method} interpolation)", "",
+                  "| Curve | Points | BD-rate (%) | BD-PSNR (dB) | Note |", "|---|---:|---:|---:|---|"]
+        for b in bd:
+            lines.append(f"| {b.family} | {b.points} | {_f(b.bd_rate, '+.2f')} | {_f(b.bd_psnr, '+.3f')} | "
+                         f"{b.note} |")
+        lines += ["", "Negative BD-rate: the curve needs less rate than the baseline for the same PSNR; "
+                      "positive BD-PSNR: higher quality at the same rate. Averaged over the overlapping range only."]
+    return "\n".join(lines) + "\n"
+
+
+def rd_plot(rows: Sequence[ReportRow], png: Path, svg: Path | None, title: str, baseline: str | None,
+            metric: str = "psnr") -> None:
+    """Mbps vs PSNR, one line per family (points in rate order), each point labelled by its setting."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    markers = ["o", "s", "^", "D", "v", "P", "X", "*"]
+    fig, ax = plt.subplots(figsize=(6.4, 4.6), dpi=100)
+    for i, (family, members) in enumerate(_families(rows).items()):
+        curve = [r for r in _curve(members) if getattr(r, metric) is not None]
+        if not curve:
+            continue
+        xs, ys = [r.mbps for r in curve], [getattr(r, metric) for r in curve]
+        label = f"{family} (baseline)" if family == baseline else family
+        ax.plot(xs, ys, marker=markers[i % len(markers)], linewidth=1.8 if family == baseline else 1.4,
+                linestyle="--" if family == baseline else "-", markersize=6, label=label)
+        if len(curve) <= 8:
+            for r, x, y in zip(curve, xs, ys):
+                ax.annotate(r.name, (x, y), textcoords="offset points", xytext=(4, -11), fontsize=7, alpha=0.75)
+    ax.set_xlabel("Bitrate (Mbps)")
+    ax.set_ylabel("PSNR (dB)" if metric == "psnr" else metric.upper())
+    ax.set_title(title)
+    ax.margins(x=0.1, y=0.08)
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8, frameon=True)
+    fig.tight_layout()
+    with atomic_path(png) as tmp:
+        fig.savefig(tmp, format="png", dpi=200)
+    if svg is not None:
+        with atomic_path(svg) as tmp:
+            fig.savefig(tmp, format="svg")
+    plt.close(fig)
+
+
+def make_report(
+    rows: Iterable[ReportRow | Mapping[str, Any]],
+    out_dir: str | Path,
+    baseline: str | None = None,
+    *,
+    title: str = "Rate-distortion results",
+    bd_method: Method = "pchip",
+    stem: str = "report",
+    notes: Sequence[str] = (),
+) -> Report:
+    """Write OUT/<stem>.md (table + BD deltas), OUT/<stem>_rd.png/.svg (RD plot) and OUT/<stem>.json."""
+    rows = [r if isinstance(r, ReportRow) else ReportRow.from_mapping(r) for r in rows]
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    base = resolve_baseline(rows, baseline)
+    bd = bd_table(rows, base, bd_method)
+    md = out_dir / f"{stem}.md"
+    with atomic_open(md, "w") as f:
+        f.write(f"# {title}\n\n")
+        f.write(markdown_table(rows, base, bd, "Results", bd_method))
+        for note in notes:
+            f.write(f"\n{note}\n")
+    png = svg = None
+    if any(r.mbps is not None and r.psnr is not None for r in rows):
+        png, svg = out_dir / f"{stem}_rd.png", out_dir / f"{stem}_rd.svg"
+        rd_plot(rows, png, svg, title, base)
+    json_path = out_dir / f"{stem}.json"
+    write_json(json_path, {"title": title, "baseline": base, "bd_method": bd_method, "size_note": SIZE_NOTE,
+                           "rows": [asdict(r) for r in rows], "bd": [asdict(b) for b in bd]})
+    return Report(out_dir, md, png, svg, json_path, rows, bd, base)
+
+
+# ------------------------------------------------------------------------------------------- runs
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise FormatError(path, f"cannot read JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise FormatError(path, "expected a JSON object")
+    return data
+
+
+def describe_run(run_dir: Path, config: Mapping[str, Any] | None) -> tuple[str, str]:
+    """(family, setting) of a run from its config when no experiment.json names them."""
+    cfg = config or {}
+    comp = cfg.get("compaction") or {}
+    data = cfg.get("data") or {}
+    preprocess = data.get("preprocess") or "none"
+    if comp.get("method", "none") not in (None, "none"):
+        family = f"ST-KNN ({comp.get('criterion', 'timestamp')})"
+        setting = f"Case {comp['case']}" if comp.get("case") else run_dir.name
+    else:
+        family = "STG"
+        setting = "no preprocessing" if preprocess == "none" else f"preprocessing {preprocess}"
+    return family, setting
+
+
+def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[ReportRow]:
+    """Report rows of one run: its eval.json, and every eval_<bitstream>.json beside it."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise DataError(run_dir, "not a run directory")
+    config = _read_json(run_dir / "config.json")
+    meta = _read_json(run_dir / "experiment.json") or {}
+    family, setting = describe_run(run_dir, config)
+    family = str(meta.get("family") or family)
+    setting = str(meta.get("label") or meta.get("name") or setting)
+    rows = []
+    record = _read_json(run_dir / "eval.json")
+    if record is not None:
+        rows.append(ReportRow.from_mapping({**_row_fields(record), "name": setting, "family": family,
+                                            "run": run_dir.name, "run_dir": str(run_dir)}))
+    if include_codec:
+        for path in sorted(run_dir.glob("eval_*.json")):
+            rec = _read_json(path)
+            if rec is None:
+                continue
+            point = path.stem.removeprefix("eval_")
+            rows.append(ReportRow.from_mapping({**_row_fields(rec), "name": f"{setting} {point}",
+                                                "family": f"{family} + codec", "run": run_dir.name,
+                                                "run_dir": str(run_dir), "bitstream": f"{point}.stgc"}))
+    return rows
+
+
+def _row_fields(record: Mapping[str, Any]) -> dict[str, Any]:
+    keys = ("num_gaussians", "size_mb", "mbps", "psnr", "ssim", "lpips", "fps", "train_seconds")
+    return {k: record.get(k) for k in keys}
+
+
+def report_from_runs(
+    run_dirs: Sequence[str | Path],
+    out_dir: str | Path,
+    baseline: str | None = None,
+    *,
+    title: str = "Rate-distortion results",
+    include_codec: bool = True,
+    bd_method: Method = "pchip",
+) -> Report:
+    """`make_report` over any set of runs. Runs without eval.json are listed in the report as missing."""
+    rows: list[ReportRow] = []
+    missing = []
+    for d in run_dirs:
+        found = rows_from_run(d, include_codec)
+        if not found:
+            missing.append(str(d))
+        rows.extend(found)
+    if not rows:
+        raise DataError(None, f"none of the runs has an eval.json: {', '.join(map(str, run_dirs))}")
+    notes = ["Runs without evaluation (not in the table): " + ", ".join(missing)] if missing else []
+    return make_report(rows, out_dir, baseline, title=title, bd_method=bd_method, notes=notes)
