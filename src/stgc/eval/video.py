@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import json
+import os
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
@@ -100,28 +101,33 @@ def _even(image: np.ndarray) -> np.ndarray:
 
 
 def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> Path:
-    """MP4 (H.264, yuv420p, quality 8) or GIF by the suffix of `path`; atomic."""
+    """MP4 (H.264, yuv420p) or GIF by the suffix of `path`; atomic."""
     import imageio.v2 as imageio
 
     path = Path(path)
     suffix = path.suffix.lower()
+    if suffix not in (".gif", ".mp4", ".mov", ".mkv"):
+        raise ValueError(f"{path}: unsupported video type {suffix!r} (use .mp4 or .gif)")
     with atomic_path(path) as tmp:
-        if suffix == ".gif":
-            imageio.mimsave(tmp, [np.asarray(f) for f in frames], format="GIF", duration=1000.0 / fps, loop=0)
-        elif suffix in (".mp4", ".mov", ".mkv"):
-            # The temporary name ends in .tmp, so the container is named explicitly; macro_block_size=2 keeps
-            # imageio from rescaling small frames to multiples of 16.
-            writer = imageio.get_writer(
-                tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=8,
-                pixelformat="yuv420p", macro_block_size=2, output_params=["-f", suffix[1:]],
-            )
-            try:
-                for f in frames:
-                    writer.append_data(_even(np.asarray(f)))
-            finally:
-                writer.close()
-        else:
-            raise ValueError(f"{path}: unsupported video type {suffix!r} (use .mp4 or .gif)")
+        # imageio picks the container from the file name, so write under the real suffix, then move the finished
+        # file onto the atomic temporary.
+        named = tmp.with_name(tmp.name + suffix)
+        try:
+            if suffix == ".gif":
+                imageio.mimsave(named, [np.asarray(f) for f in frames], duration=1000.0 / fps, loop=0)
+            else:
+                # macro_block_size=2 keeps imageio from rescaling small frames to multiples of 16.
+                writer = imageio.get_writer(named, fps=fps, codec="libx264", quality=8,
+                                            pixelformat="yuv420p", macro_block_size=2)
+                try:
+                    for f in frames:
+                        writer.append_data(_even(np.asarray(f)))
+                finally:
+                    writer.close()
+            os.replace(named, tmp)
+        finally:
+            if named.exists():
+                named.unlink()
     return path
 
 
