@@ -134,6 +134,9 @@ def composite_torch(
         color = color.index_copy(0, tiles_cat, torch.cat(outs))
         final_T = final_T.index_copy(0, tiles_cat, torch.cat(trans))
         depth = depth.index_copy(0, tiles_cat, torch.cat(deps))
+    elif torch.is_grad_enabled():
+        # Nothing was composited: keep the inputs on the graph so their gradients are zeros (as with numba), not None.
+        color = color + 0.0 * (means2d.sum() + conics.sum() + opacities.sum() + colors.sum())
 
     def to_image(x: Tensor) -> Tensor:
         rest = x.shape[2:]

@@ -1,0 +1,179 @@
+"""Backend selection, the gsplat path's wiring and fallback (on CPU), and the auxiliary outputs."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import types
+import warnings
+from pathlib import Path
+
+import pytest
+import torch
+
+import stgc.render.api as api
+from stgc.render import available_backends, rasterize, select_backend
+from stgc.render import gsplat_backend
+
+from .scenes import make_scene
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_selection_on_a_cpu_machine():
+    assert available_backends()[:2] == ["numba", "torch"]
+    assert select_backend("auto", torch.device("cpu")) == "numba"
+    assert select_backend("torch", torch.device("cpu")) == "torch"
+    assert select_backend("auto", torch.device("meta")) == "torch"
+    with pytest.raises(ValueError, match="needs CUDA tensors"):
+        select_backend("gsplat", torch.device("cpu"))
+    with pytest.raises(ValueError, match="needs CPU tensors"):
+        select_backend("numba", torch.device("meta"))
+
+
+def test_auto_on_cpu_never_imports_gsplat():
+    # A fresh interpreter: the test process itself has gsplat loaded for the oracle.
+    code = (
+        "import sys, torch\n"
+        "from stgc.render import rasterize, available_backends\n"
+        "available_backends()\n"
+        "out = rasterize(torch.zeros(1, 3) + torch.tensor([0., 0., 3.]), torch.tensor([[1., 0, 0, 0]]),\n"
+        "                torch.full((1, 3), 0.1), torch.tensor([0.5]), torch.ones(1, 3), torch.eye(3) * 8, torch.eye(4),\n"
+        "                4, 4)\n"
+        "assert out.backend == 'numba', out.backend\n"
+        "assert 'gsplat' not in sys.modules\n"
+    )
+    env = dict(os.environ, PYTHONPATH=str(REPO / "src"))
+    result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+
+
+def _fake_gsplat():
+    """A stand-in for gsplat's CUDA entry points, built from gsplat's own torch reference (with the test shim), so
+    that the wiring of our gsplat path (argument order, batch dims, means2d gradient) runs on CPU."""
+    from gsplat.cuda import _torch_impl as impl
+
+    from .gsplat_oracle import _fake_nerfacc, _indices_in_range
+
+    def fully_fused_projection(means, covars, quats, scales, viewmats, Ks, width, height, eps2d=0.3,
+                               near_plane=0.01, opacities=None):  # fmt: skip
+        assert covars is None and opacities is not None and opacities.shape == means.shape[:1]
+        covars, _ = impl._quat_scale_to_covar_preci(quats, scales, True, False)
+        return impl._fully_fused_projection(means, covars, viewmats, Ks, width, height, eps2d, near_plane)
+
+    def rasterize_to_pixels(means2d, conics, colors, opacities, width, height, tile_size, offsets, flat,
+                            backgrounds=None):  # fmt: skip
+        from unittest import mock
+
+        import gsplat.cuda._wrapper as wrapper
+
+        with mock.patch.dict(sys.modules, {"nerfacc": _fake_nerfacc}), mock.patch.object(
+            wrapper, "rasterize_to_indices_in_range", _indices_in_range
+        ):
+            return impl._rasterize_to_pixels(means2d, conics, colors, opacities, width, height, tile_size, offsets,
+                                             flat, backgrounds=backgrounds)  # fmt: skip
+
+    return types.SimpleNamespace(
+        __version__="1.5.3",
+        fully_fused_projection=fully_fused_projection,
+        isect_tiles=impl._isect_tiles,
+        isect_offset_encode=impl._isect_offset_encode,
+        rasterize_to_pixels=rasterize_to_pixels,
+    )
+
+
+@pytest.fixture
+def fresh_gsplat_state(monkeypatch):
+    monkeypatch.setattr(gsplat_backend, "_state", {"module": None, "failure": None, "alpha_warned": False})
+    monkeypatch.setattr(api, "select_backend", lambda requested, device: "gsplat")
+
+
+def test_gsplat_path_wiring_matches_numba(fresh_gsplat_state, monkeypatch):
+    monkeypatch.setattr(gsplat_backend, "_import_gsplat", _fake_gsplat)
+    scene = make_scene(400, 48, 32, channels=9, principal_offset=(2.5, -1.5), seed=4)
+    bg = torch.linspace(0.2, 0.8, 9)
+    outs = {}
+    for backend in ("gsplat", "numba"):
+        s = scene.leaves()
+        if backend == "numba":
+            monkeypatch.setattr(api, "select_backend", lambda requested, device: "numba")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # alpha_max matches gsplat 1.5.3's compiled-in 0.999: no warning
+            out = rasterize(*s.args(), bg, backend=backend, alpha_max=0.999, return_depth=True, return_weights=True)
+        assert out.backend == backend
+        out.image.sum().backward()
+        outs[backend] = (out, s.means.grad, s.features.grad)
+    (a, ma, fa), (b, mb, fb) = outs["gsplat"], outs["numba"]
+    assert (a.image - b.image).abs().max() < 1e-3 and (a.image - b.image).abs().mean() < 1e-5
+    assert (a.depth - b.depth).abs().max() < 1e-4
+    assert (a.weights - b.weights).norm() < 1e-4 * b.weights.norm()
+    assert a.means2d.grad is not None and (a.means2d.grad - b.means2d.grad).norm() < 1e-4 * b.means2d.grad.norm()
+    assert (ma - mb).norm() < 1e-4 * mb.norm() and (fa - fb).norm() < 1e-4 * fb.norm()
+
+
+def test_gsplat_build_failure_falls_back_to_torch_with_one_warning(fresh_gsplat_state, monkeypatch):
+    def broken():
+        raise ImportError("gsplat_cuda.so: cannot open shared object file")
+
+    monkeypatch.setattr(gsplat_backend, "_import_gsplat", broken)
+    scene = make_scene(30, 16, 16)
+    with pytest.warns(RuntimeWarning, match="gsplat's CUDA rasterizer is unavailable.*cannot open shared object"):
+        out = rasterize(*scene.args(), backend="gsplat")
+    assert out.backend == "torch"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert rasterize(*scene.args(), backend="gsplat").backend == "torch"
+    monkeypatch.setattr(api, "select_backend", lambda requested, device: "torch")
+    assert torch.equal(out.image, rasterize(*scene.args(), backend="torch").image)
+
+
+def test_gsplat_warns_once_about_its_fixed_alpha_clamp(fresh_gsplat_state, monkeypatch):
+    monkeypatch.setattr(gsplat_backend, "_import_gsplat", _fake_gsplat)
+    scene = make_scene(30, 16, 16)
+    with pytest.warns(RuntimeWarning, match="clamps alpha at 0.999"):
+        rasterize(*scene.args(), alpha_max=0.99)
+
+
+def _layers(opacities, depths, backend):
+    """Huge fronto-parallel layers (uniform over the image) at the given depths."""
+    n = len(opacities)
+    means = torch.tensor([[0.0, 0.0, d] for d in depths])
+    out = rasterize(means, torch.tensor([[1.0, 0, 0, 0]] * n), torch.full((n, 3), 1e3), torch.tensor(opacities),
+                    torch.ones(n, 1), torch.tensor([[10.0, 0, 4], [0, 10, 3], [0, 0, 1]]), torch.eye(4), 8, 6,
+                    backend=backend, return_depth=True, return_weights=True)  # fmt: skip
+    return out
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_median_depth_and_weights_on_layers(backend):
+    # T: 1 -> 0.7 -> 0.42 -> 0.21: crosses 0.5 at the second layer (depth 3), whatever the input order.
+    out = _layers([0.4, 0.3, 0.5], [3.0, 2.0, 4.0], backend)
+    assert torch.allclose(out.depth, torch.full((6, 8), 3.0))
+    assert torch.allclose(out.alpha, torch.full((6, 8), 1 - 0.7 * 0.6 * 0.5))
+    # weights: alpha_i * T_i summed over the 48 pixels.
+    assert torch.allclose(out.weights, 48 * torch.tensor([0.4 * 0.7, 0.3, 0.5 * 0.42]), rtol=1e-5)
+    # Never below 0.5: 0.
+    out = _layers([0.2, 0.3], [2.0, 3.0], backend)
+    assert torch.all(out.depth == 0)
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_weights_sum_to_accumulated_alpha(backend):
+    # Per pixel sum_j alpha_j T_j = 1 - T_final, so the per-Gaussian weights sum to the alpha image's sum.
+    scene = make_scene(600, 40, 30, seed=9)
+    out = rasterize(*scene.args(), backend=backend, return_weights=True)
+    assert out.weights.shape == (600,) and bool((out.weights >= 0).all())
+    assert out.weights.sum().item() == pytest.approx(out.alpha.sum().item(), rel=1e-5)
+    assert torch.all(out.weights[~out.visible] == 0)
+
+
+def test_means2d_grad_ndc_norm_scales_by_half_image_size():
+    scene = make_scene(200, 40, 24, seed=6).leaves()
+    out = rasterize(*scene.args())
+    assert torch.all(out.means2d_grad_ndc_norm() == 0)  # before any backward
+    out.image.sum().backward()
+    g = out.means2d.grad
+    expected = torch.sqrt((g[:, 0] * 20.0) ** 2 + (g[:, 1] * 12.0) ** 2) * out.visible
+    assert torch.allclose(out.means2d_grad_ndc_norm(), expected)
+    assert out.means2d_grad_ndc_norm()[out.visible].gt(0).float().mean() > 0.5

@@ -1,0 +1,174 @@
+"""Defined behaviour at the edges: empty scenes, nothing visible, degenerate sizes and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from stgc.render import rasterize
+
+from .scenes import make_scene
+
+BACKENDS = ["numba", "torch"]
+
+
+def _single(mean, scale, opacity, color, width=16, height=12, focal=20.0):
+    """One Gaussian, identity camera at the origin looking down +z, principal point at the image centre."""
+    K = torch.tensor([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
+    means = torch.tensor([mean], dtype=torch.float32)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]])
+    scales = torch.full((1, 3), float(scale))
+    return means, quats, scales, torch.tensor([float(opacity)]), torch.tensor([color], dtype=torch.float32), K, \
+        torch.eye(4), width, height  # fmt: skip
+
+
+def _grad_inputs(args):
+    return [a.clone().requires_grad_(True) for a in args[:5]] + list(args[5:])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_no_gaussians_gives_background(backend):
+    bg = torch.tensor([0.1, 0.2, 0.3], requires_grad=True)
+    empty = [torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3)]
+    params = [t.requires_grad_(True) for t in empty]
+    out = rasterize(*params, torch.eye(3) * 10, torch.eye(4), 7, 5, bg, backend=backend)
+    assert out.image.shape == (5, 7, 3) and out.radii.shape == (0, 2) and out.visible.shape == (0,)
+    assert torch.allclose(out.image, bg.detach().expand(5, 7, 3))
+    assert torch.all(out.alpha == 0)
+    out.image.sum().backward()
+    assert all(p.grad is not None and p.grad.numel() == 0 for p in params)
+    assert torch.allclose(bg.grad, torch.full((3,), 35.0))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("where", ["behind", "on_camera", "offscreen", "zero_opacity"])
+def test_nothing_visible_gives_background_and_zero_grads(backend, where):
+    scene = make_scene(50, 24, 16, seed=2, rotate_camera=False)
+    if where == "behind":
+        scene.means[:, 2] = -scene.means[:, 2]
+    elif where == "on_camera":
+        scene.means[:, 2] = 0.0  # exactly in the camera plane: must be culled without inf/NaN
+    elif where == "offscreen":
+        scene.means[:, 0] += 1000.0
+    else:
+        scene.opacities.zero_()
+    s = scene.leaves()
+    bg = torch.tensor([0.3, 0.6, 0.9], requires_grad=True)
+    out = rasterize(*s.args(), bg, backend=backend, return_depth=True, return_weights=True)
+    assert not out.visible.any() and out.num_intersections == 0
+    assert torch.equal(out.image, bg.detach().expand(16, 24, 3))
+    assert torch.all(out.depth == 0) and torch.all(out.weights == 0)
+    (out.image.sum() + out.alpha.sum()).backward()
+    for p in s.params():
+        assert torch.all(p.grad == 0), where
+    assert torch.all(out.means2d_grad_ndc_norm() == 0)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_huge_gaussian_is_a_uniform_layer(backend):
+    # Footprint >> image (sigma = 4e6 px): sigma ~ 0 at every pixel, so every pixel is o*c + (1-o)*bg.
+    args = _grad_inputs(_single([0.0, 0.0, 5.0], scale=1e6, opacity=0.6, color=[1.0, 0.5, 0.0]))
+    bg = torch.tensor([0.0, 0.0, 1.0])
+    out = rasterize(*args, bg, backend=backend)
+    expected = 0.6 * torch.tensor([1.0, 0.5, 0.0]) + 0.4 * bg
+    assert torch.allclose(out.image, expected.expand(12, 16, 3), atol=1e-5)
+    # Radius = ceil(sqrt(2 ln(255 * 0.6)) * 4e6) px, still a valid int32.
+    assert out.radii[0, 0].item() == pytest.approx(math.sqrt(2 * math.log(255 * 0.6)) * 4e6, rel=1e-5)
+    (out.image * torch.tensor([1.0, 2.0, 3.0])).sum().backward()
+    assert all(torch.isfinite(a.grad).all() for a in args[:5])
+    assert args[3].grad.item() == pytest.approx(192 * (1.0 + 1.0 - 3.0), rel=1e-4)  # d/do of sum(w * (o c + (1-o) bg))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_tiny_gaussian_is_the_dilation_kernel(backend):
+    # A point-like Gaussian is the 0.3 px^2 screen-space dilation (eps2d): alpha = o exp(-d^2 / (2 * 0.3)).
+    # Mean on the centre of pixel (8, 6): K maps (0, 0, z) to (8, 6); pixel centres are at +0.5, so shift by 0.5 px.
+    focal, z = 20.0, 5.0
+    args = list(_single([0.5 * z / focal, 0.5 * z / focal, z], scale=1e-7, opacity=0.9, color=[1.0, 1.0, 1.0]))
+    args = _grad_inputs(args)
+    out = rasterize(*args, backend=backend)
+    img = out.image[..., 0].detach()
+    assert img[6, 8].item() == pytest.approx(0.9, rel=1e-5)
+    assert img[6, 9].item() == pytest.approx(0.9 * math.exp(-1 / 0.6), rel=1e-4)
+    assert img[7, 9].item() == pytest.approx(0.9 * math.exp(-2 / 0.6), rel=1e-4)
+    # Two pixels away alpha = 0.9 exp(-4/0.6) = 1.1e-3 < 1/255: skipped.
+    assert img[6, 10].item() == 0.0
+    out.image.sum().backward()
+    assert all(torch.isfinite(a.grad).all() for a in args[:5])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_one_pixel_image(backend):
+    args = _grad_inputs(_single([0.0, 0.0, 4.0], scale=0.5, opacity=0.5, color=[0.2, 0.4, 0.6], width=1, height=1))
+    out = rasterize(*args, backend=backend)
+    assert out.image.shape == (1, 1, 3)
+    # Mean exactly on the single pixel centre; the footprint is wide so sigma ~ 0: alpha ~ 0.5.
+    assert torch.allclose(out.image[0, 0], torch.tensor([0.1, 0.2, 0.3]), atol=1e-3)
+    out.image.sum().backward()
+    assert args[4].grad[0, 0].item() == pytest.approx(out.alpha.item(), rel=1e-6)
+
+
+@pytest.mark.parametrize("channels", [1, 32])
+def test_channel_counts_agree_between_backends(channels):
+    scene = make_scene(300, 40, 24, channels=channels, seed=channels)
+    outs = {}
+    for backend in BACKENDS:
+        s = scene.leaves()
+        out = rasterize(*s.args(), backend=backend)
+        out.image.pow(2).sum().backward()
+        outs[backend] = (out.image.detach(), s.features.grad, s.means.grad)
+    assert outs["numba"][0].shape == (24, 40, channels)
+    for x, y in zip(outs["numba"], outs["torch"]):
+        assert (x - y).abs().max() <= 1e-5 * max(1.0, y.abs().max().item())
+
+
+ARG_NAMES = ["means", "quats", "scales", "opacities", "features", "K", "viewmat"]
+
+
+@pytest.mark.parametrize("name", ARG_NAMES + ["background"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_input_is_rejected_by_name(name, bad):
+    scene = make_scene(5, 8, 8)
+    args = dict(zip(ARG_NAMES, [scene.means, scene.quats, scene.scales, scene.opacities, scene.features, scene.K,
+                                scene.viewmat]))  # fmt: skip
+    args["background"] = torch.zeros(3)
+    args[name] = args[name].clone()
+    args[name].view(-1)[0] = bad
+    with pytest.raises(ValueError, match=f"^{name}: contains NaN or inf"):
+        rasterize(**args, width=8, height=8)
+
+
+@pytest.mark.parametrize(
+    "name,value,message",
+    [
+        ("means", torch.zeros(5, 2), "means: expected shape"),
+        ("quats", torch.zeros(4, 4), "quats: expected shape"),
+        ("scales", torch.zeros(5), "scales: expected shape"),
+        ("opacities", torch.zeros(5, 1), "opacities: expected shape"),
+        ("features", torch.zeros(5, 0), "features: need at least one channel"),
+        ("K", torch.eye(4), "K: expected shape"),
+        ("viewmat", torch.eye(3), "viewmat: expected shape"),
+        ("background", torch.zeros(4), "background: expected shape"),
+        ("width", 0, "width: expected a positive integer"),
+        ("height", 2.5, "height: expected a positive integer"),
+        ("backend", "cuda", "backend must be one of"),
+        ("alpha_max", 1.0, "alpha_max"),
+    ],
+)
+def test_bad_arguments_raise_value_error(name, value, message):
+    scene = make_scene(5, 8, 8)
+    kwargs = dict(means=scene.means, quats=scene.quats, scales=scene.scales, opacities=scene.opacities,
+                  features=scene.features, K=scene.K, viewmat=scene.viewmat, width=8, height=8)  # fmt: skip
+    kwargs[name] = value
+    with pytest.raises(ValueError, match=message):
+        rasterize(**kwargs)
+
+
+def test_numpy_inputs_are_accepted():
+    scene = make_scene(20, 16, 16)
+    arrays = [t.numpy() for t in scene.args()[:7]]
+    out = rasterize(*arrays, 16, 16)
+    ref = rasterize(*scene.args())
+    assert torch.equal(out.image, ref.image)
