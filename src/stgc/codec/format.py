@@ -105,14 +105,14 @@ def _names(prefix: str, n: int) -> tuple[str, ...]:
 GROUPS: tuple[AttributeGroup, ...] = (
     AttributeGroup(b"POSI", ("x", "y", "z"), ("x", "y", "z"), LINEAR, (13, 14, 16, 17, 18)),
     AttributeGroup(b"TCEN", ("trbf_center",), ("trbf_center",), LINEAR, (8, 9, 9, 11, 13)),
-    AttributeGroup(b"TSCL", ("trbf_scale",), ("trbf_scale",), LINEAR, (5, 6, 6, 7, 9)),
+    AttributeGroup(b"TSCL", ("trbf_scale",), ("trbf_scale",), LINEAR, (5, 6, 7, 8, 9)),
     AttributeGroup(b"MOTN", _names("motion", 9), _names("motion", 9), LINEAR, (5, 6, 6, 7, 9)),
     AttributeGroup(b"FDC_", _names("f_dc", 6), _names("f_dc", 3), LINEAR, (5, 6, 7, 8, 10)),
-    AttributeGroup(b"OPAC", ("opacity",), ("opacity",), SIGMOID, (5, 6, 6, 7, 9)),
+    AttributeGroup(b"OPAC", ("opacity",), ("opacity",), SIGMOID, (5, 6, 7, 8, 9)),
     AttributeGroup(b"SCAL", _names("scale", 3), _names("scale", 3), LINEAR, (5, 6, 7, 8, 10)),
     AttributeGroup(b"ROTN", _names("rot", 4), _names("rot", 4), QUAT_SMALLEST3, (5, 6, 6, 7, 9)),
     AttributeGroup(b"OMGA", _names("omega", 4), _names("omega", 4), LINEAR, (4, 5, 5, 6, 8)),
-    AttributeGroup(b"FT__", _names("f_t", 3), (), LINEAR, (4, 5, 5, 6, 8)),
+    AttributeGroup(b"FT__", _names("f_t", 3), (), LINEAR, (4, 4, 4, 6, 8)),
 )
 GROUP_BY_TAG = {g.tag: g for g in GROUPS}
 GROUP_TAGS = frozenset(g.tag.decode("latin-1") for g in GROUPS)
@@ -365,6 +365,8 @@ def encode(
 
     table = bytearray()
     for tag, codec, bits, comps, flags, raw_size, payload, quantizers in sections:
+        if raw_size > 0xFFFFFFFF:  # the table stores sizes as uint32
+            raise DataError(None, f"section {tag.decode()} would hold {raw_size} bytes, beyond the 4 GiB limit")
         table += _ENTRY.pack(tag, codec, bits, comps, flags, raw_size, len(payload), zlib.crc32(payload))
         for q in quantizers:
             table += _QPARAM.pack(q.step, q.zero_point)
@@ -414,7 +416,8 @@ def read_header(data: bytes, source: str | None = None) -> StgcHeader:
     for _ in range(num_sections):
         if pos + _ENTRY.size > table_size:
             raise _fail("section table is shorter than its entries", source)
-        tag, codec, bits, comps, sflags, raw_size, payload_size, payload_crc = _ENTRY.unpack_from(table, pos)
+        raw_tag, codec, bits, comps, sflags, raw_size, payload_size, payload_crc = _ENTRY.unpack_from(table, pos)
+        tag = raw_tag.decode("latin-1")
         pos += _ENTRY.size
         if pos + comps * _QPARAM.size > table_size:
             raise _fail(f"section {tag!r} quantizer list runs past the section table", source)
@@ -423,7 +426,7 @@ def read_header(data: bytes, source: str | None = None) -> StgcHeader:
             step, zero_point = _QPARAM.unpack_from(table, pos)
             pos += _QPARAM.size
             quantizers.append(Quantizer(step=step, zero_point=zero_point, bits=bits))
-        sections.append(SectionInfo(tag.decode("latin-1"), codec, bits, comps, sflags, raw_size, payload_size,
+        sections.append(SectionInfo(tag, codec, bits, comps, sflags, raw_size, payload_size,
                                     payload_crc, tuple(quantizers)))
     if pos != table_size:
         raise _fail(f"section table has {table_size - pos} unexplained trailing bytes", source)
@@ -536,6 +539,8 @@ def _unpack_decoder(raw: bytes, source: str | None) -> dict[str, np.ndarray]:
         size = int(np.prod(shape, dtype=object)) * dtype.itemsize  # python ints: no overflow on absurd shapes
         need(pos, size)
         arr = np.frombuffer(raw, dtype=dtype.newbyteorder("<"), count=size // dtype.itemsize, offset=pos)
+        if not np.all(np.isfinite(arr)):
+            raise _fail(f"decoder tensor {name!r} holds non-finite weights", source)
         state[name] = arr.astype(np.float32).reshape(shape)
         pos += size
     if pos != len(raw):

@@ -1,0 +1,85 @@
+"""The numeric building blocks, each checked against an independent construction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stgc.codec.quantize import (
+    container_dtype,
+    delta_decode,
+    delta_encode,
+    dequantize,
+    fit_quantizer,
+    from_byte_planes,
+    morton_codes,
+    quantize,
+    to_byte_planes,
+)
+
+
+@pytest.mark.parametrize("bits", [2, 5, 8, 11, 16, 24])
+def test_quantizer_error_is_at_most_half_a_step_and_codes_fit(bits):
+    rng = np.random.default_rng(bits)
+    for values in (rng.normal(3.0, 2.0, 5000), rng.laplace(0, 0.1, 5000), rng.uniform(-7.5, -2.25, 5000)):
+        q = fit_quantizer(values, bits)
+        codes = quantize(values, q)
+        assert codes.dtype == container_dtype(bits)
+        assert int(codes.max()) < 2**bits
+        err = np.abs(dequantize(codes, q) - values)
+        assert err.max() <= q.step / 2 * (1 + 1e-9)
+        # The step is set by the range: (max - min) / (2**bits - 2).
+        assert q.step == pytest.approx((values.max() - values.min()) / (2**bits - 2))
+
+
+def test_zero_and_constants_are_reproduced_exactly():
+    rng = np.random.default_rng(0)
+    values = np.concatenate([np.zeros(100), rng.normal(0.3, 1.0, 900)])
+    q = fit_quantizer(values, 6)
+    assert np.all(dequantize(quantize(values[:100], q), q) == 0.0)
+    for constant in (0.0, 3.7, -1e-20, 2.5e30):
+        v = np.full(10, constant, dtype=np.float32).astype(np.float64)
+        q = fit_quantizer(v, 4)
+        assert np.all(dequantize(quantize(v, q), q).astype(np.float32) == np.float32(constant))
+
+
+def _morton_reference(x: int, y: int, z: int) -> int:
+    code = 0
+    for bit in range(21):
+        code |= ((x >> bit) & 1) << (3 * bit) | ((y >> bit) & 1) << (3 * bit + 1) | ((z >> bit) & 1) << (3 * bit + 2)
+    return code
+
+
+def test_morton_codes_match_bitwise_interleaving():
+    rng = np.random.default_rng(1)
+    grid = rng.integers(0, 2**21, (200, 3))
+    codes = morton_codes(grid, 21)
+    assert [int(c) for c in codes] == [_morton_reference(*map(int, p)) for p in grid]
+    # More than 21 bits per axis: the top 21 bits are used.
+    grid24 = rng.integers(0, 2**24, (50, 3))
+    assert np.array_equal(morton_codes(grid24, 24), morton_codes(grid24 >> 3, 21))
+
+
+@pytest.mark.parametrize("bits", [3, 8, 13, 24])
+def test_delta_coding_round_trips_and_makes_smooth_sequences_small(bits):
+    rng = np.random.default_rng(bits)
+    dtype = container_dtype(bits)
+    codes = rng.integers(0, 2**bits, (3, 1000)).astype(dtype)
+    assert np.array_equal(delta_decode(delta_encode(codes, bits), bits), codes)
+    ramp = (np.arange(1000) % 2**bits).astype(dtype)[None]  # wraps around at 2**bits
+    zig = delta_encode(ramp, bits)
+    assert int(zig[0, 1:].max()) == 2  # +1 steps zigzag to 2, the wrap-around too
+    # Any garbage decodes to in-range codes (the decoder relies on it).
+    assert int(delta_decode(rng.integers(0, 2**bits, (2, 500)).astype(dtype), bits).max()) < 2**bits
+
+
+@pytest.mark.parametrize("interleave", [False, True])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.uint32])
+def test_byte_planes_round_trip_and_put_low_bytes_first(dtype, interleave):
+    codes = np.arange(12, dtype=dtype).reshape(3, 4) + dtype(1) * (256 if dtype != np.uint8 else 0)
+    raw = to_byte_planes(codes, interleave)
+    assert len(raw) == codes.nbytes
+    assert np.array_equal(from_byte_planes(raw, 3, 4, np.dtype(dtype), interleave), codes)
+    expected_first = codes[0] if not interleave else codes[:, 0]
+    first_plane = np.frombuffer(raw, np.uint8)[: len(expected_first)]
+    assert np.array_equal(first_plane, (expected_first & 0xFF).astype(np.uint8))

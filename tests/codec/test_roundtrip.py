@@ -1,0 +1,206 @@
+"""Encode/decode round trips on synthetic models with trained-model statistics: documented error bounds per
+attribute, exact zeros, ordering, sizes, the fp16 decoder, and input validation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stgc.codec import DEFAULT_QUALITY, QUALITY_LEVELS, canonical_rotation, decode, encode
+from stgc.codec.format import GROUPS, HEADER_SIZE, groups_for
+from stgc.codec.synthetic import synthetic_model
+from stgc.errors import DataError
+from stgc.model.layout import bytes_per_gaussian, ply_fields
+
+from .helpers import match_rows, sigmoid, steps
+
+N = 4000
+
+
+@pytest.fixture(scope="module")
+def models():
+    return {variant: synthetic_model(N, variant, seed=7) for variant in ("full", "lite")}
+
+
+@pytest.fixture(scope="module")
+def round_trips(models):
+    out = {}
+    for variant, (arrays, decoder) in models.items():
+        for quality in QUALITY_LEVELS:
+            data = encode(arrays, variant, decoder, quality)
+            decoded = decode(data)
+            out[variant, quality] = (data, decoded, match_rows(arrays, decoded.arrays))
+    return out
+
+
+def _float32_slack(values: np.ndarray) -> np.ndarray:
+    return 2.0 * np.finfo(np.float32).eps * np.abs(values)
+
+
+@pytest.mark.parametrize("variant", ["full", "lite"])
+@pytest.mark.parametrize("quality", QUALITY_LEVELS)
+def test_every_attribute_is_within_its_documented_bound(models, round_trips, variant, quality):
+    arrays, _ = models[variant]
+    _, decoded, index = round_trips[variant, quality]
+    out = {k: v[index].astype(np.float64) for k, v in decoded.arrays.items()}
+    assert list(decoded.arrays) == ply_fields(variant)
+    assert all(v.dtype == np.float32 and v.shape == (N,) for v in decoded.arrays.values())
+    step = steps(decoded)
+    for group in groups_for(variant):
+        tag = group.tag.decode()
+        if tag in ("OPAC", "ROTN", "OMGA"):
+            continue
+        for field, s in zip(group.fields(variant), step[tag]):
+            orig = arrays[field].astype(np.float64)
+            err = np.abs(out[field] - orig)
+            assert np.all(err <= s / 2 + _float32_slack(orig)), (field, err.max(), s / 2)
+    # Opacity: bounded in the sigmoid domain, the quantity that is blended.
+    err = np.abs(sigmoid(out["opacity"]) - sigmoid(arrays["opacity"]))
+    assert err.max() <= step["OPAC"][0] / 2 + 1e-6
+    # Rotation and omega: against the canonical (unit, largest component positive) pair; the three stored
+    # components are within step/2, the reconstructed largest one within 3 steps/2 (first order).
+    rot = np.stack([arrays[f"rot_{i}"] for i in range(4)], 1).astype(np.float64)
+    omega = np.stack([arrays[f"omega_{i}"] for i in range(4)], 1).astype(np.float64)
+    rot_c, omega_c = canonical_rotation(rot, omega)
+    rot_d = np.stack([out[f"rot_{i}"] for i in range(4)], 1)
+    omega_d = np.stack([out[f"omega_{i}"] for i in range(4)], 1)
+    assert np.abs(rot_d - rot_c).max() <= 2 * max(step["ROTN"][:3])
+    assert np.allclose(np.linalg.norm(rot_d, axis=1), 1.0, atol=1e-6)
+    for i in range(4):
+        assert np.all(np.abs(omega_d[:, i] - omega_c[:, i]) <= step["OMGA"][i] / 2 + _float32_slack(omega_c[:, i]))
+    assert all(np.all(decoded.arrays[n] == 0) for n in ("nx", "ny", "nz"))
+
+
+def test_canonical_rotation_changes_no_rotation_at_any_time():
+    rng = np.random.default_rng(3)
+    rot, omega = rng.normal(size=(500, 4)) * rng.uniform(0.2, 3, (500, 1)), rng.normal(0, 0.3, (500, 4))
+    rot_c, omega_c = canonical_rotation(rot, omega)
+    assert np.allclose(np.linalg.norm(rot_c, axis=1), 1.0)
+    assert np.all(rot_c[np.arange(500), np.argmax(np.abs(rot_c), axis=1)] > 0)
+    for dt in (-0.7, 0.0, 0.4):
+        a = rot + omega * dt
+        b = rot_c + omega_c * dt
+        a /= np.linalg.norm(a, axis=1, keepdims=True)
+        b /= np.linalg.norm(b, axis=1, keepdims=True)
+        assert np.allclose(np.abs(np.sum(a * b, axis=1)), 1.0)  # same rotation (q and -q are the same)
+
+
+def test_rendered_quantities_stay_close_at_the_default_quality(models, round_trips):
+    arrays, _ = models["full"]
+    _, decoded, index = round_trips["full", DEFAULT_QUALITY]
+    out = {k: v[index].astype(np.float64) for k, v in decoded.arrays.items()}
+    a = {k: v.astype(np.float64) for k, v in arrays.items()}
+    for t in (0.0, 0.5, 1.0):
+        # temporal opacity sigmoid(o) * exp(-((t - mu_t) / exp(s_t))^2)
+        def temporal(p):
+            return sigmoid(p["opacity"]) * np.exp(-(((t - p["trbf_center"]) / np.exp(p["trbf_scale"])) ** 2))
+
+        assert np.abs(temporal(out) - temporal(a)).max() < 0.03
+        # 7-bit opacity alone gives an RMS error of step/sqrt(12) ~ 0.0023; the temporal factor adds a little.
+        assert np.sqrt(np.mean((temporal(out) - temporal(a)) ** 2)) < 5e-3
+
+
+def test_static_gaussians_stay_exactly_static(models, round_trips):
+    arrays, _ = models["full"]
+    _, decoded, index = round_trips["full", 1]  # even at the coarsest level
+    zero_omega = np.all([arrays[f"omega_{i}"] == 0 for i in range(4)], axis=0)
+    assert zero_omega.sum() > N // 2
+    for i in range(4):
+        assert np.all(decoded.arrays[f"omega_{i}"][index][zero_omega] == 0.0)
+
+
+def test_higher_quality_costs_more_bytes_and_gives_smaller_errors(models, round_trips):
+    arrays, _ = models["full"]
+    sizes = [len(round_trips["full", q][0]) for q in QUALITY_LEVELS]
+    assert sizes == sorted(sizes) and len(set(sizes)) == len(sizes)
+    errors = []
+    for q in QUALITY_LEVELS:
+        _, decoded, index = round_trips["full", q]
+        errors.append(np.abs(decoded.arrays["motion_0"][index] - arrays["motion_0"]).max())
+    assert errors == sorted(errors, reverse=True)
+
+
+@pytest.mark.parametrize("variant", ["full", "lite"])
+def test_default_quality_is_at_least_8x_smaller_than_float32_ply_rows(variant):
+    n = 50_000
+    arrays, decoder = synthetic_model(n, variant, seed=0)
+    data = encode(arrays, variant, decoder)
+    ratio = n * bytes_per_gaussian(variant) / len(data)
+    assert ratio >= 8.0, f"{variant}: {len(data) / n:.2f} B/Gaussian, {ratio:.2f}x"
+
+
+def test_gaussians_are_stored_in_morton_order(round_trips):
+    _, decoded, _ = round_trips["lite", DEFAULT_QUALITY]
+    xyz = np.stack([decoded.arrays[a] for a in "xyz"], 1).astype(np.float64)
+    # Consecutive stored Gaussians are much closer than random pairs: the order has locality.
+    consecutive = np.linalg.norm(np.diff(xyz, axis=0), axis=1).mean()
+    shuffled = np.linalg.norm(np.diff(xyz[np.random.default_rng(0).permutation(len(xyz))], axis=0), axis=1).mean()
+    assert consecutive < 0.25 * shuffled
+
+
+def test_decoder_weights_come_back_at_half_precision(models, round_trips):
+    _, decoder = models["full"]
+    _, decoded, _ = round_trips["full", DEFAULT_QUALITY]
+    assert set(decoded.decoder_state) == set(decoder)
+    for name, w in decoder.items():
+        got = decoded.decoder_state[name]
+        assert got.shape == w.shape and got.dtype == np.float32
+        assert np.array_equal(got, w.astype(np.float16).astype(np.float32))
+    assert round_trips["lite", DEFAULT_QUALITY][1].decoder_state is None
+
+
+def test_decoder_weights_beyond_half_range_are_kept_in_float32(models):
+    arrays, decoder = models["full"]
+    big = dict(decoder, **{"mlp2.weight": decoder["mlp2.weight"] * 1e6})
+    decoded = decode(encode(arrays, "full", big, 2))
+    assert np.array_equal(decoded.decoder_state["mlp2.weight"], big["mlp2.weight"])
+
+
+def test_header_reports_counts_and_sizes(round_trips):
+    data, decoded, _ = round_trips["full", DEFAULT_QUALITY]
+    h = decoded.header
+    assert (h.variant, h.quality, h.num_gaussians, h.file_size) == ("full", DEFAULT_QUALITY, N, len(data))
+    assert h.bytes_per_gaussian == pytest.approx(len(data) / N)
+    assert sum(h.section_bytes().values()) < len(data) - HEADER_SIZE
+    assert {s.tag for s in h.sections} == {g.tag.decode() for g in GROUPS} | {"DECO"}
+
+
+def test_encoding_is_deterministic_and_metadata_round_trips(models):
+    arrays, decoder = models["lite"]
+    meta = {"iteration": 3000, "note": "ünïcode"}
+    a = encode(arrays, "lite", None, 2, metadata=meta)
+    assert a == encode(arrays, "lite", None, 2, metadata=meta)
+    assert decode(a).metadata == meta
+
+
+def test_tiny_and_degenerate_models_round_trip():
+    arrays, decoder = synthetic_model(1, "full", seed=1)
+    decoded = decode(encode(arrays, "full", decoder))
+    for k in ("x", "opacity", "motion_4"):
+        assert decoded.arrays[k][0] == pytest.approx(arrays[k][0], abs=1e-6)
+    empty = {k: v[:0] for k, v in arrays.items()}
+    assert decode(encode(empty, "full", decoder)).num_gaussians == 0
+    # A zero quaternion (official error-guided sampling creates them) decodes to a valid unit quaternion.
+    zero_rot = {k: v.copy() for k, v in synthetic_model(10, "lite", seed=2)[0].items()}
+    for i in range(4):
+        zero_rot[f"rot_{i}"][0] = 0.0
+    out = decode(encode(zero_rot, "lite", None)).arrays
+    assert np.allclose(np.linalg.norm(np.stack([out[f"rot_{i}"] for i in range(4)], 1), axis=1), 1.0, atol=1e-6)
+
+
+def test_bad_input_is_refused_with_a_clear_error(models):
+    arrays, decoder = models["lite"]
+    with pytest.raises(DataError, match="non-finite"):
+        encode(dict(arrays, opacity=np.where(np.arange(N) == 5, np.nan, arrays["opacity"])), "lite", None)
+    with pytest.raises(DataError, match="lack"):
+        encode({k: v for k, v in arrays.items() if k != "motion_3"}, "lite", None)
+    with pytest.raises(DataError, match="values"):
+        encode(dict(arrays, x=arrays["x"][:-1]), "lite", None)
+    with pytest.raises(DataError, match="decoder"):
+        encode(models["full"][0], "full", None)
+    with pytest.raises(ValueError, match="quality"):
+        encode(arrays, "lite", None, 9)
+    with pytest.raises(ValueError, match="bit depth"):
+        encode(arrays, "lite", None, position_bits=30)
+    with pytest.raises(ValueError, match="unknown groups"):
+        encode(arrays, "lite", None, group_bits={"NOPE": 3})
