@@ -1,0 +1,158 @@
+"""Plans of runs: the paper's Table 2 and Table 3, or any list of runs in a PLAN.toml.
+
+A run is a name (its directory under the experiment folder), the dotted config overrides that distinguish it
+(`data.preprocess=stg-isolated`, `compaction.method=st-knn`, `compaction.case=2`, `compaction.criterion=scale`),
+and for the report the RD-curve family it belongs to and the label of its point. Runs with identical overrides
+carry identical names across plans, so Table 2 and Table 3 in one folder share their common runs.
+
+PLAN.toml:
+
+    name = "ablation"          # optional, default: the file name
+    baseline = "STG"           # family the BD deltas are computed against (default: the first run's)
+    [[runs]]
+    name = "stg"
+    family = "STG"             # optional, default: the name
+    label = "no preprocessing" # optional, default: the name
+    overrides = { "data.preprocess" = "none", "compaction.method" = "none" }
+    # or: overrides = ["data.preprocess=none", "compaction.method=none"]
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from stgc.errors import DataError, FormatError
+
+PAPER_PREPROCESS = "stg-isolated"
+CASES = (1, 2, 3, 4)
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    name: str
+    overrides: dict[str, str]
+    family: str
+    label: str
+
+
+@dataclass(frozen=True)
+class Plan:
+    name: str
+    runs: tuple[RunSpec, ...]
+    baseline: str | None = None
+    title: str = ""
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+
+def _spec(name: str, family: str, label: str, **overrides: Any) -> RunSpec:
+    return RunSpec(name, {k.replace("__", "."): str(v) for k, v in overrides.items()}, family, label)
+
+
+def _uncompacted(preprocess: str) -> RunSpec:
+    if preprocess == "none":
+        return _spec("stg", "STG", "Trained model", data__preprocess="none", compaction__method="none")
+    name = "stg-preprocessed" if preprocess == PAPER_PREPROCESS else f"stg-{preprocess}"
+    return _spec(name, "STG", "with preprocessing", data__preprocess=preprocess,
+                 compaction__method="none")
+
+
+def _stknn(case: int, criterion: str, preprocess: str, family: str) -> RunSpec:
+    return _spec(f"st-knn-{criterion}-case{case}" + ("" if preprocess == PAPER_PREPROCESS else f"-{preprocess}"),
+                 family, f"Case {case}", data__preprocess=preprocess, compaction__method="st-knn",
+                 compaction__case=case, compaction__criterion=criterion)
+
+
+def table2_plan(preprocess: str = PAPER_PREPROCESS) -> Plan:
+    """Paper Table 2: the trained model without and with preprocessing, and the proposed method (timestamp
+    criterion, on the preprocessed model) for Cases 1-4. BD deltas: the proposed curve vs the two STG points."""
+    runs = [_uncompacted("none"), _uncompacted(preprocess)]
+    runs += [_stknn(c, "timestamp", preprocess, "ST-KNN (proposed)") for c in CASES]
+    return Plan("table2", tuple(runs), baseline="STG",
+                title="Table 2: STG with/without preprocessing and the proposed ST-KNN compaction")
+
+
+def table3_plan(preprocess: str = PAPER_PREPROCESS) -> Plan:
+    """Paper Table 3: the preprocessed model uncompacted, and Cases 1-4 with the removal criterion `scale`
+    (the smaller Gaussian of a pair goes) vs `timestamp` (the later one goes). BD: timestamp vs scale."""
+    runs = [_uncompacted(preprocess)]
+    runs += [_stknn(c, "scale", preprocess, "ST-KNN (scale)") for c in CASES]
+    runs += [_stknn(c, "timestamp", preprocess, "ST-KNN (timestamp)") for c in CASES]
+    return Plan("table3", tuple(runs), baseline="ST-KNN (scale)",
+                title="Table 3: removal criterion scale vs prominently displayed timestamp")
+
+
+BUILTIN_PLANS = {"table2": table2_plan, "table3": table3_plan}
+
+
+def _overrides(value: Any, where: Path, run: str) -> dict[str, str]:
+    if value is None:
+        return {}
+    if isinstance(value, Mapping):
+        return {str(k): _toml_scalar(v) for k, v in value.items()}
+    if isinstance(value, Sequence) and not isinstance(value, str):
+        out = {}
+        for item in value:
+            if not isinstance(item, str) or "=" not in item:
+                raise FormatError(where, f"run {run!r}: override {item!r} is not 'key=value'")
+            k, v = item.split("=", 1)
+            out[k.strip()] = v.strip()
+        return out
+    raise FormatError(where, f"run {run!r}: overrides must be a table or a list of 'key=value' strings")
+
+
+def _toml_scalar(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, Mapping):
+        raise TypeError("nested table")
+    return str(v)
+
+
+def load_plan_toml(path: str | Path) -> Plan:
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise DataError(path, f"cannot read plan: {exc.strerror or exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise FormatError(path, f"invalid TOML: {exc}") from None
+    runs_data = data.get("runs")
+    if not isinstance(runs_data, list) or not runs_data:
+        raise FormatError(path, "a plan needs a non-empty [[runs]] list")
+    runs, seen = [], set()
+    for i, r in enumerate(runs_data):
+        if not isinstance(r, dict) or not isinstance(r.get("name"), str):
+            raise FormatError(path, f"runs[{i}] needs a string 'name'")
+        name = r["name"]
+        if not _NAME.match(name):
+            raise FormatError(path, f"run name {name!r}: use letters, digits, '.', '_' or '-' (it is a folder name)")
+        if name in seen:
+            raise FormatError(path, f"run name {name!r} appears twice")
+        seen.add(name)
+        try:
+            overrides = _overrides(r.get("overrides"), path, name)
+        except TypeError:
+            raise FormatError(path, f"run {name!r}: override values must be scalars") from None
+        runs.append(RunSpec(name, overrides, str(r.get("family", name)), str(r.get("label", name))))
+    baseline = data.get("baseline")
+    return Plan(str(data.get("name", path.stem)), tuple(runs), None if baseline is None else str(baseline),
+                str(data.get("title", "")))
+
+
+def load_plan(plan: str | Path | Plan, preprocess: str | None = None) -> Plan:
+    """A Plan from a built-in name ("table2", "table3"; `preprocess` picks their preprocessing rule), a
+    PLAN.toml path, or a Plan."""
+    if isinstance(plan, Plan):
+        return plan
+    key = str(plan)
+    if key in BUILTIN_PLANS:
+        return BUILTIN_PLANS[key](preprocess or PAPER_PREPROCESS)
+    path = Path(key)
+    if path.suffix.lower() == ".toml" or path.exists():
+        return load_plan_toml(path)
+    raise DataError(path, f"unknown plan: expected one of {', '.join(BUILTIN_PLANS)} or a PLAN.toml file")

@@ -1,0 +1,310 @@
+"""Run a plan: one independent `stgc train` subprocess per run, resumable, then results.csv and the report.
+
+Layout of an experiment folder OUT:
+
+    OUT/<run name>/            a normal run directory (config.json, point_cloud/, eval.json, ...)
+    OUT/<run name>/experiment.json   the run's plan entry (family, label, overrides) for the report
+    OUT/logs/<run name>.log    stdout + stderr of that run's subprocesses
+    OUT/results.csv            one row per run (and per codec rate point), rewritten atomically after every run
+    OUT/report/                report.md, report_rd.png/.svg, report.json
+
+A run counts as finished when RUN/eval.json exists and RUN/train_summary.json says finished; finished runs are
+skipped, an interrupted run with a checkpoint is continued with `--resume`, a failed run is reported and the
+others still run.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+from stgc.errors import FormatError
+from stgc.eval.evaluate import eval_paths
+from stgc.eval.report import Report, ReportRow, make_report
+from stgc.experiment.plans import Plan, RunSpec, load_plan
+from stgc.fileio import atomic_open, write_json
+
+RESULT_COLUMNS = ("plan", "name", "family", "label", "status", "num_gaussians", "size_mb", "mbps", "psnr", "ssim",
+                  "lpips", "fps", "train_seconds", "overrides", "run_dir")
+CLI_MODULE = "stgc.cli"
+
+
+# ------------------------------------------------------------------------------------------ commands
+# The only places that know the CLI's verbs and flags: adapt here if they change.
+
+
+def build_train_command(
+    data_path: str | Path,
+    run_dir: str | Path,
+    preset: str | None,
+    overrides: Mapping[str, str],
+    *,
+    resume: bool = False,
+    python: str = sys.executable,
+) -> list[str]:
+    """`python -m stgc.cli train DATA --out RUN [--preset P] [--resume] --set key=value ...`."""
+    cmd = [python, "-m", CLI_MODULE, "train", str(data_path), "--out", str(run_dir)]
+    if preset:
+        cmd += ["--preset", preset]
+    if resume:
+        cmd.append("--resume")
+    for key, value in overrides.items():
+        cmd += ["--set", f"{key}={value}"]
+    return cmd
+
+
+def build_eval_command(target: str | Path, *, python: str = sys.executable) -> list[str]:
+    return [python, "-m", CLI_MODULE, "eval", str(target), "--json"]
+
+
+def build_compress_command(run_dir: str | Path, out: str | Path, quality: int, *,
+                           python: str = sys.executable) -> list[str]:
+    return [python, "-m", CLI_MODULE, "compress", str(run_dir), "--out", str(out), "--quality", str(quality)]
+
+
+# ------------------------------------------------------------------------------------------- state
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def run_is_finished(run_dir: str | Path) -> bool:
+    """Finished = RUN/eval.json present and RUN/train_summary.json with finished: true."""
+    run_dir = Path(run_dir)
+    summary = _read_json(run_dir / "train_summary.json")
+    return bool(summary and summary.get("finished")) and (run_dir / "eval.json").is_file()
+
+
+def training_finished(run_dir: str | Path) -> bool:
+    summary = _read_json(Path(run_dir) / "train_summary.json")
+    return bool(summary and summary.get("finished"))
+
+
+def parse_overrides(items: Sequence[str] | Mapping[str, Any] | None) -> dict[str, str]:
+    """["key=value", ...] or {key: value} -> {key: "value"}."""
+    if not items:
+        return {}
+    if isinstance(items, Mapping):
+        return {str(k): str(v) for k, v in items.items()}
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise ValueError(f"override {item!r} is not key=value")
+        k, v = item.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+@dataclass
+class RunOutcome:
+    name: str
+    family: str
+    label: str
+    status: str  # finished | skipped | failed | dry-run
+    run_dir: Path
+    overrides: dict[str, str]
+    record: dict[str, Any] | None = None
+    seconds: float = 0.0
+    message: str = ""
+    bitstream: str | None = None
+
+
+@dataclass
+class PlanResult:
+    plan: Plan
+    out_dir: Path
+    outcomes: list[RunOutcome] = field(default_factory=list)
+    results_csv: Path | None = None
+    report: Report | None = None
+
+    @property
+    def failed(self) -> list[RunOutcome]:
+        return [o for o in self.outcomes if o.status == "failed"]
+
+    def __str__(self) -> str:
+        lines = [f"plan {self.plan.name}: {len(self.outcomes)} rows in {self.out_dir}"]
+        for o in self.outcomes:
+            r = o.record or {}
+            psnr = f"{r['psnr']:.2f} dB" if isinstance(r.get("psnr"), (int, float)) else "-"
+            rate = f"{r['mbps']:.3f} Mbps" if isinstance(r.get("mbps"), (int, float)) else "-"
+            msg = f"  ({o.message})" if o.message else ""
+            lines.append(f"  {o.status:<9} {o.name:<32} {psnr:>10} {rate:>14}{msg}")
+        if self.results_csv:
+            lines.append(f"results: {self.results_csv}")
+        if self.report:
+            lines.append(str(self.report))
+        return "\n".join(lines)
+
+
+Runner = Callable[[list[str], Path], int]
+
+
+def subprocess_runner(cmd: list[str], log_path: Path) -> int:
+    """Run `cmd` with stdout and stderr appended to `log_path`; return its exit status."""
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(log_path, "a") as log:
+        log.write(f"\n$ {' '.join(cmd)}\n")
+        log.flush()
+        return subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy()).returncode
+
+
+def _result_row(plan: Plan, o: RunOutcome, out_dir: Path) -> dict[str, Any]:
+    r = o.record or {}
+    row = {k: r.get(k) for k in ("num_gaussians", "size_mb", "mbps", "psnr", "ssim", "lpips", "fps",
+                                 "train_seconds")}
+    try:
+        rel = o.run_dir.relative_to(out_dir)
+    except ValueError:
+        rel = o.run_dir
+    return {"plan": plan.name, "name": o.name, "family": o.family, "label": o.label, "status": o.status, **row,
+            "overrides": " ".join(f"{k}={v}" for k, v in o.overrides.items()),
+            "run_dir": str(rel) + (f"/{o.bitstream}" if o.bitstream else "")}
+
+
+def write_results(path: Path, plan: Plan, outcomes: Sequence[RunOutcome], out_dir: Path) -> None:
+    with atomic_open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=RESULT_COLUMNS)
+        writer.writeheader()
+        for o in outcomes:
+            writer.writerow({k: ("" if v is None else v) for k, v in _result_row(plan, o, out_dir).items()})
+
+
+def _report_rows(outcomes: Sequence[RunOutcome]) -> list[ReportRow]:
+    rows = []
+    for o in outcomes:
+        if o.record is None or o.status in ("failed", "dry-run"):
+            continue
+        r = o.record
+        rows.append(ReportRow.from_mapping({
+            "name": o.label, "family": o.family, "mbps": r.get("mbps"), "psnr": r.get("psnr"),
+            "num_gaussians": r.get("num_gaussians"), "size_mb": r.get("size_mb"), "ssim": r.get("ssim"),
+            "lpips": r.get("lpips"), "run": o.name,
+        }))
+    return rows
+
+
+def run_plan(
+    data_path: str | Path,
+    plan: str | Path | Plan,
+    out_dir: str | Path,
+    preset: str | None = "cpu",
+    extra_overrides: Sequence[str] | Mapping[str, Any] | None = None,
+    codec_qualities: Sequence[int] = (),
+    *,
+    runner: Runner = subprocess_runner,
+    command_builder: Callable[..., list[str]] = build_train_command,
+    python: str = sys.executable,
+    make_report_files: bool = True,
+    preprocess: str | None = None,
+    bd_method: str = "pchip",
+    dry_run: bool = False,
+    log: Callable[[str], None] | None = None,
+) -> PlanResult:
+    """Train, evaluate (and optionally compress + evaluate at each codec quality) every run of `plan` under
+    OUT, skipping what is already done; write OUT/results.csv and the report in OUT/report.
+
+    `extra_overrides` apply to every run and win over the plan's own. `runner(cmd, log_path) -> exit status`
+    and `command_builder` are injectable (tests use a fake trainer)."""
+    plan = load_plan(plan, preprocess)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    extra = parse_overrides(extra_overrides)
+    say = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
+    result = PlanResult(plan, out_dir, results_csv=out_dir / "results.csv")
+    qualities = [int(q) for q in codec_qualities]
+
+    for spec in plan.runs:
+        run_dir = out_dir / spec.name
+        overrides = {**spec.overrides, **extra}
+        outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
+        result.outcomes.append(outcome)
+        log_path = out_dir / "logs" / f"{spec.name}.log"
+        start = time.perf_counter()
+        if run_is_finished(run_dir):
+            say(f"[{spec.name}] finished earlier: skipped")
+        elif dry_run:
+            outcome.status = "dry-run"
+            outcome.message = " ".join(command_builder(data_path, run_dir, preset, overrides, python=python))
+        else:
+            outcome.status = _train_and_eval(spec, run_dir, data_path, preset, overrides, runner, command_builder,
+                                             python, log_path, say, outcome)
+        outcome.seconds = time.perf_counter() - start
+        outcome.record = _read_json(run_dir / "eval.json")
+        if outcome.status != "failed" and not dry_run:
+            for q in qualities:
+                result.outcomes.append(_codec_point(spec, run_dir, q, runner, python, log_path, say, overrides))
+        write_results(result.results_csv, plan, result.outcomes, out_dir)
+
+    if make_report_files and not dry_run:
+        rows = _report_rows(result.outcomes)
+        if rows:
+            result.report = make_report(rows, out_dir / "report", plan.baseline,
+                                        title=plan.title or f"Plan {plan.name}",
+                                        bd_method=bd_method)  # type: ignore[arg-type]
+    return result
+
+
+def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | None,
+                    overrides: dict[str, str], runner: Runner, command_builder: Callable[..., list[str]],
+                    python: str, log_path: Path, say: Callable[[str], None], outcome: RunOutcome) -> str:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_json(run_dir / "experiment.json", {"name": spec.name, "family": spec.family, "label": spec.label,
+                                            "overrides": overrides})
+    if not training_finished(run_dir):
+        resume = (run_dir / "checkpoint.pt").is_file() and (run_dir / "config.json").is_file()
+        cmd = command_builder(data_path, run_dir, preset, overrides, resume=resume, python=python)
+        say(f"[{spec.name}] {'resuming' if resume else 'training'} (log: {log_path})")
+        code = runner(cmd, log_path)
+        if code != 0:
+            outcome.message = f"train exited with status {code}; see {log_path}"
+            say(f"[{spec.name}] FAILED: {outcome.message}")
+            return "failed"
+        if not training_finished(run_dir):
+            outcome.message = f"train exited 0 but {run_dir / 'train_summary.json'} does not say finished"
+            say(f"[{spec.name}] FAILED: {outcome.message}")
+            return "failed"
+    if not (run_dir / "eval.json").is_file():
+        code = runner(build_eval_command(run_dir, python=python), log_path)
+        if code != 0 or not (run_dir / "eval.json").is_file():
+            outcome.message = f"evaluation failed (status {code}); see {log_path}"
+            return "failed"
+    return "finished"
+
+
+def _codec_point(spec: RunSpec, run_dir: Path, quality: int, runner: Runner, python: str, log_path: Path,
+                 say: Callable[[str], None], overrides: dict[str, str]) -> RunOutcome:
+    stgc = run_dir / f"model_q{quality}.stgc"
+    json_path, _ = eval_paths(stgc)
+    outcome = RunOutcome(f"{spec.name}-q{quality}", f"{spec.family} + codec", f"{spec.label} q{quality}",
+                         "skipped", run_dir, overrides, bitstream=stgc.name)
+    if not json_path.is_file():
+        if not stgc.is_file():
+            code = runner(build_compress_command(run_dir, stgc, quality, python=python), log_path)
+            if code != 0 or not stgc.is_file():
+                outcome.status, outcome.message = "failed", f"compress q{quality} failed (status {code})"
+                say(f"[{spec.name}] {outcome.message}")
+                return outcome
+        code = runner(build_eval_command(stgc, python=python), log_path)
+        if code != 0 or not json_path.is_file():
+            outcome.status, outcome.message = "failed", f"eval of {stgc.name} failed (status {code})"
+            say(f"[{spec.name}] {outcome.message}")
+            return outcome
+        outcome.status = "finished"
+    outcome.record = _read_json(json_path)
+    if outcome.record is None:
+        raise FormatError(json_path, "cannot read the bitstream evaluation")
+    return outcome

@@ -1,0 +1,76 @@
+"""A stand-in for `python -m stgc.cli` that trains nothing: it writes plausible run files in milliseconds.
+
+train: config.json, checkpoint.pt, train_summary.json (finished) and eval.json whose PSNR/rate depend on
+compaction.case. `--set fake.fail=1` exits 3; `--set fake.no_eval=1` leaves eval.json to the eval verb.
+Every call is appended to <run parent>/invocations.txt so tests can count launches."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+
+def _record(out: Path, argv: list[str]) -> None:
+    with open(out.parent / "invocations.txt", "a") as f:
+        f.write(" ".join(argv) + "\n")
+
+
+def _eval_record(case: int, preprocess: str) -> dict:
+    rate = 100.0 / (1 + case) * (0.5 if preprocess != "none" else 1.0)
+    return {"psnr": 30.0 - 0.3 * case - (0.1 if preprocess != "none" else 0.0), "ssim": 0.9, "mbps": rate,
+            "size_mb": rate / 8.388608, "num_gaussians": int(rate * 1000), "fps": 5.0}
+
+
+def main(argv: list[str]) -> int:
+    verb = argv[0]
+    if verb == "train":
+        out = Path(argv[argv.index("--out") + 1])
+        sets = {}
+        for i, a in enumerate(argv):
+            if a == "--set":
+                k, v = argv[i + 1].split("=", 1)
+                sets[k] = v
+        out.mkdir(parents=True, exist_ok=True)
+        _record(out, argv)
+        if sets.get("fake.fail") == "1":
+            print("fake failure", file=sys.stderr)
+            return 3
+        case = int(sets.get("compaction.case", 0)) if sets.get("compaction.method") == "st-knn" else 0
+        preprocess = sets.get("data.preprocess", "none")
+        (out / "config.json").write_text(json.dumps({
+            "data": {"path": argv[1], "preprocess": preprocess},
+            "compaction": {"method": sets.get("compaction.method", "none"), "case": case,
+                           "criterion": sets.get("compaction.criterion", "timestamp")}}))
+        (out / "checkpoint.pt").write_bytes(b"fake")
+        (out / "train_summary.json").write_text(json.dumps({"finished": True, "wall_seconds": 1.5,
+                                                            "iterations": 10}))
+        if sets.get("fake.no_eval") != "1":
+            (out / "eval.json").write_text(json.dumps(_eval_record(case, preprocess)))
+        return 0
+    if verb == "eval":
+        target = Path(argv[1])
+        run = target.parent if target.suffix == ".stgc" else target
+        _record(run, argv)
+        cfg = json.loads((run / "config.json").read_text())
+        rec = _eval_record(cfg["compaction"]["case"], cfg["data"]["preprocess"])
+        if target.suffix == ".stgc":
+            rec["mbps"] = target.stat().st_size * 8 / 1e6
+            rec["psnr"] -= 0.05
+            (run / f"eval_{target.stem}.json").write_text(json.dumps(rec))
+        else:
+            (run / "eval.json").write_text(json.dumps(rec))
+        print(json.dumps(rec))
+        return 0
+    if verb == "compress":
+        run = Path(argv[1])
+        _record(run, argv)
+        out = Path(argv[argv.index("--out") + 1])
+        quality = int(argv[argv.index("--quality") + 1])
+        out.write_bytes(b"\0" * (1000 * quality))
+        return 0
+    return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))

@@ -1,0 +1,168 @@
+"""The plan runner with a fake `stgc.cli` (no training): commands, resumability, failures, codec points, report."""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from stgc.errors import FormatError
+from stgc.experiment import (
+    build_train_command,
+    load_plan,
+    load_plan_toml,
+    run_is_finished,
+    run_plan,
+    table2_plan,
+    table3_plan,
+)
+from stgc.experiment.runner import subprocess_runner
+
+FAKE_CLI = Path(__file__).with_name("fake_stgc_cli.py")
+
+
+def fake_runner(cmd: list[str], log_path: Path) -> int:
+    """Run the real command line with `-m stgc.cli` swapped for the fake script."""
+    assert cmd[1:3] == ["-m", "stgc.cli"], cmd
+    return subprocess_runner([cmd[0], str(FAKE_CLI), *cmd[3:]], log_path)
+
+
+def _invocations(out: Path) -> list[str]:
+    path = out / "invocations.txt"
+    return path.read_text().splitlines() if path.exists() else []
+
+
+def _results(out: Path) -> list[dict[str, str]]:
+    with open(out / "results.csv") as f:
+        return list(csv.DictReader(f))
+
+
+PLAN_TOML = """
+name = "mini"
+baseline = "STG"
+[[runs]]
+name = "stg"
+family = "STG"
+label = "uncompacted"
+overrides = { "compaction.method" = "none", "data.preprocess" = "none" }
+[[runs]]
+name = "pre"
+family = "STG"
+overrides = ["compaction.method=none", "data.preprocess=stg-isolated"]
+[[runs]]
+name = "c1"
+family = "ST-KNN"
+label = "Case 1"
+overrides = { "compaction.method" = "st-knn", "compaction.case" = 1 }
+[[runs]]
+name = "c3"
+family = "ST-KNN"
+label = "Case 3"
+overrides = { "compaction.method" = "st-knn", "compaction.case" = 3, "fake.no_eval" = "1" }
+[[runs]]
+name = "broken"
+family = "ST-KNN"
+overrides = { "compaction.method" = "st-knn", "compaction.case" = 2, "fake.fail" = "1" }
+"""
+
+
+def test_builtin_plans_match_the_paper() -> None:
+    t2, t3 = table2_plan(), table3_plan()
+    assert [r.label for r in t2.runs] == ["Trained model", "with preprocessing", "Case 1", "Case 2", "Case 3",
+                                         "Case 4"]
+    assert t2.runs[0].overrides == {"data.preprocess": "none", "compaction.method": "none"}
+    assert t2.runs[5].overrides == {"data.preprocess": "stg-isolated", "compaction.method": "st-knn",
+                                    "compaction.case": "4", "compaction.criterion": "timestamp"}
+    assert {r.overrides.get("compaction.criterion") for r in t3.runs} == {None, "scale", "timestamp"}
+    assert t3.baseline == "ST-KNN (scale)" and len(t3.runs) == 9
+    # Shared runs have the same name in both tables, so one folder serves both.
+    assert {r.name for r in t2.runs} & {r.name for r in t3.runs} >= {"st-knn-timestamp-case1", "stg-preprocessed"}
+    assert load_plan("table3", preprocess="closest-pairs").runs[0].overrides["data.preprocess"] == "closest-pairs"
+
+
+def test_train_command_layout() -> None:
+    cmd = build_train_command("DATA", "OUT/r", "cpu", {"compaction.case": "2"}, resume=True, python="py")
+    assert cmd == ["py", "-m", "stgc.cli", "train", "DATA", "--out", "OUT/r", "--preset", "cpu", "--resume",
+                   "--set", "compaction.case=2"]
+
+
+def test_plan_toml_errors(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[runs]]\nname = 'a b'\n")
+    with pytest.raises(FormatError, match="folder name"):
+        load_plan_toml(bad)
+    bad.write_text("name = 'x'\n")
+    with pytest.raises(FormatError, match="runs"):
+        load_plan_toml(bad)
+    bad.write_text("[[runs]]\nname = 'a'\n[[runs]]\nname = 'a'\n")
+    with pytest.raises(FormatError, match="twice"):
+        load_plan_toml(bad)
+    bad.write_text("[[runs\n")
+    with pytest.raises(FormatError, match="invalid TOML"):
+        load_plan_toml(bad)
+
+
+def test_run_plan_is_resumable(tmp_path: Path) -> None:
+    plan_path = tmp_path / "PLAN.toml"
+    plan_path.write_text(PLAN_TOML)
+    out = tmp_path / "exp"
+    messages: list[str] = []
+    first = run_plan("DATA", plan_path, out, preset="cpu", extra_overrides=["train.iterations=10"],
+                     codec_qualities=[4], runner=fake_runner, python=sys.executable, log=messages.append)
+    status = {o.name: o.status for o in first.outcomes}
+    assert status == {"stg": "finished", "stg-q4": "finished", "pre": "finished", "pre-q4": "finished",
+                      "c1": "finished", "c1-q4": "finished", "c3": "finished", "c3-q4": "finished",
+                      "broken": "failed"}
+    calls = _invocations(out)
+    trains = [c for c in calls if c.startswith("train")]
+    assert len(trains) == 5 and all("--set train.iterations=10" in c and "--preset cpu" in c for c in trains)
+    # c3's trainer wrote no eval.json, so the runner evaluated it; every run got compress + eval of q4.
+    assert sum(c.startswith("eval") and c.endswith("c3 --json") for c in calls) == 1
+    assert sum(c.startswith("compress") for c in calls) == 4
+    assert all(run_is_finished(out / n) for n in ("stg", "pre", "c1", "c3")) and not run_is_finished(out / "broken")
+    assert json.loads((out / "c1" / "experiment.json").read_text())["family"] == "ST-KNN"
+    rows = _results(out)
+    assert [r["name"] for r in rows][:2] == ["stg", "stg-q4"] and len(rows) == 9
+    c1 = next(r for r in rows if r["name"] == "c1")
+    assert float(c1["psnr"]) == pytest.approx(29.7) and c1["status"] == "finished"
+    assert "compaction.case=1" in c1["overrides"] and "train.iterations=10" in c1["overrides"]
+    assert next(r for r in rows if r["name"] == "broken")["status"] == "failed"
+    assert any("FAILED" in m for m in messages)
+    report = first.report
+    assert report is not None and report.plot_png.is_file()
+    md = report.markdown.read_text()
+    assert "Case 3" in md and "ST-KNN + codec" in md and "BD-rate" in md
+    assert "broken" in str(first) and "failed" in str(first)
+
+    # Second invocation: only the failed run is launched again; nothing else trains, compresses or evaluates.
+    second = run_plan("DATA", plan_path, out, preset="cpu", extra_overrides=["train.iterations=10"],
+                      codec_qualities=[4], runner=fake_runner, python=sys.executable, log=messages.append)
+    new_calls = _invocations(out)[len(calls):]
+    assert len(new_calls) == 1 and new_calls[0].startswith("train") and "fake.fail=1" in new_calls[0]
+    assert {o.name: o.status for o in second.outcomes}["c1"] == "skipped"
+    assert len(_results(out)) == 9
+
+
+def test_interrupted_run_is_resumed(tmp_path: Path) -> None:
+    out = tmp_path / "exp"
+    run = out / "stg"
+    run.mkdir(parents=True)
+    # What a killed trainer leaves: a config and a checkpoint, no summary, no evaluation.
+    (run / "config.json").write_text("{}")
+    (run / "checkpoint.pt").write_bytes(b"x")
+    plan = load_plan("table2")
+    one = type(plan)(plan.name, plan.runs[:1], plan.baseline)
+    result = run_plan("DATA", one, out, preset="paper", runner=fake_runner, python=sys.executable,
+                      log=lambda m: None)
+    (call,) = _invocations(out)
+    assert "--resume" in call and "--preset paper" in call
+    assert result.outcomes[0].status == "finished"
+
+
+def test_dry_run_launches_nothing(tmp_path: Path) -> None:
+    result = run_plan("DATA", "table3", tmp_path, runner=fake_runner, dry_run=True, log=lambda m: None)
+    assert all(o.status == "dry-run" for o in result.outcomes) and len(result.outcomes) == 9
+    assert "stgc.cli train DATA" in result.outcomes[1].message and not _invocations(tmp_path)
