@@ -7,6 +7,7 @@ import json
 import pytest
 import torch
 
+from stgc.compaction import CompactionConfig
 from stgc.eval.evaluate import evaluate
 from stgc.train import TrainConfig, train
 from stgc.train.config import DensifyConfig
@@ -45,7 +46,9 @@ def _test_psnr(model, dataset) -> float:
 
 def test_killed_run_resumes_to_the_uninterrupted_result(tiny_toys, make_model, tmp_path):
     cfg = _short_config()
-    straight = Trainer(tiny_toys, None, None, cfg, None, tmp_path / "a", model=make_model(tiny_toys, 200))
+    # Compaction prunes every 2 iterations from 22 to 34, so the kill at 27 interrupts its window.
+    compaction = CompactionConfig(case=0, window_start=0.55, window_end=0.875, interval=2)
+    straight = Trainer(tiny_toys, None, None, cfg, compaction, tmp_path / "a", model=make_model(tiny_toys, 200))
     summary_a = straight.run()
 
     def kill_at_27(iteration, numbers):
@@ -53,10 +56,11 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tiny_toys, make_model, t
             raise Killed
 
     with pytest.raises(Killed):
-        train(tiny_toys, None, None, cfg, None, tmp_path / "b", model=make_model(tiny_toys, 200), callback=kill_at_27)
+        train(tiny_toys, None, None, cfg, compaction, tmp_path / "b", model=make_model(tiny_toys, 200),
+              callback=kill_at_27)
     assert json.loads((tmp_path / "b" / "config.json").read_text())["train"]["iterations"] == 40
     assert not (tmp_path / "b" / "train_summary.json").exists()
-    resumed = Trainer(tiny_toys, None, None, cfg, None, tmp_path / "b", resume=True)
+    resumed = Trainer(tiny_toys, None, None, cfg, compaction, tmp_path / "b", resume=True)
     assert resumed.start_iteration == 20  # the last checkpoint before the kill
     summary_b = resumed.run()
 
@@ -70,6 +74,9 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tiny_toys, make_model, t
     rows_a = [(r["iteration"], r["loss"], r["num_gaussians"]) for r in straight.metrics_log.read()]
     rows_b = [(r["iteration"], r["loss"], r["num_gaussians"]) for r in resumed.metrics_log.read()]
     assert rows_a == rows_b and [r[0] for r in rows_a] == list(range(5, 41, 5))
+    events_a = [(e["iteration"], e["removed"]) for e in straight.compaction_log.read()]
+    events_b = [(e["iteration"], e["removed"]) for e in resumed.compaction_log.read()]
+    assert events_a == events_b and len(events_a) >= 5 and sum(r for _, r in events_a) > 0
     # In the trainer's use, Adam's state follows every topology change: one state entry per live parameter.
     opt = resumed.optimizer
     for key, p in resumed.model.params.items():
