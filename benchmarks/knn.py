@@ -13,7 +13,8 @@ same for every query row, so their time is measured on a random subsample of `--
 searches against all N Gaussians and scaled by N / rows (marked "estimated"); with `--full-reference-max N'` sizes up
 to N' are run in full instead. The subsample's neighbours are also compared with the fast path's ("agree").
 
-    .venv/bin/python benchmarks/knn.py [--sizes 100000 500000 1000000] [--rotation-weight 0.01] [--json]
+    .venv/bin/python benchmarks/knn.py [--sizes 100000 500000 1000000] [--rotation-weight 0.01]
+        [--rotations random|near-identity] [--reference-rows 1000] [--json]
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from stgc.compaction.matching import nearest_other
 from stgc.model import STGModel
 
 
-def synthetic_model(n: int, seed: int = 0) -> STGModel:
+def synthetic_model(n: int, seed: int = 0, rotations: str = "random") -> STGModel:
     rng = np.random.default_rng(seed)
     centres = rng.uniform(-2, 2, (20, 3))
     radii = rng.uniform(0.2, 1.0, 20)
@@ -49,7 +50,8 @@ def synthetic_model(n: int, seed: int = 0) -> STGModel:
     params = {
         "xyz": xyz,
         "scaling": rng.normal(-5.0, 0.5, (n, 3)),
-        "rotation": rng.normal(size=(n, 4)),
+        # near-identity: what a short (CPU) schedule leaves, STG initialises every rotation to identity
+        "rotation": rng.normal(size=(n, 4)) if rotations == "random" else [1, 0, 0, 0] + rng.normal(scale=0.1, size=(n, 4)),
         "omega": rng.normal(scale=0.3, size=(n, 4)) * dynamic[:, None],
         "opacity": rng.normal(size=(n, 1)),
         "trbf_center": rng.random((n, 1)),
@@ -105,6 +107,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="fast path: best of this many runs")
     parser.add_argument("--reference-rows", type=int, default=1000, help="brute-force query rows per search")
     parser.add_argument("--full-reference-max", type=int, default=0, help="run brute force in full up to this N")
+    parser.add_argument("--rotations", choices=["random", "near-identity"], default="random")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
     args = parser.parse_args()
@@ -112,7 +115,7 @@ def main() -> None:
 
     rows = []
     for n in args.sizes:
-        model = synthetic_model(n)
+        model = synthetic_model(n, rotations=args.rotations)
         seconds, cpu_seconds, spaces, pairs, selection, prune_seconds = time_fast(model, args.t, args.rotation_weight, args.repeats)
         ref_seconds, estimated, ref_rows, agree = time_reference(
             spaces, pairs, n, args.reference_rows, args.full_reference_max, seed=n
@@ -130,6 +133,7 @@ def main() -> None:
                 "prune_seconds": round(prune_seconds, 3),
                 "removed_at_ratio_0.05": int(selection.remove.size),
                 "rotation_weight": args.rotation_weight,
+                "rotations": args.rotations,
                 "threads": args.threads,
                 "cpus": os.cpu_count(),
                 "load_average_1min": round(os.getloadavg()[0], 2),
@@ -138,7 +142,7 @@ def main() -> None:
         if args.json:
             print(json.dumps(rows[-1]), flush=True)
     if not args.json:
-        print(f"ST-KNN matching step, rotation_weight {args.rotation_weight}, {args.threads} threads")
+        print(f"ST-KNN matching step, rotation_weight {args.rotation_weight}, {args.rotations} rotations, {args.threads} threads")
         print(f"{'N':>9} {'match s':>8} {'cpu s':>7} {'brute s':>10} {'speedup':>8} {'agree':>6} {'pairs':>8} {'prune s':>8} {'load':>5}")
         for r in rows:
             brute = f"{r['reference_seconds']:.1f}{'*' if r['reference_estimated'] else ''}"
