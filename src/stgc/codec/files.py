@@ -151,7 +151,8 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
     source = Path(run_or_model_path)
     model = STGModel.load(source)
     arrays = model.to_ply_arrays()
-    metadata: dict[str, Any] = {"scene_extent": float(model.scene_extent), "source": source.name}
+    # scene_extent is not stored: the official files do not carry it (it comes from the dataset's cameras).
+    metadata: dict[str, Any] = {"source": source.name}
     if model.decoder_activation is not None:  # not in the official files; renders depend on it
         metadata["decoder_activation"] = model.decoder_activation
     iteration = _iteration_of(source)

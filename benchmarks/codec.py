@@ -1,0 +1,103 @@
+"""Benchmark of the .stgc codec on synthetic models with trained-model statistics (stgc.codec.synthetic).
+
+Prints two tables: encode/decode time and throughput per model size, and bytes per Gaussian per quality level.
+Throughput (MB/s) is measured against the float32 PLY rows the model replaces (152 B full / 128 B lite per
+Gaussian), so encode and decode speeds are comparable across quality levels.
+
+    .venv/bin/python benchmarks/codec.py                    # 100k and 1M Gaussians, full variant
+    .venv/bin/python benchmarks/codec.py --sizes 20000 --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+from stgc.codec import DEFAULT_QUALITY, QUALITY_LEVELS, decode, encode
+from stgc.codec.format import DEFAULT_ZSTD_LEVEL
+from stgc.codec.synthetic import synthetic_model
+from stgc.model.layout import bytes_per_gaussian
+
+
+def _timed(fn, repeat: int):
+    best, result = float("inf"), None
+    for _ in range(repeat):
+        start = time.perf_counter()
+        result = fn()
+        best = min(best, time.perf_counter() - start)
+    return best, result
+
+
+def speed_rows(sizes: list[int], variant: str, quality: int, zstd_level: int, repeat: int) -> list[dict]:
+    rows = []
+    for n in sizes:
+        arrays, decoder = synthetic_model(n, variant, seed=0)
+        ply_mb = n * bytes_per_gaussian(variant) / 1e6
+        enc_s, data = _timed(lambda: encode(arrays, variant, decoder, quality, zstd_level=zstd_level), repeat)
+        dec_s, _ = _timed(lambda: decode(data), repeat)
+        rows.append({
+            "table": "speed", "variant": variant, "gaussians": n, "quality": quality, "zstd_level": zstd_level,
+            "file_bytes": len(data), "bytes_per_gaussian": round(len(data) / n, 3),
+            "ratio_vs_ply": round(n * bytes_per_gaussian(variant) / len(data), 2),
+            "encode_s": round(enc_s, 3), "decode_s": round(dec_s, 3),
+            "encode_mb_s": round(ply_mb / enc_s, 1), "decode_mb_s": round(ply_mb / dec_s, 1),
+        })
+    return rows
+
+
+def quality_rows(n: int, zstd_level: int) -> list[dict]:
+    rows = []
+    for variant in ("full", "lite"):
+        arrays, decoder = synthetic_model(n, variant, seed=0)
+        for quality in QUALITY_LEVELS:
+            data = encode(arrays, variant, decoder, quality, zstd_level=zstd_level)
+            header = decode(data).header
+            rows.append({
+                "table": "quality", "variant": variant, "gaussians": n, "quality": quality,
+                "bits": {s.tag: s.bits for s in header.sections if s.components},
+                "bytes_per_gaussian": round(len(data) / n, 3),
+                "ratio_vs_ply": round(n * bytes_per_gaussian(variant) / len(data), 2),
+                "mbps_at_1s": round(len(data) * 8 / 2**20, 3),
+                "section_bytes_per_gaussian": {k: round(v / n, 3) for k, v in header.section_bytes().items()},
+            })
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000])
+    parser.add_argument("--variant", choices=("full", "lite"), default="full")
+    parser.add_argument("--quality", type=int, default=DEFAULT_QUALITY, choices=QUALITY_LEVELS)
+    parser.add_argument("--zstd-level", type=int, default=DEFAULT_ZSTD_LEVEL)
+    parser.add_argument("--quality-sweep-size", type=int, default=100_000,
+                        help="Gaussians in the per-quality size table (0 skips it)")
+    parser.add_argument("--repeat", type=int, default=1, help="best of this many runs per timing")
+    parser.add_argument("--json", action="store_true", help="print one JSON row per measurement instead")
+    args = parser.parse_args()
+
+    rows = speed_rows(args.sizes, args.variant, args.quality, args.zstd_level, args.repeat)
+    if args.quality_sweep_size:
+        rows += quality_rows(args.quality_sweep_size, args.zstd_level)
+    if args.json:
+        for row in rows:
+            print(json.dumps(row))
+        return
+    print(f"Encode/decode speed ({args.variant}, quality {args.quality}, zstd {args.zstd_level}; MB/s of float32 PLY)")
+    print(f"{'gaussians':>10} {'file MB':>8} {'B/G':>6} {'x PLY':>6} {'enc s':>7} {'dec s':>7} {'enc MB/s':>9} "
+          f"{'dec MB/s':>9}")
+    for r in (r for r in rows if r["table"] == "speed"):
+        print(f"{r['gaussians']:>10} {r['file_bytes'] / 1e6:>8.2f} {r['bytes_per_gaussian']:>6.2f} "
+              f"{r['ratio_vs_ply']:>6.2f} {r['encode_s']:>7.2f} {r['decode_s']:>7.3f} {r['encode_mb_s']:>9.1f} "
+              f"{r['decode_mb_s']:>9.1f}")
+    quality = [r for r in rows if r["table"] == "quality"]
+    if quality:
+        print(f"\nBytes per Gaussian per quality level ({quality[0]['gaussians']} Gaussians)")
+        print(f"{'variant':>7} {'quality':>7} {'B/G':>6} {'x PLY':>6}  bits per group")
+        for r in quality:
+            bits = " ".join(f"{k}={v}" for k, v in r["bits"].items())
+            print(f"{r['variant']:>7} {r['quality']:>7} {r['bytes_per_gaussian']:>6.2f} {r['ratio_vs_ply']:>6.2f}  {bits}")
+
+
+if __name__ == "__main__":
+    main()

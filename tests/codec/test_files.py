@@ -1,0 +1,83 @@
+"""Run-level compression through stgc.model's checkpoint layout: compress_run, decompress, load_model, sizes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from stgc.codec import (
+    CodecConfig,
+    compress_run,
+    decode,
+    decompress,
+    load_model,
+    read_stgc,
+    read_stgc_header,
+    stgc_bytes_per_gaussian,
+    stgc_file_bytes,
+)
+from stgc.codec.synthetic import synthetic_model
+from stgc.errors import DataError, FormatError
+from stgc.model import STGModel
+
+
+@pytest.fixture
+def run_dir(tmp_path):
+    arrays, decoder = synthetic_model(2000, "full", seed=4)
+    model = STGModel.from_ply_arrays(arrays, "full", decoder, scene_extent=3.5, decoder_activation="clamp")
+    run = tmp_path / "run"
+    model.save(run / "point_cloud" / "iteration_500")
+    model.save(run / "point_cloud" / "iteration_1200")
+    config = {"data": {"path": "scene"}, "model": {"variant": "full", "decoder_activation": "clamp"}}
+    (run / "config.json").write_text(json.dumps(config))
+    return run, arrays, config
+
+
+def test_compress_then_decompress_restores_an_equivalent_run(run_dir, tmp_path):
+    run, arrays, config = run_dir
+    result = compress_run(run, run / "model.stgc")
+    assert result.num_gaussians == 2000 and result.variant == "full"
+    assert result.file_bytes == stgc_file_bytes(run / "model.stgc") == (run / "model.stgc").stat().st_size
+    assert result.ply_bytes == 2000 * 152 and result.ratio_vs_ply > 5
+    assert stgc_bytes_per_gaussian(run / "model.stgc") == pytest.approx(result.file_bytes / 2000)
+
+    out = tmp_path / "restored"
+    iteration_dir = decompress(run / "model.stgc", out)
+    assert iteration_dir == out / "point_cloud" / "iteration_1200"  # the run's latest iteration
+    assert json.loads((out / "config.json").read_text()) == config
+    restored = STGModel.load(out)
+    assert restored.decoder_activation == "clamp"  # from the restored config.json
+    decoded = read_stgc(run / "model.stgc")
+    for name, column in restored.to_ply_arrays().items():
+        assert np.array_equal(column, decoded.arrays[name]), name
+
+
+def test_load_model_gives_a_renderable_model_with_the_stored_activation(run_dir):
+    run, _, _ = run_dir
+    compress_run(run / "point_cloud" / "iteration_500" / "point_cloud.ply", run / "it500.stgc", quality=2,
+                 config=CodecConfig(embed_run_config=False))
+    model = load_model(run / "it500.stgc")
+    assert isinstance(model, STGModel)
+    assert (model.variant, model.num_gaussians, model.decoder_activation) == ("full", 2000, "clamp")
+    header = read_stgc_header(run / "it500.stgc")
+    assert header.quality == 2
+    assert decode(run / "it500.stgc").metadata["iteration"] == 500  # decode also takes a path
+    assert "run_config" not in decode(run / "it500.stgc").metadata
+
+
+def test_failures_leave_no_partial_output_and_name_the_file(run_dir, tmp_path):
+    run, _, _ = run_dir
+    with pytest.raises(ValueError, match="quality"):
+        compress_run(run, tmp_path / "bad.stgc", quality=7)
+    assert not (tmp_path / "bad.stgc").exists()
+    assert list(tmp_path.glob(".bad.stgc*")) == []  # no temporary left behind
+    broken = tmp_path / "broken.stgc"
+    compress_run(run, broken)
+    broken.write_bytes(broken.read_bytes()[:-10])
+    with pytest.raises(FormatError, match="broken.stgc.*truncated"):
+        decompress(broken, tmp_path / "never")
+    assert not (tmp_path / "never").exists()
+    with pytest.raises(DataError, match="cannot read"):
+        read_stgc(tmp_path / "missing.stgc")
