@@ -23,6 +23,7 @@ from stgc.eval.accounting import (
     ModelSize,
     RenderSpeed,
     bitstream_size,
+    latest_iteration_dir,
     read_train_summary,
     size_of_saved_model,
     speed_from_times,
@@ -218,6 +219,8 @@ def write_eval(
     if summary and "iterations" in summary:
         more["iterations"] = summary["iterations"]
     more.update(extra or {})
+    if isinstance(model_info, ModelSize) and not model_info.file_bytes and target is None:
+        model_info.file_bytes = _saved_model_files(run_dir)
     record = eval_record(result, model_info, more)
     write_json(json_path, record)
     with atomic_open(csv_path, "w", newline="") as f:
@@ -227,6 +230,16 @@ def write_eval(
             writer.writerow([v.camera, v.frame, f"{v.time:.6f}", _fmt(v.psnr, 4), _fmt(v.ssim, 5),
                              _fmt(v.lpips, 5), _fmt(v.render_ms, 2)])
     return format_eval_table(record)
+
+
+def _saved_model_files(run_dir: Path) -> dict[str, int]:
+    """On-disk sizes of the latest saved PLY and decoder of a run (empty when none is saved yet)."""
+    try:
+        iteration_dir = latest_iteration_dir(run_dir)
+    except DataError:
+        return {}
+    return {p.name: p.stat().st_size for p in (iteration_dir / "point_cloud.ply", iteration_dir / "point_cloud.pt")
+            if p.is_file()}
 
 
 def _fmt(x: float | None, digits: int) -> str:
@@ -243,7 +256,7 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
     from rich.table import Table  # noqa: PLC0415
 
     table = Table(title="evaluation", show_header=True, header_style="bold")
-    for col in ("views", "PSNR", "SSIM", "LPIPS", "#Gaussians", "size MiB", "Mbps", "FPS"):
+    for col in ("camera (views)", "PSNR", "SSIM", "LPIPS", "#Gaussians", "size MiB", "Mbps", "FPS"):
         table.add_column(col, justify="right")
 
     def row(name: str, agg: Mapping[str, Any], whole: bool) -> None:
