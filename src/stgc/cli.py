@@ -210,9 +210,9 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from stgc.experiment.demo import run_demo
+    from stgc.demo import run_demo
 
-    return run_demo(Path(args.out))
+    return run_demo(Path(args.out), Path(args.data) if args.data else None)
 
 
 # --------------------------------------------------------------------------------------------- parser
@@ -312,6 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="the whole pipeline on the small embedded scene (what `make demo` runs)")
     p.add_argument("--out", default="demo_out", help="output directory (resumable)")
+    p.add_argument("--data", help="scene directory (default: the embedded demo/toys_small)")
     p.set_defaults(func=cmd_demo)
     return parser
 
