@@ -82,11 +82,11 @@ def xyz_learning_rate(cfg: TrainConfig, extent: float, iteration: int, total: in
 
 def build_initial_model(dataset: Any, data_cfg: Any, model_cfg: Any) -> Any:
     """The STG model initialised from the dataset's point cloud as the data config asks."""
-    from stgc.data import initial_points_from_config  # the data engineer's helper: DataConfig -> PointCloud
-    from stgc.model import STGModel
+    from stgc.data.config import initial_points_from_config
+    from stgc.model import ModelConfig, STGModel
 
     cloud = initial_points_from_config(dataset, data_cfg)
-    return STGModel.from_config(cloud, model_cfg, scene_extent=dataset.scene_extent())
+    return STGModel.from_config(cloud, model_cfg or ModelConfig(), scene_extent=dataset.scene_extent())
 
 
 class ImageCache:
@@ -151,6 +151,8 @@ class Trainer:
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         self.callback = callback
+        if train_cfg.ems.enabled:
+            raise ValueError("train.ems.enabled: error-guided sampling is not implemented yet (see docs/training.md)")
         self.schedule: Schedule = resolve_schedule(train_cfg)
         if train_cfg.threads > 0:
             torch.set_num_threads(train_cfg.threads)
