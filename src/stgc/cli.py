@@ -7,7 +7,6 @@ can also be given as `--set <section>.<field>=<value>`. Order of precedence: pre
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import os
 import sys
@@ -22,7 +21,6 @@ from stgc.config import (
     from_dict,
     parse_set_arguments,
     split_sections,
-    to_dict,
 )
 from stgc.errors import StgcError
 
@@ -88,15 +86,6 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
     return out
 
 
-def open_dataset_for(path: str | Path, data_cfg: Any) -> Any:
-    """Open DATA with the DataConfig fields that `open_dataset` accepts."""
-    from stgc.data import open_dataset
-
-    accepted = inspect.signature(open_dataset).parameters
-    kwargs = {k: v for k, v in to_dict(data_cfg).items() if k in accepted and k != "path"}
-    return open_dataset(path, **kwargs)
-
-
 # --------------------------------------------------------------------------------------------- verbs
 def cmd_train(args: argparse.Namespace) -> int:
     from stgc.train import train
@@ -120,7 +109,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         data_path = args.data
     if data_path is None:
         raise StgcError("no DATA given and the run has no saved data path")
-    dataset = open_dataset_for(data_path, configs["data"])
+    dataset = configs["data"].open(data_path)
     summary = train(
         dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=args.resume
     )
