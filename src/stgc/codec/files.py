@@ -43,6 +43,8 @@ class CodecConfig:
         "help": "bits per position axis over the bounding box, 2..24; 0 = the quality level's value"})
     adaptive_delta: bool = field(default=True, metadata={
         "help": "per section, also try delta coding along the Morton order and keep whichever is smaller"})
+    outlier_guard: bool = field(default=True, metadata={
+        "help": "add bits to an attribute group whose range a few outliers stretch (keeps the bulk's precision)"})
     embed_run_config: bool = field(default=True, metadata={
         "help": "store the run's config.json (about 1 KB compressed) so `decompress` restores an evaluable run"})
 
@@ -77,7 +79,7 @@ def encode_with_config(arrays: dict, variant: str, decoder_state: dict | None, c
     config.validate()
     return encode(arrays, variant, decoder_state, config.quality, zstd_level=config.zstd_level,
                   position_bits=config.position_bits or None, adaptive_delta=config.adaptive_delta,
-                  metadata=metadata)
+                  outlier_guard=config.outlier_guard, metadata=metadata)
 
 
 def write_stgc(path: str | Path, data: bytes) -> Path:

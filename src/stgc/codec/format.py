@@ -45,6 +45,7 @@ QUALITY_LEVELS = (1, 2, 3, 4, 5)
 DEFAULT_QUALITY = 3
 DEFAULT_ZSTD_LEVEL = 19  # encoding is offline; 19 is ~3 % smaller than 12 and decodes as fast
 _PROBE_LEVEL = 3  # zstd level used only to rank candidate layouts
+_GUARD_RATIO = 4.0  # full range / central 99.8 % range above which the outlier guard adds bits
 # Decoder-side caps: a file may not make us allocate more than this, whatever it claims.
 MAX_GAUSSIANS = 1 << 27
 MAX_SECTIONS = 64
@@ -230,6 +231,23 @@ def _from_domain(values: np.ndarray, domain: str) -> np.ndarray:
     return values
 
 
+def outlier_guard_bits(values: np.ndarray, bits: int) -> int:
+    """`bits` plus enough to keep the bulk's precision when a few outliers stretch the range.
+
+    The quantizer step follows the full [min, max] range, so one Gaussian far out (a floater, a stray motion
+    coefficient) would coarsen every other Gaussian's step. When the full span exceeds twice the span of the
+    central 99.8 % (0.1 to 99.9 percentile) of any component, one bit is added per doubling, up to +8 bits
+    (and 24 in all). Typical heavy-tailed data stays below the factor 2 and is unaffected."""
+    if values.shape[1] < 2:
+        return bits
+    lo, hi = np.quantile(values, [0.001, 0.999], axis=1)
+    full = values.max(axis=1) - values.min(axis=1)
+    robust = np.maximum(hi - lo, np.finfo(np.float64).tiny)
+    ratio = float(np.max(np.where(full > 0, full / robust, 1.0)))
+    extra = int(np.ceil(np.log2(ratio / _GUARD_RATIO))) if ratio > _GUARD_RATIO else 0
+    return min(MAX_BITS, bits + min(extra, 8))
+
+
 def _fit_group(values: np.ndarray, domain: str, bits: int) -> tuple[Quantizer, ...]:
     if domain == QUAT_SMALLEST3:  # the index row is stored as is
         return tuple(fit_quantizer(v, bits) for v in values[:3]) + (Quantizer(step=1.0, zero_point=0, bits=bits),)
@@ -313,13 +331,15 @@ def encode(
     position_bits: int | None = None,
     group_bits: Mapping[str, int] | None = None,
     adaptive_delta: bool = True,
+    outlier_guard: bool = True,
     metadata: Mapping[str, Any] | None = None,
 ) -> bytes:
     """Encode official-layout PLY arrays (float32 [N] per field; normals ignored) into a .stgc bitstream.
 
     quality 1..5 selects the bit depths (GROUPS); position_bits overrides the position depth, group_bits any
-    group's ({"MOTN": 10, ...}, keyed by section tag). The Gaussians are
-    reordered along the Morton curve of their quantized positions. metadata: small JSON-able dict kept verbatim."""
+    group's ({"MOTN": 10, ...}, keyed by section tag). outlier_guard adds bits to a linear group whose range
+    is stretched by outliers (outlier_guard_bits). The Gaussians are reordered along the Morton curve of their
+    quantized positions. metadata: small JSON-able dict kept verbatim."""
     n, cols = _validated_columns(arrays, variant)
     unknown = set(group_bits or ()) - {g.tag.decode("latin-1") for g in GROUPS}
     if unknown:
@@ -344,6 +364,8 @@ def encode(
             bits = int(group_bits[group.tag.decode("latin-1")])
         container_dtype(bits)  # validates the range
         values = _to_domain(np.stack([cols[f] for f in group.fields(variant)], axis=0), group.domain)
+        if group.domain == LINEAR and outlier_guard:  # the other domains are bounded ([0, 1], unit quaternion)
+            bits = outlier_guard_bits(values, bits)
         quantizers = _fit_group(values, group.domain, bits)
         codes = np.stack([quantize(v, q) for v, q in zip(values, quantizers)], axis=0)
         if order is None:  # POSI comes first: its codes define the Morton order used by every section
