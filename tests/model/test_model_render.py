@@ -148,3 +148,16 @@ def test_a_saved_ply_renders_the_same_image(tmp_path, variant):
         after = loaded.render(camera, backend="torch").rgb
     assert before.std() > 0
     assert torch.equal(before, after)
+
+
+def test_nothing_is_culled_at_initialisation(monkeypatch):
+    # s_t = 0 and opacity 0.1 give α(t) >= 0.1·e^{-1} > 1/255 for every t in [0, 1]: the no-copy path
+    fake = _RecordingRasterizer()
+    monkeypatch.setattr(stgc.render, "rasterize", fake, raising=False)
+    model = STGModel.from_points(point_cloud(30), variant="lite")
+    out = model.render(look_at_camera(time=0.9))
+    assert torch.equal(out.index, torch.arange(30))
+    torch.testing.assert_close(fake.calls[0]["means"], model.means_at(0.9))
+    torch.testing.assert_close(fake.calls[0]["opacities"], model.temporal_opacity(0.9))
+    out.rgb.sum().backward()
+    assert (model.params["opacity"].grad != 0).all()

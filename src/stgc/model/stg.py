@@ -291,13 +291,16 @@ class STGModel:
         t = float(camera.time if t is None else t)
         opacity = self.temporal_opacity(t)
         index = torch.nonzero(opacity.detach() >= MIN_VISIBLE_OPACITY, as_tuple=False)[:, 0]
-        rows = {key: value[index] for key, value in self.params.items()}
+        if len(index) == self.num_gaussians:  # nothing culled (e.g. early training): skip the row copies
+            rows, visible_opacity = dict(self.params), opacity
+        else:
+            rows, visible_opacity = {key: value[index] for key, value in self.params.items()}, opacity[index]
         cached = self._camera_tensors(camera)
         raster = _render.rasterize(
             _means_at(rows, t),
             _rotations_at(rows, t),
             torch.exp(rows["scaling"]),
-            opacity[index],
+            visible_opacity,
             _features_at(rows, t),
             cached["K"],
             cached["viewmat"],
