@@ -109,7 +109,7 @@ def nearest_other(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if valid.size < 2:
         return nn, dist
     pts = np.ascontiguousarray(features[valid])
-    tree = cKDTree(pts, leafsize=16, balanced_tree=False, compact_nodes=False)
+    tree = cKDTree(pts, leafsize=32, balanced_tree=False, compact_nodes=False)
     order = tree.indices  # leaf order: consecutive queries are spatial neighbours
     d2, i2 = tree.query(pts[order], k=2, workers=_workers())
     local = np.empty((pts.shape[0], 2), dtype=np.int64)
