@@ -195,11 +195,9 @@ def rasterize(
     if chosen == "numba":
         from . import numba_backend as nb
 
-        rect = tile_rects(proj.radii, proj.means2d, width, height, nb.TILE_SIZE)
-        offsets, flat = nb.bin_tiles(rect, proj.depths, width, height, nb.TILE_SIZE)
-        color, trans, depth, weights = nb.composite_numba(
-            proj.means2d, proj.conics, opacities, features, sigma_cutoff(opacities), proj.depths, offsets, flat,
-            width, height, nb.TILE_SIZE, float(alpha_max), ALPHA_MIN, T_MIN, return_depth, return_weights,
+        color, trans, depth, weights, n_isects = nb.composite_numba(
+            proj.means2d, proj.conics, opacities, features, sigma_cutoff(opacities), proj.depths, proj.radii,
+            width, height, float(alpha_max), ALPHA_MIN, T_MIN, return_depth, return_weights,
         )  # fmt: skip
     else:
         from . import torch_backend as tb
@@ -211,6 +209,7 @@ def rasterize(
             proj.means2d, proj.conics, opacities, features, proj.depths, offsets, flat,
             width, height, tb.TILE_SIZE, float(alpha_max), ALPHA_MIN, T_MIN, return_depth, return_weights,
         )  # fmt: skip
+        n_isects = int(flat.numel())
     image = color if background is None else color + trans[..., None] * background
     return RenderOutput(
         image=image,
@@ -221,5 +220,5 @@ def rasterize(
         means2d=proj.means2d,
         weights=weights,
         backend=chosen,
-        num_intersections=int(flat.numel()),
+        num_intersections=n_isects,
     )

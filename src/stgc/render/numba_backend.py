@@ -15,14 +15,6 @@ from .projection import tile_grid
 TILE_SIZE = 8
 
 
-def bin_tiles(rect: Tensor, depths: Tensor, width: int, height: int, tile_size: int) -> tuple[Tensor, Tensor]:
-    """Counting-sort binning on CPU; same ordering as projection.bin_tiles_torch (stable by depth)."""
-    tiles_x, tiles_y = tile_grid(width, height, tile_size)
-    order = torch.argsort(depths, stable=True).numpy()
-    offsets, flat = kernels.bin_tiles(rect.numpy(), order, tiles_x * tiles_y, tiles_x)
-    return torch.from_numpy(offsets), torch.from_numpy(flat)
-
-
 def _consts(dtype: np.dtype, alpha_max: float, alpha_min: float, t_min: float) -> np.ndarray:
     return np.array([0.5, 1.0, alpha_max, alpha_min, t_min, 0.0], dtype=dtype)
 
@@ -40,17 +32,15 @@ def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, sigma_cut: Tensor,
 
 class _NumbaComposite(torch.autograd.Function):
     """(means2d, conics, opacities, colors) -> (color [H,W,C] without background, final transmittance [H,W],
-    median depth [H,W] | None, weights [N] | None)."""
+    median depth [H,W] | None, weights [N] | None). `gdata` is the packed numpy copy of the first three."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, sigma_cut, depths, offsets, flat, width, height, tile_size,
-                alpha_max, alpha_min, t_min, want_depth, want_weights):  # fmt: skip
-        np_dtype = np.float64 if colors.dtype == torch.float64 else np.float32
-        gdata = _pack(means2d, conics, opacities, sigma_cut, depths, np_dtype)
+    def forward(ctx, means2d, conics, opacities, colors, gdata, offsets, flat, width, height, tile_size, consts,
+                want_depth, want_weights):  # fmt: skip
+        np_dtype = gdata.dtype.type
         col = np.ascontiguousarray(colors.detach().numpy(), dtype=np_dtype)
         N, C = col.shape
         tiles_x, _ = tile_grid(width, height, tile_size)
-        consts = _consts(np_dtype, alpha_max, alpha_min, t_min)
         centers_x = np.arange(width, dtype=np_dtype) + np_dtype(0.5)
         centers_y = np.arange(height, dtype=np_dtype) + np_dtype(0.5)
         out_color = np.empty((height, width, C), dtype=np_dtype)
@@ -59,12 +49,13 @@ class _NumbaComposite(torch.autograd.Function):
         out_depth = np.zeros((height, width) if want_depth else (1, 1), dtype=np_dtype)
         n_threads = numba.get_num_threads()
         weight_rows = np.zeros((n_threads, N) if want_weights else (1, 1), dtype=np_dtype)
-        of, fl = offsets.numpy(), flat.numpy()
+        longest = int((offsets[1:] - offsets[:-1]).max()) if offsets.shape[0] > 1 else 0
+        scratch = np.empty((n_threads, max(longest, 1), 8 + C), dtype=np_dtype)
         kernels.composite_forward(
-            gdata, col, of, fl, centers_x, centers_y, tile_size, tiles_x, consts,
-            want_depth, want_weights, out_color, out_trans, out_last, out_depth, weight_rows,
+            gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts,
+            want_depth, want_weights, out_color, out_trans, out_last, out_depth, weight_rows, scratch,
         )  # fmt: skip
-        ctx.arrays = (gdata, col, of, fl, centers_x, centers_y, consts, out_trans, out_last)
+        ctx.arrays = (gdata, col, offsets, flat, centers_x, centers_y, consts, out_trans, out_last)
         ctx.layout = (tile_size, tiles_x, N, C)
         depth = torch.from_numpy(out_depth) if want_depth else None
         weights = torch.from_numpy(weight_rows.sum(axis=0)) if want_weights else None
@@ -75,28 +66,33 @@ class _NumbaComposite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_color, grad_trans, _grad_depth, _grad_weights):
-        gdata, col, of, fl, centers_x, centers_y, consts, out_trans, out_last = ctx.arrays
+        gdata, col, offsets, flat, centers_x, centers_y, consts, out_trans, out_last = ctx.arrays
         tile_size, tiles_x, N, C = ctx.layout
-        np_dtype = gdata.dtype
+        np_dtype = gdata.dtype.type
         H, W = out_trans.shape
         gc = np.zeros((H, W, C), np_dtype) if grad_color is None else np.ascontiguousarray(grad_color.numpy(), np_dtype)
         gt = np.zeros((H, W), np_dtype) if grad_trans is None else np.ascontiguousarray(grad_trans.numpy(), np_dtype)
-        rows = np.zeros((numba.get_num_threads(), N, kernels.N_GEOM_GRADS + C), dtype=np_dtype)
+        n_threads = numba.get_num_threads()
+        rows = np.zeros((n_threads, N, kernels.N_GEOM_GRADS + C), dtype=np_dtype)
+        longest = int((offsets[1:] - offsets[:-1]).max()) if offsets.shape[0] > 1 else 0
+        scratch = np.empty((n_threads, max(longest, 1), 8 + C), dtype=np_dtype)
+        scratch_grads = np.empty((n_threads, max(longest, 1), kernels.N_GEOM_GRADS + C), dtype=np_dtype)
         kernels.composite_backward(
-            gdata, col, of, fl, centers_x, centers_y, tile_size, tiles_x, consts, out_trans, out_last, gc, gt, rows
-        )
+            gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts, out_trans, out_last, gc, gt,
+            rows, scratch, scratch_grads,
+        )  # fmt: skip
         if rows.shape[0] == 1:
             total = rows[0]
         else:
             total = np.empty(rows.shape[1:], dtype=np_dtype)
             kernels.sum_rows(rows, total)
         total = torch.from_numpy(total)
-        g = kernels
-        d_means2d = total[:, g.GX : g.GY + 1]
-        d_conics = total[:, g.GA : g.GC + 1]
-        d_opac = total[:, g.GO]
-        d_colors = total[:, g.N_GEOM_GRADS :]
-        return (d_means2d, d_conics, d_opac, d_colors) + (None,) * 12
+        k = kernels
+        d_means2d = total[:, k.GX : k.GY + 1]
+        d_conics = total[:, k.GA : k.GC + 1]
+        d_opac = total[:, k.GO]
+        d_colors = total[:, k.N_GEOM_GRADS :]
+        return (d_means2d, d_conics, d_opac, d_colors) + (None,) * 9
 
 
 def composite_numba(
@@ -106,18 +102,24 @@ def composite_numba(
     colors: Tensor,
     sigma_cut: Tensor,
     depths: Tensor,
-    offsets: Tensor,
-    flat: Tensor,
+    radii: Tensor,
     width: int,
     height: int,
-    tile_size: int,
     alpha_max: float,
     alpha_min: float,
     t_min: float,
     want_depth: bool,
     want_weights: bool,
-) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
-    return _NumbaComposite.apply(
-        means2d, conics, opacities, colors, sigma_cut, depths, offsets, flat, width, height, tile_size,
-        alpha_max, alpha_min, t_min, want_depth, want_weights,
+    tile_size: int = TILE_SIZE,
+) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, int]:
+    """Bin and composite on CPU: (color, final T, median depth | None, weights | None, number of intersections)."""
+    np_dtype = np.float64 if colors.dtype == torch.float64 else np.float32
+    gdata = _pack(means2d, conics, opacities, sigma_cut, depths, np_dtype)
+    order = torch.argsort(depths, stable=True).numpy()
+    offsets, flat = kernels.bin_tiles(gdata, radii.numpy(), order, width, height, tile_size)
+    consts = _consts(np_dtype, alpha_max, alpha_min, t_min)
+    color, trans, depth, weights = _NumbaComposite.apply(
+        means2d, conics, opacities, colors, gdata, offsets, flat, width, height, tile_size, consts,
+        want_depth, want_weights,
     )  # fmt: skip
+    return color, trans, depth, weights, int(flat.shape[0])
