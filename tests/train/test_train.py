@@ -10,7 +10,7 @@ import torch
 from stgc.compaction import CompactionConfig
 from stgc.eval.evaluate import evaluate
 from stgc.train import TrainConfig, train
-from stgc.train.config import DensifyConfig
+from stgc.train.config import DensifyConfig, EMSConfig
 from stgc.train.loop import Trainer
 
 
@@ -45,7 +45,8 @@ def _test_psnr(model, dataset) -> float:
 
 
 def test_killed_run_resumes_to_the_uninterrupted_result(tiny_toys, make_model, tmp_path):
-    cfg = _short_config()
+    # Error-guided sampling from iteration 2, so its camera bookkeeping and insertions cross the kill too.
+    cfg = _short_config(ems=EMSConfig(enabled=True, start=2, min_gap=3, select_ssim=0.99, trigger_ssim=0.99))
     # Compaction prunes every 2 iterations from 22 to 34, so the kill at 27 interrupts its window.
     compaction = CompactionConfig(case=0, window_start=0.55, window_end=0.875, interval=2)
     straight = Trainer(tiny_toys, None, None, cfg, compaction, tmp_path / "a", model=make_model(tiny_toys, 200))
@@ -74,6 +75,8 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tiny_toys, make_model, t
     rows_a = [(r["iteration"], r["loss"], r["num_gaussians"]) for r in straight.metrics_log.read()]
     rows_b = [(r["iteration"], r["loss"], r["num_gaussians"]) for r in resumed.metrics_log.read()]
     assert rows_a == rows_b and [r[0] for r in rows_a] == list(range(5, 41, 5))
+    assert straight.ems.state["events"] >= 1  # it did insert Gaussians
+    assert resumed.ems.state == straight.ems.state
     events_a = [(e["iteration"], e["removed"]) for e in straight.compaction_log.read()]
     events_b = [(e["iteration"], e["removed"]) for e in resumed.compaction_log.read()]
     assert events_a == events_b and len(events_a) >= 5 and sum(r for _, r in events_a) > 0

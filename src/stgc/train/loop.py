@@ -32,6 +32,7 @@ from stgc.train.densify import (
     prune_mask_low_opacity,
     prune_mask_nonfinite,
 )
+from stgc.train.ems import ErrorGuidedSampler
 from stgc.train.monitor import JsonLines, Progress, TensorBoard
 
 IterationCallback = Callable[[int, dict[str, Any]], None]
@@ -151,8 +152,6 @@ class Trainer:
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         self.callback = callback
-        if train_cfg.ems.enabled:
-            raise ValueError("train.ems.enabled: error-guided sampling is not implemented yet (see docs/training.md)")
         self.schedule: Schedule = resolve_schedule(train_cfg)
         if train_cfg.threads > 0:
             torch.set_num_threads(train_cfg.threads)
@@ -166,7 +165,6 @@ class Trainer:
         self.elapsed_before = 0.0
         self.start_iteration = 0
         self.densify_rounds_done = 0
-        self.ems_state: dict[str, Any] = {}
 
         checkpoint = None
         if resume and (self.out / CHECKPOINT_NAME).exists():
@@ -181,6 +179,10 @@ class Trainer:
         self.optimizer = self.model.make_optimizer(learning_rates(train_cfg, self.extent), train_cfg.lr.decoder)
         self.stats = DensificationStats(self.model.num_gaussians)
         self.compactor = self._make_compactor()
+        self.ems = ErrorGuidedSampler(
+            train_cfg.ems, self.schedule.ems_start, self.schedule.ems_min_gap,
+            [str(c.name) for c in dataset.train], float(getattr(model_cfg, "trbf_scale_init", 0.0)),
+        )
         if checkpoint is not None:
             self._restore(checkpoint)
 
@@ -225,7 +227,8 @@ class Trainer:
         self.start_iteration = int(ckpt["iteration"])
         self.elapsed_before = float(ckpt["elapsed_s"])
         self.densify_rounds_done = int(ckpt["densify_rounds_done"])
-        self.ems_state = dict(ckpt.get("ems") or {})
+        if ckpt.get("ems"):
+            self.ems.state = ckpt["ems"]
         if self.compactor is not None and ckpt.get("compactor") is not None:
             self.compactor.load_state_dict(ckpt["compactor"])
         restore_rng_states(ckpt["rng"])
@@ -242,7 +245,7 @@ class Trainer:
             "densify_stats": self.stats.state_dict(),
             "densify_rounds_done": self.densify_rounds_done,
             "compactor": None if self.compactor is None else self.compactor.state_dict(),
-            "ems": self.ems_state,
+            "ems": self.ems.state,
         }
 
     # ------------------------------------------------------------------------------------------- one step
@@ -253,14 +256,16 @@ class Trainer:
                 group["lr"] = lr
         return lr
 
-    def _loss(self, render_rgb: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    def _loss(self, render_rgb: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, float]:
+        """(loss, SSIM value) of one view."""
         from stgc.eval import ssim
 
         lam = self.cfg.lambda_dssim
         l1 = (render_rgb - gt).abs().mean()
         if lam == 0:
-            return l1
-        return (1.0 - lam) * l1 + lam * (1.0 - ssim(render_rgb, gt))
+            return l1, float("nan")
+        s = ssim(render_rgb, gt)
+        return (1.0 - lam) * l1 + lam * (1.0 - s), float(s.detach())
 
     def train_step(self, iteration: int) -> dict[str, Any]:
         """Render, backpropagate and update once; returns the iteration's numbers."""
@@ -275,11 +280,14 @@ class Trainer:
 
         total_loss, total_mse = 0.0, 0.0
         last = None
+        ems_view = None
         for cam in views:
             gt = self.images.get(cam)
             out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend)
-            loss = self._loss(out.rgb, gt)
+            loss, ssim_value = self._loss(out.rgb, gt)
             (loss / batch).backward()
+            if self.ems.observe(iteration, cam, ssim_value) and ems_view is None:
+                ems_view = (cam, out.rgb.detach(), gt)
             total_loss += float(loss.detach())
             total_mse += float(((out.rgb.detach().clamp(0, 1) - gt) ** 2).mean())
             last = out
@@ -292,7 +300,8 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         mean_loss = total_loss / batch
         mean_mse = total_mse / batch
-        return {"t": t, "frame": frame, "loss": mean_loss, "psnr": -10.0 * math.log10(max(mean_mse, 1e-12)), "lr_xyz": lr_xyz}
+        return {"t": t, "frame": frame, "loss": mean_loss, "psnr": -10.0 * math.log10(max(mean_mse, 1e-12)),
+                "lr_xyz": lr_xyz, "ems_view": ems_view}
 
     def density_control(self, iteration: int, generator: torch.Generator) -> dict[str, int]:
         sched, d, fl = self.schedule, self.cfg.densify, self.cfg.floaters
@@ -380,6 +389,11 @@ class Trainer:
                 generator = torch.Generator().manual_seed(_derive_seed(cfg.seed, iteration, 2))
                 step = self.train_step(iteration)
                 control = self.density_control(iteration, generator)
+                ems_view = step.pop("ems_view")
+                if ems_view is not None:
+                    added = self.ems.insert(iteration, self.model, *ems_view, generator)
+                    self.stats.append(added)
+                    control["ems_added"] = added
                 if self.compactor is not None:
                     with _PruneObserver(self.model, self.stats):
                         event = self.compactor.step(iteration, step["t"], self.model, step["loss"],

@@ -1,0 +1,58 @@
+"""Error-guided sampling: which pixels get new Gaussians, where on their rays, and when it triggers."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from stgc.data import Camera
+from stgc.train.config import EMSConfig
+from stgc.train.ems import ErrorGuidedSampler, error_pixels, ray_points
+
+
+def test_error_pixels_are_three_quarters_of_the_fully_wrong_patches():
+    render = torch.full((128, 128, 3), 0.5)
+    gt = render.clone()
+    gt[48:80, 48:80] = 1.0  # exactly the 2x2 patches (3..4, 3..4) of the 16-pixel grid are wrong
+    pixels = error_pixels(render, gt, EMSConfig(enabled=True))
+    assert len(pixels) == 4 * 16 * 16 * 3 // 4
+    assert pixels[:, 0].min() == 48 and pixels[:, 0].max() == 79 and pixels[:, 1].min() == 48
+    assert not np.any((pixels[:, 0] % 2 == 0) & (pixels[:, 1] % 2 == 0))
+    # The same error in the border ring of patches is ignored.
+    gt2 = render.clone()
+    gt2[0:16, 0:32] = 1.0
+    assert len(error_pixels(render, gt2, EMSConfig(enabled=True))) == 0
+
+
+def test_ray_points_project_back_to_their_pixels_at_the_sampled_depths():
+    R = Rotation.from_euler("xyz", [0.2, -0.4, 0.1]).as_matrix()
+    w2c = np.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = R, [0.3, -0.2, 2.0]
+    K = np.array([[100.0, 0, 64.0], [0, 110.0, 48.0], [0, 0, 1]])
+    cam = Camera("c", 0, 0.0, K, w2c, 128, 96)
+    pixels = np.array([[10, 20], [64, 48], [127, 95]])
+    cfg = EMSConfig(enabled=True)
+    xyz, which = ray_points(cam, pixels, 3.0, cfg, torch.Generator().manual_seed(0))
+    uv, depth = cam.project(xyz)
+    assert np.allclose(uv, pixels[which] + 0.5, atol=1e-6)
+    near, far = depth[:3], depth[3:]
+    assert np.all(np.abs(near / (3.0 * 0.7) - 1) <= 0.05 + 1e-9)
+    assert np.allclose(far / near, 7.5 / 0.7)
+
+
+def test_sampler_picks_two_worst_cameras_after_seeing_all():
+    cfg = EMSConfig(enabled=True, max_events=2)
+    ems = ErrorGuidedSampler(cfg, start=10, min_gap=5, train_names=["a", "b", "c"], trbf_scale_init=0.0)
+    cam = {n: SimpleNamespace(name=n) for n in "abc"}
+    assert not ems.observe(9, cam["a"], 0.1)  # before start: not even recorded
+    assert not ems.observe(10, cam["a"], 0.80)
+    assert not ems.observe(11, cam["b"], 0.95)
+    assert not ems.observe(12, cam["c"], 0.85)  # all seen now: candidates a and c
+    assert ems.state["candidates"] == ["a", "c"]
+    assert not ems.observe(13, cam["b"], 0.5)  # not a candidate
+    assert not ems.observe(13, cam["a"], 0.90)  # candidate, but SSIM above the trigger 0.88
+    assert ems.observe(14, cam["c"], 0.87)
