@@ -71,7 +71,7 @@ def test_ssim_interior_equals_skimage(seed: int) -> None:
     ours = ssim_map(torch.from_numpy(img), torch.from_numpy(ref))[0].permute(1, 2, 0).numpy()
     np.testing.assert_allclose(ours[5:-5, 5:-5], sk_map[5:-5, 5:-5], atol=1e-10)
     assert ours[5:-5, 5:-5].mean() == pytest.approx(sk_mean, abs=1e-10)
-    # The documented difference: 3DGS averages the zero-padded border too, which drags the mean down here.
+    # The documented difference: 3DGS also averages the zero-padded border (here it raises the mean).
     whole = float(ssim(torch.from_numpy(img), torch.from_numpy(ref)))
     assert whole != pytest.approx(sk_mean, abs=1e-4)
 
