@@ -166,3 +166,17 @@ def test_dry_run_launches_nothing(tmp_path: Path) -> None:
     result = run_plan("DATA", "table3", tmp_path, runner=fake_runner, dry_run=True, log=lambda m: None)
     assert all(o.status == "dry-run" for o in result.outcomes) and len(result.outcomes) == 9
     assert "stgc.cli train DATA" in result.outcomes[1].message and not _invocations(tmp_path)
+
+
+@pytest.mark.parametrize("plan_name", ["table2", "table3"])
+def test_plan_overrides_are_real_config_keys(plan_name: str) -> None:
+    """Every override of the built-in plans names a field the trainer's configs have, with a valid value."""
+    from stgc.cli import resolve_configs
+
+    for spec in load_plan(plan_name).runs:
+        configs = resolve_configs("cpu", {}, {}, dict(spec.overrides))
+        assert configs["data"].preprocess == spec.overrides["data.preprocess"]
+        assert configs["compaction"].method == spec.overrides["compaction.method"]
+        if "compaction.case" in spec.overrides:
+            assert configs["compaction"].case == int(spec.overrides["compaction.case"])
+            assert configs["compaction"].criterion == spec.overrides["compaction.criterion"]
