@@ -172,8 +172,10 @@ def test_dry_run_launches_nothing(tmp_path: Path) -> None:
 def test_plan_overrides_are_real_config_keys(plan_name: str) -> None:
     """Every override of the built-in plans names a field the trainer's configs have, with a valid value."""
     from stgc.cli import resolve_configs
+    from stgc.data.preprocess import MODES
 
     for spec in load_plan(plan_name).runs:
+        assert spec.overrides["data.preprocess"] in MODES
         configs = resolve_configs("cpu", {}, {}, dict(spec.overrides))
         assert configs["data"].preprocess == spec.overrides["data.preprocess"]
         assert configs["compaction"].method == spec.overrides["compaction.method"]
