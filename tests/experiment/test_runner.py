@@ -168,13 +168,16 @@ def test_dry_run_launches_nothing(tmp_path: Path) -> None:
     assert "stgc.cli train DATA" in result.outcomes[1].message and not _invocations(tmp_path)
 
 
-@pytest.mark.parametrize("plan_name", ["table2", "table3"])
+@pytest.mark.parametrize("plan_name", ["table2", "table3", "demo"])
 def test_plan_overrides_are_real_config_keys(plan_name: str) -> None:
     """Every override of the built-in plans names a field the trainer's configs have, with a valid value."""
     from stgc.cli import resolve_configs
     from stgc.data.preprocess import MODES
+    from stgc.experiment.demo import DEMO_SCENE, demo_plan
 
-    for spec in load_plan(plan_name).runs:
+    plan = demo_plan() if plan_name == "demo" else load_plan(plan_name)
+    assert DEMO_SCENE.is_dir()
+    for spec in plan.runs:
         assert spec.overrides["data.preprocess"] in MODES
         configs = resolve_configs("cpu", {}, {}, dict(spec.overrides))
         assert configs["data"].preprocess == spec.overrides["data.preprocess"]
