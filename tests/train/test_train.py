@@ -107,3 +107,16 @@ def test_training_improves_test_psnr(tiny_toys, make_model, tmp_path):
     print(f"test PSNR {before:.2f} -> {after:.2f} dB, {summary['num_gaussians']} Gaussians, "
           f"{summary['it_per_s']:.1f} it/s")
     assert after >= before + 4.0  # measured: 14.9 -> 20.6 dB
+
+
+def test_importance_sums_blending_weights_over_one_view_per_camera(tiny_toys, make_model, tmp_path):
+    trainer = Trainer(tiny_toys, None, None, _short_config(), None, tmp_path / "imp", model=make_model(tiny_toys, 200))
+    views = trainer.importance_views()
+    assert sorted(str(v.name) for v in views) == sorted(tiny_toys.train_views)
+    assert len({v.frame for v in views}) == len(tiny_toys.frames)  # the frames are spread over the segment
+    weights = trainer.importance()
+    assert weights.shape == (trainer.model.num_gaussians,) and torch.all(weights >= 0)
+    # Sum over Gaussians of alpha_i * T_i is each pixel's alpha, so the total is the summed alpha of the views.
+    with torch.no_grad():
+        total_alpha = sum(float(trainer.model.render(v, t=v.time).alpha.sum()) for v in views)
+    assert float(weights.sum()) == pytest.approx(total_alpha, rel=1e-4)

@@ -332,11 +332,24 @@ class Trainer:
             report["opacity_reset"] = 1
         return report
 
+    def importance_views(self) -> list[Any]:
+        """One view per training camera, their frames spread evenly over the segment: every view and every part of
+        the time range is covered once, at (#cameras) renders instead of (#cameras x #frames)."""
+        by_name: dict[str, list[Any]] = {}
+        for cam in self.dataset.train:
+            by_name.setdefault(str(cam.name), []).append(cam)
+        views = []
+        for k, name in enumerate(sorted(by_name)):
+            cams = sorted(by_name[name], key=lambda c: c.frame)
+            views.append(cams[(k * len(cams)) // max(len(by_name), 1) % len(cams)])
+        return views
+
     def importance(self) -> torch.Tensor:
-        """Accumulated blending weight of every Gaussian over all training views (for compaction 'importance')."""
+        """Accumulated blending weight of every Gaussian over the training views of `importance_views` (for the
+        compaction criterion 'importance')."""
         weights = torch.zeros(self.model.num_gaussians, dtype=torch.float64)
         with torch.no_grad():
-            for cam in self.dataset.train:
+            for cam in self.importance_views():
                 out = self.model.render(cam, t=float(cam.time), background=self.background,
                                         backend=self.cfg.backend, return_weights=True)
                 w = out.raster.weights
