@@ -150,3 +150,16 @@ def test_schedule_scaling_and_xyz_decay():
     assert xyz_learning_rate(cfg, 2.0, 0, 100) == pytest.approx(3.2e-4)
     assert xyz_learning_rate(cfg, 2.0, 100, 100) == pytest.approx(3.2e-6)
     assert xyz_learning_rate(cfg, 2.0, 50, 100) == pytest.approx(np.sqrt(3.2e-4 * 3.2e-6))
+
+
+def test_train_config_is_cli_ready():
+    from stgc.config import apply_overrides, from_dict, iter_fields, to_dict
+    from stgc.train import train_preset
+
+    specs = list(iter_fields(TrainConfig))
+    assert all(s.help for s in specs), [s.dotted for s in specs if not s.help]
+    cfg = apply_overrides(train_preset("cpu"), {"densify.rounds": "12", "save_iterations": "100,200",
+                                                "stop_after": "none", "ems.enabled": "true"})
+    assert cfg.densify.rounds == 12 and cfg.save_iterations == (100, 200) and cfg.ems.enabled
+    assert from_dict(TrainConfig, to_dict(cfg)) == cfg
+    assert train_preset("paper").schedule_scale == 1.0 and resolve_schedule(train_preset("cpu")).iterations < 30000
