@@ -52,3 +52,15 @@ def test_contact_sheet_layout(tiny_toys, model, tmp_path):
     assert sheet.shape == (rows * cam.height + (rows - 1) * 2, 3 * cam.width + 2 * 2, 3)
     gt = tiny_toys.load_image(tiny_toys.test_at(0)[0])
     assert np.array_equal(sheet[: cam.height, : cam.width], gt)
+
+
+def test_still_from_a_run_directory_reopens_its_dataset(tiny_toys, make_model, tmp_path):
+    from stgc.train import TrainConfig, train
+
+    model = make_model(tiny_toys, 100)
+    cfg = TrainConfig(iterations=1, progress=False, tensorboard=False, eval_at_end=False, save_iterations=())
+    train(tiny_toys, None, None, cfg, None, tmp_path / "run", model=model)
+    out = render_still(tmp_path / "run", "cam00", 0.25, tmp_path / "s.png")
+    img = iio.imread(out)
+    direct = render_still(model, "cam00", 0.25, tmp_path / "d.png", dataset=tiny_toys)
+    assert np.array_equal(img, iio.imread(direct))
