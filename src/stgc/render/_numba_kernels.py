@@ -222,7 +222,7 @@ def composite_backward(
 
     Walks each pixel's contributors back to front, recovering the transmittance in front of each by division
     (T_j = T_{j+1} / (1 - alpha_j), as the Inria and gsplat CUDA kernels do) and carrying the normalised color
-    composited behind it. With C_out = sum_j c_j a_j T_j and T_final = prod_j (1 - a_j):
+    composited behind it (only its dot product with dL/dcolor is needed). With C_out = sum_j c_j a_j T_j and T_final = prod_j (1 - a_j):
         dC/da_j = T_j (c_j - behind_j),   dT_final/da_j = -T_final / (1 - a_j),
     and a_j = min(alpha_max, o G): no gradient through the clamp when o G > alpha_max.
     A tile's gradients go to contiguous per-list-entry rows (scratch_grads) and are added to the thread's
@@ -257,7 +257,6 @@ def composite_backward(
         for k in range(used):
             for f in range(n_grads):
                 lgrad[k, f] = zero
-        behind = np.empty(n_colors, dtype=colors.dtype)
         gpix = np.empty(n_colors, dtype=colors.dtype)
         for py in range(y0, y1):
             pcy = centers_y[py]
@@ -276,7 +275,9 @@ def composite_backward(
                 pcx = centers_x[px]
                 T_final = final_trans[py, px]
                 T = T_final
-                behind[:] = zero
+                # dot(color composited behind entry k, dL/dpixel color): carried as a scalar, since
+                # behind_{k-1} = alpha_k c_k + (1 - alpha_k) behind_k is linear in the colors.
+                behind_dot = zero
                 for k in range(last - 1, -1, -1):
                     dx = local[k, GX] - pcx
                     dy = local[k, GY] - pcy
@@ -294,14 +295,13 @@ def composite_backward(
                     inv_one_minus = one / (one - alpha)
                     T = T * inv_one_minus
                     w = alpha * T
-                    d_alpha = zero
+                    col_dot = zero
                     for c in range(n_colors):
                         gc = gpix[c]
-                        col = local[k, 8 + c]
                         lgrad[k, N_GEOM_GRADS + c] += w * gc
-                        d_alpha += (col - behind[c]) * gc
-                        behind[c] = alpha * col + (one - alpha) * behind[c]
-                    d_alpha = d_alpha * T - g_trans * T_final * inv_one_minus
+                        col_dot += local[k, 8 + c] * gc
+                    d_alpha = (col_dot - behind_dot) * T - g_trans * T_final * inv_one_minus
+                    behind_dot = alpha * col_dot + (one - alpha) * behind_dot
                     if opac * G <= alpha_max:
                         lgrad[k, GO] += G * d_alpha
                         d_sigma = -opac * G * d_alpha

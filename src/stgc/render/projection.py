@@ -75,13 +75,8 @@ def project_gaussians(
     far_plane: float = 1e10,
 ) -> Projected:
     """Project N Gaussians into one pinhole camera (see the module docstring for the conventions)."""
-    R = quat_to_rotmat(quats)
-    M = R * scales[:, None, :]
-    cov_world = M @ M.transpose(1, 2)
-
     Rv, tv = viewmat[:3, :3], viewmat[:3, 3]
     means_cam = means @ Rv.T + tv
-    cov_cam = Rv @ cov_world @ Rv.T
     tx, ty, tz = means_cam.unbind(-1)
 
     # Culled-by-depth Gaussians get a harmless stand-in depth before any division, so that neither the forward nor
@@ -98,16 +93,20 @@ def project_gaussians(
     tx_c = z * torch.clamp(tx / z, min=-lim_x_neg, max=lim_x_pos)
     ty_c = z * torch.clamp(ty / z, min=-lim_y_neg, max=lim_y_pos)
 
-    zeros = torch.zeros_like(z)
-    J = torch.stack(
-        [fx / z, zeros, -fx * tx_c / (z * z), zeros, fy / z, -fy * ty_c / (z * z)], dim=-1
-    ).reshape(-1, 2, 3)
-    cov2d = J @ cov_cam @ J.transpose(1, 2)
-    cov2d = cov2d + eps2d * torch.eye(2, dtype=cov2d.dtype, device=cov2d.device)
-    c00, c01, c10, c11 = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 0], cov2d[:, 1, 1]
-    det_raw = c00 * c11 - c01 * c10
+    # cov2d = J Rv R S S^T R^T Rv^T J^T = A A^T with A = (J Rv) R S, J = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]].
+    # Building the [N, 2, 3] factor directly avoids chains of batched 3x3 products (slow on CPU), same math as gsplat.
+    inv_z = 1.0 / z
+    row0 = (fx * inv_z)[:, None] * Rv[0] - (fx * tx_c * inv_z * inv_z)[:, None] * Rv[2]
+    row1 = (fy * inv_z)[:, None] * Rv[1] - (fy * ty_c * inv_z * inv_z)[:, None] * Rv[2]
+    JW = torch.stack([row0, row1], dim=1)  # [N, 2, 3]
+    A = torch.bmm(JW, quat_to_rotmat(quats)) * scales[:, None, :]
+    a0, a1 = A[:, 0], A[:, 1]
+    c00 = (a0 * a0).sum(-1) + eps2d
+    c11 = (a1 * a1).sum(-1) + eps2d
+    c01 = (a0 * a1).sum(-1)
+    det_raw = c00 * c11 - c01 * c01
     det = det_raw.clamp(min=1e-10)
-    conics = torch.stack([c11 / det, -0.5 * (c01 + c10) / det, c00 / det], dim=-1)
+    conics = torch.stack([c11 / det, -c01 / det, c00 / det], dim=-1)
 
     means2d = (means_cam @ K[:2, :3].T) / z[:, None]
 
