@@ -1,12 +1,11 @@
-"""Small STG scenes for the compaction tests.
-
-Models are real `stgc.model.STGModel` (lite) instances when that package is importable; otherwise `ToyModel`, a
-minimal double with the same contract (params, scene_extent, means_at, rotations_at, prune with Adam state)."""
+"""Small STG scenes for the compaction tests, as real `stgc.model.STGModel` (lite) instances."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
+
+from stgc.model import STGModel
 
 LITE_WIDTHS = {
     "xyz": 3,
@@ -21,51 +20,7 @@ LITE_WIDTHS = {
 }
 
 
-class ToyModel:
-    """Test double of the STGModel contract (STG formulas: cubic motion, rotation normalize(q + omega * dt))."""
-
-    def __init__(self, params: dict[str, torch.Tensor], scene_extent: float = 1.0):
-        self.params = {k: torch.nn.Parameter(v.detach().float().clone()) for k, v in params.items()}
-        self.scene_extent = float(scene_extent)
-        self.optimizer: torch.optim.Adam | None = None
-
-    @property
-    def num_gaussians(self) -> int:
-        return int(self.params["xyz"].shape[0])
-
-    def means_at(self, t: float) -> torch.Tensor:
-        d = (t - self.params["trbf_center"]).detach()
-        m = self.params["motion"]
-        return self.params["xyz"] + m[:, 0:3] * d + m[:, 3:6] * d**2 + m[:, 6:9] * d**3
-
-    def rotations_at(self, t: float) -> torch.Tensor:
-        d = (t - self.params["trbf_center"]).detach()
-        return torch.nn.functional.normalize(self.params["rotation"] + d * self.params["omega"], dim=1)
-
-    def make_optimizer(self, lrs: dict[str, float], decoder_lr: float = 1e-4) -> torch.optim.Adam:
-        groups = [{"params": [p], "lr": lrs[k], "name": k} for k, p in self.params.items()]
-        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
-        return self.optimizer
-
-    def prune(self, keep: torch.Tensor) -> None:
-        for key, old in list(self.params.items()):
-            new = torch.nn.Parameter(old.detach()[keep].clone())
-            if self.optimizer is not None:
-                for group in self.optimizer.param_groups:
-                    if group["params"][0] is old:
-                        state = self.optimizer.state.pop(old, None)
-                        if state is not None:
-                            state = {k: (v[keep] if torch.is_tensor(v) and v.dim() > 0 else v) for k, v in state.items()}
-                            self.optimizer.state[new] = state
-                        group["params"][0] = new
-            self.params[key] = new
-
-
-def make_model(params: dict[str, torch.Tensor], scene_extent: float = 1.0):
-    try:
-        from stgc.model import STGModel
-    except ImportError:
-        return ToyModel(params, scene_extent)
+def make_model(params: dict[str, torch.Tensor], scene_extent: float = 1.0) -> STGModel:
     return STGModel(params, "lite", scene_extent=scene_extent)
 
 

@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from stgc.compaction import AdaptiveRatio, CompactionConfig, LossSmoother, STKNNCompactor, resolve_schedule
+from stgc.compaction import (
+    AdaptiveRatio,
+    CompactionConfig,
+    LossSmoother,
+    STKNNCompactor,
+    match_spatiotemporal_pairs,
+    resolve_schedule,
+)
 
 from .compaction_helpers import make_model, random_params
 
@@ -167,3 +174,22 @@ def test_optimizer_state_stays_aligned_after_pruning_with_a_real_adam():
     opt.zero_grad()
     sum(p.square().sum() for p in model.params.values()).backward()
     opt.step()  # still a consistent optimizer
+
+
+def test_importance_criterion_through_the_compactor():
+    cfg = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, criterion="importance",
+                           ratio_init=0.2, ratio_min=0.2, ratio_max=0.2)
+    params = random_params(200, 8, motion_scale=0.0)
+    model = make_model(params)
+    with pytest.raises(ValueError, match="importance_fn"):
+        STKNNCompactor(cfg, 10).step(0, 0.5, model, 1.0)
+    pairs = match_spatiotemporal_pairs(make_model(params), 0.5, cfg.rotation_weight)
+    weight = torch.arange(200, dtype=torch.float64)  # the lower index is always the less important one
+    event = STKNNCompactor(cfg, 10).step(0, 0.5, model, 1.0, importance_fn=lambda: weight)
+    survivors = torch.isin(params["xyz"][:, 0], model.params["xyz"].detach()[:, 0]).numpy()
+    removed = np.flatnonzero(~survivors)
+    assert removed.size == event["removed"] > 0
+    # Every removed Gaussian is the lower index of a matched pair whose other member survived.
+    for r in removed:
+        partners = pairs.partner[pairs.reference == r].tolist() + pairs.reference[pairs.partner == r].tolist()
+        assert any(p > r and survivors[p] for p in partners)
