@@ -42,6 +42,7 @@ def test_compress_then_decompress_restores_an_equivalent_run(run_dir, tmp_path):
     assert result.file_bytes == stgc_file_bytes(run / "model.stgc") == (run / "model.stgc").stat().st_size
     assert result.ply_bytes == 2000 * 152 and result.ratio_vs_ply > 5
     assert stgc_bytes_per_gaussian(run / "model.stgc") == pytest.approx(result.file_bytes / 2000)
+    assert f"{result.file_bytes} bytes" in str(result) and "B/Gaussian" in str(result)
 
     out = tmp_path / "restored"
     iteration_dir = decompress(run / "model.stgc", out)

@@ -73,6 +73,10 @@ class CompressResult:
     def ratio_vs_ply(self) -> float:
         return self.ply_bytes / self.file_bytes
 
+    def __str__(self) -> str:
+        return (f"{self.path}: {self.num_gaussians} Gaussians ({self.variant}), {self.file_bytes} bytes = "
+                f"{self.bytes_per_gaussian:.2f} B/Gaussian, {self.ratio_vs_ply:.2f}x smaller than float32 PLY rows")
+
 
 def encode_with_config(arrays: dict, variant: str, decoder_state: dict | None, config: CodecConfig,
                        metadata: dict[str, Any] | None = None) -> bytes:
