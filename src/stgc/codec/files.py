@@ -35,7 +35,8 @@ class CodecConfig:
 
     quality: int = field(default=DEFAULT_QUALITY, metadata={
         "help": "rate point 1 (smallest) .. 5 (most precise); picks the bit depth of every attribute group "
-                "(docs/stgc-format.md, table 'Bit depths'). 3 keeps renders within ~0.1 dB"})
+                "(docs/stgc-format.md section 7). Default 3: ~8x smaller than float32 PLY rows, renders > 60 dB "
+                "PSNR against the unquantized model in our tests"})
     zstd_level: int = field(default=DEFAULT_ZSTD_LEVEL, metadata={
         "help": "zstd compression level 1..22 for every section (higher: a little smaller, slower to encode; "
                 "decoding speed barely changes)"})
