@@ -34,10 +34,11 @@ def demo_plan():
     return Plan(
         name="demo",
         runs=(
-            RunSpec("stg", {"compaction.method": "none"}, "STG", "Trained model"),
+            RunSpec("stg", {"data.preprocess": "none", "compaction.method": "none"}, "STG", "Trained model"),
             RunSpec(
                 "st-knn",
-                {"compaction.method": "st-knn", "compaction.case": "4", "compaction.criterion": "timestamp"},
+                {"data.preprocess": "none", "compaction.method": "st-knn", "compaction.case": "4",
+                 "compaction.criterion": "timestamp"},
                 "ST-KNN (proposed)",
                 "Case 4",
             ),

@@ -173,7 +173,7 @@ def test_plan_overrides_are_real_config_keys(plan_name: str) -> None:
     """Every override of the built-in plans names a field the trainer's configs have, with a valid value."""
     from stgc.cli import resolve_configs
     from stgc.data.preprocess import MODES
-    from stgc.experiment.demo import DEMO_SCENE, demo_plan
+    from stgc.demo import DEMO_SCENE, demo_plan
 
     plan = demo_plan() if plan_name == "demo" else load_plan(plan_name)
     assert DEMO_SCENE.is_dir()

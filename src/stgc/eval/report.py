@@ -239,16 +239,18 @@ def make_report(
     out_dir.mkdir(parents=True, exist_ok=True)
     base = resolve_baseline(rows, baseline)
     bd = bd_table(rows, base, bd_method)
-    md = out_dir / f"{stem}.md"
-    with atomic_open(md, "w") as f:
-        f.write(f"# {title}\n\n")
-        f.write(markdown_table(rows, base, bd, "Results", bd_method))
-        for note in notes:
-            f.write(f"\n{note}\n")
     png = svg = None
     if any(r.mbps is not None and r.psnr is not None for r in rows):
         png, svg = out_dir / f"{stem}_rd.png", out_dir / f"{stem}_rd.svg"
         rd_plot(rows, png, svg, title, base)
+    md = out_dir / f"{stem}.md"
+    with atomic_open(md, "w") as f:
+        f.write(f"# {title}\n\n")
+        if png is not None:
+            f.write(f"![Rate-distortion: PSNR of the test views against Mbps]({png.name})\n\n")
+        f.write(markdown_table(rows, base, bd, "Results", bd_method))
+        for note in notes:
+            f.write(f"\n{note}\n")
     json_path = out_dir / f"{stem}.json"
     write_json(json_path, {"title": title, "baseline": base, "bd_method": bd_method, "size_note": SIZE_NOTE,
                            "rows": [asdict(r) for r in rows], "bd": [asdict(b) for b in bd]})
