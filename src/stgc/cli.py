@@ -147,9 +147,13 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_compress(args: argparse.Namespace) -> int:
-    from stgc.codec import compress_run
+    from stgc.codec import CodecConfig, compress_run
 
-    result = compress_run(args.run, args.out, quality=args.quality)
+    overrides = collect_overrides(args).get("codec", {})
+    if args.quality is not None:
+        overrides["quality"] = str(args.quality)
+    config = apply_overrides(CodecConfig(), overrides, "codec")
+    result = compress_run(args.run, args.out, config=config)
     print(result)
     return 0
 
@@ -263,7 +267,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("compress", help="write a trained run as a compact .stgc bitstream")
     p.add_argument("run", help="run directory, iteration directory or .ply")
     p.add_argument("--out", required=True, help="output .stgc file")
-    p.add_argument("--quality", type=int, help="quality level (higher = more bits; default: the codec's default)")
+    p.add_argument("--quality", type=int, help="quality level 1..5 (shortcut for --codec.quality)")
+    from stgc.codec import CodecConfig
+
+    add_config_arguments(p, "codec", CodecConfig, "codec options (stgc.codec.CodecConfig)")
     p.set_defaults(func=cmd_compress)
 
     p = sub.add_parser("decompress", help="decode a .stgc file into an official-layout run directory")
@@ -311,8 +318,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except StgcError as exc:
+    except (StgcError, ValueError) as exc:
+        # Configs validate with ValueError naming the field; data/format errors name the file.
+        if os.environ.get("STGC_DEBUG"):
+            raise
         print(f"stgc: error: {exc}", file=sys.stderr)
+        print("(set STGC_DEBUG=1 for a traceback)", file=sys.stderr) if not isinstance(exc, StgcError) else None
         return 2
     except KeyboardInterrupt:
         print("\nstgc: interrupted; run the same command again (train: add --resume) to continue", file=sys.stderr)
