@@ -323,7 +323,8 @@ def main(argv: list[str] | None = None) -> int:
         if os.environ.get("STGC_DEBUG"):
             raise
         print(f"stgc: error: {exc}", file=sys.stderr)
-        print("(set STGC_DEBUG=1 for a traceback)", file=sys.stderr) if not isinstance(exc, StgcError) else None
+        if not isinstance(exc, StgcError):
+            print("(set STGC_DEBUG=1 for a traceback)", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("\nstgc: interrupted; run the same command again (train: add --resume) to continue", file=sys.stderr)
