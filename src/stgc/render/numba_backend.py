@@ -110,9 +110,11 @@ def composite_numba(
     t_min: float,
     want_depth: bool,
     want_weights: bool,
-    tile_size: int = TILE_SIZE,
+    tile_size: int | None = None,
 ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, int]:
-    """Bin and composite on CPU: (color, final T, median depth | None, weights | None, number of intersections)."""
+    """Bin and composite on CPU: (color, final T, median depth | None, weights | None, number of intersections).
+    tile_size None = the module's TILE_SIZE (read at call time, so a benchmark can change it)."""
+    tile_size = TILE_SIZE if tile_size is None else tile_size
     np_dtype = np.float64 if colors.dtype == torch.float64 else np.float32
     gdata = _pack(means2d, conics, opacities, sigma_cut, depths, np_dtype)
     order = torch.argsort(depths, stable=True).numpy()

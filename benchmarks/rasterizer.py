@@ -1,0 +1,211 @@
+"""Rasterizer benchmark: forward and forward+backward time and peak extra memory of every backend.
+
+Backends: numba and torch (stgc.render) and the gsplat 1.5.3 pure-PyTorch reference made to run on CPU (the test
+oracle in tests/render/gsplat_oracle.py). Every timing covers the whole pipeline from 3D parameters (projection,
+binning, compositing); "fwd" runs under no_grad, "fwd+bwd" backpropagates (image * R).sum() to means, quats, scales,
+opacities and features. Times are medians over repeats after one warm-up call (also reported: the minimum, and the
+median process CPU time summed over threads, which is far less sensitive to other jobs on a shared machine);
+extra_mb is the peak resident memory during one further call above the resident memory just before it (sampled every
+millisecond by a thread; the numba kernels release the GIL).
+
+Scene (as in the reference measurements): N Gaussians at depth U[3, 7] spread over the frustum (+10%), per-axis pixel
+sigma log-uniform in [1.7, 10], random rotations, opacity U[0.05, 0.95], features U[0, 1]; pinhole with the focal
+length equal to the image width.
+
+    .venv/bin/python benchmarks/rasterizer.py            # everything: N 10k/50k/200k x 256x256, 320x180 x C 3/9
+    .venv/bin/python benchmarks/rasterizer.py --quick    # 10k/50k, 256x256, C 9, numba + torch + reference
+    .venv/bin/python benchmarks/rasterizer.py --n 50000 --size 256x256 --channels 9 --backends numba --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import threading
+import time
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "src"))
+sys.path.insert(0, str(REPO / "tests"))
+
+from stgc.render import rasterize  # noqa: E402
+
+# The gsplat reference's tile intersection is a Python loop (~85 us per Gaussian): above this many Gaussians a single
+# call takes longer than the whole rest of the benchmark, so it is skipped (reported as such in the table).
+REFERENCE_MAX_N = 50_000
+
+
+def make_scene(n: int, width: int, height: int, channels: int, seed: int = 0) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    focal = float(width)
+    cx, cy = width / 2, height / 2
+    z = 3 + 4 * torch.rand(n, generator=g)
+    u = (torch.rand(n, generator=g) * 1.2 - 0.1) * width
+    v = (torch.rand(n, generator=g) * 1.2 - 0.1) * height
+    means = torch.stack([(u - cx) / focal * z, (v - cy) / focal * z, z], -1)
+    sigma_px = torch.exp(torch.log(torch.tensor(1.7)) + torch.log(torch.tensor(10 / 1.7)) * torch.rand(n, 3, generator=g))
+    return {
+        "means": means,
+        "quats": torch.randn(n, 4, generator=g),
+        "scales": sigma_px * z[:, None] / focal,
+        "opacities": 0.05 + 0.9 * torch.rand(n, generator=g),
+        "features": torch.rand(n, channels, generator=g),
+        "K": torch.tensor([[focal, 0, cx], [0, focal, cy], [0, 0, 1.0]]),
+        "viewmat": torch.eye(4),
+    }
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+class PeakRSS:
+    """Peak RSS above the starting RSS, sampled by a thread (numba kernels release the GIL, torch ops too)."""
+
+    def __enter__(self):
+        self.base = _rss_mb()
+        self.peak = self.base
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def _run(self):
+        while not self._stop.is_set():
+            self.peak = max(self.peak, _rss_mb())
+            time.sleep(0.001)
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        self.peak = max(self.peak, _rss_mb())
+
+    @property
+    def extra_mb(self) -> float:
+        return self.peak - self.base
+
+
+def _render_fn(backend: str, width: int, height: int):
+    if backend == "reference":
+        from render.gsplat_oracle import gsplat_reference
+
+        return lambda p: gsplat_reference(p["means"], p["quats"], p["scales"], p["opacities"], p["features"], p["K"],
+                                          p["viewmat"], width, height)["image"]  # fmt: skip
+    alpha_max = 0.99
+    return lambda p: rasterize(p["means"], p["quats"], p["scales"], p["opacities"], p["features"], p["K"],
+                               p["viewmat"], width, height, backend=backend, alpha_max=alpha_max).image  # fmt: skip
+
+
+def measure(backend: str, n: int, width: int, height: int, channels: int, repeats: int) -> dict:
+    scene = make_scene(n, width, height, channels)
+    render = _render_fn(backend, width, height)
+    weights = torch.rand(height, width, channels, generator=torch.Generator().manual_seed(1))
+    grad_keys = ("means", "quats", "scales", "opacities", "features")
+
+    def fwd():
+        with torch.no_grad():
+            render(scene)
+
+    def fwdbwd():
+        params = {k: (v.clone().requires_grad_(True) if k in grad_keys else v) for k, v in scene.items()}
+        (render(params) * weights).sum().backward()
+
+    row = {"backend": backend, "n": n, "channels": channels, "width": width, "height": height}
+    for name, fn in (("fwd", fwd), ("fwdbwd", fwdbwd)):
+        fn()  # warm-up: JIT/cache load, allocator
+        times, cpu = [], []
+        for _ in range(repeats):
+            t0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            times.append((time.perf_counter() - t0) * 1e3)
+            cpu.append((time.process_time() - c0) * 1e3)
+        with PeakRSS() as mem:  # a separate call, so the sampling thread does not perturb the timings
+            fn()
+        row[f"{name}_ms"] = round(statistics.median(times), 1)
+        row[f"{name}_min_ms"] = round(min(times), 1)
+        row[f"{name}_cpu_ms"] = round(statistics.median(cpu), 1)
+        row[f"{name}_extra_mb"] = round(mem.extra_mb, 1)
+    row["extra_mb"] = max(row["fwd_extra_mb"], row["fwdbwd_extra_mb"])
+    row["repeats"] = repeats
+    return row
+
+
+def _fmt_ratio(ref: float | None, x: float) -> str:
+    return "-" if ref is None else f"{ref / x:.1f}x"
+
+
+def print_table(rows: list[dict], skipped: list[str]) -> None:
+    ref = {(r["n"], r["channels"], r["width"], r["height"]): r for r in rows if r["backend"] == "reference"}
+    header = ("| backend | N | C | size | fwd ms med (min) | fwd+bwd ms med (min) | fwd+bwd CPU ms | extra MB "
+              "| fwd vs ref | fwd+bwd vs ref | repeats |")  # fmt: skip
+    print(header)
+    print("|" + "---|" * (header.count("|") - 1))
+    for r in rows:
+        rr = ref.get((r["n"], r["channels"], r["width"], r["height"]))
+        print(
+            f"| {r['backend']} | {r['n'] // 1000}k | {r['channels']} | {r['width']}x{r['height']} "
+            f"| {r['fwd_ms']:.0f} ({r['fwd_min_ms']:.0f}) | {r['fwdbwd_ms']:.0f} ({r['fwdbwd_min_ms']:.0f}) "
+            f"| {r['fwdbwd_cpu_ms']:.0f} | {r['extra_mb']:.0f} | {_fmt_ratio(rr and rr['fwd_ms'], r['fwd_ms'])} "
+            f"| {_fmt_ratio(rr and rr['fwdbwd_ms'], r['fwdbwd_ms'])} | {r['repeats']} |"
+        )
+    for line in skipped:
+        print(f"note: {line}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="10k and 50k Gaussians, 256x256, C=9 only")
+    parser.add_argument("--n", type=int, nargs="+", default=[10_000, 50_000, 200_000], help="Gaussian counts")
+    parser.add_argument("--size", nargs="+", default=["256x256", "320x180"], help="image sizes WxH")
+    parser.add_argument("--channels", type=int, nargs="+", default=[3, 9], help="feature channels")
+    parser.add_argument("--backends", nargs="+", default=["numba", "torch", "reference"],
+                        choices=["numba", "torch", "reference"], help="what to run")  # fmt: skip
+    parser.add_argument("--repeats", type=int, default=5, help="timed repeats (the reference uses fewer, see --ref-repeats)")
+    parser.add_argument("--ref-repeats", type=int, default=2, help="timed repeats of the slow gsplat reference")
+    parser.add_argument("--threads", type=int, default=2, help="torch and numba threads")
+    parser.add_argument("--tile-size", type=int, default=None, help="numba tile edge in pixels (default: the library's)")
+    parser.add_argument("--json", action="store_true", help="also print one JSON object per measurement")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.n, args.size, args.channels = [10_000, 50_000], ["256x256"], [9]
+
+    torch.set_num_threads(args.threads)
+    import numba
+
+    numba.set_num_threads(args.threads)
+    if args.tile_size is not None:
+        import stgc.render.numba_backend as numba_backend
+
+        numba_backend.TILE_SIZE = args.tile_size
+    print(f"# load average before: {os.getloadavg()}, threads: {args.threads}, torch {torch.__version__}")
+    rows, skipped = [], []
+    for size in args.size:
+        width, height = (int(v) for v in size.lower().split("x"))
+        for channels in args.channels:
+            for n in args.n:
+                for backend in args.backends:
+                    if backend == "reference" and n > REFERENCE_MAX_N:
+                        skipped.append(f"reference skipped at N={n} {size} C={channels}: its Python tile "
+                                       f"intersection loop takes ~{n * 85e-6:.0f} s per call")  # fmt: skip
+                        continue
+                    repeats = args.ref_repeats if backend == "reference" else args.repeats
+                    row = measure(backend, n, width, height, channels, repeats)
+                    rows.append(row)
+                    if args.json:
+                        print(json.dumps(row), flush=True)
+                    else:
+                        print(f"# {row}", file=sys.stderr, flush=True)
+    print(f"# load average after: {os.getloadavg()}")
+    print_table(rows, skipped)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
