@@ -169,6 +169,10 @@ def main(argv: list[str] | None = None) -> int:
                         choices=["numba", "torch", "reference"], help="what to run")  # fmt: skip
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats (the reference uses fewer, see --ref-repeats)")
     parser.add_argument("--ref-repeats", type=int, default=2, help="timed repeats of the slow gsplat reference")
+    parser.add_argument("--torch-repeats", type=int, default=None, help="timed repeats of the torch backend "
+                        "(default: --repeats; it takes seconds per call at 200k)")  # fmt: skip
+    parser.add_argument("--ref-max-n", type=int, default=REFERENCE_MAX_N,
+                        help="skip the reference above this many Gaussians")  # fmt: skip
     parser.add_argument("--threads", type=int, default=2, help="torch and numba threads")
     parser.add_argument("--tile-size", type=int, default=None, help="numba tile edge in pixels (default: the library's)")
     parser.add_argument("--json", action="store_true", help="also print one JSON object per measurement")
@@ -191,11 +195,13 @@ def main(argv: list[str] | None = None) -> int:
         for channels in args.channels:
             for n in args.n:
                 for backend in args.backends:
-                    if backend == "reference" and n > REFERENCE_MAX_N:
+                    if backend == "reference" and n > args.ref_max_n:
                         skipped.append(f"reference skipped at N={n} {size} C={channels}: its Python tile "
-                                       f"intersection loop takes ~{n * 85e-6:.0f} s per call")  # fmt: skip
+                                       f"intersection loop alone takes ~{n * 85e-6:.0f} s per call")  # fmt: skip
                         continue
-                    repeats = args.ref_repeats if backend == "reference" else args.repeats
+                    repeats = {"reference": args.ref_repeats, "torch": args.torch_repeats or args.repeats}.get(
+                        backend, args.repeats
+                    )
                     row = measure(backend, n, width, height, channels, repeats)
                     rows.append(row)
                     if args.json:
