@@ -4,7 +4,7 @@ Kernels are generic over float32/float64: every floating constant comes in throu
 the data), because a Python float literal would silently promote float32 arithmetic to float64 in numba.
 consts = [0.5, 1.0, alpha_max, alpha_min, transmittance_min, 0.0].
 
-Per-Gaussian data is packed row-wise in `gdata` [N, 8] so one Gaussian is one cache line:
+Per-Gaussian data is packed row-wise in `gdata` [N, 8] so one Gaussian's data is contiguous:
     0 mean x, 1 mean y, 2 conic a, 3 conic b, 4 conic c, 5 opacity, 6 sigma cutoff, 7 depth.
 Work is split by tile (`prange`): a tile's pixels are owned by one thread, so image writes never race. Per-Gaussian
 accumulations (gradients, importance weights) go to per-thread rows indexed by `numba.get_thread_id()` and are summed

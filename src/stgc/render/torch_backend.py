@@ -19,10 +19,11 @@ GROUP = 8
 CHUNK = 64
 
 
-def _render_group(pix, inside, ids, means2d, conics, opac, colors, depths, alpha_max, alpha_min, t_min, want_depth):
+def _render_group(pix, inside, ids, means2d, conics, opac, colors, depths, alpha_max, alpha_min, t_min, want_depth,
+                  want_weights):  # fmt: skip
     """pix [G,P,2] pixel centres, inside [G,P] (False for the padding pixels of border tiles), ids [G,K] Gaussian
     ids (padding = dummy index). Returns color [G,P,C], T [G,P], median depth [G,P] (zeros unless want_depth) and
-    the contribution weights summed over pixels [G,K]."""
+    the contribution weights summed over pixels [G,K] (empty unless want_weights)."""
     G, P, _ = pix.shape
     K = ids.shape[1]
     dtype, device = means2d.dtype, means2d.device
@@ -55,7 +56,8 @@ def _render_group(pix, inside, ids, means2d, conics, opac, colors, depths, alpha
             if want_depth:
                 crossing = included & (T_before >= 0.5) & (T_after < 0.5)
                 depth = depth + (crossing.to(dtype) * depths[chunk][:, None, :]).sum(-1)
-            weight_sums.append(w.detach().sum(1))
+            if want_weights:
+                weight_sums.append(w.detach().sum(1))
         done = done | (valid & ~included).any(-1)
         T = T * torch.where(included, one_minus, torch.ones((), dtype=dtype, device=device)).prod(-1)
         if bool(done.all()):
@@ -115,7 +117,8 @@ def composite_torch(
         origin = torch.stack([tiles % tiles_x, torch.div(tiles, tiles_x, rounding_mode="floor")], -1).to(dtype)
         pix = local[None] + origin[:, None, :] * tile_size
         inside = (pix[..., 0] < width) & (pix[..., 1] < height)
-        args = (pix, inside, ids, means2d_p, conics_p, opac_p, colors_p, depths_p, alpha_max, alpha_min, t_min, want_depth)
+        args = (pix, inside, ids, means2d_p, conics_p, opac_p, colors_p, depths_p, alpha_max, alpha_min, t_min,
+                want_depth, want_weights)  # fmt: skip
         if use_checkpoint and torch.is_grad_enabled():
             o, T, d, w = checkpoint(_render_group, *args, use_reentrant=False)
         else:
