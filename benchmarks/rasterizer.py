@@ -20,6 +20,8 @@ length equal to the image width.
 from __future__ import annotations
 
 import argparse
+import ctypes
+import gc
 import json
 import os
 import statistics
@@ -72,10 +74,20 @@ def _rss_mb() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+def _release_free_heap() -> None:
+    """Return freed heap pages to the OS (glibc keeps them otherwise), so that RSS growth shows a call's real peak."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 class PeakRSS:
     """Peak RSS above the starting RSS, sampled by a thread (numba kernels release the GIL, torch ops too)."""
 
     def __enter__(self):
+        gc.collect()
+        _release_free_heap()
         self.base = _rss_mb()
         self.peak = self.base
         self._stop = threading.Event()
