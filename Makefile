@@ -6,6 +6,7 @@ STAMP := $(VENV)/.installed
 
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.cache/numba
 export OMP_NUM_THREADS ?= 2
+export OMP_WAIT_POLICY ?= PASSIVE
 
 .PHONY: install test demo bench clean
 
