@@ -44,6 +44,15 @@ SECTION_TITLES = {
 }
 
 
+# What a preset sets outside the training schedule. The cpu preset bounds the initial cloud (points from every
+# 3rd frame, at most 3,000 per frame: 30k for a 30-frame segment, 51k for a 50-frame one), because dense
+# per-frame clouds (e.g. 14k points x 30 frames) would start a 2-core run with hundreds of thousands of Gaussians.
+PRESET_DATA_OVERRIDES: dict[str, dict[str, str]] = {
+    "cpu": {"init_frames_every": "3", "max_points_per_frame": "3000"},
+    "paper": {},
+}
+
+
 def default_configs(preset: str = "cpu") -> dict[str, Any]:
     """Config objects of a `stgc train` run before any option: the preset, and no compaction."""
     from stgc.train.config import train_preset
@@ -51,6 +60,7 @@ def default_configs(preset: str = "cpu") -> dict[str, Any]:
     classes = _section_classes()
     configs = {name: cls() for name, cls in classes.items()}
     configs["train"] = train_preset(preset)
+    configs["data"] = apply_overrides(configs["data"], PRESET_DATA_OVERRIDES.get(preset, {}), "data")
     configs["compaction"] = replace(configs["compaction"], method="none")
     return configs
 
