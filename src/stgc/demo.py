@@ -21,7 +21,7 @@ DEMO_SCENE = REPO_ROOT / "demo" / "toys_small"
 # A short schedule: the `cpu` preset scaled further so that both trainings fit in the 15-minute budget of
 # `make demo` on 2 cores (measured in benchmarks/RESULTS.md). Everything else is the cpu preset.
 DEMO_OVERRIDES = {
-    "train.schedule_scale": "0.04",
+    "train.schedule_scale": "0.05",
     "train.checkpoint_every": "100",
     "train.log_every": "20",
 }
@@ -37,10 +37,10 @@ def demo_plan():
             RunSpec("stg", {"data.preprocess": "none", "compaction.method": "none"}, "STG", "Trained model"),
             RunSpec(
                 "st-knn",
-                {"data.preprocess": "none", "compaction.method": "st-knn", "compaction.case": "4",
+                {"data.preprocess": "none", "compaction.method": "st-knn", "compaction.case": "2",
                  "compaction.criterion": "timestamp"},
                 "ST-KNN (proposed)",
-                "Case 4",
+                "Case 2",
             ),
         ),
         baseline="STG",

@@ -1,0 +1,25 @@
+import os
+import stat
+
+import pytest
+
+from stgc.fileio import atomic_open, write_json
+
+
+def test_atomic_write_replaces_only_on_success(tmp_path):
+    target = tmp_path / "out.json"
+    write_json(target, {"a": 1})
+    with pytest.raises(RuntimeError):
+        with atomic_open(target, "w") as f:
+            f.write("half")
+            raise RuntimeError("interrupted")
+    assert target.read_text().startswith("{") and list(tmp_path.iterdir()) == [target]
+
+
+def test_written_files_get_umask_permissions(tmp_path):
+    umask = os.umask(0o022)
+    try:
+        write_json(tmp_path / "x.json", {})
+    finally:
+        os.umask(umask)
+    assert stat.S_IMODE((tmp_path / "x.json").stat().st_mode) == 0o644
