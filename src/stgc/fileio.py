@@ -46,3 +46,26 @@ def write_json(path: str | Path, obj: Any) -> None:
     with atomic_open(path, "w") as f:
         json.dump(obj, f, indent=2, sort_keys=False)
         f.write("\n")
+
+
+def read_json_object(path: str | Path, *, strict: bool = True) -> dict[str, Any] | None:
+    """The JSON object stored at `path`, or None when the file does not exist.
+
+    An unreadable or non-object file raises FormatError naming it (strict), or reads as None (not strict: for
+    callers that treat a damaged marker file as "not done yet")."""
+    from stgc.errors import FormatError
+
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        if strict:
+            raise FormatError(path, f"cannot read JSON ({exc})") from None
+        return None
+    if not isinstance(data, dict):
+        if strict:
+            raise FormatError(path, "expected a JSON object")
+        return None
+    return data

@@ -14,7 +14,6 @@ Units, stated once (docs/evaluation.md has the derivation):
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -24,6 +23,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from stgc.errors import DataError, FormatError
+from stgc.fileio import read_json_object
 from stgc.model.layout import bytes_per_gaussian, ply_fields
 
 BYTES_PER_MIB = 2**20
@@ -259,16 +259,7 @@ def size_of_saved_model(path: str | Path, duration_s: float) -> ModelSize:
 
 def read_train_summary(run_dir: str | Path) -> dict[str, Any] | None:
     """RUN/train_summary.json (iterations, wall seconds, it/s, final #Gaussians, finished), or None."""
-    path = Path(run_dir) / "train_summary.json"
-    if not path.is_file():
-        return None
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise FormatError(path, f"cannot read training summary ({exc})") from None
-    if not isinstance(data, dict):
-        raise FormatError(path, "training summary is not a JSON object")
-    return data
+    return read_json_object(Path(run_dir) / "train_summary.json")
 
 
 def training_seconds(summary: Mapping[str, Any] | None) -> float | None:

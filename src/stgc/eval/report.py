@@ -8,15 +8,14 @@ experiment.json naming the run's family and label).
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from stgc.errors import DataError, FormatError
+from stgc.errors import DataError
 from stgc.eval.bjontegaard import BDError, Method, bd_psnr, bd_rate
-from stgc.fileio import atomic_open, atomic_path, write_json
+from stgc.fileio import atomic_open, atomic_path, read_json_object, write_json
 
 SIZE_NOTE = ("Size (MB) is MiB (2^20 bytes) of raw float32 PLY rows (152 B per full Gaussian, normals included) "
              "plus float32 decoder weights, as in the paper; for .stgc rows it is the file size. "
@@ -260,16 +259,7 @@ def make_report(
 # ------------------------------------------------------------------------------------------- runs
 
 
-def _read_json(path: Path) -> dict[str, Any] | None:
-    if not path.is_file():
-        return None
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise FormatError(path, f"cannot read JSON ({exc})") from None
-    if not isinstance(data, dict):
-        raise FormatError(path, "expected a JSON object")
-    return data
+_read_json = read_json_object
 
 
 def describe_run(run_dir: Path, config: Mapping[str, Any] | None) -> tuple[str, str]:

@@ -16,7 +16,6 @@ others still run.
 from __future__ import annotations
 
 import csv
-import json
 import os
 import subprocess
 import sys
@@ -29,7 +28,7 @@ from stgc.errors import FormatError
 from stgc.eval.evaluate import eval_paths
 from stgc.eval.report import Report, ReportRow, make_report
 from stgc.experiment.plans import Plan, RunSpec, load_plan
-from stgc.fileio import atomic_open, write_json
+from stgc.fileio import atomic_open, read_json_object, write_json
 
 RESULT_COLUMNS = ("plan", "name", "family", "label", "status", "num_gaussians", "size_mb", "mbps", "psnr", "ssim",
                   "lpips", "fps", "train_seconds", "overrides", "run_dir")
@@ -73,13 +72,8 @@ def build_compress_command(run_dir: str | Path, out: str | Path, quality: int, *
 
 
 def _read_json(path: Path) -> dict[str, Any] | None:
-    if not path.is_file():
-        return None
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
-    return data if isinstance(data, dict) else None
+    # A damaged marker file means "not done": the run is redone rather than the plan stopped.
+    return read_json_object(path, strict=False)
 
 
 def run_is_finished(run_dir: str | Path) -> bool:
