@@ -124,8 +124,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=args.resume
     )
     print(f"run written to {out}")
-    if summary.get("eval"):
-        print(json.dumps(summary["eval"], indent=1))
+    if (out / "eval.json").is_file():
+        from stgc.eval import format_eval_table
+        from stgc.fileio import read_json_object
+
+        print(format_eval_table(read_json_object(out / "eval.json")))
     return 0
 
 
