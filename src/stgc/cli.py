@@ -120,7 +120,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if data_path is None:
         raise StgcError("no DATA given and the run has no saved data path")
     dataset = configs["data"].open(data_path)
-    summary = train(
+    train(
         dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=args.resume
     )
     print(f"run written to {out}")
