@@ -9,6 +9,7 @@ stopped (finished runs are skipped, an unfinished training resumes from its chec
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -56,11 +57,21 @@ def tee_runner(cmd: list[str], log_path: Path) -> int:
         log.flush()
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
         assert proc.stdout is not None
-        for chunk in iter(lambda: proc.stdout.read1(4096), b""):  # type: ignore[union-attr]
-            sys.stdout.buffer.write(chunk)
-            sys.stdout.flush()
-            log.write(chunk.decode(errors="replace"))
-        return proc.wait()
+        try:
+            for chunk in iter(lambda: proc.stdout.read1(4096), b""):  # type: ignore[union-attr]
+                sys.stdout.buffer.write(chunk)
+                sys.stdout.flush()
+                log.write(chunk.decode(errors="replace"))
+            return proc.wait()
+        finally:
+            # Interrupted (Ctrl-C, kill): stop the step too, so a re-run never finds it still writing the run.
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                try:
+                    proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
 
 
 def _fmt(record: dict | None, key: str, spec: str) -> str:
