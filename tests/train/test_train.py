@@ -120,3 +120,12 @@ def test_importance_sums_blending_weights_over_one_view_per_camera(tiny_toys, ma
     with torch.no_grad():
         total_alpha = sum(float(trainer.model.render(v, t=v.time).alpha.sum()) for v in views)
     assert float(weights.sum()) == pytest.approx(total_alpha, rel=1e-4)
+
+
+def test_lite_variant_trains_and_densifies(tiny_toys, make_model, tmp_path):
+    # Lite has no features_t: its optimizer must get exactly its own parameter groups.
+    cfg = _short_config(iterations=12, save_iterations=(), checkpoint_every=0, eval_at_end=False)
+    trainer = Trainer(tiny_toys, None, None, cfg, None, tmp_path, model=make_model(tiny_toys, 100, variant="lite"))
+    summary = trainer.run()
+    assert {g["name"] for g in trainer.optimizer.param_groups} == set(trainer.model.params)
+    assert "features_t" not in trainer.model.params and summary["iterations"] == 12

@@ -57,10 +57,12 @@ def _seed_globals(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def learning_rates(cfg: TrainConfig, extent: float) -> dict[str, float]:
-    """Initial lr per parameter group (position-like groups scale with the scene extent, as official)."""
+def learning_rates(cfg: TrainConfig, extent: float, params: Any = None) -> dict[str, float]:
+    """Initial lr per parameter group (position-like groups scale with the scene extent, as official).
+
+    With `params` (a model's parameter dict), only the groups that model has (lite has no features_t)."""
     lr = cfg.lr
-    return {
+    rates = {
         "xyz": lr.xyz_init * extent,
         "scaling": lr.scaling,
         "rotation": lr.rotation,
@@ -72,6 +74,7 @@ def learning_rates(cfg: TrainConfig, extent: float) -> dict[str, float]:
         "features_dc": lr.features_dc,
         "features_t": lr.features_t,
     }
+    return rates if params is None else {k: v for k, v in rates.items() if k in params}
 
 
 def xyz_learning_rate(cfg: TrainConfig, extent: float, iteration: int, total: int) -> float:
@@ -176,7 +179,9 @@ class Trainer:
             self.compaction_log.clear()
             self._write_config()
         self.extent = float(self.model.scene_extent)
-        self.optimizer = self.model.make_optimizer(learning_rates(train_cfg, self.extent), train_cfg.lr.decoder)
+        self.optimizer = self.model.make_optimizer(
+            learning_rates(train_cfg, self.extent, self.model.params), train_cfg.lr.decoder
+        )
         self.stats = DensificationStats(self.model.num_gaussians)
         self.compactor = self._make_compactor()
         self.ems = ErrorGuidedSampler(
