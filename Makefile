@@ -26,8 +26,11 @@ test: install
 demo: install
 	$(VENV)/bin/stgc demo --out demo_out
 
+# The speed benchmarks of benchmarks/RESULTS.md (training runs are listed there with their own commands).
 bench: install
 	$(PY) benchmarks/rasterizer.py
+	$(PY) benchmarks/knn.py
+	$(PY) benchmarks/codec.py
 
 clean:
 	rm -rf $(VENV) .cache demo_out
