@@ -340,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
             print("(set STGC_DEBUG=1 for a traceback)", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("\nstgc: interrupted; run the same command again (train: add --resume) to continue", file=sys.stderr)
+        print("\nstgc: interrupted; run the same command again to continue (for stgc train, add --resume)", file=sys.stderr)
         return 130
     except (FileNotFoundError, PermissionError, IsADirectoryError) as exc:
         print(f"stgc: error: {exc}", file=sys.stderr)
