@@ -1,0 +1,55 @@
+"""The command line: every verb has help, config options are generated from the dataclasses, errors are one line."""
+
+from __future__ import annotations
+
+import pytest
+
+from stgc.cli import build_parser, default_configs, main, resolve_configs
+from stgc.config import iter_fields
+
+VERBS = ["train", "eval", "render", "compress", "decompress", "plot", "experiment", "report", "demo"]
+
+
+@pytest.mark.parametrize("verb", VERBS)
+def test_every_verb_has_help(verb, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main([verb, "--help"])
+    assert exit_info.value.code == 0
+    assert "usage: stgc " + verb in capsys.readouterr().out
+
+
+def test_train_help_lists_every_config_field_with_its_default():
+    train = build_parser()._subparsers._group_actions[0].choices["train"]  # type: ignore[union-attr]
+    help_text = " ".join(train.format_help().split())
+    for section, cfg in default_configs("cpu").items():
+        for spec in iter_fields(cfg):
+            assert f"--{section}.{spec.dotted}" in help_text
+    assert "(default: 0.2)" in help_text  # the cpu preset's schedule_scale, not the dataclass default
+
+
+def test_precedence_preset_then_options_then_set():
+    configs = resolve_configs(
+        "cpu",
+        {"compaction": {"method": "st-knn", "case": "3"}},
+        {"train": {"iterations": "900"}, "compaction": {"case": "4"}},
+        {"train.iterations": "1200", "data.preprocess": "stg-isolated"},
+    )
+    assert configs["train"].iterations == 1200 and configs["train"].preset == "cpu"
+    assert configs["compaction"].method == "st-knn" and configs["compaction"].case == 4
+    assert configs["data"].preprocess == "stg-isolated" and configs["data"].max_points_per_frame == 3000
+    assert default_configs("cpu")["compaction"].method == "none"
+
+
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["train", "nowhere", "--out", "RUN", "--set", "train.iterationz=5"], "did you mean train.iterations"),
+        (["data", "inspect", "no/such/dir"], "no/such/dir"),
+        (["eval", "no/such/run"], "no/such/run"),
+    ],
+)
+def test_bad_input_is_one_clear_line(argv, message, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
