@@ -5,19 +5,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from stgc.model import STGModel
+from stgc.model import STGModel, param_widths
 
-LITE_WIDTHS = {
-    "xyz": 3,
-    "scaling": 3,
-    "rotation": 4,
-    "omega": 4,
-    "opacity": 1,
-    "trbf_center": 1,
-    "trbf_scale": 1,
-    "motion": 9,
-    "features_dc": 3,
-}
+LITE_WIDTHS = param_widths("lite")
 
 
 def make_model(params: dict[str, torch.Tensor], scene_extent: float = 1.0) -> STGModel:
