@@ -53,3 +53,9 @@ def test_bad_input_is_one_clear_line(argv, message, capsys, tmp_path, monkeypatc
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
+
+
+def test_resume_refuses_options_that_would_be_ignored(tmp_path, capsys):
+    (tmp_path / "config.json").write_text("{}")
+    assert main(["train", "--out", str(tmp_path), "--resume", "--set", "train.iterations=5"]) == 2
+    assert "keeps its saved config.json; drop set" in capsys.readouterr().err

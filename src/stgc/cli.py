@@ -102,6 +102,10 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     if args.resume and (out / "config.json").is_file():
+        given = [k for k in ("variant", "compaction", "case", "criterion", "set") if getattr(args, k)]
+        given += [f"{section}.{k}" for section, opts in collect_overrides(args).items() for k in opts]
+        if given:
+            raise StgcError(f"{out}: a resumed run keeps its saved config.json; drop {', '.join(given)}")
         saved = configs_from_run(out)
         data_path = args.data or saved["data_path"]
         configs = {k: saved[k] for k in ("data", "model", "train", "compaction")}
@@ -150,7 +154,11 @@ def cmd_render(args: argparse.Namespace) -> int:
     if out.suffix.lower() == ".png":
         if args.orbit or args.frames:
             raise StgcError(f"{out}: a .png is one still; use .mp4 for --orbit or --frames")
-        render_still(args.run, args.camera, args.time, out)
+        from stgc.eval.video import load_model_and_dataset
+
+        model, dataset = load_model_and_dataset(args.run)
+        camera = args.camera or dataset.test[0].name
+        render_still(model, camera, 0.0 if args.time is None else args.time, out, dataset=dataset)
     elif out.suffix.lower() in (".mp4", ".gif"):
         render_video(args.run, out, camera_name=args.camera, frames=args.frames, orbit=args.orbit)
     else:
