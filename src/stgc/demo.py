@@ -14,6 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from stgc.codec import DEFAULT_QUALITY
 from stgc.errors import StgcError
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -28,7 +29,6 @@ DEMO_OVERRIDES = {
     "train.checkpoint_every": "100",
     "train.log_every": "20",
 }
-DEMO_CODEC_QUALITY = 3
 
 
 def demo_plan():
@@ -92,7 +92,7 @@ def run_demo(out_dir: Path, data: Path | None = None) -> int:
     print(f"stgc demo: scene {data}, output {out_dir} (re-run to resume)", flush=True)
     result = run_plan(
         data, demo_plan(), out_dir, preset="cpu", extra_overrides=DEMO_OVERRIDES,
-        codec_qualities=[DEMO_CODEC_QUALITY], runner=tee_runner,
+        codec_qualities=[DEFAULT_QUALITY], runner=tee_runner,
     )
     if result.failed:
         for o in result.failed:
@@ -107,14 +107,14 @@ def run_demo(out_dir: Path, data: Path | None = None) -> int:
     rows = [
         ("uncompacted", by_name.get("stg")),
         ("ST-KNN compacted", by_name.get("st-knn")),
-        (f"compacted + .stgc q{DEMO_CODEC_QUALITY}", by_name.get(f"st-knn-q{DEMO_CODEC_QUALITY}")),
+        (f"compacted + .stgc q{DEFAULT_QUALITY}", by_name.get(f"st-knn-q{DEFAULT_QUALITY}")),
     ]
     report_md = out_dir / "report" / "report.md"
     print()
     print(f"report:     {report_md}")
     print(f"RD plot:    {out_dir / 'report' / 'report_rd.png'}")
     print(f"video:      {video}")
-    print(f"bitstream:  {compacted_run / f'model_q{DEMO_CODEC_QUALITY}.stgc'}")
+    print(f"bitstream:  {compacted_run / f'model_q{DEFAULT_QUALITY}.stgc'}")
     print()
     print(f"{'model':<26} {'Gaussians':>10} {'MB':>8} {'Mbps':>9} {'PSNR dB':>8}")
     for label, outcome in rows:
