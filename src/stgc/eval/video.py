@@ -11,8 +11,6 @@ Every file is written through `stgc.fileio.atomic_path`, so a reader never sees 
 from __future__ import annotations
 
 import dataclasses
-import inspect
-import json
 import os
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -20,27 +18,11 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import torch
 
-from stgc.errors import DataError, FormatError
+from stgc.errors import DataError
 from stgc.fileio import atomic_path
 
 
 # ------------------------------------------------------------------------------------------------ loading
-def _open_dataset_of_run(run_dir: Path) -> Any:
-    from stgc.data import open_dataset
-
-    config_path = run_dir / "config.json"
-    if not config_path.is_file():
-        raise DataError(run_dir, "no config.json: pass the dataset explicitly")
-    try:
-        data_cfg = dict(json.loads(config_path.read_text()).get("data") or {})
-    except (OSError, json.JSONDecodeError) as exc:
-        raise FormatError(config_path, f"cannot read run config ({exc})") from None
-    if "path" not in data_cfg:
-        raise DataError(config_path, "config.json has no data.path: pass the dataset explicitly")
-    accepted = set(inspect.signature(open_dataset).parameters) - {"path"}
-    return open_dataset(data_cfg["path"], **{k: v for k, v in data_cfg.items() if k in accepted})
-
-
 def load_model_and_dataset(run_or_model: Any, dataset: Any | None = None) -> tuple[Any, Any]:
     """(model, dataset) from a run directory / iteration dir / PLY path, or an in-memory model."""
     if isinstance(run_or_model, (str, Path)):
@@ -49,14 +31,12 @@ def load_model_and_dataset(run_or_model: Any, dataset: Any | None = None) -> tup
         path = Path(run_or_model)
         model = STGModel.load(path)
         if dataset is None:
-            run_dir = path if path.is_dir() and (path / "config.json").exists() else None
-            for parent in [path, *path.parents][:4]:
-                if (parent / "config.json").is_file():
-                    run_dir = parent
-                    break
+            from stgc.eval.evaluate import _open_run_dataset
+
+            run_dir = next((p for p in [path, *path.parents][:4] if (p / "config.json").is_file()), None)
             if run_dir is None:
                 raise DataError(path, "cannot find the run's config.json: pass the dataset explicitly")
-            dataset = _open_dataset_of_run(run_dir)
+            dataset = _open_run_dataset(run_dir, None)
         return model, dataset
     if dataset is None:
         raise ValueError("rendering an in-memory model needs the dataset (for cameras and intrinsics)")
