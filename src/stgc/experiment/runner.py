@@ -78,12 +78,11 @@ def _read_json(path: Path) -> dict[str, Any] | None:
 
 def run_is_finished(run_dir: str | Path) -> bool:
     """Finished = RUN/eval.json present and RUN/train_summary.json with finished: true."""
-    run_dir = Path(run_dir)
-    summary = _read_json(run_dir / "train_summary.json")
-    return bool(summary and summary.get("finished")) and (run_dir / "eval.json").is_file()
+    return training_finished(run_dir) and (Path(run_dir) / "eval.json").is_file()
 
 
 def training_finished(run_dir: str | Path) -> bool:
+    """RUN/train_summary.json says finished: true."""
     summary = _read_json(Path(run_dir) / "train_summary.json")
     return bool(summary and summary.get("finished"))
 
