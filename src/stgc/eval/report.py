@@ -259,9 +259,6 @@ def make_report(
 # ------------------------------------------------------------------------------------------- runs
 
 
-_read_json = read_json_object
-
-
 def describe_run(run_dir: Path, config: Mapping[str, Any] | None) -> tuple[str, str]:
     """(family, setting) of a run from its config when no experiment.json names them."""
     cfg = config or {}
@@ -282,19 +279,19 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise DataError(run_dir, "not a run directory")
-    config = _read_json(run_dir / "config.json")
-    meta = _read_json(run_dir / "experiment.json") or {}
+    config = read_json_object(run_dir / "config.json")
+    meta = read_json_object(run_dir / "experiment.json") or {}
     family, setting = describe_run(run_dir, config)
     family = str(meta.get("family") or family)
     setting = str(meta.get("label") or meta.get("name") or setting)
     rows = []
-    record = _read_json(run_dir / "eval.json")
+    record = read_json_object(run_dir / "eval.json")
     if record is not None:
         rows.append(ReportRow.from_mapping({**_row_fields(record), "name": setting, "family": family,
                                             "run": run_dir.name, "run_dir": str(run_dir)}))
     if include_codec:
         for path in sorted(run_dir.glob("eval_*.json")):
-            rec = _read_json(path)
+            rec = read_json_object(path)
             if rec is None:
                 continue
             point = path.stem.removeprefix("eval_")
