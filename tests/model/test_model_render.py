@@ -46,7 +46,7 @@ class _RecordingRasterizer:
 @pytest.mark.parametrize("variant", ["full", "lite"])
 def test_render_culls_by_temporal_opacity_and_passes_time_evaluated_gaussians(monkeypatch, variant):
     fake = _RecordingRasterizer()
-    monkeypatch.setattr(stgc.render, "rasterize", fake, raising=False)
+    monkeypatch.setattr(stgc.render, "rasterize", fake)
     model = _scene(variant)
     camera = look_at_camera(time=0.5)
     out = model.render(camera)
@@ -86,7 +86,7 @@ def test_render_culls_by_temporal_opacity_and_passes_time_evaluated_gaussians(mo
 
 def test_background_is_given_in_feature_space(monkeypatch):
     fake = _RecordingRasterizer()
-    monkeypatch.setattr(stgc.render, "rasterize", fake, raising=False)
+    monkeypatch.setattr(stgc.render, "rasterize", fake)
     camera = look_at_camera()
     _scene("full").render(camera, background=[0.2, 0.3, 0.4])
     assert fake.calls[-1]["background"].tolist() == pytest.approx([0.2, 0.3, 0.4, 0, 0, 0, 0, 0, 0])
@@ -96,17 +96,9 @@ def test_background_is_given_in_feature_space(monkeypatch):
         _scene("lite").render(camera, background=torch.ones(9))
 
 
-def _real_rasterizer():
-    rasterize = getattr(stgc.render, "rasterize", None)
-    if rasterize is None:
-        pytest.skip("stgc.render.rasterize is not available yet")
-    return rasterize
-
-
 @pytest.mark.parametrize("variant, backend", [("full", "numba"), ("lite", "torch")])
 def test_temporal_culling_is_exact_against_rasterizing_everything(variant, backend):
     """Same image and same parameter gradients as rasterizing all Gaussians (the official way)."""
-    rasterize = _real_rasterizer()
     if backend not in stgc.render.available_backends():
         pytest.skip(f"render backend {backend} unavailable")
     model = _scene(variant)
@@ -118,7 +110,7 @@ def test_temporal_culling_is_exact_against_rasterizing_everything(variant, backe
     culled_grads = {key: param.grad.clone() for key, param in model.params.items()}
     for param in model.params.values():
         param.grad = None
-    everything = rasterize(
+    everything = stgc.render.rasterize(
         model.means_at(0.5), model.rotations_at(0.5), model.scales, model.temporal_opacity(0.5),
         model.features_at(0.5), torch.tensor(camera.K, dtype=torch.float32),
         torch.tensor(camera.w2c, dtype=torch.float32), camera.width, camera.height, backend=backend,
@@ -139,7 +131,6 @@ def test_temporal_culling_is_exact_against_rasterizing_everything(variant, backe
 
 @pytest.mark.parametrize("variant", ["full", "lite"])
 def test_a_saved_ply_renders_the_same_image(tmp_path, variant):
-    _real_rasterizer()
     model = _scene(variant)
     loaded = STGModel.load(model.save(tmp_path / "point_cloud" / "iteration_1"))
     camera = look_at_camera(width=32, height=24, time=0.5)
@@ -153,7 +144,7 @@ def test_a_saved_ply_renders_the_same_image(tmp_path, variant):
 def test_nothing_is_culled_at_initialisation(monkeypatch):
     # s_t = 0 and opacity 0.1 give α(t) >= 0.1·e^{-1} > 1/255 for every t in [0, 1]: the no-copy path
     fake = _RecordingRasterizer()
-    monkeypatch.setattr(stgc.render, "rasterize", fake, raising=False)
+    monkeypatch.setattr(stgc.render, "rasterize", fake)
     model = STGModel.from_points(point_cloud(30), variant="lite")
     out = model.render(look_at_camera(time=0.9))
     assert torch.equal(out.index, torch.arange(30))

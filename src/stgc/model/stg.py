@@ -23,6 +23,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import nn
 
+from stgc import render as _render
 from stgc.errors import DataError, FormatError
 from stgc.model import ply as _ply
 from stgc.model.config import ModelConfig
@@ -286,8 +287,6 @@ class STGModel:
         background is in the splatted feature space: 3 values for lite; for full either 9 values or 3 (taken as the
         albedo channels, the rest zero). Extra keyword arguments go to `stgc.render.rasterize`.
         """
-        from stgc import render as _render  # the render package may land after this one; resolve at call time
-
         t = float(camera.time if t is None else t)
         opacity = self.temporal_opacity(t)
         index = torch.nonzero(opacity.detach() >= MIN_VISIBLE_OPACITY, as_tuple=False)[:, 0]
