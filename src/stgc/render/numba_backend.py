@@ -56,7 +56,7 @@ class _NumbaComposite(torch.autograd.Function):
             want_depth, want_weights, out_color, out_trans, out_last, out_depth, weight_rows, scratch,
         )  # fmt: skip
         ctx.arrays = (gdata, col, offsets, flat, centers_x, centers_y, consts, out_trans, out_last)
-        ctx.layout = (tile_size, tiles_x, N, C)
+        ctx.layout = (tile_size, tiles_x, N, C, longest)
         depth = torch.from_numpy(out_depth) if want_depth else None
         weights = torch.from_numpy(weight_rows.sum(axis=0)) if want_weights else None
         for t in (depth, weights):
@@ -67,14 +67,13 @@ class _NumbaComposite(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_color, grad_trans, _grad_depth, _grad_weights):
         gdata, col, offsets, flat, centers_x, centers_y, consts, out_trans, out_last = ctx.arrays
-        tile_size, tiles_x, N, C = ctx.layout
+        tile_size, tiles_x, N, C, longest = ctx.layout
         np_dtype = gdata.dtype.type
         H, W = out_trans.shape
         gc = np.zeros((H, W, C), np_dtype) if grad_color is None else np.ascontiguousarray(grad_color.numpy(), np_dtype)
         gt = np.zeros((H, W), np_dtype) if grad_trans is None else np.ascontiguousarray(grad_trans.numpy(), np_dtype)
         n_threads = numba.get_num_threads()
         rows = np.zeros((n_threads, N, kernels.N_GEOM_GRADS + C), dtype=np_dtype)
-        longest = int((offsets[1:] - offsets[:-1]).max()) if offsets.shape[0] > 1 else 0
         scratch = np.empty((n_threads, max(longest, 1), 8 + C), dtype=np_dtype)
         scratch_grads = np.empty((n_threads, max(longest, 1), kernels.N_GEOM_GRADS + C), dtype=np_dtype)
         kernels.composite_backward(
