@@ -13,6 +13,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from stgc.render.projection import quat_to_rotmat
+
 
 class DensificationStats:
     """Per-Gaussian sum of NDC screen-space mean-gradient norms and the number of views that saw it."""
@@ -48,19 +50,6 @@ class DensificationStats:
 
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
         self.grad_sum, self.count = state["grad_sum"].clone(), state["count"].clone()
-
-
-def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [N,3,3] of (w, x, y, z) quaternions (normalised here)."""
-    w, x, y, z = torch.nn.functional.normalize(q, dim=-1).unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
 
 
 def _rows(model: Any, mask: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -100,7 +89,7 @@ def clone_and_split(
         base = _rows(model, split_mask)
         stds = torch.exp(base["scaling"]).repeat(split_count, 1)
         samples = torch.randn(stds.shape, generator=generator, dtype=stds.dtype) * stds
-        rot = _quat_to_rotmat(base["rotation"]).repeat(split_count, 1, 1)
+        rot = quat_to_rotmat(base["rotation"]).repeat(split_count, 1, 1)
         split = {k: v.repeat(split_count, *([1] * (v.ndim - 1))) for k, v in base.items()}
         split["xyz"] = torch.bmm(rot, samples.unsqueeze(-1)).squeeze(-1) + split["xyz"]
         split["scaling"] = torch.log(stds / (0.8 * split_count))
