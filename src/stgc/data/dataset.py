@@ -176,8 +176,7 @@ class Dataset:
     def load_image(self, camera: Camera) -> np.ndarray:
         """uint8 [H, W, 3] at the camera's (downscaled) size; a private copy of the cached image, so callers
         may modify it or hand it to torch.from_numpy."""
-        key = (camera.name, camera.frame, camera.width, camera.height)
-        return self._cache.get(key, lambda: self._load_uncached(camera)).copy()
+        return self._cache.get(_cache_key(camera), lambda: self._load_uncached(camera)).copy()
 
     def _load_uncached(self, camera: Camera) -> np.ndarray:
         source = camera.image
@@ -185,8 +184,7 @@ class Dataset:
             raise DataError(self.root, f"camera {camera.name} frame {camera.frame} has no image source")
         if isinstance(source, VideoFrame):
             self._decode_video_segment(camera)
-            key = (camera.name, camera.frame, camera.width, camera.height)
-            cached = self._cache.peek(key)
+            cached = self._cache.peek(_cache_key(camera))
             if cached is not None:
                 return cached
         native = self._decode_source(source)
@@ -218,7 +216,7 @@ class Dataset:
         decoded = decode_video(path, [c.image.index for c in same_view])
         for cam in same_view:
             image = self._fit(decoded[cam.image.index], cam, cam.image)
-            self._cache.get((cam.name, cam.frame, cam.width, cam.height), lambda image=image: image)
+            self._cache.get(_cache_key(cam), lambda image=image: image)
 
     def image_float(self, camera: Camera) -> np.ndarray:
         """float32 [H, W, 3] in [0, 1]."""
@@ -272,6 +270,10 @@ class Dataset:
     def __repr__(self) -> str:
         return (f"Dataset({self.name!r}, format={self.format!r}, frames=[{self.start}, {self.start + self.duration}), "
                 f"train={len(self.train_views)} views, test={len(self.test_views)} views)")
+
+
+def _cache_key(camera: Camera) -> tuple:
+    return (camera.name, camera.frame, camera.width, camera.height)
 
 
 def _group(cameras: list[Camera]) -> dict[int, list[Camera]]:
