@@ -1,6 +1,5 @@
 """Plans of runs (the paper's tables or a PLAN.toml), run as independent resumable subprocesses, then the report."""
 
-from stgc.experiment.config import ExperimentConfig
 from stgc.experiment.plans import (
     BUILTIN_PLANS,
     Plan,
@@ -22,7 +21,6 @@ from stgc.experiment.runner import (
 
 __all__ = [
     "BUILTIN_PLANS",
-    "ExperimentConfig",
     "Plan",
     "PlanResult",
     "RunOutcome",
