@@ -235,9 +235,9 @@ def outlier_guard_bits(values: np.ndarray, bits: int) -> int:
     """`bits` plus enough to keep the bulk's precision when a few outliers stretch the range.
 
     The quantizer step follows the full [min, max] range, so one Gaussian far out (a floater, a stray motion
-    coefficient) would coarsen every other Gaussian's step. When the full span exceeds twice the span of the
-    central 99.8 % (0.1 to 99.9 percentile) of any component, one bit is added per doubling, up to +8 bits
-    (and 24 in all). Typical heavy-tailed data stays below the factor 2 and is unaffected."""
+    coefficient) would coarsen every other Gaussian's step. When the full span exceeds _GUARD_RATIO (4) times the
+    span of the central 99.8 % (0.1 to 99.9 percentile) of any component, ceil(log2(ratio / 4)) bits are added, up
+    to +8 bits (and 24 in all). Outlier-free heavy-tailed data (ratio ~2) stays below 4 and is unaffected."""
     if values.shape[1] < 2:
         return bits
     lo, hi = np.quantile(values, [0.001, 0.999], axis=1)
@@ -297,9 +297,7 @@ def _encode_codes(codes: np.ndarray, bits: int, level: int, adaptive: bool) -> t
         layouts = [min(layouts, key=lambda item: len(_compress(item[1], probe)[1]))]
     flags, raw = layouts[0]
     codec, payload = _compress(raw, level)
-    best = (codec, flags, payload, len(raw))
-    assert best is not None
-    return best
+    return codec, flags, payload, len(raw)
 
 
 def _pack_decoder(state: Mapping[str, Any]) -> bytes:
@@ -341,7 +339,7 @@ def encode(
     is stretched by outliers (outlier_guard_bits). The Gaussians are reordered along the Morton curve of their
     quantized positions. metadata: small JSON-able dict kept verbatim."""
     n, cols = _validated_columns(arrays, variant)
-    unknown = set(group_bits or ()) - {g.tag.decode("latin-1") for g in GROUPS}
+    unknown = set(group_bits or ()) - GROUP_TAGS
     if unknown:
         raise ValueError(f"group_bits names unknown groups {sorted(unknown)}")
     if quality not in QUALITY_LEVELS:
