@@ -163,8 +163,7 @@ class Trainer:
         self.images = ImageCache(dataset)
         self.frames = list(dataset.frames)
         self.train_centers = np.array([c.center for c in dataset.train], dtype=np.float64).reshape(-1, 3)
-        bg = torch.zeros(3)
-        self.background = bg
+        self.background = torch.zeros(3)
         self.elapsed_before = 0.0
         self.start_iteration = 0
         self.densify_rounds_done = 0
@@ -400,7 +399,6 @@ class Trainer:
         t0 = time.perf_counter()
         elapsed = self.elapsed_before
         last_log_time, last_log_it = t0, start
-        row: dict[str, Any] = {}
         try:
             for iteration in range(start + 1, end + 1):
                 _seed_globals(_derive_seed(cfg.seed, iteration, 1))
@@ -417,7 +415,7 @@ class Trainer:
                         event = self.compactor.step(iteration, step["t"], self.model, step["loss"],
                                                     importance_fn=self.importance)
                     if event:
-                        self.compaction_log.append(_jsonable({"iteration": iteration, **event}))
+                        self.compaction_log.append(_jsonable(event))  # the event carries its iteration
                 elapsed = self.elapsed_before + (time.perf_counter() - t0)
                 progress.update(step["loss"], step["psnr"], self.model.num_gaussians)
                 if self.callback is not None:
