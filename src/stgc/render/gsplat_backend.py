@@ -13,7 +13,6 @@ Differences from the CPU backends, all documented in docs/rasterizer.md:
 
 from __future__ import annotations
 
-import math
 import warnings
 from typing import Any
 
@@ -87,7 +86,8 @@ def rasterize_gsplat(
 ) -> dict[str, Tensor | None]:
     """One camera through gsplat's CUDA kernels. Returns the pieces of a RenderOutput (no background composited
     separately: gsplat adds it itself)."""
-    from .projection import bin_tiles_torch, tile_rects
+    from .api import T_MIN
+    from .projection import ALPHA_MIN, bin_tiles_torch, tile_grid, tile_rects
     from .torch_backend import TILE_SIZE as TORCH_TILE
     from .torch_backend import composite_torch
 
@@ -106,7 +106,7 @@ def rasterize_gsplat(
     )  # fmt: skip
     # A [N,2] tensor on the autograd path, so that .retain_grad() exposes dL/dmeans2d like the other backends.
     means2d = means2d_b[0]
-    tiles_x, tiles_y = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
+    tiles_x, tiles_y = tile_grid(width, height, TILE_SIZE)
     _, isect_ids, flatten_ids = gsplat.isect_tiles(
         means2d[None].detach(), radii, depths_b.detach(), TILE_SIZE, tiles_x, tiles_y
     )
@@ -125,7 +125,7 @@ def rasterize_gsplat(
             _, _, depth, weights = composite_torch(
                 means2d.detach(), conics_b[0].detach(), opacities.detach(), features.detach()[:, :1],
                 depths_b[0].detach(), offsets, flat, width, height, TORCH_TILE,
-                kernel_alpha_max, 1.0 / 255.0, 1e-4, want_depth, want_weights, use_checkpoint=False,
+                kernel_alpha_max, ALPHA_MIN, T_MIN, want_depth, want_weights, use_checkpoint=False,
             )  # fmt: skip
     return {
         "image": image[0],
