@@ -17,6 +17,7 @@ import time
 from stgc.codec import DEFAULT_QUALITY, QUALITY_LEVELS, decode, encode
 from stgc.codec.format import DEFAULT_ZSTD_LEVEL
 from stgc.codec.synthetic import synthetic_model
+from stgc.eval.accounting import mbps
 from stgc.model.layout import bytes_per_gaussian
 
 
@@ -58,7 +59,7 @@ def quality_rows(n: int, zstd_level: int) -> list[dict]:
                 "bits": {s.tag: s.bits for s in header.sections if s.components},
                 "bytes_per_gaussian": round(len(data) / n, 3),
                 "ratio_vs_ply": round(n * bytes_per_gaussian(variant) / len(data), 2),
-                "mbps_at_1s": round(len(data) * 8 / 2**20, 3),
+                "mbps_at_1s": round(mbps(len(data), 1.0), 3),
                 "section_bytes_per_gaussian": {k: round(v / n, 3) for k, v in header.section_bytes().items()},
             })
     return rows
