@@ -46,7 +46,7 @@ PARAM_KEYS = (
 
 # A Gaussian's composited alpha is min(alpha_max, opacity·exp(−σ)) with σ >= 0, and the rasterizer skips
 # alpha < 1/255; so one whose temporal opacity is below this threshold cannot touch any pixel at that time.
-MIN_VISIBLE_OPACITY = 1.0 / 255.0
+MIN_VISIBLE_OPACITY = _render.ALPHA_MIN
 
 # Official clamp of the initial log scale (oursfull/ourslite create_from_pcd) and floor of the squared distance.
 INIT_LOG_SCALE_RANGE = (-10.0, 1.0)
