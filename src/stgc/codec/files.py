@@ -25,8 +25,8 @@ from .format import (
 )
 
 # A generous ceiling on what we read from disk before parsing: a valid file never approaches it
-# (MAX_GAUSSIANS x 152 B, before compression).
-_MAX_FILE_BYTES = MAX_GAUSSIANS * 152
+# (MAX_GAUSSIANS float32 PLY rows of the full variant, before compression).
+_MAX_FILE_BYTES = MAX_GAUSSIANS * ply_bytes_per_gaussian("full")
 
 
 @dataclass
