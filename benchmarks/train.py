@@ -18,6 +18,7 @@ from pathlib import Path
 
 import torch
 
+from stgc.cli import PRESET_DATA_OVERRIDES
 from stgc.config import apply_overrides, parse_set_arguments
 from stgc.data import DataConfig
 from stgc.model import ModelConfig
@@ -32,8 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", default="cpu", choices=["cpu", "paper"])
     ap.add_argument("--variant", default="full", choices=["full", "lite"])
     ap.add_argument("--downscale", type=float, default=1.0)
-    ap.add_argument("--init-every", type=int, default=3, help="initial points from every k-th frame")
-    ap.add_argument("--points-per-frame", type=int, default=3000)
+    ap.add_argument("--init-every", type=int, default=None,
+                    help="initial points from every k-th frame (default: the preset's, as `stgc train`)")
+    ap.add_argument("--points-per-frame", type=int, default=None, help="default: the preset's, as `stgc train`")
     ap.add_argument("--iterations", type=int, default=None, help="speed run: stop after N iterations, no eval")
     ap.add_argument("--out", default=None, help="run directory (default: a temporary one under runs/)")
     ap.add_argument("--set", action="append", default=[], help="train config override key=value (repeatable)")
@@ -43,8 +45,12 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
-    data_cfg = DataConfig(downscale=args.downscale, init_frames_every=args.init_every,
-                          max_points_per_frame=args.points_per_frame)
+    preset_data = PRESET_DATA_OVERRIDES[args.preset]
+    init_every = args.init_every or int(preset_data.get("init_frames_every", 1))
+    points_per_frame = args.points_per_frame or (int(preset_data["max_points_per_frame"])
+                                                 if "max_points_per_frame" in preset_data else None)
+    data_cfg = DataConfig(downscale=args.downscale, init_frames_every=init_every,
+                          max_points_per_frame=points_per_frame)
     dataset = data_cfg.open(args.data)
     model_cfg = ModelConfig(variant=args.variant)
     cfg = apply_overrides(train_preset(args.preset), parse_set_arguments(args.set))
