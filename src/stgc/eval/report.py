@@ -287,7 +287,7 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
     rows = []
     record = read_json_object(run_dir / "eval.json")
     if record is not None:
-        rows.append(ReportRow.from_mapping({**_row_fields(record), "name": setting, "family": family,
+        rows.append(ReportRow.from_mapping({**record_fields(record), "name": setting, "family": family,
                                             "run": run_dir.name, "run_dir": str(run_dir)}))
     if include_codec:
         for path in sorted(run_dir.glob("eval_*.json")):
@@ -295,15 +295,18 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
             if rec is None:
                 continue
             point = path.stem.removeprefix("eval_")
-            rows.append(ReportRow.from_mapping({**_row_fields(rec), "name": f"{setting} {point}",
+            rows.append(ReportRow.from_mapping({**record_fields(rec), "name": f"{setting} {point}",
                                                 "family": f"{family} + codec", "run": run_dir.name,
                                                 "run_dir": str(run_dir), "bitstream": f"{point}.stgc"}))
     return rows
 
 
-def _row_fields(record: Mapping[str, Any]) -> dict[str, Any]:
-    keys = ("num_gaussians", "size_mb", "mbps", "psnr", "ssim", "lpips", "fps", "train_seconds")
-    return {k: record.get(k) for k in keys}
+RECORD_FIELDS = ("num_gaussians", "size_mb", "mbps", "psnr", "ssim", "lpips", "fps", "train_seconds")
+
+
+def record_fields(record: Mapping[str, Any]) -> dict[str, Any]:
+    """The eval.json values a report row (and the experiment's results.csv) carries."""
+    return {k: record.get(k) for k in RECORD_FIELDS}
 
 
 def report_from_runs(

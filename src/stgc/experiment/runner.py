@@ -26,7 +26,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 from stgc.errors import FormatError
 from stgc.eval.evaluate import eval_paths
-from stgc.eval.report import Report, ReportRow, make_report
+from stgc.eval.report import Report, ReportRow, make_report, record_fields
 from stgc.experiment.plans import Plan, RunSpec, load_plan
 from stgc.fileio import atomic_open, read_json_object, write_json
 
@@ -156,9 +156,7 @@ def subprocess_runner(cmd: list[str], log_path: Path) -> int:
 
 
 def _result_row(plan: Plan, o: RunOutcome, out_dir: Path) -> dict[str, Any]:
-    r = o.record or {}
-    row = {k: r.get(k) for k in ("num_gaussians", "size_mb", "mbps", "psnr", "ssim", "lpips", "fps",
-                                 "train_seconds")}
+    row = record_fields(o.record or {})
     try:
         rel = o.run_dir.relative_to(out_dir)
     except ValueError:
@@ -181,12 +179,8 @@ def _report_rows(outcomes: Sequence[RunOutcome]) -> list[ReportRow]:
     for o in outcomes:
         if o.record is None or o.status in ("failed", "dry-run"):
             continue
-        r = o.record
-        rows.append(ReportRow.from_mapping({
-            "name": o.label, "family": o.family, "mbps": r.get("mbps"), "psnr": r.get("psnr"),
-            "num_gaussians": r.get("num_gaussians"), "size_mb": r.get("size_mb"), "ssim": r.get("ssim"),
-            "lpips": r.get("lpips"), "run": o.name,
-        }))
+        rows.append(ReportRow.from_mapping({**record_fields(o.record), "name": o.label, "family": o.family,
+                                            "run": o.name}))
     return rows
 
 
