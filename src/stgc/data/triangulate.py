@@ -9,6 +9,9 @@ mismatches on repetitive texture). pycolmap is optional: importing this module d
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -18,6 +21,7 @@ import numpy as np
 from PIL import Image
 
 from ..errors import DataError
+from ..fileio import atomic_path
 from .cameras import Camera
 from .dataset import Dataset
 
@@ -47,18 +51,14 @@ def _pycolmap():
 
 def cache_dir() -> Path:
     """Where triangulations are kept between runs: $STGC_CACHE_DIR, else $XDG_CACHE_HOME/stgc, else ~/.cache/stgc."""
-    import os
-
     if os.environ.get("STGC_CACHE_DIR"):
         return Path(os.environ["STGC_CACHE_DIR"]) / "triangulation"
     base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     return base / "stgc" / "triangulation"
 
 
-def _cache_key(dataset: Dataset, cameras: list[Camera], upsample: float, min_track_length: int) -> str:
+def _cache_key(cameras: list[Camera], upsample: float, min_track_length: int) -> str:
     """Digest of everything the result depends on: cameras, image files (path, size, mtime) and options."""
-    import hashlib
-
     h = hashlib.sha256(f"v1 {upsample} {min_track_length}".encode())
     for cam in cameras:
         h.update(cam.name.encode())
@@ -86,29 +86,22 @@ def triangulate_frame(dataset: Dataset, frame: int, *, views: list[str] | None =
         cameras = [c for c in cameras if c.name in set(views)]
     if len(cameras) < 2:
         raise DataError(dataset.root, f"frame {frame}: triangulation needs at least 2 views, got {len(cameras)}")
-    key = _cache_key(dataset, cameras, upsample, min_track_length) if use_cache else ""
+    key = _cache_key(cameras, upsample, min_track_length) if use_cache else ""
     cached = cache_dir() / f"{key}.npz"
     if key and cached.is_file():
         try:
             with np.load(cached, allow_pickle=False) as z:
-                import json
-
                 return TriangulationResult(z["xyz"], z["rgb"], z["track_length"], z["errors"],
                                            {**json.loads(str(z["stats"])), "cached": True})
         except (OSError, ValueError, KeyError):
             pass  # unreadable cache entry: recompute and overwrite
     result = _triangulate(dataset, frame, cameras, upsample, min_track_length)
     if key:
-        import json
-
-        from ..fileio import atomic_path
-
         try:
             cached.parent.mkdir(parents=True, exist_ok=True)
-            with atomic_path(cached) as tmp:
-                with open(tmp, "wb") as f:
-                    np.savez(f, xyz=result.xyz, rgb=result.rgb, track_length=result.track_length,
-                             errors=result.errors, stats=json.dumps(result.stats))
+            with atomic_path(cached) as tmp, open(tmp, "wb") as f:
+                np.savez(f, xyz=result.xyz, rgb=result.rgb, track_length=result.track_length,
+                         errors=result.errors, stats=json.dumps(result.stats))
         except OSError:
             pass  # a read-only home is no reason to fail
     return result
@@ -220,7 +213,6 @@ def main(argv: list[str] | None = None) -> int:
     """`python -m stgc.data.triangulate DATA`: triangulate every frame of a segment, print a per-frame table
     (or JSON rows with --json). Measures what source='triangulate' gives before a training run."""
     import argparse
-    import json
 
     from .readers import open_dataset
 
