@@ -23,6 +23,7 @@ from stgc.eval.accounting import (
     ModelSize,
     RenderSpeed,
     bitstream_size,
+    duration_seconds,
     latest_iteration_dir,
     read_train_summary,
     size_of_saved_model,
@@ -307,7 +308,7 @@ def dataset_duration_s(dataset: Any) -> float:
     """Seconds of video the dataset's frame window covers (frames / fps)."""
     frames = dataset.frames
     count = len(frames) if hasattr(frames, "__len__") else int(frames)
-    return count / float(dataset.fps)
+    return duration_seconds(count, float(dataset.fps))
 
 
 def evaluate_run(
