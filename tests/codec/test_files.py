@@ -82,3 +82,19 @@ def test_failures_leave_no_partial_output_and_name_the_file(run_dir, tmp_path):
     assert not (tmp_path / "never").exists()
     with pytest.raises(DataError, match="cannot read"):
         read_stgc(tmp_path / "missing.stgc")
+
+
+def test_a_bitstream_away_from_its_run_is_evaluated_on_the_dataset_its_embedded_config_names(run_dir, tmp_path):
+    from stgc.eval import evaluate_run
+
+    run, _, _ = run_dir
+    away = tmp_path / "elsewhere"
+    away.mkdir()
+    compress_run(run, away / "with_config.stgc")
+    # The embedded config names the dataset "scene" (absent here): the error proves it was the one looked up.
+    with pytest.raises(DataError) as info:
+        evaluate_run(away / "with_config.stgc", measure_fps=False)
+    assert "scene" in str(info.value)
+    compress_run(run, away / "bare.stgc", config=CodecConfig(embed_run_config=False))
+    with pytest.raises(DataError, match="no run config found.*--data"):
+        evaluate_run(away / "bare.stgc", measure_fps=False)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from stgc.codec import DEFAULT_QUALITY, QUALITY_LEVELS, canonical_rotation, decode, encode
-from stgc.codec.format import GROUPS, HEADER_SIZE, groups_for
+from stgc.codec.format import GROUPS, HEADER_SIZE, SPAN_SIGMAS, groups_for, time_span
 from stgc.codec.synthetic import synthetic_model
 from stgc.errors import DataError
 from stgc.model.layout import bytes_per_gaussian, ply_fields
@@ -46,14 +46,17 @@ def test_every_attribute_is_within_its_documented_bound(models, round_trips, var
     assert list(decoded.arrays) == ply_fields(variant)
     assert all(v.dtype == np.float32 and v.shape == (N,) for v in decoded.arrays.values())
     step = steps(decoded)
+    span = time_span(out["trbf_center"], out["trbf_scale"])
     for group in groups_for(variant):
         tag = group.tag.decode()
         if tag in ("OPAC", "ROTN", "OMGA"):
             continue
-        for field, s in zip(group.fields(variant), step[tag]):
+        powers = group.span_powers or (0,) * len(group.fields(variant))
+        for field, s, power in zip(group.fields(variant), step[tag], powers):
             orig = arrays[field].astype(np.float64)
-            err = np.abs(out[field] - orig)
-            assert np.all(err <= s / 2 + _float32_slack(orig)), (field, err.max(), s / 2)
+            # Time-span groups bound the error of coefficient * span**power (the displacement while visible).
+            err = np.abs(out[field] - orig) * span**power
+            assert np.all(err <= s / 2 + _float32_slack(orig * span**power)), (field, err.max(), s / 2)
     # Opacity: bounded in the sigmoid domain, the quantity that is blended.
     err = np.abs(sigmoid(out["opacity"]) - sigmoid(arrays["opacity"]))
     assert err.max() <= step["OPAC"][0] / 2 + 1e-6
@@ -67,8 +70,33 @@ def test_every_attribute_is_within_its_documented_bound(models, round_trips, var
     assert np.abs(rot_d - rot_c).max() <= 2 * max(step["ROTN"][:3])
     assert np.allclose(np.linalg.norm(rot_d, axis=1), 1.0, atol=1e-6)
     for i in range(4):
-        assert np.all(np.abs(omega_d[:, i] - omega_c[:, i]) <= step["OMGA"][i] / 2 + _float32_slack(omega_c[:, i]))
+        err = np.abs(omega_d[:, i] - omega_c[:, i]) * span
+        assert np.all(err <= step["OMGA"][i] / 2 + _float32_slack(omega_c[:, i] * span))
     assert all(np.all(decoded.arrays[n] == 0) for n in ("nx", "ny", "nz"))
+
+
+@pytest.mark.parametrize("quality", QUALITY_LEVELS)
+def test_trajectory_error_is_bounded_while_the_gaussian_is_visible(models, round_trips, quality):
+    """The guarantee behind the time-span scaling, checked on the trajectories themselves: at every frame time
+    where a Gaussian's temporal opacity is at least exp(-SPAN_SIGMAS**2), its decoded cubic trajectory is within
+    the sum of the three powers' step/2 of the original one (per axis), whatever its lifetime."""
+    arrays, _ = models["full"]
+    _, decoded, index = round_trips["full", quality]
+    out = {k: v[index].astype(np.float64) for k, v in decoded.arrays.items()}
+    step = steps(decoded)["MOTN"]
+    mu, scale = out["trbf_center"], np.exp(out["trbf_scale"])
+    checked = 0
+    for t in np.linspace(0.0, 1.0, 41):
+        dt = t - mu
+        visible = np.abs(dt) <= SPAN_SIGMAS * scale
+        checked += int(visible.sum())
+        for axis in range(3):
+            def shift(a, dt=dt, axis=axis):
+                return sum(a[f"motion_{axis + 3 * k}"].astype(np.float64) * dt ** (k + 1) for k in range(3))
+            err = np.abs(shift(out) - shift(arrays))[visible]
+            bound = sum(step[axis + 3 * k] / 2 for k in range(3))
+            assert err.max(initial=0.0) <= bound * (1 + 1e-6) + 1e-9, (t, axis, err.max(), bound)
+    assert checked > N  # the synthetic lifetimes leave many Gaussians visible at many times
 
 
 def test_canonical_rotation_changes_no_rotation_at_any_time():
@@ -116,8 +144,12 @@ def test_higher_quality_costs_more_bytes_and_gives_smaller_errors(models, round_
     errors = []
     for q in QUALITY_LEVELS:
         _, decoded, index = round_trips["full", q]
-        errors.append(np.abs(decoded.arrays["motion_0"][index] - arrays["motion_0"]).max())
-    assert errors == sorted(errors, reverse=True)
+        out = {k: v[index].astype(np.float64) for k, v in decoded.arrays.items()}
+        span = time_span(out["trbf_center"], out["trbf_scale"])  # motion_0's error, as a displacement while visible
+        errors.append(np.max(np.abs(out["motion_0"] - arrays["motion_0"]) * span))
+        errors.append(np.max(np.abs(out["x"] - arrays["x"])))
+    assert errors[0::2] == sorted(errors[0::2], reverse=True)
+    assert errors[1::2] == sorted(errors[1::2], reverse=True)
 
 
 @pytest.mark.parametrize("variant", ["full", "lite"])
@@ -210,18 +242,21 @@ def test_outlier_guard_keeps_the_bulk_precise_when_one_gaussian_is_far_out(model
     arrays, _ = models["lite"]
     stretched = {k: v.copy() for k, v in arrays.items()}
     stretched["x"][0] = 5e3  # a floater ~1000 scene extents away
-    stretched["motion_0"][1] = 40.0  # and one absurd velocity
+    stretched["motion_0"][1] = 40.0  # and one absurd velocity, on a Gaussian seen all the time (span 1)
+    stretched["trbf_center"][1], stretched["trbf_scale"][1] = 0.0, 3.0
     errors, bits = {}, {}
     for guard in (False, True):
         decoded = decode(encode(stretched, "lite", None, outlier_guard=guard))
         index = match_rows(stretched, decoded.arrays)
         bits[guard] = {s.tag: s.bits for s in decoded.header.sections}
-        errors[guard] = {k: np.abs(decoded.arrays[k][index][2:].astype(np.float64) - stretched[k][2:]).max()
-                         for k in ("x", "motion_0")}
+        out = {k: v[index].astype(np.float64) for k, v in decoded.arrays.items()}
+        weight = {"x": 1.0, "motion_0": time_span(out["trbf_center"], out["trbf_scale"])[2:]}  # displacements
+        errors[guard] = {k: (np.abs(out[k][2:] - stretched[k][2:]) * weight[k]).max() for k in ("x", "motion_0")}
         assert abs(float(decoded.arrays["x"][index][0]) - 5e3) <= steps(decoded)["POSI"][0] / 2 + 1e-3
     assert bits[True]["POSI"] > bits[False]["POSI"] and bits[True]["MOTN"] > bits[False]["MOTN"]
     assert errors[True]["x"] < errors[False]["x"] / 20
     assert errors[True]["motion_0"] < errors[False]["motion_0"] / 5  # (guarded step <= 4x the central-range step)
     # Without outliers the guard changes nothing (the synthetic tails are heavy but bounded).
     plain = decode(encode(arrays, "lite", None))
-    assert {s.tag: s.bits for s in plain.header.sections}["MOTN"] == 6
+    motion = next(g for g in GROUPS if g.tag == b"MOTN")
+    assert {s.tag: s.bits for s in plain.header.sections}["MOTN"] == motion.bits_by_quality[DEFAULT_QUALITY - 1]

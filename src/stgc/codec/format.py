@@ -40,7 +40,7 @@ from .quantize import (
 )
 
 MAGIC = b"STGC\r\n\x1a\n"  # the CR-LF / ^Z / LF tail catches text-mode and line-ending mangling, as PNG's does
-VERSION = 1
+VERSION = 2  # 2: motion and omega are stored scaled by each Gaussian's time span (TIME_SPAN)
 QUALITY_LEVELS = (1, 2, 3, 4, 5)
 DEFAULT_QUALITY = 3
 DEFAULT_ZSTD_LEVEL = 19  # encoding is offline; 19 is ~3.5 % smaller than 12 (6x slower) and decodes as fast
@@ -79,6 +79,15 @@ SIGMOID = "sigmoid"  # opacity: quantized as sigmoid(logit) in [0,1], the quanti
 # The three lie in [-1/sqrt(2), 1/sqrt(2)], so the same bits buy 1.4x finer steps than quantizing all four.
 QUAT_SMALLEST3 = "quat-smallest3"
 _OPACITY_CLAMP = 1e-7  # logit(1 - 1e-7) = 16.1: beyond that the opacity is 1 in float32 anyway
+# Time-polynomial coefficient c of power p moves a Gaussian by c * dt**p, dt = t - trbf_center, but only while
+# the Gaussian is visible: temporal opacity exp(-(dt / exp(trbf_scale))**2) is 0.018 at dt = 2 exp(trbf_scale),
+# and t stays in [0, 1]. So c is stored as c * span**p with span = min(max(|mu|, |1 - mu|), 2 exp(s)) clipped to
+# [SPAN_MIN, 1]: a uniform step then bounds the displacement error over the time the Gaussian is seen, instead
+# of spending the levels on coefficients of short-lived Gaussians whose high powers never act. mu and s are the
+# *decoded* trbf values, so encoder and decoder compute the same span.
+TIME_SPAN = "time-span"
+SPAN_SIGMAS = 2.0
+SPAN_MIN = 0.01  # below ~1 % of the sequence a Gaussian lives for about one frame at 100 frames
 
 
 @dataclass(frozen=True)
@@ -88,6 +97,7 @@ class AttributeGroup:
     fields_lite: tuple[str, ...]
     domain: str
     bits_by_quality: tuple[int, int, int, int, int]
+    span_powers: tuple[int, ...] = ()  # TIME_SPAN domain: the power of dt each component multiplies
 
     def fields(self, variant: str) -> tuple[str, ...]:
         return self.fields_full if variant == "full" else self.fields_lite
@@ -104,16 +114,18 @@ def _names(prefix: str, n: int) -> tuple[str, ...]:
 # per-group sensitivity sweep (render PSNR with one group coarsened) found them the most visible after position.
 # Omega and f_t, least visible, get one bit less.
 GROUPS: tuple[AttributeGroup, ...] = (
-    AttributeGroup(b"POSI", ("x", "y", "z"), ("x", "y", "z"), LINEAR, (13, 14, 16, 17, 18)),
+    AttributeGroup(b"POSI", ("x", "y", "z"), ("x", "y", "z"), LINEAR, (12, 13, 14, 16, 18)),
     AttributeGroup(b"TCEN", ("trbf_center",), ("trbf_center",), LINEAR, (8, 9, 9, 11, 13)),
     AttributeGroup(b"TSCL", ("trbf_scale",), ("trbf_scale",), LINEAR, (5, 6, 7, 8, 9)),
-    AttributeGroup(b"MOTN", _names("motion", 9), _names("motion", 9), LINEAR, (5, 6, 6, 7, 9)),
+    AttributeGroup(b"MOTN", _names("motion", 9), _names("motion", 9), TIME_SPAN, (5, 6, 7, 8, 9),
+                   span_powers=(1, 1, 1, 2, 2, 2, 3, 3, 3)),
     AttributeGroup(b"FDC_", _names("f_dc", 6), _names("f_dc", 3), LINEAR, (5, 6, 7, 8, 10)),
     AttributeGroup(b"OPAC", ("opacity",), ("opacity",), SIGMOID, (5, 6, 7, 8, 9)),
-    AttributeGroup(b"SCAL", _names("scale", 3), _names("scale", 3), LINEAR, (5, 6, 7, 8, 10)),
-    AttributeGroup(b"ROTN", _names("rot", 4), _names("rot", 4), QUAT_SMALLEST3, (5, 6, 6, 7, 9)),
-    AttributeGroup(b"OMGA", _names("omega", 4), _names("omega", 4), LINEAR, (4, 5, 5, 6, 8)),
-    AttributeGroup(b"FT__", _names("f_t", 3), (), LINEAR, (4, 4, 4, 6, 8)),
+    AttributeGroup(b"SCAL", _names("scale", 3), _names("scale", 3), LINEAR, (5, 6, 8, 9, 10)),
+    AttributeGroup(b"ROTN", _names("rot", 4), _names("rot", 4), QUAT_SMALLEST3, (5, 6, 7, 8, 9)),
+    AttributeGroup(b"OMGA", _names("omega", 4), _names("omega", 4), TIME_SPAN, (3, 4, 4, 6, 8),
+                   span_powers=(1, 1, 1, 1)),
+    AttributeGroup(b"FT__", _names("f_t", 3), (), LINEAR, (3, 3, 3, 5, 8)),
 )
 GROUP_BY_TAG = {g.tag: g for g in GROUPS}
 GROUP_TAGS = frozenset(g.tag.decode("latin-1") for g in GROUPS)
@@ -201,8 +213,21 @@ def canonical_rotation(rot: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, 
     return rot * factor, omega * factor
 
 
+def time_span(trbf_center: np.ndarray, trbf_scale: np.ndarray) -> np.ndarray:
+    """Per-Gaussian time span over which its motion acts (see TIME_SPAN), float64 in [SPAN_MIN, 1]."""
+    mu = np.asarray(trbf_center, dtype=np.float64)
+    with np.errstate(over="ignore"):  # a huge trbf_scale means "always visible": exp -> inf, then min() drops it
+        visible = SPAN_SIGMAS * np.exp(np.asarray(trbf_scale, dtype=np.float64))
+    return np.clip(np.minimum(np.maximum(np.abs(mu), np.abs(1.0 - mu)), visible), SPAN_MIN, 1.0)
+
+
+def _span_factors(group: AttributeGroup, span: np.ndarray) -> np.ndarray:
+    """[C, N] multipliers span**p of a TIME_SPAN group."""
+    return span[None, :] ** np.asarray(group.span_powers, dtype=np.float64)[:, None]
+
+
 def _to_domain(values: np.ndarray, domain: str) -> np.ndarray:
-    """[C, N] field values -> [C', N] values to quantize."""
+    """[C, N] field values -> [C', N] values to quantize (TIME_SPAN groups are scaled by the caller)."""
     if domain == SIGMOID:
         return 0.5 * (1.0 + np.tanh(0.5 * values))  # overflow-free sigmoid
     if domain == QUAT_SMALLEST3:
@@ -354,6 +379,8 @@ def encode(
 
     sections: list[tuple[bytes, int, int, int, int, int, bytes, tuple[Quantizer, ...]]] = []
     order: np.ndarray | None = None
+    decoded_time: dict[bytes, np.ndarray] = {}
+    span = np.ones(n)
     for group in groups_for(variant):
         bits = bits_for(group, quality)
         if group.tag == b"POSI" and position_bits is not None:
@@ -362,10 +389,16 @@ def encode(
             bits = int(group_bits[group.tag.decode("latin-1")])
         container_dtype(bits)  # validates the range
         values = _to_domain(np.stack([cols[f] for f in group.fields(variant)], axis=0), group.domain)
-        if group.domain == LINEAR and outlier_guard:  # the other domains are bounded ([0, 1], unit quaternion)
+        if group.domain == TIME_SPAN:
+            values = values * _span_factors(group, span)
+        if group.domain in (LINEAR, TIME_SPAN) and outlier_guard:  # the others are bounded ([0, 1], unit quaternion)
             bits = outlier_guard_bits(values, bits)
         quantizers = _fit_group(values, group.domain, bits)
         codes = np.stack([quantize(v, q) for v, q in zip(values, quantizers)], axis=0)
+        if group.tag in (b"TCEN", b"TSCL"):  # the decoder sees only the quantized values: derive the span from them
+            decoded_time[group.tag] = dequantize(codes[0], quantizers[0])
+            if len(decoded_time) == 2:
+                span = time_span(decoded_time[b"TCEN"], decoded_time[b"TSCL"])
         if order is None:  # POSI comes first: its codes define the Morton order used by every section
             order = morton_order(codes.T, bits)
         codes = codes[:, order]
@@ -496,8 +529,8 @@ def _unpack_payload(data: bytes, offset: int, sec: SectionInfo, source: str | No
     return bytes(out)
 
 
-def _decode_attribute(raw: bytes, sec: SectionInfo, group: AttributeGroup, n: int,
-                      source: str | None) -> np.ndarray:
+def _decode_attribute(raw: bytes, sec: SectionInfo, group: AttributeGroup, n: int, source: str | None,
+                      span: np.ndarray | None = None) -> np.ndarray:
     dtype = container_dtype(sec.bits)
     codes = from_byte_planes(raw, sec.components, n, dtype, interleave=bool(sec.flags & FLAG_INTERLEAVE))
     if sec.flags & FLAG_DELTA:
@@ -511,12 +544,16 @@ def _decode_attribute(raw: bytes, sec: SectionInfo, group: AttributeGroup, n: in
         if n and int(codes[3].max()) > 3:
             raise _fail(f"section {sec.tag!r} holds a quaternion component index above 3", source)
     values = np.stack([dequantize(c, q) for c, q in zip(codes, sec.quantizers)], axis=0)
+    if group.domain == TIME_SPAN:
+        values = values / _span_factors(group, span if span is not None else np.ones(n))
     return _from_domain(values, group.domain)
 
 
-def _check_quantizers(sec: SectionInfo, source: str | None) -> None:
+def _check_quantizers(sec: SectionInfo, group: AttributeGroup, source: str | None) -> None:
     top = (1 << sec.bits) - 1
     f32_max = float(np.finfo(np.float32).max)
+    if group.domain == TIME_SPAN:  # decoding divides by span**p >= SPAN_MIN**p: the result must still fit
+        f32_max *= SPAN_MIN ** max(group.span_powers)
     for q in sec.quantizers:
         if not (np.isfinite(q.step) and q.step > 0):
             raise _fail(f"section {sec.tag!r} has an invalid quantizer step {q.step!r}", source)
@@ -597,7 +634,7 @@ def decode(data: bytes | str | os.PathLike, source: str | None = None) -> Decode
                 raise _fail(f"section {sec.tag!r} has an invalid bit depth {sec.bits}", source)
             if sec.raw_size != n * want * container_dtype(sec.bits).itemsize:
                 raise _fail(f"section {sec.tag!r} size {sec.raw_size} does not match {n} Gaussians", source)
-            _check_quantizers(sec, source)
+            _check_quantizers(sec, group, source)
         elif sec.tag == _DECO:
             if sec.raw_size > MAX_DECODER_BYTES or sec.components:
                 raise _fail(f"decoder section is malformed ({sec.raw_size} bytes)", source)
@@ -615,15 +652,13 @@ def decode(data: bytes | str | os.PathLike, source: str | None = None) -> Decode
     columns: dict[str, np.ndarray] = {}
     decoder_state = None
     metadata: dict[str, Any] = {}
+    attribute_payloads: dict[str, tuple[bytes, SectionInfo]] = {}
     offset = HEADER_SIZE + sum(_ENTRY.size + s.components * _QPARAM.size for s in header.sections)
     for sec in header.sections:
         raw = _unpack_payload(data, offset, sec, source)
         offset += sec.payload_size
         if sec.tag in expected:
-            group = expected[sec.tag]
-            values = _decode_attribute(raw, sec, group, n, source)
-            for name, col in zip(group.fields(variant), values):
-                columns[name] = col
+            attribute_payloads[sec.tag] = (raw, sec)
         elif sec.tag == _DECO:
             decoder_state = _unpack_decoder(raw, source)
         else:
@@ -633,6 +668,16 @@ def decode(data: bytes | str | os.PathLike, source: str | None = None) -> Decode
                 raise _fail("metadata section is not UTF-8 JSON", source) from None
             if not isinstance(metadata, dict):
                 raise _fail("metadata section is not a JSON object", source)
+
+    # In GROUPS order, whatever the file order: the TIME_SPAN groups need the decoded trbf_center/trbf_scale.
+    span = None
+    for tag, group in expected.items():
+        raw, sec = attribute_payloads[tag]
+        values = _decode_attribute(raw, sec, group, n, source, span)
+        for name, col in zip(group.fields(variant), values):
+            columns[name] = col
+        if "trbf_center" in columns and "trbf_scale" in columns and span is None:
+            span = time_span(columns["trbf_center"], columns["trbf_scale"])
 
     arrays = {}
     for name in ply_fields(variant):
