@@ -6,6 +6,12 @@ Gaussian), so encode and decode speeds are comparable across quality levels.
 
     .venv/bin/python benchmarks/codec.py                    # 100k and 1M Gaussians, full variant
     .venv/bin/python benchmarks/codec.py --sizes 20000 --json
+
+With --runs RUN..., trained runs instead: each is compressed at every quality into RUN/model_q<Q>.stgc and the
+bitstream evaluated on the run's test views (RUN/eval_model_q<Q>.json, as `stgc eval` writes it), giving the
+real rate-distortion points against the float32 model's RUN/eval.json:
+
+    .venv/bin/python benchmarks/codec.py --runs runs/toys_full_cpu runs/panoptic_full_cpu
 """
 
 from __future__ import annotations
@@ -65,6 +71,42 @@ def quality_rows(n: int, zstd_level: int) -> list[dict]:
     return rows
 
 
+def trained_rows(runs: list[str], qualities: tuple[int, ...] = QUALITY_LEVELS) -> list[dict]:
+    from pathlib import Path
+
+    from stgc.codec import compress_run
+    from stgc.eval import evaluate_run
+    from stgc.fileio import read_json_object
+
+    rows = []
+    for run in map(Path, runs):
+        base = read_json_object(run / "eval.json")
+        for quality in qualities:
+            target = run / f"model_q{quality}.stgc"
+            result = compress_run(run, target, quality=quality)
+            record = evaluate_run(target, measure_fps=False)
+            rows.append({
+                "table": "trained", "run": str(run), "quality": quality, "gaussians": result.num_gaussians,
+                "bytes_per_gaussian": round(result.file_bytes / result.num_gaussians, 3),
+                "ratio_vs_ply": round(result.ratio_vs_ply, 2), "size_mb": record["size_mb"], "mbps": record["mbps"],
+                "psnr": record["psnr"], "float_psnr": base["psnr"], "float_size_mb": base["size_mb"],
+                "float_mbps": base["mbps"], "delta_psnr": record["psnr"] - base["psnr"],
+            })
+    return rows
+
+
+def print_trained(rows: list[dict]) -> None:
+    for run in dict.fromkeys(r["run"] for r in rows):
+        mine = [r for r in rows if r["run"] == run]
+        first = mine[0]
+        print(f"{run}: {first['gaussians']} Gaussians; float32 PLY rows {first['float_size_mb']:.3f} MB, "
+              f"{first['float_mbps']:.2f} Mbps, test PSNR {first['float_psnr']:.3f} dB")
+        print(f"{'quality':>7} {'B/G':>6} {'x PLY':>6} {'MB':>7} {'Mbps':>6} {'PSNR':>7} {'dPSNR':>7}")
+        for r in mine:
+            print(f"{r['quality']:>7} {r['bytes_per_gaussian']:>6.2f} {r['ratio_vs_ply']:>6.2f} {r['size_mb']:>7.4f} "
+                  f"{r['mbps']:>6.3f} {r['psnr']:>7.3f} {r['delta_psnr']:>+7.3f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000])
@@ -75,7 +117,17 @@ def main() -> None:
                         help="Gaussians in the per-quality size table (0 skips it)")
     parser.add_argument("--repeat", type=int, default=1, help="best of this many runs per timing")
     parser.add_argument("--json", action="store_true", help="print one JSON row per measurement instead")
+    parser.add_argument("--runs", nargs="+", help="trained run directories: real RD points instead of synthetic")
     args = parser.parse_args()
+
+    if args.runs:
+        rows = trained_rows(args.runs)
+        if args.json:
+            for row in rows:
+                print(json.dumps(row))
+        else:
+            print_trained(rows)
+        return
 
     rows = speed_rows(args.sizes, args.variant, args.quality, args.zstd_level, args.repeat)
     if args.quality_sweep_size:

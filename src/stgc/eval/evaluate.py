@@ -284,8 +284,9 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
 # ------------------------------------------------------------------------------------- whole runs
 
 
-def _open_run_dataset(run_dir: Path, data_path: str | Path | None) -> Any:
-    """The dataset a run was trained on, opened with the run's own data options (RUN/config.json)."""
+def _open_run_dataset(run_dir: Path, data_path: str | Path | None, bitstream: Path | None = None) -> Any:
+    """The dataset a run was trained on, opened with the run's own data options: RUN/config.json, or for a
+    `.stgc` file away from its run, the run config the encoder embedded in it."""
     import dataclasses  # noqa: PLC0415
 
     from stgc.data import DataConfig  # noqa: PLC0415 - the data package is only needed here
@@ -297,9 +298,17 @@ def _open_run_dataset(run_dir: Path, data_path: str | Path | None) -> Any:
             data_cfg = dict(json.loads(config_path.read_text()).get("data", {}))
         except (OSError, json.JSONDecodeError, AttributeError, TypeError) as exc:
             raise FormatError(config_path, f"cannot read run config ({exc})") from None
+    elif bitstream is not None:
+        from stgc.codec import read_stgc  # noqa: PLC0415
+
+        embedded = read_stgc(bitstream).metadata.get("run_config")
+        data_section = embedded.get("data") if isinstance(embedded, dict) else None
+        if isinstance(data_section, dict):
+            data_cfg, config_path = dict(data_section), bitstream
     path = data_path if data_path is not None else data_cfg.get("path")
     if path is None:
-        raise DataError(config_path, "no data path: config.json has no data.path; pass the dataset path")
+        where = "config.json has no data.path" if config_path.is_file() else "no run config found"
+        raise DataError(config_path, f"no data path ({where}); pass the dataset with --data")
     known = {f.name for f in dataclasses.fields(DataConfig)}
     return DataConfig(**{k: v for k, v in data_cfg.items() if k in known}).open(path)
 
@@ -331,7 +340,8 @@ def evaluate_run(
     run_dir = target.parent if target.suffix == ".stgc" else target
     if not target.exists():
         raise DataError(target, "no such run directory or bitstream")
-    dataset = open_dataset(run_dir) if open_dataset else _open_run_dataset(run_dir, data_path)
+    dataset = open_dataset(run_dir) if open_dataset else _open_run_dataset(
+        run_dir, data_path, target if target.suffix == ".stgc" else None)
     if load_model is None:
         load_model = _default_model_loader
     model = load_model(target)
