@@ -68,10 +68,18 @@ def test_data_points_on_blender_toys(blender_toys):
     assert set(map(tuple, cloud.xyz[cloud.time == 0.5])) <= set(map(tuple, raw[:, :3]))
     with pytest.raises(DataError, match="not in the segment"):
         initial_points(data, "data", frames=[20])
+    # The rule sees each frame's whole cloud; the cap then thins its output by cap / raw count.
     cfg = DataConfig(init_frames_every=2, max_points_per_frame=100, preprocess="stg-isolated")
     cloud, report = cfg.initial_points(data)
-    assert [r["before"] for r in report.per_frame] == [100, 100]
-    assert report.per_frame[0]["after"] == 100 and report.per_frame[1]["after"] <= 25
+    whole = len(raw)
+    assert [r["before"] for r in report.per_frame] == [len(np.load(blender_toys / "points3d" / "0004.npy")), whole]
+    assert 0.24 * whole <= report.per_frame[1]["after"] <= int(0.25 * whole) - 1  # official strict threshold
+    assert cloud.counts_per_time() == {0.0: 100, 0.5: round(report.per_frame[1]["after"] * 100 / whole)}
+    from stgc.data.preprocess import preprocess_points
+    isolated, _ = preprocess_points(initial_points(data, "data", frames=[4, 6]), "stg-isolated")
+    # The capped run's frame-6 points are drawn from the most isolated quarter of the whole frame-6 cloud
+    # (capping first would have picked other points, isolated only because of the sampling).
+    assert set(map(tuple, cloud.xyz[cloud.time == 0.5])) <= set(map(tuple, isolated.xyz[isolated.time == 0.5]))
 
 
 def test_random_points_are_seen_by_two_cameras(panoptic_basketball):

@@ -57,17 +57,24 @@ class DataConfig:
                             yuv_range=self.yuv_range)
 
     def initial_points(self, dataset):
-        """Initial points of `dataset` with these options, then the preprocess rule: (cloud, report)."""
-        from .points import initial_points
+        """Initial points of `dataset` with these options: (cloud, report).
+
+        The preprocess rule sees each frame's whole cloud, as in STG (its "most isolated 25 %" means isolated
+        within the real cloud, not within a random sample of it); the `max_points_per_frame` cap then thins what
+        the rule kept by the factor the cap would have applied to the raw frame, min(1, cap / raw count). So a
+        capped run keeps the rule's selection and its reduction ratio, at the capped scale. Capping first and
+        preprocessing the sample would keep mostly stray points (isolated only because of the sampling)."""
+        from .points import initial_points, thin_like
         from .preprocess import preprocess_points
 
         frames = dataset.frames[:: max(1, self.init_frames_every)]
-        cloud = initial_points(dataset, source=self.init_source, frames=frames,
-                               max_points_per_frame=self.max_points_per_frame, seed=self.seed,
-                               triangulation_upsample=self.triangulation_upsample,
-                               min_track_length=self.min_track_length,
-                               triangulation_cache=self.triangulation_cache)
-        return preprocess_points(cloud, self.preprocess, self.preprocess_fraction)
+        kwargs = {} if self.max_points_per_frame is None else {"random_points_per_frame": self.max_points_per_frame}
+        raw = initial_points(dataset, source=self.init_source, frames=frames, seed=self.seed,
+                             triangulation_upsample=self.triangulation_upsample,
+                             min_track_length=self.min_track_length,
+                             triangulation_cache=self.triangulation_cache, **kwargs)
+        kept, report = preprocess_points(raw, self.preprocess, self.preprocess_fraction)
+        return thin_like(kept, raw, self.max_points_per_frame, self.seed), report
 
 
 
@@ -78,6 +85,6 @@ def initial_points_from_config(dataset, cfg: DataConfig | None = None):
     import logging
 
     cloud, report = (cfg or DataConfig()).initial_points(dataset)
-    logging.getLogger(__name__).info("initial points: %d -> %d after preprocess %r", report.before, report.after,
-                                     report.mode)
+    logging.getLogger(__name__).info("initial points: %d -> %d after preprocess %r -> %d after the per-frame cap",
+                                     report.before, report.after, report.mode, len(cloud))
     return cloud

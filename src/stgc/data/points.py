@@ -60,6 +60,23 @@ def _subsample(xyz: np.ndarray, rgb: np.ndarray, limit: int | None, rng: np.rand
     return xyz[keep], rgb[keep]
 
 
+def thin_like(cloud: PointCloud, raw: PointCloud, cap: int | None, seed: int = 0) -> PointCloud:
+    """Randomly thin each frame of `cloud` (a subset of `raw`) by the factor a per-frame cap of `cap` points would
+    apply to that frame of `raw`: round(kept * min(1, cap / raw count)) points stay. None = no cap."""
+    if cap is None:
+        return cloud
+    rng = np.random.default_rng(seed)
+    raw_counts = raw.counts_per_time()
+    keep = np.zeros(len(cloud), dtype=bool)
+    for t in np.unique(cloud.time):
+        idx = np.flatnonzero(cloud.time == t)
+        factor = min(1.0, cap / raw_counts[float(t)])
+        take = min(len(idx), int(round(len(idx) * factor)))
+        # Draw only where thinning happens: without a preprocess rule this is the plain cap, same draws as before.
+        keep[idx if take == len(idx) else np.sort(rng.choice(idx, size=take, replace=False))] = True
+    return cloud.select(keep)
+
+
 def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | None = None,
                    max_points_per_frame: int | None = None, seed: int = 0, *, triangulation_upsample: float = 2.0,
                    min_track_length: int = 3, random_points_per_frame: int = 2000,
