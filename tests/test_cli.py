@@ -59,3 +59,19 @@ def test_resume_refuses_options_that_would_be_ignored(tmp_path, capsys):
     (tmp_path / "config.json").write_text("{}")
     assert main(["train", "--out", str(tmp_path), "--resume", "--set", "train.iterations=5"]) == 2
     assert "keeps its saved config.json; drop set" in capsys.readouterr().err
+
+
+def test_experiment_passes_preprocess_and_bd_method_to_run_plan(monkeypatch, tmp_path):
+    import stgc.experiment
+
+    seen = {}
+
+    def fake_run_plan(data, plan, out, **kwargs):
+        seen.update(kwargs, data=data, plan=plan)
+        return "done"
+
+    monkeypatch.setattr(stgc.experiment, "run_plan", fake_run_plan)
+    assert main(["experiment", "scene", "--plan", "table2", "--out", str(tmp_path), "--preprocess", "closest-pairs",
+                 "--bd-method", "cubic", "--codec-quality", "3"]) == 0
+    assert seen["preprocess"] == "closest-pairs" and seen["bd_method"] == "cubic"
+    assert seen["codec_qualities"] == [3] and seen["plan"] == "table2"

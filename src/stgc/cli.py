@@ -209,7 +209,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
     result = run_plan(
         args.data, args.plan, args.out, preset=args.preset, extra_overrides=args.set or [],
-        codec_qualities=args.codec_quality or [],
+        codec_qualities=args.codec_quality or [], preprocess=args.preprocess, bd_method=args.bd_method,
     )
     print(result)
     return 0
@@ -319,6 +319,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="cpu", choices=["cpu", "paper"], help="training preset of every run")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override applied to every run")
     p.add_argument("--codec-quality", type=int, action="append", help="also add .stgc rate points at this quality")
+    p.add_argument("--preprocess", choices=["stg-isolated", "closest-pairs"],
+                   help="point preprocessing of the built-in plans' preprocessed runs (default stg-isolated, what "
+                   "the official code does; closest-pairs is the paper's wording)")
+    p.add_argument("--bd-method", choices=["pchip", "cubic"], default="pchip",
+                   help="Bjontegaard interpolation: pchip (piecewise cubic, robust) or cubic (the classic VCEG fit)")
     p.set_defaults(func=cmd_experiment)
 
     p = sub.add_parser("report", help="tables, RD plots and BD deltas from any set of runs")

@@ -43,3 +43,12 @@ def test_bad_logs_raise_data_error(tmp_path):
     with pytest.raises(DataError, match="line 2 is not JSON"):
         plot_compaction(log, tmp_path / "x.png")
     assert not (tmp_path / "x.png").exists()
+
+
+def test_a_last_line_cut_short_by_a_kill_is_skipped_but_a_bad_middle_line_is_not(tmp_path):
+    log = tmp_path / "compaction.jsonl"
+    log.write_text('{"iteration": 5, "ratio": 0.1}\n{"iteration": 6, "rat')
+    assert [r["iteration"] for r in read_compaction_log(log)] == [5]
+    log.write_text('{"iteration": 5, "ratio": 0.1}\n{"iteration": 6, "rat\n{"iteration": 7, "ratio": 0.1}\n')
+    with pytest.raises(DataError, match="line 2 is not JSON"):
+        read_compaction_log(log)

@@ -140,17 +140,10 @@ def _iteration_of(path: Path) -> int | None:
     return max(iterations) if iterations else None
 
 
-def _run_dir_of(path: Path) -> Path | None:
-    for candidate in (path, *path.parents):
-        if (candidate / "config.json").is_file():
-            return candidate
-    return None
-
-
 def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: int | None = None,
                  config: CodecConfig | None = None) -> CompressResult:
     """Compress a trained model (a run dir -> its latest iteration, an iteration dir, or a point_cloud.ply)."""
-    from stgc.model import STGModel  # the model package owns the run layout and PLY reading
+    from stgc.model import STGModel, run_dir_of  # the model package owns the run layout and PLY reading
 
     config = CodecConfig(**vars(config)) if config is not None else CodecConfig()
     if quality is not None:
@@ -165,7 +158,7 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
     iteration = _iteration_of(source)
     if iteration is not None:
         metadata["iteration"] = iteration
-    run_dir = _run_dir_of(source)
+    run_dir = run_dir_of(source)
     if config.embed_run_config and run_dir is not None:
         try:
             metadata["run_config"] = json.loads((run_dir / "config.json").read_text())

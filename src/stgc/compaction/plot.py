@@ -21,16 +21,19 @@ def read_compaction_log(run_dir_or_jsonl: str | Path) -> list[dict[str, Any]]:
         raise DataError(path, "no compaction log (was the run trained with compaction.method st-knn?)")
     records = []
     with open(path, encoding="utf-8") as f:
-        for number, line in enumerate(f, start=1):
-            if not line.strip():
-                continue
-            try:
-                record = json.loads(line)
-            except json.JSONDecodeError as err:
-                raise DataError(path, f"line {number} is not JSON ({err.msg})") from None
-            if not isinstance(record, dict) or "iteration" not in record:
-                raise DataError(path, f"line {number} is not a pruning-step record (no 'iteration')")
-            records.append(record)
+        lines = f.readlines()
+    for number, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError as err:
+            if number == len(lines) and not line.endswith("\n"):
+                break  # the last line of a run killed mid-write (the trainer rewrites it on resume)
+            raise DataError(path, f"line {number} is not JSON ({err.msg})") from None
+        if not isinstance(record, dict) or "iteration" not in record:
+            raise DataError(path, f"line {number} is not a pruning-step record (no 'iteration')")
+        records.append(record)
     if not records:
         raise DataError(path, "no pruning steps logged")
     return records

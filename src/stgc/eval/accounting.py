@@ -263,13 +263,10 @@ def read_train_summary(run_dir: str | Path) -> dict[str, Any] | None:
 
 
 def training_seconds(summary: Mapping[str, Any] | None) -> float | None:
-    """Wall-clock training time from a train summary (accepts a few spellings of the key)."""
-    if not summary:
+    """Wall-clock training time from a train summary (RUN/train_summary.json, key `wall_seconds`)."""
+    if not summary or summary.get("wall_seconds") is None:
         return None
-    for key in ("wall_seconds", "wall_s", "train_seconds", "seconds", "elapsed_s"):
-        if key in summary and summary[key] is not None:
-            return float(summary[key])
-    return None
+    return float(summary["wall_seconds"])
 
 
 # ------------------------------------------------------------------------------------------ speed

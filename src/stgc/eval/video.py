@@ -26,14 +26,14 @@ from stgc.fileio import atomic_path
 def load_model_and_dataset(run_or_model: Any, dataset: Any | None = None) -> tuple[Any, Any]:
     """(model, dataset) from a run directory / iteration dir / PLY path, or an in-memory model."""
     if isinstance(run_or_model, (str, Path)):
-        from stgc.model import STGModel
+        from stgc.model import STGModel, run_dir_of
 
         path = Path(run_or_model)
         model = STGModel.load(path)
         if dataset is None:
             from stgc.eval.evaluate import _open_run_dataset
 
-            run_dir = next((p for p in [path, *path.parents][:4] if (p / "config.json").is_file()), None)
+            run_dir = run_dir_of(path)
             if run_dir is None:
                 raise DataError(path, "cannot find the run's config.json: pass the dataset explicitly")
             dataset = _open_run_dataset(run_dir, None)

@@ -11,6 +11,7 @@ from stgc.model.stg import (
     initial_log_scales,
     param_widths,
     ply_columns,
+    run_dir_of,
 )
 
 __all__ = [
@@ -28,4 +29,5 @@ __all__ = [
     "param_widths",
     "ply_columns",
     "ply_fields",
+    "run_dir_of",
 ]

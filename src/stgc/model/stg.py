@@ -585,15 +585,20 @@ def _cloud_arrays(cloud: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return xyz.astype(np.float32), rgb.astype(np.float32), time.astype(np.float32)
 
 
+def run_dir_of(path: str | Path) -> Path | None:
+    """The run directory holding `path` (the run itself, RUN/point_cloud/iteration_<N>, its PLY, or a file in
+    RUN): the nearest of path and its three parents that has a config.json; None if there is none."""
+    path = Path(path)
+    return next((p for p in [path, *path.parents][:4] if (p / "config.json").is_file()), None)
+
+
 def _activation_from_run_config(ply_path: Path) -> str | None:
-    # RUN/point_cloud/iteration_<N>/point_cloud.ply -> RUN/config.json
-    for parent in list(ply_path.parents)[:3]:
-        config_path = parent / "config.json"
-        if config_path.is_file():
-            try:
-                model_section = json.loads(config_path.read_text()).get("model", {})
-            except (OSError, ValueError, AttributeError):
-                return None
-            activation = model_section.get("decoder_activation") if isinstance(model_section, dict) else None
-            return activation if isinstance(activation, str) else None
-    return None
+    run_dir = run_dir_of(ply_path.parent)
+    if run_dir is None:
+        return None
+    try:
+        model_section = json.loads((run_dir / "config.json").read_text()).get("model", {})
+    except (OSError, ValueError, AttributeError):
+        return None
+    activation = model_section.get("decoder_activation") if isinstance(model_section, dict) else None
+    return activation if isinstance(activation, str) else None
