@@ -192,3 +192,20 @@ def test_importance_criterion_through_the_compactor():
     for r in removed:
         partners = pairs.partner[pairs.reference == r].tolist() + pairs.reference[pairs.partner == r].tolist()
         assert any(p > r and survivors[p] for p in partners)
+
+
+def test_on_prune_sees_each_removal_mask_aligned_with_the_model():
+    """The trainer keeps per-Gaussian statistics of its own; on_prune hands it the exact rows model.prune kept."""
+    cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.2, ratio_min=0.1,
+                           ratio_max=0.3)
+    model = make_model(random_params(400, 3, motion_scale=0.02), scene_extent=1.0)
+    compactor = STKNNCompactor(cfg, 100)
+    side = {"xyz": model.params["xyz"].detach().clone()}  # a per-Gaussian array that must follow the rows
+    events = 0
+    for it in range(1, 101):
+        event = compactor.step(it, 0.5, model, 1.0 / it, on_prune=lambda keep: side.update(xyz=side["xyz"][keep]))
+        if event:
+            events += 1
+            assert event["removed"] > 0
+            assert torch.equal(side["xyz"], model.params["xyz"].detach())
+    assert events == 6

@@ -53,9 +53,12 @@ class STKNNCompactor:
         model: PrunableModel,
         loss: float,
         importance_fn: Callable[[], torch.Tensor | np.ndarray] | None = None,
+        on_prune: Callable[[torch.Tensor], Any] | None = None,
     ) -> dict[str, Any] | None:
         """Record this iteration's training loss; at a pruning iteration adjust the ratio and prune the model.
 
+        `on_prune(keep)` is called with the boolean keep mask right after `model.prune(keep)`, so a caller
+        holding per-Gaussian state of its own (the trainer's densification statistics) can drop the same rows.
         Returns the pruning step's log record, or None on other iterations (and always with method 'none')."""
         if not self.enabled:
             return None
@@ -78,7 +81,10 @@ class STKNNCompactor:
         if selection.remove.size:
             keep = torch.ones(n_before, dtype=torch.bool)
             keep[torch.from_numpy(selection.remove)] = False
-            model.prune(keep.to(model.params["xyz"].device))
+            keep = keep.to(model.params["xyz"].device)
+            model.prune(keep)
+            if on_prune is not None:
+                on_prune(keep)
         finished = time.perf_counter()
 
         removed = int(selection.remove.size)

@@ -36,6 +36,7 @@ class DensificationStats:
         return torch.where(self.count > 0, self.grad_sum / self.count.clamp(min=1), torch.zeros_like(self.grad_sum))
 
     def keep(self, mask: torch.Tensor) -> None:
+        mask = torch.as_tensor(mask, dtype=torch.bool).to(self.grad_sum.device)
         self.grad_sum, self.count = self.grad_sum[mask], self.count[mask]
 
     def append(self, n: int) -> None:

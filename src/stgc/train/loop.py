@@ -110,30 +110,6 @@ class ImageCache:
         return img.to(torch.float32) / 255.0
 
 
-class _PruneObserver:
-    """Sees the rows another component (the compaction controller) removes with `model.prune`, so the trainer's
-    per-Gaussian statistics stay aligned with the model."""
-
-    def __init__(self, model: Any, stats: DensificationStats):
-        self.model, self.stats = model, stats
-
-    def __enter__(self) -> "_PruneObserver":
-        original = self.model.prune
-
-        def observed_prune(keep: torch.Tensor) -> Any:
-            result = original(keep)
-            self.stats.keep(torch.as_tensor(keep, dtype=torch.bool))
-            return result
-
-        self._original = original
-        self.model.prune = observed_prune
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        # Restore the class method (the instance attribute shadowed it).
-        del self.model.prune
-
-
 class Trainer:
     """Holds the state of one run. `train()` is the public entry point; tests drive `Trainer` directly."""
 
@@ -411,9 +387,8 @@ class Trainer:
                     self.stats.append(added)
                     control["ems_added"] = added
                 if self.compactor is not None:
-                    with _PruneObserver(self.model, self.stats):
-                        event = self.compactor.step(iteration, step["t"], self.model, step["loss"],
-                                                    importance_fn=self.importance)
+                    event = self.compactor.step(iteration, step["t"], self.model, step["loss"],
+                                                importance_fn=self.importance, on_prune=self.stats.keep)
                     if event:
                         self.compaction_log.append(_jsonable(event))  # the event carries its iteration
                 elapsed = self.elapsed_before + (time.perf_counter() - t0)
