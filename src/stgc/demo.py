@@ -109,10 +109,10 @@ def run_demo(out_dir: Path, data: Path | None = None) -> int:
         ("ST-KNN compacted", by_name.get("st-knn")),
         (f"compacted + .stgc q{DEFAULT_QUALITY}", by_name.get(f"st-knn-q{DEFAULT_QUALITY}")),
     ]
-    report_md = out_dir / "report" / "report.md"
     print()
-    print(f"report:     {report_md}")
-    print(f"RD plot:    {out_dir / 'report' / 'report_rd.png'}")
+    if result.report is not None:
+        print(f"report:     {result.report.markdown}")
+        print(f"RD plot:    {result.report.plot_png}")
     print(f"video:      {video}")
     print(f"bitstream:  {compacted_run / f'model_q{DEFAULT_QUALITY}.stgc'}")
     print()

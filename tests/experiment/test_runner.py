@@ -35,8 +35,8 @@ def _invocations(out: Path) -> list[str]:
     return path.read_text().splitlines() if path.exists() else []
 
 
-def _results(out: Path) -> list[dict[str, str]]:
-    with open(out / "results.csv") as f:
+def _results(out: Path, plan: str = "mini") -> list[dict[str, str]]:
+    with open(out / f"results-{plan}.csv") as f:
         return list(csv.DictReader(f))
 
 
@@ -185,3 +185,16 @@ def test_plan_overrides_are_real_config_keys(plan_name: str) -> None:
         if "compaction.case" in spec.overrides:
             assert configs["compaction"].case == int(spec.overrides["compaction.case"])
             assert configs["compaction"].criterion == spec.overrides["compaction.criterion"]
+
+
+def test_two_plans_share_one_folder_and_train_their_common_runs_once(tmp_path: Path) -> None:
+    out = tmp_path / "exp"
+    quiet = {"runner": fake_runner, "python": sys.executable, "log": lambda m: None}
+    run_plan("DATA", "table2", out, preset="cpu", **quiet)
+    trained_by_table2 = [c for c in _invocations(out) if c.startswith("train")]
+    run_plan("DATA", "table3", out, preset="cpu", **quiet)
+    trained_by_table3 = [c for c in _invocations(out) if c.startswith("train")][len(trained_by_table2):]
+    assert len(trained_by_table2) == 6
+    assert len(trained_by_table3) == 4 and all("criterion=scale" in c for c in trained_by_table3)
+    assert len(_results(out, "table2")) == 6 and len(_results(out, "table3")) == 9
+    assert (out / "report-table2" / "report.md").is_file() and (out / "report-table3" / "report.md").is_file()

@@ -5,8 +5,11 @@ Layout of an experiment folder OUT:
     OUT/<run name>/            a normal run directory (config.json, point_cloud/, eval.json, ...)
     OUT/<run name>/experiment.json   the run's plan entry (family, label, overrides) for the report
     OUT/logs/<run name>.log    stdout + stderr of that run's subprocesses
-    OUT/results.csv            one row per run (and per codec rate point), rewritten atomically after every run
-    OUT/report/                report.md, report_rd.png/.svg, report.json
+    OUT/results-<plan>.csv     one row per run (and per codec rate point), rewritten atomically after every run
+    OUT/report-<plan>/         report.md, report_rd.png/.svg, report.json
+
+Runs are named by their settings, and the per-plan outputs carry the plan's name, so several plans (table2 and
+table3) can share one folder and train their common runs once.
 
 A run counts as finished when RUN/eval.json exists and RUN/train_summary.json says finished; finished runs are
 skipped, an interrupted run with a checkpoint is continued with `--resume`, a failed run is reported and the
@@ -202,7 +205,7 @@ def run_plan(
     log: Callable[[str], None] | None = None,
 ) -> PlanResult:
     """Train, evaluate (and optionally compress + evaluate at each codec quality) every run of `plan` under
-    OUT, skipping what is already done; write OUT/results.csv and the report in OUT/report.
+    OUT, skipping what is already done; write OUT/results-<plan>.csv and the report in OUT/report-<plan>.
 
     `extra_overrides` apply to every run and win over the plan's own. `runner(cmd, log_path) -> exit status`
     and `command_builder` are injectable (tests use a fake trainer)."""
@@ -211,7 +214,7 @@ def run_plan(
     out_dir.mkdir(parents=True, exist_ok=True)
     extra = parse_overrides(extra_overrides)
     say = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
-    result = PlanResult(plan, out_dir, results_csv=out_dir / "results.csv")
+    result = PlanResult(plan, out_dir, results_csv=out_dir / f"results-{plan.name}.csv")
     qualities = [int(q) for q in codec_qualities]
 
     for spec in plan.runs:
@@ -239,7 +242,7 @@ def run_plan(
     if make_report_files and not dry_run:
         rows = _report_rows(result.outcomes)
         if rows:
-            result.report = make_report(rows, out_dir / "report", plan.baseline,
+            result.report = make_report(rows, out_dir / f"report-{plan.name}", plan.baseline,
                                         title=plan.title or f"Plan {plan.name}",
                                         bd_method=bd_method)  # type: ignore[arg-type]
     return result
