@@ -110,9 +110,9 @@ def _names(prefix: str, n: int) -> tuple[str, ...]:
 # Bit depth per quality level 1..5 (default 3). Positions need the most: the error is a world-space offset that
 # must stay far below a pixel (docs/stgc-format.md, "Position precision"). trbf_center gets more bits than the
 # other scalars because temporal opacity exp(-((t - mu_t) / s_t)^2) turns a small mu_t shift into a large
-# opacity change for short-lived Gaussians. Colour (f_dc) and log-scale get one bit more than the rest: a
-# per-group sensitivity sweep (render PSNR with one group coarsened) found them the most visible after position.
-# Omega and f_t, least visible, get one bit less.
+# opacity change for short-lived Gaussians. The rest follows a per-group sensitivity sweep of test PSNR on the two
+# trained shared models (docs/stgc-format.md section 7): motion, log-scale and rotation are the most visible
+# after position; omega and f_t the least.
 GROUPS: tuple[AttributeGroup, ...] = (
     AttributeGroup(b"POSI", ("x", "y", "z"), ("x", "y", "z"), LINEAR, (12, 13, 14, 16, 18)),
     AttributeGroup(b"TCEN", ("trbf_center",), ("trbf_center",), LINEAR, (8, 9, 9, 11, 13)),
