@@ -152,3 +152,23 @@ def test_nothing_is_culled_at_initialisation(monkeypatch):
     torch.testing.assert_close(fake.calls[0]["opacities"], model.temporal_opacity(0.9))
     out.rgb.sum().backward()
     assert (model.params["opacity"].grad != 0).all()
+
+
+@pytest.mark.parametrize("depth, seen", [(0.15, False), (0.25, True)])
+def test_gaussians_closer_than_the_official_near_plane_are_not_drawn(depth, seen):
+    """Official STG culls view depth <= 0.2 (NEAR_PLANE). One big opaque Gaussian in front of the lens: drawn at
+    depth 0.25, dropped at 0.15, where the image is the background."""
+    from stgc.model import NEAR_PLANE
+
+    assert NEAR_PLANE == 0.2
+    camera = look_at_camera(distance=4.0)  # camera centre at z = -4, looking along +z
+    model = STGModel.from_points(SimpleNamespace(xyz=np.array([[0.0, 0.0, depth - 4.0]]), rgb=np.ones((1, 3)),
+                                                 time=np.array([0.5])), variant="lite")
+    with torch.no_grad():
+        model.params["scaling"].fill_(float(np.log(0.05)))
+        model.params["opacity"].fill_(5.0)
+        model.params["features_dc"].fill_(1.0)
+    out = model.render(camera, t=0.5, background=torch.zeros(3), backend="torch")
+    assert (out.alpha.max().item() > 0.5) is seen
+    near = model.render(camera, t=0.5, background=torch.zeros(3), backend="torch", near_plane=0.01)
+    assert near.alpha.max().item() > 0.5  # the override reaches the rasterizer

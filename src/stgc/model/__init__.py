@@ -5,6 +5,7 @@ from stgc.model.decoder import SandwichDecoder, camera_rays
 from stgc.model.layout import VARIANTS, bytes_per_gaussian, ply_fields
 from stgc.model.stg import (
     MIN_VISIBLE_OPACITY,
+    NEAR_PLANE,
     PARAM_KEYS,
     ModelRender,
     STGModel,
@@ -17,6 +18,7 @@ from stgc.model.stg import (
 __all__ = [
     "DECODER_ACTIVATIONS",
     "MIN_VISIBLE_OPACITY",
+    "NEAR_PLANE",
     "PARAM_KEYS",
     "VARIANTS",
     "ModelConfig",
