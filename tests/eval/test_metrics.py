@@ -109,10 +109,28 @@ def test_shape_mismatch_is_reported() -> None:
         ssim(torch.zeros(8, 8, 3), torch.zeros(8, 9, 3))
 
 
-def test_lpips_reports_a_reason_when_unavailable() -> None:
-    ok, reason = lpips_status("alex")
-    assert isinstance(ok, bool)
-    if not ok:
-        assert reason.startswith("skipped:")
+def test_lpips_reports_why_it_is_unavailable_at_each_missing_piece(monkeypatch, tmp_path) -> None:
+    import importlib.util
+    from types import SimpleNamespace
+
+    import stgc.eval.metrics as metrics
+
     bad, why = lpips_status("squeezenet-nope")
-    assert not bad and "unknown" in why
+    assert not bad and "unknown LPIPS network" in why
+    # A fake lpips package (with or without its linear weights) and a fake torch hub cache, whatever is installed.
+    package = tmp_path / "lpips"
+    installed = {"lpips": SimpleNamespace(origin=str(package / "__init__.py")), "torchvision": SimpleNamespace()}
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: installed.get(name))
+    monkeypatch.setattr(metrics, "_torch_hub_checkpoints", lambda: tmp_path / "hub")
+    del installed["torchvision"]
+    assert lpips_status("alex") == (False, "skipped: python package 'torchvision' is not installed")
+    installed["torchvision"] = SimpleNamespace()
+    ok, why = lpips_status("alex")
+    assert not ok and why.startswith("skipped: lpips linear weights missing")
+    (package / "weights" / "v0.1").mkdir(parents=True)
+    (package / "weights" / "v0.1" / "alex.pth").write_bytes(b"w")
+    ok, why = lpips_status("alex")
+    assert not ok and "backbone weights not in the torch hub cache" in why and "not downloading" in why
+    (tmp_path / "hub").mkdir()
+    (tmp_path / "hub" / "alexnet-owt-7be5be79.pth").write_bytes(b"w")
+    assert lpips_status("alex") == (True, "available")
