@@ -100,6 +100,9 @@ def test_plan_toml_errors(tmp_path: Path) -> None:
     bad.write_text("[[runs]]\nname = 'a'\n[[runs]]\nname = 'a'\n")
     with pytest.raises(FormatError, match="twice"):
         load_plan_toml(bad)
+    bad.write_text("name = '../x'\n[[runs]]\nname = 'a'\n")
+    with pytest.raises(FormatError, match="names files"):
+        load_plan_toml(bad)
     bad.write_text("[[runs\n")
     with pytest.raises(FormatError, match="invalid TOML"):
         load_plan_toml(bad)

@@ -62,8 +62,8 @@ class DataConfig:
         The preprocess rule sees each frame's whole cloud, as in STG (its "most isolated 25 %" means isolated
         within the real cloud, not within a random sample of it); the `max_points_per_frame` cap then thins what
         the rule kept by the factor the cap would have applied to the raw frame, min(1, cap / raw count). So a
-        capped run keeps the rule's selection and its reduction ratio, at the capped scale. Capping first and
-        preprocessing the sample would keep mostly stray points (isolated only because of the sampling)."""
+        capped run keeps the rule's selection and its reduction ratio, at the capped scale. (Capping first would make
+        the rule pick points isolated by the sampling, not by the scene.)"""
         from .points import initial_points, thin_like
         from .preprocess import preprocess_points
 

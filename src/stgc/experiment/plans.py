@@ -140,7 +140,10 @@ def load_plan_toml(path: str | Path) -> Plan:
             raise FormatError(path, f"run {name!r}: override values must be scalars") from None
         runs.append(RunSpec(name, overrides, str(r.get("family", name)), str(r.get("label", name))))
     baseline = data.get("baseline")
-    return Plan(str(data.get("name", path.stem)), tuple(runs), None if baseline is None else str(baseline),
+    plan_name = str(data.get("name", path.stem))
+    if not _NAME.match(plan_name):  # it names OUT/results-<plan>.csv and OUT/report-<plan>/
+        raise FormatError(path, f"plan name {plan_name!r}: use letters, digits, '.', '_' or '-' (it names files)")
+    return Plan(plan_name, tuple(runs), None if baseline is None else str(baseline),
                 str(data.get("title", "")))
 
 
