@@ -23,6 +23,7 @@ from stgc.config import (
     split_sections,
 )
 from stgc.errors import StgcError
+from stgc.fileio import read_json_object
 
 
 # --------------------------------------------------------------------------------------------- config sections
@@ -82,9 +83,9 @@ def resolve_configs(
 def configs_from_run(run_dir: Path) -> dict[str, Any]:
     """The configs a run was started with (RUN/config.json)."""
     path = run_dir / "config.json"
-    if not path.is_file():
+    saved = read_json_object(path)
+    if saved is None:
         raise StgcError(f"{path}: not found; is {run_dir} a stgc run directory?")
-    saved = json.loads(path.read_text())
     classes = _section_classes()
     out: dict[str, Any] = {}
     for name, cls in classes.items():
@@ -130,8 +131,6 @@ def cmd_train(args: argparse.Namespace) -> int:
     print(f"run written to {out}")
     if (out / "eval.json").is_file():
         from stgc.eval import format_eval_table
-        from stgc.fileio import read_json_object
-
         print(format_eval_table(read_json_object(out / "eval.json")))
     return 0
 

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from stgc.errors import DataError, FormatError
-from stgc.fileio import atomic_path, write_json
+from stgc.fileio import atomic_path, read_json_object, write_json
 from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
 
 from .format import (
@@ -160,10 +159,7 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
         metadata["iteration"] = iteration
     run_dir = run_dir_of(source)
     if config.embed_run_config and run_dir is not None:
-        try:
-            metadata["run_config"] = json.loads((run_dir / "config.json").read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise DataError(run_dir / "config.json", f"unreadable run config ({exc})") from None
+        metadata["run_config"] = read_json_object(run_dir / "config.json")
     data = encode_with_config(arrays, model.variant, model.decoder_state(), config, metadata)
     out = write_stgc(out_path, data)
     n = model.num_gaussians

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -31,7 +30,7 @@ from stgc.eval.accounting import (
     training_seconds,
 )
 from stgc.eval.metrics import LPIPS, psnr, ssim
-from stgc.fileio import atomic_open, write_json
+from stgc.fileio import atomic_open, read_json_object, write_json
 
 PER_VIEW_COLUMNS = ("camera", "frame", "time", "psnr", "ssim", "lpips", "render_ms")
 
@@ -293,11 +292,12 @@ def _open_run_dataset(run_dir: Path, data_path: str | Path | None, bitstream: Pa
 
     config_path = run_dir / "config.json"
     data_cfg: dict[str, Any] = {}
-    if config_path.is_file():
-        try:
-            data_cfg = dict(json.loads(config_path.read_text()).get("data", {}))
-        except (OSError, json.JSONDecodeError, AttributeError, TypeError) as exc:
-            raise FormatError(config_path, f"cannot read run config ({exc})") from None
+    saved = read_json_object(config_path)
+    if saved is not None:
+        section = saved.get("data") or {}
+        if not isinstance(section, dict):
+            raise FormatError(config_path, "the run config's 'data' section is not an object")
+        data_cfg = dict(section)
     elif bitstream is not None:
         from stgc.codec import read_stgc  # noqa: PLC0415
 
@@ -359,7 +359,7 @@ def evaluate_run(
         result.speed = None
     write_eval(run_dir, result, info, target=target)
     json_path, _ = eval_paths(target)
-    return json.loads(json_path.read_text())
+    return read_json_object(json_path)
 
 
 def _default_model_loader(target: Path) -> Any:
