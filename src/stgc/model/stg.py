@@ -11,7 +11,6 @@ docs/model.md). With Δ = t − μ_t and Δ' = Δ.detach() (as the official rend
 
 from __future__ import annotations
 
-import json
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -25,6 +24,7 @@ from torch import nn
 
 from stgc import render as _render
 from stgc.errors import DataError, FormatError
+from stgc.fileio import read_json_object
 from stgc.model import ply as _ply
 from stgc.model.config import ModelConfig
 from stgc.model.decoder import SandwichDecoder, camera_rays
@@ -602,11 +602,7 @@ def run_dir_of(path: str | Path) -> Path | None:
 
 def _activation_from_run_config(ply_path: Path) -> str | None:
     run_dir = run_dir_of(ply_path.parent)
-    if run_dir is None:
-        return None
-    try:
-        model_section = json.loads((run_dir / "config.json").read_text()).get("model", {})
-    except (OSError, ValueError, AttributeError):
-        return None
+    saved = None if run_dir is None else read_json_object(run_dir / "config.json", strict=False)
+    model_section = (saved or {}).get("model")
     activation = model_section.get("decoder_activation") if isinstance(model_section, dict) else None
     return activation if isinstance(activation, str) else None
