@@ -84,9 +84,29 @@ def test_builtin_plans_match_the_paper() -> None:
 
 
 def test_train_command_layout() -> None:
-    cmd = build_train_command("DATA", "OUT/r", "cpu", {"compaction.case": "2"}, resume=True, python="py")
-    assert cmd == ["py", "-m", "stgc.cli", "train", "DATA", "--out", "OUT/r", "--preset", "cpu", "--resume",
+    cmd = build_train_command("DATA", "OUT/r", "cpu", {"compaction.case": "2"}, python="py")
+    assert cmd == ["py", "-m", "stgc.cli", "train", "DATA", "--out", "OUT/r", "--preset", "cpu",
                    "--set", "compaction.case=2"]
+    resumed = build_train_command("DATA", "OUT/r", "cpu", {"compaction.case": "2"}, resume=True, python="py")
+    assert resumed == ["py", "-m", "stgc.cli", "train", "DATA", "--out", "OUT/r", "--resume"]
+
+
+def test_the_resume_command_is_accepted_by_the_cli(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The runner's resume command must pass the CLI's own checks (a resumed run refuses overrides)."""
+    import stgc.data
+    import stgc.train
+    from stgc.cli import main
+
+    run = tmp_path / "r"
+    run.mkdir()
+    (run / "config.json").write_text('{"compaction": {"method": "st-knn", "case": "3"}}')
+    calls = []
+    monkeypatch.setattr(stgc.data.DataConfig, "open", lambda self, path: path)
+    monkeypatch.setattr(stgc.train, "train", lambda *a, **k: calls.append((a, k)))
+    cmd = build_train_command("DATA", run, "cpu", {"compaction.case": "3"}, resume=True, python="py")
+    assert main(cmd[3:]) == 0
+    (args, kwargs), = calls
+    assert kwargs["resume"] is True and args[4].case == 3
 
 
 def test_plan_toml_errors(tmp_path: Path) -> None:
@@ -161,7 +181,7 @@ def test_interrupted_run_is_resumed(tmp_path: Path) -> None:
     result = run_plan("DATA", one, out, preset="paper", runner=fake_runner, python=sys.executable,
                       log=lambda m: None)
     (call,) = _invocations(out)
-    assert "--resume" in call and "--preset paper" in call
+    assert "--resume" in call and "--set" not in call
     assert result.outcomes[0].status == "finished"
 
 

@@ -51,12 +51,14 @@ def build_train_command(
     resume: bool = False,
     python: str = sys.executable,
 ) -> list[str]:
-    """`python -m stgc.cli train DATA --out RUN [--preset P] [--resume] --set key=value ...`."""
+    """`python -m stgc.cli train DATA --out RUN [--preset P] --set key=value ...`, or for `resume`
+    `... train DATA --out RUN --resume`: a resumed run keeps the config saved in RUN, and the CLI refuses
+    overrides next to --resume (they could silently differ from what the run started with)."""
     cmd = [python, "-m", CLI_MODULE, "train", str(data_path), "--out", str(run_dir)]
+    if resume:
+        return cmd + ["--resume"]
     if preset:
         cmd += ["--preset", preset]
-    if resume:
-        cmd.append("--resume")
     for key, value in overrides.items():
         cmd += ["--set", f"{key}={value}"]
     return cmd
