@@ -180,3 +180,45 @@ def test_a_zstd_bomb_claim_is_refused_before_decompression(valid_file):
         assert tracemalloc.get_traced_memory()[1] < MEMORY_LIMIT
     finally:
         tracemalloc.stop()
+
+
+def _entries(data: bytes):
+    """(table offset, unpacked entry) of every section."""
+    num_sections = HEADER.unpack_from(data)[5]
+    pos, out = 32, []
+    for _ in range(num_sections):
+        entry = ENTRY.unpack_from(data, pos)
+        out.append((pos, list(entry)))
+        pos += ENTRY.size + entry[3] * QPARAM_SIZE
+    return out
+
+
+def _set_flags(data: bytes, tag: bytes, flags: int) -> bytes:
+    out = bytearray(data)
+    for pos, entry in _entries(data):
+        if entry[0] == tag:
+            entry[4] = flags
+            ENTRY.pack_into(out, pos, *entry)
+    return bytes(reseal(out))
+
+
+def test_centred_sections_are_checked(valid_file):
+    data, _ = valid_file
+    with pytest.raises(FormatError, match="combines centring"):
+        decode(_set_flags(data, b"MOTN", 1 | 4))  # centring and delta
+    with pytest.raises(FormatError, match="combines centring"):
+        decode(_set_flags(data, b"ROTN", 4))  # quaternion indices are not centred
+    # A plain 8-bit section read as centred needs a 9-bit (uint16) container: the sizes disagree.
+    plain = next(e for _, e in _entries(data) if e[4] & 5 == 0 and e[2] == 8 and e[0] != b"ROTN")
+    with pytest.raises(FormatError, match="does not match"):
+        decode(_set_flags(data, plain[0], plain[4] | 4))
+
+
+def test_a_version_2_file_is_still_read():
+    arrays, decoder = synthetic_model(300, "full", seed=5)
+    v2 = encode(arrays, "full", decoder, adaptive_delta=False)  # no centred sections: a valid version 2 file
+    assert not any(e[4] & 4 for _, e in _entries(v2))
+    old = bytearray(v2)
+    struct.pack_into("<H", old, 8, 2)
+    model = decode(bytes(reseal(old)))
+    assert np.array_equal(model.arrays["x"], decode(v2).arrays["x"])

@@ -83,3 +83,18 @@ def test_byte_planes_round_trip_and_put_low_bytes_first(dtype, interleave):
     expected_first = codes[0] if not interleave else codes[:, 0]
     first_plane = np.frombuffer(raw, np.uint8)[: len(expected_first)]
     assert np.array_equal(first_plane, (expected_first & 0xFF).astype(np.uint8))
+
+
+def test_zigzag_and_centring_round_trip():
+    from stgc.codec.quantize import centre_encode, unzigzag, zigzag
+
+    signed = np.arange(-300, 300)
+    assert np.array_equal(unzigzag(zigzag(signed)), signed)
+    assert list(zigzag(np.array([0, -1, 1, -2, 2]))) == [0, 1, 2, 3, 4]
+    rng = np.random.default_rng(3)
+    for bits in (2, 7, 8, 16):
+        codes = rng.integers(0, 2**bits, (3, 400)).astype(container_dtype(bits))
+        stored, centre = centre_encode(codes, bits)
+        assert stored.dtype == container_dtype(bits + 1) and int(stored.max()) < 2 ** (bits + 1)
+        assert np.array_equal(unzigzag(stored) + centre[:, None], codes.astype(np.int64))
+        assert np.array_equal(centre, np.round(np.median(codes, axis=1)))

@@ -29,6 +29,7 @@ from .quantize import (
     MIN_BITS,
     Quantizer,
     container_dtype,
+    centre_encode,
     delta_decode,
     delta_encode,
     dequantize,
@@ -37,10 +38,12 @@ from .quantize import (
     morton_order,
     quantize,
     to_byte_planes,
+    unzigzag,
 )
 
 MAGIC = b"STGC\r\n\x1a\n"  # the CR-LF / ^Z / LF tail catches text-mode and line-ending mangling, as PNG's does
-VERSION = 2  # 2: motion and omega are stored scaled by each Gaussian's time span (TIME_SPAN)
+VERSION = 3  # 2: motion and omega are stored scaled by each Gaussian's time span (TIME_SPAN); 3: FLAG_CENTRED
+READABLE_VERSIONS = (2, 3)  # version 3 only adds a section flag, so every version 2 file is a valid version 3 file
 QUALITY_LEVELS = (1, 2, 3, 4, 5)
 DEFAULT_QUALITY = 3
 DEFAULT_ZSTD_LEVEL = 19  # encoding is offline; 19 is ~3.5 % smaller than 12 (6x slower) and decodes as fast
@@ -69,7 +72,10 @@ CODEC_STORED = 0
 CODEC_ZSTD = 1
 FLAG_DELTA = 1  # codes are delta + zigzag coded along the stored (Morton) order
 FLAG_INTERLEAVE = 2  # byte planes hold each Gaussian's components side by side (else one component after another)
-KNOWN_FLAGS = FLAG_DELTA | FLAG_INTERLEAVE
+# Codes are zigzag(code - centre) in a (bits+1)-bit container, the centre folded into the quantizer's zero point
+# (value = (signed + zero_point) * step). Not with FLAG_DELTA, not for quaternion groups.
+FLAG_CENTRED = 4
+KNOWN_FLAGS = FLAG_DELTA | FLAG_INTERLEAVE | FLAG_CENTRED
 
 # Domains: how a component is mapped before uniform quantization (and back after).
 LINEAR = "linear"
@@ -306,23 +312,35 @@ def _compress(raw: bytes, level: int) -> tuple[int, bytes]:
     return CODEC_ZSTD, packed
 
 
-def _encode_codes(codes: np.ndarray, bits: int, level: int, adaptive: bool) -> tuple[int, int, bytes, int]:
-    """codes [C, N] -> (codec, flags, payload, raw_size). With `adaptive`, the layouts (plain or delta) x
-    (planar or interleaved) are compared and the smallest kept: which wins depends on the data. The comparison
-    runs at a fast zstd level (the ranking barely depends on it); only the winner is compressed at `level`."""
-    candidates = [(0, codes)]
+def _stored_dtype(bits: int, flags: int) -> np.dtype:
+    """Container of the stored codes: centred codes need one bit more than the quantizer's depth."""
+    return container_dtype(bits + 1 if flags & FLAG_CENTRED else bits)
+
+
+def _encode_codes(codes: np.ndarray, bits: int, level: int, adaptive: bool, quantizers: tuple[Quantizer, ...],
+                  centrable: bool) -> tuple[int, int, bytes, int, tuple[Quantizer, ...]]:
+    """codes [C, N] -> (codec, flags, payload, raw_size, quantizers as stored). With `adaptive`, the layouts
+    (plain, delta or centred) x (planar or interleaved) are compared and the smallest kept: which wins depends on
+    the data. The comparison runs at a fast zstd level (the ranking barely depends on it); only the winner is
+    compressed at `level`. Centring moves each component's centre into its quantizer's zero point."""
+    candidates = [(0, codes, quantizers)]
     if adaptive and codes.shape[1] > 1:
-        candidates.append((FLAG_DELTA, delta_encode(codes, bits)))
+        candidates.append((FLAG_DELTA, delta_encode(codes, bits), quantizers))
+        if centrable and bits < MAX_BITS:
+            centred, centre = centre_encode(codes, bits)
+            shifted = tuple(Quantizer(q.step, q.zero_point + int(c), q.bits) for q, c in zip(quantizers, centre))
+            candidates.append((FLAG_CENTRED, centred, shifted))
     layouts = []
-    for flags, stream in candidates:
+    for flags, stream, stored in candidates:
         for interleave in ((False, True) if adaptive and codes.shape[0] > 1 else (False,)):
-            layouts.append((flags | (FLAG_INTERLEAVE if interleave else 0), to_byte_planes(stream, interleave)))
+            layouts.append((flags | (FLAG_INTERLEAVE if interleave else 0), to_byte_planes(stream, interleave),
+                            stored))
     if len(layouts) > 1:
         probe = min(level, _PROBE_LEVEL)
         layouts = [min(layouts, key=lambda item: len(_compress(item[1], probe)[1]))]
-    flags, raw = layouts[0]
+    flags, raw, stored = layouts[0]
     codec, payload = _compress(raw, level)
-    return codec, flags, payload, len(raw)
+    return codec, flags, payload, len(raw), stored
 
 
 def _pack_decoder(state: Mapping[str, Any]) -> bytes:
@@ -402,7 +420,8 @@ def encode(
         if order is None:  # POSI comes first: its codes define the Morton order used by every section
             order = morton_order(codes.T, bits)
         codes = codes[:, order]
-        codec, flags, payload, raw_size = _encode_codes(codes, bits, zstd_level, adaptive_delta)
+        codec, flags, payload, raw_size, quantizers = _encode_codes(
+            codes, bits, zstd_level, adaptive_delta, quantizers, centrable=group.domain != QUAT_SMALLEST3)
         sections.append((group.tag, codec, bits, len(quantizers), flags, raw_size, payload, quantizers))
 
     if decoder_state is not None:
@@ -446,8 +465,8 @@ def read_header(data: bytes, source: str | None = None) -> StgcHeader:
     (header_crc,) = _HEADER_CRC.unpack_from(data, _HEADER.size)
     if zlib.crc32(data[: _HEADER.size]) != header_crc:
         raise _fail("header checksum mismatch (file corrupted)", source)
-    if version != VERSION:
-        raise _fail(f"unsupported .stgc version {version} (this reader knows version {VERSION})", source)
+    if version not in READABLE_VERSIONS:
+        raise _fail(f"unsupported .stgc version {version} (this reader knows versions {READABLE_VERSIONS})", source)
     if variant_code not in _VARIANT_NAMES:
         raise _fail(f"unknown model variant code {variant_code}", source)
     if quality not in QUALITY_LEVELS:
@@ -495,6 +514,10 @@ def _check_section(sec: SectionInfo, source: str | None) -> None:
     allowed = KNOWN_FLAGS if sec.tag in GROUP_TAGS else 0
     if sec.flags & ~allowed:
         raise _fail(f"section {sec.tag!r} has unknown flags {sec.flags:#04x}", source)
+    if sec.flags & FLAG_CENTRED and (sec.flags & FLAG_DELTA or sec.bits >= MAX_BITS
+                                     or GROUP_BY_TAG[sec.tag.encode("latin-1")].domain == QUAT_SMALLEST3):
+        raise _fail(f"section {sec.tag!r} combines centring with delta coding, a quaternion group or "
+                    f"{sec.bits} bits", source)
     if sec.codec == CODEC_STORED:
         if sec.raw_size != sec.payload_size:
             raise _fail(f"stored section {sec.tag!r}: raw size {sec.raw_size} != payload {sec.payload_size}", source)
@@ -531,10 +554,14 @@ def _unpack_payload(data: bytes, offset: int, sec: SectionInfo, source: str | No
 
 def _decode_attribute(raw: bytes, sec: SectionInfo, group: AttributeGroup, n: int, source: str | None,
                       span: np.ndarray | None = None) -> np.ndarray:
-    dtype = container_dtype(sec.bits)
+    dtype = _stored_dtype(sec.bits, sec.flags)
     codes = from_byte_planes(raw, sec.components, n, dtype, interleave=bool(sec.flags & FLAG_INTERLEAVE))
     if sec.flags & FLAG_DELTA:
         codes = delta_decode(codes, sec.bits)
+    elif sec.flags & FLAG_CENTRED:
+        if n and int(codes.max()) >= (1 << (sec.bits + 1)):
+            raise _fail(f"section {sec.tag!r} holds centred codes beyond its {sec.bits + 1}-bit range", source)
+        codes = unzigzag(codes)  # signed, in [-2**bits, 2**bits): the centre is in the quantizer's zero point
     elif n and int(codes.max()) >= (1 << sec.bits):
         raise _fail(f"section {sec.tag!r} holds codes beyond its {sec.bits}-bit range", source)
     if group.domain == QUAT_SMALLEST3:
@@ -550,7 +577,7 @@ def _decode_attribute(raw: bytes, sec: SectionInfo, group: AttributeGroup, n: in
 
 
 def _check_quantizers(sec: SectionInfo, group: AttributeGroup, source: str | None) -> None:
-    top = (1 << sec.bits) - 1
+    top = 1 << sec.bits  # |code| bound of every layout (centred codes are signed, in [-2**bits, 2**bits))
     f32_max = float(np.finfo(np.float32).max)
     if group.domain == TIME_SPAN:  # decoding divides by span**p >= SPAN_MIN**p: the result must still fit
         f32_max *= SPAN_MIN ** max(group.span_powers)
@@ -559,7 +586,7 @@ def _check_quantizers(sec: SectionInfo, group: AttributeGroup, source: str | Non
             raise _fail(f"section {sec.tag!r} has an invalid quantizer step {q.step!r}", source)
         if abs(q.zero_point) > 1 << 53:
             raise _fail(f"section {sec.tag!r} has an absurd quantizer zero point {q.zero_point}", source)
-        extreme = max(abs(q.zero_point), abs(q.zero_point + top)) * q.step
+        extreme = (abs(q.zero_point) + top) * q.step
         if not extreme <= f32_max:
             raise _fail(f"section {sec.tag!r} quantizer reaches {extreme:.3g}, beyond float32", source)
 
@@ -632,7 +659,7 @@ def decode(data: bytes | str | os.PathLike, source: str | None = None) -> Decode
                 raise _fail(f"section {sec.tag!r} has {sec.components} components, {variant} needs {want}", source)
             if not MIN_BITS <= sec.bits <= MAX_BITS:
                 raise _fail(f"section {sec.tag!r} has an invalid bit depth {sec.bits}", source)
-            if sec.raw_size != n * want * container_dtype(sec.bits).itemsize:
+            if sec.raw_size != n * want * _stored_dtype(sec.bits, sec.flags).itemsize:
                 raise _fail(f"section {sec.tag!r} size {sec.raw_size} does not match {n} Gaussians", source)
             _check_quantizers(sec, group, source)
         elif sec.tag == _DECO:

@@ -121,6 +121,30 @@ def delta_decode(zig: np.ndarray, bits: int) -> np.ndarray:
     return out.astype(zig.dtype)
 
 
+# --- centring: signed offsets from a per-component centre code ------------------------------------------------------
+
+def zigzag(signed: np.ndarray) -> np.ndarray:
+    """Signed integers -> non-negative (0, -1, 1, -2, ... -> 0, 1, 2, 3, ...), int64."""
+    s = signed.astype(np.int64)
+    return np.where(s >= 0, 2 * s, -2 * s - 1)
+
+
+def unzigzag(zig: np.ndarray) -> np.ndarray:
+    z = zig.astype(np.int64)
+    return np.where(z & 1, -(z >> 1) - 1, z >> 1)
+
+
+def centre_encode(codes: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """[C, N] codes -> (zigzag(code - centre) in a (bits+1)-bit container, centre [C] = each row's median code).
+
+    Byte-oriented coders see one symbol alphabet for all components of a section; centring puts every component's
+    bulk on the same small symbols, so their mixture is as compressible as each alone (for attributes that peak
+    at a different code per component, e.g. motion coefficients, whose 0.0 sits at a different code in each)."""
+    c = codes.astype(np.int64)
+    centre = np.round(np.median(c, axis=1)).astype(np.int64) if c.shape[1] else np.zeros(c.shape[0], np.int64)
+    return zigzag(c - centre[:, None]).astype(container_dtype(bits + 1)), centre
+
+
 # --- byte planes ----------------------------------------------------------------------------------------------------
 
 def to_byte_planes(codes: np.ndarray, interleave: bool = False) -> bytes:
