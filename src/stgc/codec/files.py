@@ -28,14 +28,23 @@ from .format import (
 _MAX_FILE_BYTES = MAX_GAUSSIANS * ply_bytes_per_gaussian("full")
 
 
+ALLOCATION_MODES = ("auto", "optimised", "ladder")
+
+
 @dataclass
 class CodecConfig:
     """How a trained model is written to the .stgc bitstream."""
 
     quality: int = field(default=DEFAULT_QUALITY, metadata={
-        "help": "rate point 1 (smallest) .. 5 (most precise); picks the bit depth of every attribute group "
-                "(docs/stgc-format.md section 7). Default 3: ~8x smaller than float32 PLY rows, renders > 60 dB "
-                "PSNR against the unquantized model in our tests"})
+        "help": "rate point 1 (smallest) .. 5 (most precise). With the rd-optimised allocation it is a PSNR budget "
+                "on training views (1.0, 0.3, 0.1, 0.03, 0.01 dB); with the ladder it picks fixed bit depths "
+                "(docs/stgc-format.md section 7). Default 3"})
+    allocation: str = field(default="auto", metadata={
+        "help": "how bit depths are chosen: 'optimised' (render training views of the run's dataset and take the "
+                "cheapest depths within the quality's PSNR budget), 'ladder' (fixed depths per quality, needs no "
+                "data), 'auto' (optimised when the run's dataset can be opened, else ladder)"})
+    allocation_views: int = field(default=16, metadata={
+        "help": "training views (camera x frame, drawn with a fixed seed) the optimised allocation renders"})
     zstd_level: int = field(default=DEFAULT_ZSTD_LEVEL, metadata={
         "help": "zstd compression level 1..22 for every section (higher: a little smaller, slower to encode; "
                 "decoding speed barely changes)"})
@@ -55,6 +64,10 @@ class CodecConfig:
             raise ValueError(f"zstd_level must be in 1..22, got {self.zstd_level}")
         if self.position_bits and not 2 <= self.position_bits <= 24:
             raise ValueError(f"position_bits must be 0 or in 2..24, got {self.position_bits}")
+        if self.allocation not in ALLOCATION_MODES:
+            raise ValueError(f"allocation must be one of {ALLOCATION_MODES}, got {self.allocation!r}")
+        if self.allocation_views < 1:
+            raise ValueError(f"allocation_views must be >= 1, got {self.allocation_views}")
 
 
 @dataclass(frozen=True)
@@ -64,6 +77,7 @@ class CompressResult:
     variant: str
     file_bytes: int
     ply_bytes: int  # the official float32 PLY rows (152 B full / 128 B lite per Gaussian), the paper's anchor
+    allocation: dict[str, Any] | None = None  # Allocation.summary() when the bit depths were rd-optimised
 
     @property
     def bytes_per_gaussian(self) -> float:
@@ -74,16 +88,28 @@ class CompressResult:
         return self.ply_bytes / self.file_bytes
 
     def __str__(self) -> str:
-        return (f"{self.path}: {self.num_gaussians} Gaussians ({self.variant}), {self.file_bytes} bytes = "
+        text = (f"{self.path}: {self.num_gaussians} Gaussians ({self.variant}), {self.file_bytes} bytes = "
                 f"{self.bytes_per_gaussian:.2f} B/Gaussian, {self.ratio_vs_ply:.2f}x smaller than float32 PLY rows")
+        if self.allocation:
+            a = self.allocation
+            text += (f"\nbit depths rd-optimised on {a['views']} training views: "
+                     f"{' '.join(f'{k}={v}' for k, v in a['bits'].items())}; PSNR drop on those views "
+                     f"{a['train_view_loss_db']:+.3f} dB, with one standard error {a['train_view_loss_bound_db']:+.3f} dB "
+                     f"(budget {a['budget_db']} dB)")
+            if not a["within_budget"]:
+                text += "; the budget could not be met, the most precise depths were kept"
+        else:
+            text += "\nbit depths from the fixed ladder"
+        return text
 
 
 def encode_with_config(arrays: dict, variant: str, decoder_state: dict | None, config: CodecConfig,
-                       metadata: dict[str, Any] | None = None) -> bytes:
+                       metadata: dict[str, Any] | None = None, group_bits: dict[str, int] | None = None) -> bytes:
+    """Encode with `config`'s ladder, or with explicit per-group depths (`group_bits`, e.g. an Allocation's)."""
     config.validate()
     return encode(arrays, variant, decoder_state, config.quality, zstd_level=config.zstd_level,
-                  position_bits=config.position_bits or None, adaptive_delta=config.adaptive_delta,
-                  outlier_guard=config.outlier_guard, metadata=metadata)
+                  position_bits=config.position_bits or None, group_bits=group_bits,
+                  adaptive_delta=config.adaptive_delta, outlier_guard=config.outlier_guard, metadata=metadata)
 
 
 def write_stgc(path: str | Path, data: bytes) -> Path:
@@ -160,10 +186,67 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
     run_dir = run_dir_of(source)
     if config.embed_run_config and run_dir is not None:
         metadata["run_config"] = read_json_object(run_dir / "config.json")
-    data = encode_with_config(arrays, model.variant, model.decoder_state(), config, metadata)
+    allocation = None
+    if config.allocation != "ladder":
+        dataset = _training_dataset(run_dir, source, required=config.allocation == "optimised")
+        if dataset is not None:
+            allocation = _optimise(model, arrays, dataset, config)
+            metadata["allocation"] = allocation.summary()
+    data = encode_with_config(arrays, model.variant, model.decoder_state(), config, metadata,
+                              group_bits=allocation.bits if allocation else None)
     out = write_stgc(out_path, data)
     n = model.num_gaussians
-    return CompressResult(out, n, model.variant, len(data), n * ply_bytes_per_gaussian(model.variant))
+    return CompressResult(out, n, model.variant, len(data), n * ply_bytes_per_gaussian(model.variant),
+                          allocation.summary() if allocation else None)
+
+
+def _training_dataset(run_dir: Path | None, source: Path, required: bool) -> Any:
+    """The dataset the run was trained on, or None (ladder) when it cannot be opened and is not required."""
+    from stgc.eval import open_run_dataset  # eval owns "which dataset did this run use"
+
+    try:
+        if run_dir is None:
+            raise DataError(source, "not inside a run directory, so its dataset is unknown")
+        return open_run_dataset(run_dir)
+    except (DataError, FormatError) as exc:
+        if required:
+            raise DataError(source, f"the optimised allocation needs the run's training images: {exc}") from None
+        return None
+
+
+def _optimise(model: Any, arrays: dict, dataset: Any, config: CodecConfig) -> Any:
+    import numpy as np
+    import torch
+    from tqdm import tqdm
+
+    from stgc.model import STGModel
+
+    from .allocation import budget_db, optimise_allocation
+
+    train = list(dataset.train)
+    picked = np.random.default_rng(0).choice(len(train), size=min(config.allocation_views, len(train)),
+                                             replace=False)
+    views = [train[i] for i in sorted(picked)]
+    truth = [np.asarray(dataset.load_image(cam), dtype=np.float32)[..., :3] / 255.0 for cam in views]
+    background = torch.zeros(3)
+
+    @torch.no_grad()
+    def render(candidate: Any, decoder_state: Any) -> list:
+        trial = STGModel.from_ply_arrays(dict(candidate), model.variant, decoder_state,
+                                         decoder_activation=model.decoder_activation or "sigmoid")
+        return [trial.render(cam, t=float(cam.time), background=background).rgb.clamp(0, 1).numpy()
+                for cam in views]
+
+    fixed = {"POSI": config.position_bits} if config.position_bits else None
+    with tqdm(total=1, desc="allocating bits", unit="trial", leave=False) as bar:
+        def progress(done: int, total: int) -> None:
+            bar.total = total
+            bar.n = done
+            bar.refresh()
+
+        return optimise_allocation(arrays, model.variant, model.decoder_state(), render, truth,
+                                   budget_db(config.quality), fixed_bits=fixed, outlier_guard=config.outlier_guard,
+                                   progress=progress)
 
 
 def _model_from_decoded(decoded: DecodedModel, source: str | Path) -> Any:

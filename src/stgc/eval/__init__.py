@@ -25,6 +25,7 @@ from stgc.eval.evaluate import (
     evaluate,
     evaluate_run,
     format_eval_table,
+    open_run_dataset,
     write_eval,
 )
 from stgc.eval.report import BDResult, Report, ReportRow, make_report, report_from_runs
@@ -60,6 +61,7 @@ __all__ = [
     "evaluate",
     "evaluate_run",
     "format_eval_table",
+    "open_run_dataset",
     "mbps",
     "measure_render_speed",
     "mib",

@@ -283,7 +283,7 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
 # ------------------------------------------------------------------------------------- whole runs
 
 
-def _open_run_dataset(run_dir: Path, data_path: str | Path | None, bitstream: Path | None = None) -> Any:
+def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstream: Path | None = None) -> Any:
     """The dataset a run was trained on, opened with the run's own data options: RUN/config.json, or for a
     `.stgc` file away from its run, the run config the encoder embedded in it."""
     import dataclasses  # noqa: PLC0415
@@ -340,7 +340,7 @@ def evaluate_run(
     run_dir = target.parent if target.suffix == ".stgc" else target
     if not target.exists():
         raise DataError(target, "no such run directory or bitstream")
-    dataset = open_dataset(run_dir) if open_dataset else _open_run_dataset(
+    dataset = open_dataset(run_dir) if open_dataset else open_run_dataset(
         run_dir, data_path, target if target.suffix == ".stgc" else None)
     if load_model is None:
         load_model = _default_model_loader

@@ -31,12 +31,12 @@ def load_model_and_dataset(run_or_model: Any, dataset: Any | None = None) -> tup
         path = Path(run_or_model)
         model = STGModel.load(path)
         if dataset is None:
-            from stgc.eval.evaluate import _open_run_dataset
+            from stgc.eval.evaluate import open_run_dataset
 
             run_dir = run_dir_of(path)
             if run_dir is None:
                 raise DataError(path, "cannot find the run's config.json: pass the dataset explicitly")
-            dataset = _open_run_dataset(run_dir, None)
+            dataset = open_run_dataset(run_dir, None)
         return model, dataset
     if dataset is None:
         raise ValueError("rendering an in-memory model needs the dataset (for cameras and intrinsics)")

@@ -1,0 +1,262 @@
+"""Rate-distortion optimised bit allocation: the cheapest bit depth per attribute group that keeps the rendered
+training views within a PSNR budget of the unquantized model.
+
+The fixed ladder (format.GROUPS) is one table for every scene, but how much quantization noise a model tolerates
+depends on how well the model itself fits: noise far below the model's own error does not move its PSNR. If the
+model's squared error on a view is m0 and quantization adds an independent error e, the view's PSNR drops by
+10 log10(1 + e / m0). So a budget of L dB is a bound on the *relative* added error, sum over groups of
+mean_view(e_g / m0) <= 10^(L/10) - 1, with e_g measured by rendering the model with only group g quantized
+(errors of different attribute groups are close to independent, so they add). The encoder
+
+1. renders a few training views of the float model (reference) and reads their ground truth (m0 per view);
+2. for each group and each candidate bit depth, encodes/decodes the model with only that group coarse, renders,
+   and records the section's bytes and its relative added error;
+3. picks one depth per group minimising total bytes under the budget (a multiple-choice knapsack, solved exactly
+   on a fine grid of the error axis);
+4. renders the model with all groups at the chosen depths and checks the measured PSNR drop; if it exceeds the
+   budget (the errors did not add up exactly), the budget is tightened and steps 3-4 repeat.
+
+Only training views are used, never test views. The decoder needs nothing of this: bit depths are in the section
+table, as for the ladder. docs/stgc-format.md section 7 ("Rate-distortion optimised allocation").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from .format import GROUPS, QUALITY_LEVELS, bits_for, decode, encode, groups_for
+from .quantize import MAX_BITS, MIN_BITS
+
+# PSNR budget on the training views per quality level: each level is ~3x (in added squared error) stricter than
+# the one before; q3 = 0.1 dB, the loss a user would not see in any table.
+LOSS_BUDGET_DB: Mapping[int, float] = {1: 1.0, 2: 0.3, 3: 0.1, 4: 0.03, 5: 0.01}
+# Depths tried per group: from two below the ladder's q1 to the ladder's q5 (beyond q5 nothing measurable is left).
+_BELOW_LADDER = 2
+_NEAR_LOSSLESS_BITS = 20  # the other groups while one group is measured: far below any visible error
+_PROBE_ZSTD_LEVEL = 3  # section sizes are measured at a fast level; the ranking of depths does not depend on it
+_GRID = 2000  # error-axis resolution of the knapsack (errors are rounded up: the solution never exceeds the budget)
+_MAX_ROUNDS = 8
+
+
+def budget_db(quality: int) -> float:
+    if quality not in QUALITY_LEVELS:
+        raise ValueError(f"quality must be one of {QUALITY_LEVELS}, got {quality!r}")
+    return LOSS_BUDGET_DB[quality]
+
+
+def candidate_bits(tag: str) -> list[int]:
+    group = next(g for g in GROUPS if g.tag.decode("latin-1") == tag)
+    lo = max(MIN_BITS, bits_for(group, 1) - _BELOW_LADDER)
+    hi = min(MAX_BITS, bits_for(group, 5))
+    return list(range(lo, hi + 1))
+
+
+@dataclass(frozen=True)
+class Option:
+    """One bit depth of one group: the section's bytes and the relative squared error it adds."""
+
+    bits: int
+    bytes: int
+    error: float
+
+
+def _units(error: float, unit: float) -> int:
+    return math.ceil(error / unit) if error > 0 else 0
+
+
+def solve(options: Mapping[str, Sequence[Option]], budget: float) -> dict[str, int] | None:
+    """Bit depth per group with the fewest total bytes such that the sum of errors stays <= budget.
+
+    Exact multiple-choice knapsack on the error axis discretised into _GRID steps of budget/_GRID, each error
+    rounded *up* (so the true sum never exceeds the budget). None when even the most precise options do not fit."""
+    tags = list(options)
+    if budget <= 0:  # only error-free options fit
+        exact = {t: [o for o in options[t] if o.error <= 0] for t in tags}
+        if not all(exact.values()):
+            return None
+        return {t: min(exact[t], key=lambda o: o.bytes).bits for t in tags}
+    unit = budget / _GRID
+    inf = math.inf
+    # best[k] = fewest bytes of the groups so far using at most k error units; picks[g][k] = the option taken.
+    best = np.zeros(_GRID + 1)
+    picks: list[np.ndarray] = []
+    for tag in tags:
+        new = np.full(_GRID + 1, inf)
+        pick = np.full(_GRID + 1, -1, dtype=np.int64)
+        for index, option in enumerate(options[tag]):
+            units = _units(option.error, unit)
+            if units > _GRID:
+                continue
+            shifted = np.full(_GRID + 1, inf)
+            shifted[units:] = best[: _GRID + 1 - units] + option.bytes
+            better = shifted < new
+            new[better] = shifted[better]
+            pick[better] = index
+        best = new
+        picks.append(pick)
+    if not np.isfinite(best[_GRID]):
+        return None
+    chosen: dict[str, int] = {}
+    k = _GRID
+    for tag, pick in zip(reversed(tags), reversed(picks)):
+        option = options[tag][int(pick[k])]
+        chosen[tag] = option.bits
+        k -= _units(option.error, unit)
+    return dict(reversed(list(chosen.items())))
+
+
+@dataclass
+class Allocation:
+    """What the optimiser chose and measured (stored in the file's metadata as `allocation`)."""
+
+    bits: dict[str, int]
+    budget_db: float
+    measured_loss_db: float  # mean PSNR drop on the sampled training views with every group at `bits`
+    loss_bound_db: float  # measured + one standard error over the views: what is held to the budget
+    predicted_loss_db: float
+    views: int
+    rounds: int
+    within_budget: bool
+    table: dict[str, list[Option]] = field(default_factory=dict, repr=False)
+
+    def summary(self) -> dict[str, Any]:
+        return {"mode": "rd-optimised", "bits": dict(self.bits), "budget_db": self.budget_db,
+                "train_view_loss_db": round(self.measured_loss_db, 5),
+                "train_view_loss_bound_db": round(self.loss_bound_db, 5),
+                "predicted_loss_db": round(self.predicted_loss_db, 5), "views": self.views,
+                "rounds": self.rounds, "within_budget": self.within_budget}
+
+
+RenderFn = Callable[[Mapping[str, np.ndarray], Mapping[str, np.ndarray] | None], Sequence[np.ndarray]]
+
+
+def _mse(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
+
+
+def _psnr(mse: float) -> float:
+    return 10.0 * math.log10(1.0 / max(mse, 1e-12))
+
+
+def optimise_allocation(
+    arrays: Mapping[str, np.ndarray],
+    variant: str,
+    decoder_state: Mapping[str, Any] | None,
+    render: RenderFn,
+    ground_truth: Sequence[np.ndarray],
+    loss_budget_db: float,
+    *,
+    fixed_bits: Mapping[str, int] | None = None,
+    outlier_guard: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+) -> Allocation:
+    """Choose the bit depth of every attribute group (see the module docstring).
+
+    `render(arrays, decoder_state)` renders the sampled training views of the model given as official PLY arrays
+    (float images in [0, 1], same order as `ground_truth`). `fixed_bits` pins groups (e.g. a user's
+    position_bits); the other groups are optimised over candidate_bits()."""
+    if not ground_truth:
+        raise ValueError("optimise_allocation needs at least one training view")
+    if not loss_budget_db > 0:
+        raise ValueError(f"loss budget must be > 0 dB, got {loss_budget_db}")
+    tags = [g.tag.decode("latin-1") for g in groups_for(variant)]
+    fixed = dict(fixed_bits or {})
+    candidates = {t: ([fixed[t]] if t in fixed else candidate_bits(t)) for t in tags}
+    total = sum(len(c) for c in candidates.values()) + 1
+    done = 0
+
+    def trial(bits: Mapping[str, int]) -> tuple[list[np.ndarray], dict[str, int]]:
+        data = encode(arrays, variant, decoder_state, zstd_level=_PROBE_ZSTD_LEVEL, group_bits=bits,
+                      outlier_guard=outlier_guard)
+        decoded = decode(data)
+        return list(render(decoded.arrays, decoded.decoder_state)), decoded.header.section_bytes()
+
+    reference = list(render(arrays, decoder_state))
+    if len(reference) != len(ground_truth):
+        raise ValueError(f"render gave {len(reference)} views for {len(ground_truth)} ground-truth images")
+    base_mse = [max(_mse(r, g), 1e-10) for r, g in zip(reference, ground_truth)]
+    base_psnr = np.array([_psnr(m) for m in base_mse])
+
+    def loss(images: Sequence[np.ndarray]) -> tuple[float, float]:
+        """Mean PSNR drop over the views, and that plus one standard error (the views are a sample: a bound
+        keeps the budget on views not drawn too, test views included)."""
+        drop = base_psnr - np.array([_psnr(_mse(i, g)) for i, g in zip(images, ground_truth)])
+        se = float(np.std(drop, ddof=1) / math.sqrt(len(drop))) if len(drop) > 1 else 0.0
+        return float(np.mean(drop)), float(np.mean(drop)) + se
+
+    def relative_error(images: Sequence[np.ndarray]) -> float:
+        return float(np.mean([_mse(i, r) / m for i, r, m in zip(images, reference, base_mse)]))
+
+    near_lossless = {t: (fixed[t] if t in fixed else _NEAR_LOSSLESS_BITS) for t in tags}
+    images, _ = trial(near_lossless)
+    floor = relative_error(images)  # fp16 decoder weights, float32 casts: common to every option
+    done += 1
+    if progress:
+        progress(done, total)
+    table: dict[str, list[Option]] = {}
+    for tag in tags:
+        options = []
+        for bits in candidates[tag]:
+            images, sizes = trial({**near_lossless, tag: bits})
+            options.append(Option(bits, sizes[tag], max(0.0, relative_error(images) - floor)))
+            done += 1
+            if progress:
+                progress(done, total)
+        # Fewer bits never remove error; where measurement noise says otherwise, a depth is charged the largest
+        # error measured at it or any finer depth (the conservative envelope).
+        monotone, largest = [], 0.0
+        for option in reversed(options):
+            largest = max(largest, option.error)
+            monotone.append(Option(option.bits, option.bytes, largest))
+        table[tag] = list(reversed(monotone))
+
+    # Rate control: the sum of per-group errors only approximates the joint error (in practice it over-estimates
+    # it), so the knapsack budget is searched (geometric bisection) for the cheapest allocation whose *measured*
+    # loss on the views stays within the budget.
+    target = 10.0 ** (loss_budget_db / 10.0) - 1.0
+    most_precise = {t: candidates[t][-1] for t in tags}
+
+    def estimated_bytes(bits: Mapping[str, int]) -> int:
+        return sum(next(o.bytes for o in table[t] if o.bits == bits[t]) for t in tags)
+
+    measured_at: dict[tuple[int, ...], tuple[float, float]] = {}
+    best: Allocation | None = None
+    fallback: Allocation | None = None
+    internal, feasible, infeasible = target - floor, None, None
+    for round_index in range(1, _MAX_ROUNDS + 1):
+        chosen = solve(table, internal) or most_precise
+        key = tuple(chosen[t] for t in tags)
+        if key not in measured_at:
+            images, _ = trial(chosen)
+            measured_at[key] = loss(images)
+        measured, bound = measured_at[key]
+        predicted = floor + sum(next(o.error for o in table[t] if o.bits == chosen[t]) for t in tags)
+        candidate = Allocation(chosen, loss_budget_db, measured, bound, 10.0 * math.log10(1.0 + predicted),
+                               len(reference), round_index, bound <= loss_budget_db, table)
+        if candidate.within_budget:
+            if best is None or estimated_bytes(chosen) < estimated_bytes(best.bits):
+                best = candidate
+            feasible = internal if feasible is None else max(feasible, internal)
+        else:
+            fallback = candidate if chosen == most_precise else fallback
+            infeasible = internal if infeasible is None else min(infeasible, internal)
+            if chosen == most_precise:
+                break
+        if feasible is not None and infeasible is not None:
+            if infeasible / feasible < 1.15:
+                break
+            internal = math.sqrt(feasible * infeasible)
+        else:
+            ratio = target / max(10.0 ** (bound / 10.0) - 1.0, 1e-12)
+            internal *= min(4.0, max(1.25, ratio)) if feasible is not None else min(0.8, max(0.25, ratio))
+    result = best or fallback
+    if result is None:  # every round overshot without reaching the most precise depths: measure those
+        images, _ = trial(most_precise)
+        measured, bound = loss(images)
+        result = Allocation(most_precise, loss_budget_db, measured, bound, float("nan"), len(reference),
+                            _MAX_ROUNDS, bound <= loss_budget_db, table)
+    return result

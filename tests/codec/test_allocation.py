@@ -1,0 +1,162 @@
+"""Rate-distortion optimised bit allocation: the knapsack against brute force, the optimiser on a scene whose
+sensitivities are known, and compress_run on a real dataset."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+
+import numpy as np
+import pytest
+
+from stgc.codec import CodecConfig, compress_run, read_stgc
+from stgc.codec.allocation import (
+    LOSS_BUDGET_DB,
+    Option,
+    budget_db,
+    candidate_bits,
+    optimise_allocation,
+    solve,
+)
+from stgc.codec.allocation import _GRID
+from stgc.codec.synthetic import synthetic_model
+from stgc.errors import DataError
+from stgc.model import STGModel
+
+
+def _brute_force(options, budget):
+    best = None
+    for combo in itertools.product(*options.values()):
+        if sum(o.error for o in combo) <= budget:
+            cost = sum(o.bytes for o in combo)
+            if best is None or cost < best:
+                best = cost
+    return best
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_knapsack_is_feasible_and_as_cheap_as_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    options = {}
+    for g in range(4):
+        bits = np.arange(3, 3 + rng.integers(3, 6))
+        errors = np.sort(rng.uniform(0, 0.5, len(bits)))[::-1]  # fewer bits, more error
+        sizes = np.sort(rng.integers(100, 5000, len(bits)))
+        options[f"G{g}"] = [Option(int(b), int(s), float(e)) for b, s, e in zip(bits, sizes, errors)]
+    budget = 0.6
+    chosen = solve(options, budget)
+    assert chosen is not None
+    picked = [next(o for o in options[t] if o.bits == b) for t, b in chosen.items()]
+    assert sum(o.error for o in picked) <= budget  # errors are rounded up, never down
+    # Rounding up can only cost what a budget smaller by one grid step per group would.
+    tighter = _brute_force(options, budget - len(options) * budget / _GRID)
+    assert sum(o.bytes for o in picked) <= tighter
+    assert sum(o.bytes for o in picked) >= _brute_force(options, budget)
+
+
+def test_knapsack_edge_cases():
+    options = {"A": [Option(2, 10, 0.5), Option(4, 20, 0.0)], "B": [Option(3, 5, 0.2), Option(5, 9, 0.0)]}
+    assert solve(options, 0.0) == {"A": 4, "B": 5}  # only the error-free options fit
+    assert solve(options, 0.3) == {"A": 4, "B": 3}
+    assert solve(options, 1.0) == {"A": 2, "B": 3}
+    assert solve({"A": [Option(2, 10, 0.5)]}, 0.1) is None
+
+
+def test_budgets_and_candidates():
+    assert [budget_db(q) for q in (1, 2, 3, 4, 5)] == [1.0, 0.3, 0.1, 0.03, 0.01]
+    assert list(LOSS_BUDGET_DB.values()) == sorted(LOSS_BUDGET_DB.values(), reverse=True)
+    with pytest.raises(ValueError):
+        budget_db(6)
+    assert candidate_bits("POSI") == list(range(10, 19))  # ladder q1 - 2 .. ladder q5
+    assert min(candidate_bits("OMGA")) >= 2
+
+
+def _projection_renderer(weights: dict[str, float], seed: int = 0):
+    """A stand-in renderer: 4 'views' of 64 pixels, each pixel a sum over Gaussians of attribute columns times a
+    smooth function of the Gaussian's position (so, like a real renderer, it does not depend on the Gaussians'
+    order). The error a group's quantization adds scales with its weight; weight 0: the group does not show."""
+    rng = np.random.default_rng(seed)
+    freq = rng.normal(0, 0.3, (4, 64, 3))
+    phase = rng.uniform(0, 2 * np.pi, (4, 64, 1))
+
+    def render(arrays, decoder_state):
+        pos = np.stack([np.asarray(arrays[c], np.float64) for c in "xyz"])
+        basis = np.cos(np.einsum("vpk,kn->vpn", freq, pos) + phase) / math.sqrt(pos.shape[1])
+        images = sum(w * basis @ np.asarray(arrays[name], np.float64) for name, w in weights.items())
+        return [0.5 + 0.05 * img.reshape(8, 8, 1).repeat(3, axis=2) for img in images]
+
+    return render
+
+
+def test_optimiser_spends_bits_where_they_show_and_meets_its_budget():
+    arrays, decoder = synthetic_model(1500, "full", seed=1)
+    render = _projection_renderer({"f_dc_0": 1.0, "f_dc_3": 1.0, "scale_0": 0.02})
+    reference = render(arrays, decoder)
+    rng = np.random.default_rng(5)
+    truth = [np.clip(r + rng.normal(0, 0.002, r.shape), 0, 1) for r in reference]  # the model's own error: 54 dB
+    result = optimise_allocation(arrays, "full", decoder, render, truth, 0.1)
+    assert result.within_budget and result.loss_bound_db <= 0.1
+    lowest = {t: candidate_bits(t)[0] for t in result.bits}
+    # Groups the views do not depend on get the coarsest depth; the one that dominates gets more than scale.
+    for tag in ("POSI", "TCEN", "MOTN", "OPAC", "ROTN", "OMGA", "FT__"):
+        assert result.bits[tag] == lowest[tag], tag
+    assert result.bits["FDC_"] > result.bits["SCAL"]
+    summary = result.summary()
+    assert summary["mode"] == "rd-optimised" and summary["views"] == 4 and summary["bits"] == result.bits
+
+    tighter = optimise_allocation(arrays, "full", decoder, render, truth, 0.01)
+    assert tighter.bits["FDC_"] > result.bits["FDC_"]
+
+
+def test_optimiser_rejects_bad_input():
+    arrays, decoder = synthetic_model(100, "full", seed=1)
+    render = _projection_renderer({"f_dc_0": 1.0})
+    with pytest.raises(ValueError, match="at least one"):
+        optimise_allocation(arrays, "full", decoder, render, [], 0.1)
+    with pytest.raises(ValueError, match="budget"):
+        optimise_allocation(arrays, "full", decoder, render, render(arrays, decoder), 0.0)
+
+
+@pytest.fixture
+def toys_run(tmp_path, blender_toys):
+    from stgc.data import open_dataset
+
+    dataset = open_dataset(blender_toys, downscale=4, start=0, duration=2)
+    arrays, decoder = synthetic_model(300, "full", seed=2, extent=float(dataset.scene_extent()))
+    model = STGModel.from_ply_arrays(arrays, "full", decoder)
+    run = tmp_path / "run"
+    model.save(run / "point_cloud" / "iteration_10")
+    config = {"data": {"path": str(blender_toys), "downscale": 4, "start": 0, "duration": 2},
+              "model": {"variant": "full"}}
+    (run / "config.json").write_text(json.dumps(config))
+    return run
+
+
+def test_compress_run_optimises_bit_depths_on_the_runs_training_views(toys_run):
+    config = CodecConfig(allocation="optimised", allocation_views=2)
+    result = compress_run(toys_run, toys_run / "rd.stgc", quality=3, config=config)
+    assert result.allocation is not None and result.allocation["views"] == 2
+    assert result.allocation["train_view_loss_bound_db"] <= 0.1 or not result.allocation["within_budget"]
+    stored = read_stgc(toys_run / "rd.stgc")
+    assert stored.metadata["allocation"]["bits"] == result.allocation["bits"]
+    for section in stored.header.sections:
+        if section.tag in result.allocation["bits"]:
+            assert section.bits >= result.allocation["bits"][section.tag]  # the outlier guard may add bits
+    assert "rd-optimised" in str(result)
+
+    ladder = compress_run(toys_run, toys_run / "ladder.stgc", quality=3, config=CodecConfig(allocation="ladder"))
+    assert ladder.allocation is None and "fixed ladder" in str(ladder)
+    assert "allocation" not in read_stgc(toys_run / "ladder.stgc").metadata
+
+
+def test_optimised_allocation_without_the_dataset_is_a_clear_error_and_auto_falls_back(toys_run, tmp_path):
+    config_path = toys_run / "config.json"
+    saved = json.loads(config_path.read_text())
+    saved["data"]["path"] = str(tmp_path / "gone")
+    config_path.write_text(json.dumps(saved))
+    with pytest.raises(DataError, match="training images"):
+        compress_run(toys_run, tmp_path / "x.stgc", config=CodecConfig(allocation="optimised"))
+    assert not (tmp_path / "x.stgc").exists()
+    auto = compress_run(toys_run, tmp_path / "y.stgc", config=CodecConfig(allocation="auto"))
+    assert auto.allocation is None
