@@ -7,11 +7,12 @@ Gaussian), so encode and decode speeds are comparable across quality levels.
     .venv/bin/python benchmarks/codec.py                    # 100k and 1M Gaussians, full variant
     .venv/bin/python benchmarks/codec.py --sizes 20000 --json
 
-With --runs RUN..., trained runs instead: each is compressed at every quality into RUN/model_q<Q>.stgc and the
-bitstream evaluated on the run's test views (RUN/eval_model_q<Q>.json, as `stgc eval` writes it), giving the
-real rate-distortion points against the float32 model's RUN/eval.json:
+With --runs RUN..., trained runs instead: each is compressed at every quality, with the rd-optimised allocation
+into RUN/model_q<Q>.stgc and with the fixed ladder into RUN/model_q<Q>_ladder.stgc, and each bitstream is
+evaluated on the run's test views (RUN/eval_model_q<Q>*.json, as `stgc eval` writes it), giving the real
+rate-distortion points against the float32 model's RUN/eval.json:
 
-    .venv/bin/python benchmarks/codec.py --runs runs/toys_full_cpu runs/panoptic_full_cpu
+    .venv/bin/python benchmarks/codec.py --runs runs/toys_full_cpu runs/pan_C
 """
 
 from __future__ import annotations
@@ -71,27 +72,35 @@ def quality_rows(n: int, zstd_level: int) -> list[dict]:
     return rows
 
 
-def trained_rows(runs: list[str], qualities: tuple[int, ...] = QUALITY_LEVELS) -> list[dict]:
+def trained_rows(runs: list[str], qualities: tuple[int, ...] = QUALITY_LEVELS,
+                 allocations: tuple[str, ...] = ("optimised", "ladder")) -> list[dict]:
     from pathlib import Path
 
-    from stgc.codec import compress_run
+    from stgc.codec import CodecConfig, compress_run
     from stgc.eval import evaluate_run
     from stgc.fileio import read_json_object
 
     rows = []
     for run in map(Path, runs):
         base = read_json_object(run / "eval.json")
-        for quality in qualities:
-            target = run / f"model_q{quality}.stgc"
-            result = compress_run(run, target, quality=quality)
-            record = evaluate_run(target, measure_fps=False)
-            rows.append({
-                "table": "trained", "run": str(run), "quality": quality, "gaussians": result.num_gaussians,
-                "bytes_per_gaussian": round(result.file_bytes / result.num_gaussians, 3),
-                "ratio_vs_ply": round(result.ratio_vs_ply, 2), "size_mb": record["size_mb"], "mbps": record["mbps"],
-                "psnr": record["psnr"], "float_psnr": base["psnr"], "float_size_mb": base["size_mb"],
-                "float_mbps": base["mbps"], "delta_psnr": record["psnr"] - base["psnr"],
-            })
+        for allocation in allocations:
+            for quality in qualities:
+                suffix = "" if allocation == "optimised" else f"_{allocation}"
+                target = run / f"model_q{quality}{suffix}.stgc"
+                start = time.perf_counter()
+                result = compress_run(run, target, quality=quality, config=CodecConfig(allocation=allocation))
+                seconds = time.perf_counter() - start
+                record = evaluate_run(target, measure_fps=False)
+                rows.append({
+                    "table": "trained", "run": str(run), "allocation": allocation, "quality": quality,
+                    "gaussians": result.num_gaussians, "encode_seconds": round(seconds, 1),
+                    "bytes_per_gaussian": round(result.file_bytes / result.num_gaussians, 3),
+                    "ratio_vs_ply": round(result.ratio_vs_ply, 2), "size_mb": record["size_mb"],
+                    "mbps": record["mbps"], "psnr": record["psnr"], "float_psnr": base["psnr"],
+                    "float_size_mb": base["size_mb"], "float_mbps": base["mbps"],
+                    "delta_psnr": record["psnr"] - base["psnr"],
+                    "train_view_loss_bound_db": (result.allocation or {}).get("train_view_loss_bound_db"),
+                })
     return rows
 
 
@@ -101,10 +110,13 @@ def print_trained(rows: list[dict]) -> None:
         first = mine[0]
         print(f"{run}: {first['gaussians']} Gaussians; float32 PLY rows {first['float_size_mb']:.3f} MB, "
               f"{first['float_mbps']:.2f} Mbps, test PSNR {first['float_psnr']:.3f} dB")
-        print(f"{'quality':>7} {'B/G':>6} {'x PLY':>6} {'MB':>7} {'Mbps':>6} {'PSNR':>7} {'dPSNR':>7}")
+        print(f"{'allocation':>10} {'quality':>7} {'B/G':>6} {'x PLY':>6} {'MB':>7} {'Mbps':>6} {'PSNR':>7} "
+              f"{'dPSNR':>7} {'train-view bound':>16} {'encode s':>8}")
         for r in mine:
-            print(f"{r['quality']:>7} {r['bytes_per_gaussian']:>6.2f} {r['ratio_vs_ply']:>6.2f} {r['size_mb']:>7.4f} "
-                  f"{r['mbps']:>6.3f} {r['psnr']:>7.3f} {r['delta_psnr']:>+7.3f}")
+            bound = r["train_view_loss_bound_db"]
+            print(f"{r['allocation']:>10} {r['quality']:>7} {r['bytes_per_gaussian']:>6.2f} {r['ratio_vs_ply']:>6.2f} "
+                  f"{r['size_mb']:>7.4f} {r['mbps']:>6.3f} {r['psnr']:>7.3f} {r['delta_psnr']:>+7.3f} "
+                  f"{'' if bound is None else f'{bound:+.3f}':>16} {r['encode_seconds']:>8.1f}")
 
 
 def main() -> None:
@@ -118,10 +130,12 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=1, help="best of this many runs per timing")
     parser.add_argument("--json", action="store_true", help="print one JSON row per measurement instead")
     parser.add_argument("--runs", nargs="+", help="trained run directories: real RD points instead of synthetic")
+    parser.add_argument("--allocations", nargs="+", choices=("optimised", "ladder"), default=["optimised", "ladder"],
+                        help="with --runs: how bit depths are chosen (CodecConfig.allocation); each is measured")
     args = parser.parse_args()
 
     if args.runs:
-        rows = trained_rows(args.runs)
+        rows = trained_rows(args.runs, allocations=tuple(args.allocations))
         if args.json:
             for row in rows:
                 print(json.dumps(row))

@@ -73,8 +73,10 @@ def test_evaluate_accepts_model_render_objects_and_rejects_size_mismatch() -> No
 def test_write_eval_files(tmp_path: Path) -> None:
     (tmp_path / "train_summary.json").write_text(json.dumps({"iterations": 50, "wall_seconds": 3.0, "finished": True}))
     result = evaluate(_noisy_render, CAMS, _gt)
-    text = write_eval(tmp_path, result, model_size(1000, "full", duration_s=1.0, decoder_floats=90))
+    returned = write_eval(tmp_path, result, model_size(1000, "full", duration_s=1.0, decoder_floats=90))
     record = json.loads((tmp_path / "eval.json").read_text())
+    assert returned == record
+    text = format_eval_table(record)
     for key in ("psnr", "ssim", "num_gaussians", "size_mb", "mbps", "fps", "size_mib", "size_mb_si", "train_seconds"):
         assert key in record
     assert record["num_gaussians"] == 1000 and record["train_seconds"] == 3.0

@@ -23,7 +23,6 @@ from stgc.eval.accounting import (
     RenderSpeed,
     bitstream_size,
     duration_seconds,
-    latest_iteration_dir,
     read_train_summary,
     size_of_saved_model,
     speed_from_times,
@@ -209,9 +208,9 @@ def write_eval(
     *,
     target: str | Path | None = None,
     extra: Mapping[str, Any] | None = None,
-) -> str:
-    """Write eval.json and eval_per_view.csv atomically (paths from `eval_paths(target or run_dir)`) and
-    return a compact table as text. Training time is read from RUN/train_summary.json when present."""
+) -> dict[str, Any]:
+    """Write eval.json and eval_per_view.csv atomically (paths from `eval_paths(target or run_dir)`) and return
+    the eval.json record (`format_eval_table` prints it). Training time is read from RUN/train_summary.json."""
     run_dir = Path(run_dir)
     json_path, csv_path = eval_paths(target if target is not None else run_dir)
     summary = read_train_summary(run_dir) if run_dir.is_dir() else None
@@ -219,8 +218,6 @@ def write_eval(
     if summary and "iterations" in summary:
         more["iterations"] = summary["iterations"]
     more.update(extra or {})
-    if isinstance(model_info, ModelSize) and not model_info.file_bytes and target is None:
-        model_info.file_bytes = _saved_model_files(run_dir)
     record = eval_record(result, model_info, more)
     write_json(json_path, record)
     with atomic_open(csv_path, "w", newline="") as f:
@@ -229,17 +226,7 @@ def write_eval(
         for v in result.views:
             writer.writerow([v.camera, v.frame, f"{v.time:.6f}", _fmt(v.psnr, 4), _fmt(v.ssim, 5),
                              _fmt(v.lpips, 5), _fmt(v.render_ms, 2)])
-    return format_eval_table(record)
-
-
-def _saved_model_files(run_dir: Path) -> dict[str, int]:
-    """On-disk sizes of the latest saved PLY and decoder of a run (empty when none is saved yet)."""
-    try:
-        iteration_dir = latest_iteration_dir(run_dir)
-    except DataError:
-        return {}
-    return {p.name: p.stat().st_size for p in (iteration_dir / "point_cloud.ply", iteration_dir / "point_cloud.pt")
-            if p.is_file()}
+    return record
 
 
 def _fmt(x: float | None, digits: int) -> str:
@@ -357,9 +344,7 @@ def evaluate_run(
     )
     if not measure_fps:
         result.speed = None
-    write_eval(run_dir, result, info, target=target)
-    json_path, _ = eval_paths(target)
-    return read_json_object(json_path)
+    return write_eval(run_dir, result, info, target=target)
 
 
 def _default_model_loader(target: Path) -> Any:

@@ -21,6 +21,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from stgc.errors import DataError
 from stgc.fileio import write_json
 from stgc.train.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_rng_states, save_checkpoint
 from stgc.train.config import Schedule, TrainConfig, resolve_schedule
@@ -355,11 +356,16 @@ class Trainer:
         return evaluate(render, self.dataset.test, self.dataset.load_image)
 
     def write_evaluation(self, result: Any) -> None:
-        from stgc.eval.accounting import model_size_of
+        from stgc.eval.accounting import latest_iteration_dir, model_size_of
         from stgc.eval.evaluate import dataset_duration_s, write_eval
 
+        try:  # the files just saved, so eval.json lists their real bytes as `stgc eval RUN` would
+            saved = latest_iteration_dir(self.out)
+            files = [saved / "point_cloud.ply", saved / "point_cloud.pt"]
+        except DataError:
+            files = []
         try:
-            info = model_size_of(self.model, dataset_duration_s(self.dataset))
+            info = model_size_of(self.model, dataset_duration_s(self.dataset), files)
         except (ValueError, AttributeError, ZeroDivisionError):
             info = {"num_gaussians": self.model.num_gaussians}
         write_eval(self.out, result, info)
