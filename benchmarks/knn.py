@@ -148,7 +148,7 @@ def main() -> None:
             brute = f"{r['reference_seconds']:.1f}{'*' if r['reference_estimated'] else ''}"
             print(
                 f"{r['n']:>9} {r['seconds']:>8.3f} {r['cpu_seconds']:>7.3f} {brute:>10} {r['reference_seconds'] / r['seconds']:>7.0f}x "
-                f"{str(r['agree']):>6} {r['matched_pairs']:>8} {r['prune_seconds']:>8.3f} {r['load_average_1min']:>5.1f}"
+                f"{r['agree']!s:>6} {r['matched_pairs']:>8} {r['prune_seconds']:>8.3f} {r['load_average_1min']:>5.1f}"
             )
         print("* estimated from a subsample of query rows (brute-force cost is the same for every row)")
         print("cpu s: process CPU time of the best run (all threads); load: 1-min load average of the machine")

@@ -36,13 +36,13 @@ from pathlib import Path
 # machine load. Must be set before torch is imported; export OMP_WAIT_POLICY=ACTIVE to measure the default.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import torch  # noqa: E402
+import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 sys.path.insert(0, str(REPO / "tests"))
 
-from stgc.render import rasterize  # noqa: E402
+from stgc.render import rasterize
 
 # The gsplat reference's tile intersection is a Python loop (~85 us per Gaussian): above this many Gaussians a single
 # call takes longer than the whole rest of the benchmark, so it is skipped (reported as such in the table).
@@ -203,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
 
     numba.set_num_threads(args.threads)
     if args.tile_size is not None:
-        import stgc.render.numba_backend as numba_backend
+        from stgc.render import numba_backend
 
         numba_backend.TILE_SIZE = args.tile_size
     print(f"# load average before: {os.getloadavg()}, threads: {args.threads}, torch {torch.__version__}, "

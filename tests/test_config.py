@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass, field
-from typing import Literal, Optional
+from typing import Literal
 
 import pytest
 
@@ -29,7 +29,7 @@ class Outer:
     iterations: int = field(default=30000, metadata={"help": "total iterations"})
     criterion: Literal["timestamp", "scale"] = field(default="timestamp", metadata={"help": "which to drop"})
     enabled: bool = field(default=True, metadata={"help": "on/off"})
-    limit: Optional[int] = field(default=None, metadata={"help": "optional"})
+    limit: int | None = field(default=None, metadata={"help": "optional"})
     times: tuple[float, ...] = field(default=(0.5,), metadata={"help": "sample times"})
     inner: Inner = field(default_factory=Inner)
 

@@ -14,7 +14,8 @@ import difflib
 import json
 import types
 import typing
-from typing import Any, Iterator, Literal, get_args, get_origin
+from collections.abc import Iterator
+from typing import Any, Literal, get_args, get_origin
 
 from stgc.errors import StgcError
 

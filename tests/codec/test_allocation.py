@@ -12,6 +12,7 @@ import pytest
 
 from stgc.codec import CodecConfig, compress_run, read_stgc
 from stgc.codec.allocation import (
+    _GRID,
     LOSS_BUDGET_DB,
     Option,
     budget_db,
@@ -19,7 +20,6 @@ from stgc.codec.allocation import (
     optimise_allocation,
     solve,
 )
-from stgc.codec.allocation import _GRID
 from stgc.codec.synthetic import synthetic_model
 from stgc.errors import DataError
 from stgc.model import STGModel

@@ -6,7 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stgc.codec import DEFAULT_QUALITY, QUALITY_LEVELS, canonical_rotation, decode, encode
+from stgc.codec import (
+    DEFAULT_QUALITY,
+    QUALITY_LEVELS,
+    canonical_rotation,
+    decode,
+    encode,
+)
 from stgc.codec.format import GROUPS, HEADER_SIZE, SPAN_SIGMAS, groups_for, time_span
 from stgc.codec.synthetic import synthetic_model
 from stgc.errors import DataError

@@ -124,7 +124,7 @@ def test_resume_gives_identical_events():
     second = STKNNCompactor(cfg, total)
     second.load_state_dict(state)
     _scripted_run(second, model, losses, first=44, events=events)
-    strip = lambda es: [{k: v for k, v in e.items() if not k.endswith("seconds")} for e in es]  # noqa: E731
+    strip = lambda es: [{k: v for k, v in e.items() if not k.endswith("seconds")} for e in es]
     assert strip(events) == strip(straight)
     with pytest.raises(ValueError, match="different CompactionConfig"):
         STKNNCompactor(CompactionConfig(), total).load_state_dict(state)

@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from stgc.compaction import CompactionConfig, STKNNCompactor, plot_compaction, read_compaction_log
+from stgc.compaction import (
+    CompactionConfig,
+    STKNNCompactor,
+    plot_compaction,
+    read_compaction_log,
+)
 from stgc.errors import DataError
 
 from .compaction_helpers import make_model, random_params

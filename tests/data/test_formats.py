@@ -12,7 +12,13 @@ import pytest
 
 from stgc.data import open_dataset
 from stgc.data.cameras import colmap_to_w2c, rotmat_to_qvec, w2c_to_omaf
-from stgc.data.colmap_io import ColmapCamera, ColmapImage, ColmapModel, read_model, write_model
+from stgc.data.colmap_io import (
+    ColmapCamera,
+    ColmapImage,
+    ColmapModel,
+    read_model,
+    write_model,
+)
 from stgc.data.yuv import detect_bit_depth, write_yuv420
 
 VIEWS = ["cam00", "cam03", "cam06", "cam09"]

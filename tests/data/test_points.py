@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stgc.data import DataConfig, PointCloud, initial_points, open_dataset, preprocess_points
+from stgc.data import (
+    DataConfig,
+    PointCloud,
+    initial_points,
+    open_dataset,
+    preprocess_points,
+)
 from stgc.errors import DataError
 
 # Points on a line at gaps 1, 2, ..., 7: nearest-neighbour distances are 1, 1, 2, 3, 4, 5, 6, 7.

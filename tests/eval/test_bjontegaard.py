@@ -89,7 +89,7 @@ def _hermite_integral(x: np.ndarray, y: np.ndarray, lo: float, hi: float, sample
     return float(dt / 3 * (v[0] + v[-1] + 4 * v[1:-1:2].sum() + 2 * v[2:-1:2].sum()))
 
 
-def _reference_pchip_bd_rate(ra, qa, rt, qt) -> float:  # noqa: ANN001
+def _reference_pchip_bd_rate(ra, qa, rt, qt) -> float:
     ia, it = np.argsort(qa), np.argsort(qt)
     qa, la = np.asarray(qa)[ia], np.log(np.asarray(ra))[ia]
     qt, lt = np.asarray(qt)[it], np.log(np.asarray(rt))[it]

@@ -13,7 +13,14 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from stgc.errors import DataError
-from stgc.eval import eval_paths, evaluate, evaluate_run, format_eval_table, model_size, write_eval
+from stgc.eval import (
+    eval_paths,
+    evaluate,
+    evaluate_run,
+    format_eval_table,
+    model_size,
+    write_eval,
+)
 from stgc.model.layout import ply_fields
 
 

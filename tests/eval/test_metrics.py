@@ -113,7 +113,7 @@ def test_lpips_reports_why_it_is_unavailable_at_each_missing_piece(monkeypatch, 
     import importlib.util
     from types import SimpleNamespace
 
-    import stgc.eval.metrics as metrics
+    from stgc.eval import metrics
 
     bad, why = lpips_status("squeezenet-nope")
     assert not bad and "unknown LPIPS network" in why

@@ -14,11 +14,10 @@ import sys
 import types
 from unittest import mock
 
-import torch
-from torch import Tensor
-
 import gsplat.cuda._torch_impl as gs_impl
 import gsplat.cuda._wrapper as gs_wrapper
+import torch
+from torch import Tensor
 
 ORACLE_ALPHA_MAX = 0.999  # hard-coded in gsplat 1.5.3 (kernels and torch reference)
 

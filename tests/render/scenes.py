@@ -26,7 +26,7 @@ class Scene:
     def args(self) -> tuple:
         return (*self.params(), self.K, self.viewmat, self.width, self.height)
 
-    def leaves(self) -> "Scene":
+    def leaves(self) -> Scene:
         """A copy whose five parameter tensors are fresh leaves requiring grad."""
         p = [t.detach().clone().requires_grad_(True) for t in self.params()]
         return Scene(*p, self.K, self.viewmat, self.width, self.height)

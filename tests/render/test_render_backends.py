@@ -12,9 +12,13 @@ from pathlib import Path
 import pytest
 import torch
 
-import stgc.render.api as api
-from stgc.render import available_backends, rasterize, select_backend
-from stgc.render import gsplat_backend
+from stgc.render import (
+    api,
+    available_backends,
+    gsplat_backend,
+    rasterize,
+    select_backend,
+)
 
 from .scenes import make_scene
 

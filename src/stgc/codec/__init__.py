@@ -29,11 +29,11 @@ from .format import (
 )
 
 __all__ = [
+    "DEFAULT_QUALITY",
+    "QUALITY_LEVELS",
     "CodecConfig",
     "CompressResult",
-    "DEFAULT_QUALITY",
     "DecodedModel",
-    "QUALITY_LEVELS",
     "StgcHeader",
     "canonical_rotation",
     "compress_run",

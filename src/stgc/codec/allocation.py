@@ -23,8 +23,9 @@ table, as for the ladder. docs/stgc-format.md section 7 ("Rate-distortion optimi
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 

@@ -168,7 +168,8 @@ def _iteration_of(path: Path) -> int | None:
 def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: int | None = None,
                  config: CodecConfig | None = None) -> CompressResult:
     """Compress a trained model (a run dir -> its latest iteration, an iteration dir, or a point_cloud.ply)."""
-    from stgc.model import STGModel, run_dir_of  # the model package owns the run layout and PLY reading
+    # The model package owns the run layout and PLY reading.
+    from stgc.model import STGModel, run_dir_of
 
     config = CodecConfig(**vars(config)) if config is not None else CodecConfig()
     if quality is not None:
@@ -250,7 +251,8 @@ def _optimise(model: Any, arrays: dict, dataset: Any, config: CodecConfig) -> An
 
 
 def _model_from_decoded(decoded: DecodedModel, source: str | Path) -> Any:
-    from stgc.model import STGModel  # the model package owns the parameter layout and the decoder
+    # The model package owns the parameter layout and the decoder.
+    from stgc.model import STGModel
 
     meta = decoded.metadata
     extent = meta.get("scene_extent", 1.0)

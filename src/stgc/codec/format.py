@@ -15,8 +15,9 @@ import json
 import os
 import struct
 import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import zstandard
@@ -28,8 +29,8 @@ from .quantize import (
     MAX_BITS,
     MIN_BITS,
     Quantizer,
-    container_dtype,
     centre_encode,
+    container_dtype,
     delta_decode,
     delta_encode,
     dequantize,
@@ -639,7 +640,8 @@ def decode(data: bytes | str | os.PathLike, source: str | None = None) -> Decode
 
     To get a renderable `stgc.model.STGModel`, use `stgc.codec.load_model(path)`."""
     if isinstance(data, (str, os.PathLike)):
-        from .files import read_stgc  # the file reader applies the on-disk size cap, then comes back here
+        # The file reader applies the on-disk size cap, then comes back here.
+        from .files import read_stgc
 
         return read_stgc(data)
     data = bytes(data)

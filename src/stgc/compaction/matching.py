@@ -29,8 +29,9 @@ features (a diverged Gaussian) take no part: they are never matched.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol, Sequence
+from typing import Protocol
 
 import numpy as np
 import torch

@@ -23,8 +23,8 @@ Mutual pairs were merged into one earlier (`matching.match_from_neighbors`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch

@@ -28,10 +28,10 @@ from .preprocess import PreprocessReport, preprocess_points
 from .readers import FORMATS, detect_format, open_dataset
 
 __all__ = [
+    "FORMATS",
     "Camera",
     "DataConfig",
     "Dataset",
-    "FORMATS",
     "PointCloud",
     "PreprocessReport",
     "SourceScene",

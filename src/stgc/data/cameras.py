@@ -11,9 +11,9 @@ helpers below are the only places where those conventions are translated.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -50,7 +50,7 @@ class Camera:
         R, t = self.w2c[:3, :3], self.w2c[:3, 3]
         return -R.T @ t
 
-    def scaled(self, factor: float) -> "Camera":
+    def scaled(self, factor: float) -> Camera:
         """The same camera for an image resized by `factor` (pixel-centre preserving).
 
         The new size is rounded to whole pixels, so each axis of K is scaled by the ratio actually
@@ -60,7 +60,7 @@ class Camera:
         height = max(1, int(round(self.height * factor)))
         return self.resized(width, height)
 
-    def resized(self, width: int, height: int) -> "Camera":
+    def resized(self, width: int, height: int) -> Camera:
         """The same camera for its image resampled to `width` x `height` pixels."""
         K = self.K.copy()
         K[0, :] *= width / self.width

@@ -8,9 +8,9 @@ every view has every frame of the segment.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -166,7 +166,7 @@ class Dataset:
         centres = np.stack([c.center for c in cams])
         return float(1.1 * np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
 
-    def segment(self, start: int, duration: int) -> "Dataset":
+    def segment(self, start: int, duration: int) -> Dataset:
         """The same source, another frame segment (same downscale, split and cache size)."""
         return assemble(self._scene, downscale=self.downscale, start=start, duration=duration,
                         test_cameras=self._test_cameras, fps=self.fps, cache_bytes=self._cache.max_bytes,

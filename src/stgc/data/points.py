@@ -35,17 +35,17 @@ class PointCloud:
         return len(self.xyz)
 
     @staticmethod
-    def empty() -> "PointCloud":
+    def empty() -> PointCloud:
         return PointCloud(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
 
     @staticmethod
-    def concatenate(clouds: list["PointCloud"]) -> "PointCloud":
+    def concatenate(clouds: list[PointCloud]) -> PointCloud:
         if not clouds:
             return PointCloud.empty()
         return PointCloud(np.concatenate([c.xyz for c in clouds]), np.concatenate([c.rgb for c in clouds]),
                           np.concatenate([c.time for c in clouds]))
 
-    def select(self, mask: np.ndarray) -> "PointCloud":
+    def select(self, mask: np.ndarray) -> PointCloud:
         return PointCloud(self.xyz[mask], self.rgb[mask], self.time[mask])
 
     def counts_per_time(self) -> dict[float, int]:

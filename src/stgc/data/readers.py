@@ -29,7 +29,14 @@ from .cameras import (
     opencv_to_corner_K,
     opengl_c2w_to_w2c,
 )
-from .dataset import DEFAULT_CACHE_BYTES, Dataset, SourceScene, VideoFrame, YuvFrame, assemble
+from .dataset import (
+    DEFAULT_CACHE_BYTES,
+    Dataset,
+    SourceScene,
+    VideoFrame,
+    YuvFrame,
+    assemble,
+)
 from .images import image_size
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")

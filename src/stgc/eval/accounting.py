@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -246,7 +247,7 @@ def size_of_saved_model(path: str | Path, duration_s: float) -> ModelSize:
     floats = 0
     files = [ply]
     if decoder_file.is_file():
-        import torch  # noqa: PLC0415 - only needed for full models
+        import torch  # only needed for full models
 
         try:
             state = torch.load(decoder_file, map_location="cpu", weights_only=True)

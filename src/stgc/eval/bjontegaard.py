@@ -17,7 +17,8 @@ The log base cancels out, so natural logs are used throughout.
 
 from __future__ import annotations
 
-from typing import Literal, Sequence
+from collections.abc import Sequence
+from typing import Literal
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator

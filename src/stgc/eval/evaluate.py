@@ -10,9 +10,10 @@ import csv
 import io
 import math
 import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -239,8 +240,8 @@ def _fmt(x: float | None, digits: int) -> str:
 
 def format_eval_table(record: Mapping[str, Any]) -> str:
     """A compact rich table of an eval.json record, as plain text."""
-    from rich.console import Console  # noqa: PLC0415
-    from rich.table import Table  # noqa: PLC0415
+    from rich.console import Console
+    from rich.table import Table
 
     table = Table(title="evaluation", show_header=True, header_style="bold")
     for col in ("camera (views)", "PSNR", "SSIM", "LPIPS", "#Gaussians", "size MiB", "Mbps", "FPS"):
@@ -273,9 +274,9 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
 def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstream: Path | None = None) -> Any:
     """The dataset a run was trained on, opened with the run's own data options: RUN/config.json, or for a
     `.stgc` file away from its run, the run config the encoder embedded in it."""
-    import dataclasses  # noqa: PLC0415
+    import dataclasses
 
-    from stgc.data import DataConfig  # noqa: PLC0415 - the data package is only needed here
+    from stgc.data import DataConfig  # the data package is only needed here
 
     config_path = run_dir / "config.json"
     data_cfg: dict[str, Any] = {}
@@ -286,7 +287,7 @@ def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstre
             raise FormatError(config_path, "the run config's 'data' section is not an object")
         data_cfg = dict(section)
     elif bitstream is not None:
-        from stgc.codec import read_stgc  # noqa: PLC0415
+        from stgc.codec import read_stgc
 
         embedded = read_stgc(bitstream).metadata.get("run_config")
         data_section = embedded.get("data") if isinstance(embedded, dict) else None
@@ -349,9 +350,9 @@ def evaluate_run(
 
 def _default_model_loader(target: Path) -> Any:
     if target.suffix == ".stgc":
-        from stgc.codec import load_model  # noqa: PLC0415
+        from stgc.codec import load_model
 
         return load_model(target)
-    from stgc.model import STGModel  # noqa: PLC0415
+    from stgc.model import STGModel
 
     return STGModel.load(target)

@@ -186,7 +186,7 @@ class LPIPS:
     [0,1] directly (rescale=False reproduces their numbers)."""
 
     def __init__(self, net: str = "alex", rescale: bool = True):
-        import lpips as lpips_pkg  # noqa: PLC0415 - optional dependency
+        import lpips as lpips_pkg  # optional dependency
 
         self.net = net
         self.rescale = rescale
@@ -194,7 +194,7 @@ class LPIPS:
         self._model = lpips_pkg.LPIPS(net=net, verbose=False).eval()
 
     @classmethod
-    def create(cls, net: str = "alex", rescale: bool = True) -> tuple["LPIPS | None", str]:
+    def create(cls, net: str = "alex", rescale: bool = True) -> tuple[LPIPS | None, str]:
         ok, reason = lpips_status(net)
         if not ok:
             return None, reason

@@ -9,9 +9,10 @@ experiment.json naming the run's family and label).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 from stgc.errors import DataError
 from stgc.eval.bjontegaard import BDError, Method, bd_psnr, bd_rate
@@ -37,7 +38,7 @@ class ReportRow:
     extra: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
-    def from_mapping(cls, m: Mapping[str, Any]) -> "ReportRow":
+    def from_mapping(cls, m: Mapping[str, Any]) -> ReportRow:
         known = {"name", "family", "mbps", "psnr", "num_gaussians", "size_mb", "ssim", "lpips"}
         if "name" not in m:
             raise ValueError(f"report row without a name: {dict(m)}")
@@ -189,10 +190,10 @@ def markdown_table(rows: Sequence[ReportRow], baseline: str | None, bd: Sequence
 def rd_plot(rows: Sequence[ReportRow], png: Path, svg: Path | None, title: str, baseline: str | None,
             metric: str = "psnr") -> None:
     """Mbps vs PSNR, one line per family (points in rate order), each point labelled by its setting."""
-    import matplotlib  # noqa: PLC0415
+    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
+    import matplotlib.pyplot as plt
 
     markers = ["o", "s", "^", "D", "v", "P", "X", "*"]
     fig, ax = plt.subplots(figsize=(6.4, 4.6), dpi=100)

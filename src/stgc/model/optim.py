@@ -7,7 +7,7 @@ to the new object with the same row edits, otherwise Adam would apply another Ga
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import nn

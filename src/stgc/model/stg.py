@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -192,7 +193,7 @@ class STGModel:
         init_neighbours: int = 3,
         decoder_seed: int = 0,
         device: str | torch.device | None = None,
-    ) -> "STGModel":
+    ) -> STGModel:
         """Official initialisation from a point cloud with .xyz [N,3], .rgb [N,3] in [0,1] and .time [N]."""
         config = ModelConfig(
             variant=variant,
@@ -211,7 +212,7 @@ class STGModel:
         config: ModelConfig,
         scene_extent: float = 1.0,
         device: str | torch.device | None = None,
-    ) -> "STGModel":
+    ) -> STGModel:
         xyz, rgb, time = _cloud_arrays(cloud)
         count = xyz.shape[0]
         log_scale = initial_log_scales(xyz, config.init_neighbours)
@@ -425,7 +426,7 @@ class STGModel:
             replace_group_param(self.optimizer, old, new, edit_rows)
         self.params[key] = new
 
-    def to(self, device: str | torch.device) -> "STGModel":
+    def to(self, device: str | torch.device) -> STGModel:
         """Move to `device` in place (before make_optimizer)."""
         if self.optimizer is not None:
             raise RuntimeError("move the model before make_optimizer(); the optimizer holds the old tensors")
@@ -457,7 +458,7 @@ class STGModel:
         scene_extent: float = 1.0,
         decoder_activation: str = "sigmoid",
         device: str | torch.device | None = None,
-    ) -> "STGModel":
+    ) -> STGModel:
         """Inverse of to_ply_arrays (+ decoder_state for full). Raises FormatError on missing/NaN/non-float32."""
         _ply.validate_arrays(arrays, variant)
         params = {}
@@ -498,7 +499,7 @@ class STGModel:
         scene_extent: float = 1.0,
         decoder_activation: str | None = None,
         device: str | torch.device | None = None,
-    ) -> "STGModel":
+    ) -> STGModel:
         """Load a run dir (its highest iteration), an iteration dir or a .ply file; full/lite from the fields.
 
         The decoder activation is not stored in the official files: it comes from the argument, else from the run's
@@ -531,7 +532,7 @@ class STGModel:
         }
 
     @classmethod
-    def from_state_dict(cls, state: dict[str, Any], device: str | torch.device | None = None) -> "STGModel":
+    def from_state_dict(cls, state: dict[str, Any], device: str | torch.device | None = None) -> STGModel:
         params = {key: torch.as_tensor(value) for key, value in state["params"].items()}
         if device is not None:
             params = {key: value.to(device) for key, value in params.items()}

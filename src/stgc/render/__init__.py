@@ -8,7 +8,14 @@ hand-written backward), "torch" (pure PyTorch, any device), "gsplat" (CUDA kerne
 docs/rasterizer.md for conventions and measured speed.
 """
 
-from .api import BACKENDS, T_MIN, RenderOutput, available_backends, rasterize, select_backend
+from .api import (
+    BACKENDS,
+    T_MIN,
+    RenderOutput,
+    available_backends,
+    rasterize,
+    select_backend,
+)
 from .projection import ALPHA_MIN, RADIUS_SIGMAS
 
 __all__ = [

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Optional
 
 
 @dataclass(frozen=True)
@@ -125,7 +124,7 @@ class TrainConfig:
     eval_at_end: bool = field(default=True, metadata={"help": "evaluate on all test views x frames at the end"})
     progress: bool = field(default=True, metadata={"help": "show a progress bar"})
     tensorboard: bool = field(default=True, metadata={"help": "log to TensorBoard when it is importable"})
-    stop_after: Optional[int] = field(
+    stop_after: int | None = field(
         default=None,
         metadata={"help": "stop (checkpoint, unfinished) after this many iterations, as if killed; resume continues"},
     )

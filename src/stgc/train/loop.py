@@ -15,15 +15,21 @@ import dataclasses
 import math
 import random
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
 
 from stgc.errors import DataError
 from stgc.fileio import write_json
-from stgc.train.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_rng_states, save_checkpoint
+from stgc.train.checkpoint import (
+    CHECKPOINT_NAME,
+    load_checkpoint,
+    restore_rng_states,
+    save_checkpoint,
+)
 from stgc.train.config import Schedule, TrainConfig, resolve_schedule
 from stgc.train.densify import (
     DensificationStats,
