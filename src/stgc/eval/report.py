@@ -9,6 +9,7 @@ experiment.json naming the run's family and label).
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -210,7 +211,7 @@ def rd_plot(rows: Sequence[ReportRow], png: Path, svg: Path | None, title: str, 
                 ax.annotate(r.name, (x, y), textcoords="offset points", xytext=(4, -11), fontsize=7, alpha=0.75)
     ax.set_xlabel("Bitrate (Mbps)")
     ax.set_ylabel("PSNR (dB)" if metric == "psnr" else metric.upper())
-    ax.set_title(title)
+    ax.set_title(textwrap.fill(title, 60, break_on_hyphens=False), fontsize=11)  # long plan titles would run past the figure
     ax.margins(x=0.1, y=0.08)
     ax.grid(True, alpha=0.3)
     ax.legend(loc="lower right", fontsize=8, frameon=True)
