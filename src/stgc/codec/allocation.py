@@ -13,8 +13,10 @@ mean_view(e_g / m0) <= 10^(L/10) - 1, with e_g measured by rendering the model w
    and records the section's bytes and its relative added error;
 3. picks one depth per group minimising total bytes under the budget (a multiple-choice knapsack, solved exactly
    on a fine grid of the error axis);
-4. renders the model with all groups at the chosen depths and checks the measured PSNR drop; if it exceeds the
-   budget (the errors did not add up exactly), the budget is tightened and steps 3-4 repeat.
+4. renders the model with all groups at the chosen depths and measures the mean PSNR drop over the views plus one
+   standard error. The per-group errors do not add up exactly (in practice their sum over-estimates the joint
+   error), so the knapsack's budget is searched (geometric bisection, steps 3-4 repeated) for the cheapest
+   allocation whose measured bound is within the budget.
 
 Only training views are used, never test views. The decoder needs nothing of this: bit depths are in the section
 table, as for the ladder. docs/stgc-format.md section 7 ("Rate-distortion optimised allocation").
@@ -227,7 +229,8 @@ def optimise_allocation(
     measured_at: dict[tuple[int, ...], tuple[float, float]] = {}
     best: Allocation | None = None
     fallback: Allocation | None = None
-    internal, feasible, infeasible = target - floor, None, None
+    # Positive even when the fixed floor alone uses the budget up (then only the most precise depths can pass).
+    internal, feasible, infeasible = max(target - floor, 1e-3 * target), None, None
     for round_index in range(1, _MAX_ROUNDS + 1):
         chosen = solve(table, internal) or most_precise
         key = tuple(chosen[t] for t in tags)
@@ -258,6 +261,7 @@ def optimise_allocation(
     if result is None:  # every round overshot without reaching the most precise depths: measure those
         images, _ = trial(most_precise)
         measured, bound = loss(images)
-        result = Allocation(most_precise, loss_budget_db, measured, bound, float("nan"), len(reference),
-                            _MAX_ROUNDS, bound <= loss_budget_db, table)
+        predicted = floor + sum(table[t][-1].error for t in tags)
+        result = Allocation(most_precise, loss_budget_db, measured, bound, 10.0 * math.log10(1.0 + predicted),
+                            len(reference), _MAX_ROUNDS, bound <= loss_budget_db, table)
     return result
