@@ -11,6 +11,7 @@ from stgc.errors import DataError, FormatError
 from stgc.fileio import atomic_path, read_json_object, write_json
 from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
 
+from .allocation import Allocation, budget_db, optimise_allocation
 from .format import (
     DEFAULT_QUALITY,
     DEFAULT_ZSTD_LEVEL,
@@ -215,20 +216,22 @@ def _training_dataset(run_dir: Path | None, source: Path, required: bool) -> Any
         return None
 
 
-def _optimise(model: Any, arrays: dict, dataset: Any, config: CodecConfig) -> Any:
+def _optimise(model: Any, arrays: dict, dataset: Any, config: CodecConfig) -> Allocation:
     import numpy as np
     import torch
     from tqdm import tqdm
 
     from stgc.model import STGModel
 
-    from .allocation import budget_db, optimise_allocation
-
     train = list(dataset.train)
     picked = np.random.default_rng(0).choice(len(train), size=min(config.allocation_views, len(train)),
                                              replace=False)
     views = [train[i] for i in sorted(picked)]
-    truth = [np.asarray(dataset.load_image(cam), dtype=np.float32)[..., :3] / 255.0 for cam in views]
+    def ground_truth(cam: Any) -> np.ndarray:  # as stgc.eval reads it: uint8 -> [0, 1], colour channels only
+        image = np.asarray(dataset.load_image(cam))[..., :3]
+        return image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else image.astype(np.float32)
+
+    truth = [ground_truth(cam) for cam in views]
     background = torch.zeros(3)
 
     @torch.no_grad()
