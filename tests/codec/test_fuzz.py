@@ -97,6 +97,9 @@ def _check_valid(model: DecodedModel) -> None:
 
 def test_unmodified_file_decodes(valid_file):
     _check_valid(decode(valid_file[0]))
+    # The mutations below only reach the layouts this file uses: it must have delta and centred sections.
+    flags = [e[4] for _, e in _entries(valid_file[0])]
+    assert any(f & 1 for f in flags) and any(f & 4 for f in flags)
 
 
 def test_random_mutations_end_in_format_error_or_a_valid_model(valid_file):
