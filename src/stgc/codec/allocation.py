@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from .format import GROUPS, QUALITY_LEVELS, bits_for, decode, encode, groups_for
+from .format import GROUP_BY_TAG, QUALITY_LEVELS, bits_for, decode, encode, groups_for
 from .quantize import MAX_BITS, MIN_BITS
 
 # PSNR budget on the training views per quality level: each level is ~3x (in added squared error) stricter than
@@ -52,7 +52,7 @@ def budget_db(quality: int) -> float:
 
 
 def candidate_bits(tag: str) -> list[int]:
-    group = next(g for g in GROUPS if g.tag.decode("latin-1") == tag)
+    group = GROUP_BY_TAG[tag.encode("latin-1")]
     lo = max(MIN_BITS, bits_for(group, 1) - _BELOW_LADDER)
     hi = min(MAX_BITS, bits_for(group, 5))
     return list(range(lo, hi + 1))
@@ -169,14 +169,20 @@ def optimise_allocation(
     tags = [g.tag.decode("latin-1") for g in groups_for(variant)]
     fixed = dict(fixed_bits or {})
     candidates = {t: ([fixed[t]] if t in fixed else candidate_bits(t)) for t in tags}
-    total = sum(len(c) for c in candidates.values()) + 1
+    # Progress counts encode/decode/render trials: the table's, then one per rate-control round (grows the total).
+    planned = sum(len(c) for c in candidates.values()) + 1
     done = 0
 
     def trial(bits: Mapping[str, int]) -> tuple[list[np.ndarray], dict[str, int]]:
+        nonlocal done
         data = encode(arrays, variant, decoder_state, zstd_level=_PROBE_ZSTD_LEVEL, group_bits=bits,
                       outlier_guard=outlier_guard)
         decoded = decode(data)
-        return list(render(decoded.arrays, decoded.decoder_state)), decoded.header.section_bytes()
+        images = list(render(decoded.arrays, decoded.decoder_state))
+        done += 1
+        if progress:
+            progress(done, max(planned, done))
+        return images, decoded.header.section_bytes()
 
     reference = list(render(arrays, decoder_state))
     if len(reference) != len(ground_truth):
@@ -197,18 +203,12 @@ def optimise_allocation(
     near_lossless = {t: (fixed[t] if t in fixed else _NEAR_LOSSLESS_BITS) for t in tags}
     images, _ = trial(near_lossless)
     floor = relative_error(images)  # fp16 decoder weights, float32 casts: common to every option
-    done += 1
-    if progress:
-        progress(done, total)
     table: dict[str, list[Option]] = {}
     for tag in tags:
         options = []
         for bits in candidates[tag]:
             images, sizes = trial({**near_lossless, tag: bits})
             options.append(Option(bits, sizes[tag], max(0.0, relative_error(images) - floor)))
-            done += 1
-            if progress:
-                progress(done, total)
         # Fewer bits never remove error; where measurement noise says otherwise, a depth is charged the largest
         # error measured at it or any finer depth (the conservative envelope).
         monotone, largest = [], 0.0

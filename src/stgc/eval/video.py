@@ -37,7 +37,7 @@ def load_model_and_dataset(run_or_model: Any, dataset: Any | None = None) -> tup
             run_dir = run_dir_of(path)
             if run_dir is None:
                 raise DataError(path, "cannot find the run's config.json: pass the dataset explicitly")
-            dataset = open_run_dataset(run_dir, None)
+            dataset = open_run_dataset(run_dir)
         return model, dataset
     if dataset is None:
         raise ValueError("rendering an in-memory model needs the dataset (for cameras and intrinsics)")
