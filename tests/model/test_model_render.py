@@ -172,3 +172,21 @@ def test_gaussians_closer_than_the_official_near_plane_are_not_drawn(depth, seen
     assert (out.alpha.max().item() > 0.5) is seen
     near = model.render(camera, t=0.5, background=torch.zeros(3), backend="torch", near_plane=0.01)
     assert near.alpha.max().item() > 0.5  # the override reaches the rasterizer
+
+
+def test_gaussians_below_the_cut_at_their_peak_never_show_so_leaving_them_out_changes_no_render():
+    model = _scene("full")
+    with torch.no_grad():  # push some temporal centres outside [0, 1]: those fade before the sequence reaches them
+        model.params["trbf_center"][:20] = torch.linspace(-0.6, 1.6, 20)[:, None]
+    peak = model.peak_temporal_opacity()
+    # Independent check of the peak: a dense sweep of t over [0, 1] never exceeds it and comes within 1e-4 of it.
+    sweep = torch.stack([model.temporal_opacity(float(t)).detach() for t in np.linspace(0, 1, 2001)])
+    assert torch.all(sweep.max(0).values <= peak + 1e-7)
+    assert torch.all(sweep.max(0).values >= peak * (1 - 1e-4))
+    keep = peak >= MIN_VISIBLE_OPACITY
+    assert 0 < int((~keep).sum()) < model.num_gaussians
+    pruned = STGModel.from_state_dict(model.state_dict())
+    pruned.prune(keep)
+    for t in (0.0, 0.13, 0.5, 0.97, 1.0):
+        camera = look_at_camera(time=t)
+        assert torch.equal(model.render(camera).rgb, pruned.render(camera).rgb), t

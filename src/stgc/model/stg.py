@@ -270,6 +270,12 @@ class STGModel:
         """sigmoid(o) · exp(−((t − μ_t) / exp(s_t))²), [N]; differentiable in o, μ_t and s_t."""
         return _temporal_opacity(self.params, t)
 
+    def peak_temporal_opacity(self, start: float = 0.0, end: float = 1.0) -> torch.Tensor:
+        """The largest temporal opacity each Gaussian reaches for t in [start, end] (at t = μ_t clamped), [N].
+        Below MIN_VISIBLE_OPACITY a Gaussian is culled from every render in that interval."""
+        nearest = self.params["trbf_center"].detach().clamp(start, end)
+        return _temporal_opacity({k: v.detach() for k, v in self.params.items()}, nearest)
+
     def means_at(self, t: float) -> torch.Tensor:
         return _means_at(self.params, t)
 
@@ -544,7 +550,7 @@ class STGModel:
 
 
 # ---------------------------------------------------------------------- formulas on a dict of rows
-def _temporal_opacity(params: dict[str, torch.Tensor], t: float) -> torch.Tensor:
+def _temporal_opacity(params: dict[str, torch.Tensor], t: float | torch.Tensor) -> torch.Tensor:
     delta = t - params["trbf_center"]
     return (torch.sigmoid(params["opacity"]) * torch.exp(-torch.square(delta / torch.exp(params["trbf_scale"]))))[:, 0]
 
