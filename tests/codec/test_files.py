@@ -31,18 +31,30 @@ def run_dir(tmp_path):
     model.save(run / "point_cloud" / "iteration_500")
     model.save(run / "point_cloud" / "iteration_1200")
     config = {"data": {"path": "scene"}, "model": {"variant": "full", "decoder_activation": "clamp"}}
-    (run / "config.json").write_text(json.dumps(config))
-    return run, arrays, config
+    (run / "config.json").write_text(json.dumps({**config, "train": {"iterations": 1200}}))
+    return run, arrays, config  # what a restored run gets back: training options are not embedded
 
 
 def test_compress_then_decompress_restores_an_equivalent_run(run_dir, tmp_path):
     run, arrays, config = run_dir
     result = compress_run(run, run / "model.stgc")
-    assert result.num_gaussians == 2000 and result.variant == "full"
+    # Gaussians whose temporal opacity stays below 1/255 for all t in [0, 1] are left out (written out here from
+    # the STG formula: the peak is at t = trbf_center clamped to [0, 1]).
+    gap = np.clip(arrays["trbf_center"], 0, 1) - arrays["trbf_center"]
+    peak = np.exp(-((gap / np.exp(arrays["trbf_scale"])) ** 2)) / (1 + np.exp(-arrays["opacity"].astype(np.float64)))
+    invisible = int(np.sum(peak < 1 / 255))
+    assert invisible > 0  # the synthetic model has some: the test exercises the drop
+    assert result.num_gaussians == 2000 - invisible and result.dropped_invisible == invisible
+    assert result.variant == "full"
     assert result.file_bytes == stgc_file_bytes(run / "model.stgc") == (run / "model.stgc").stat().st_size
-    assert result.ply_bytes == 2000 * 152 and result.ratio_vs_ply > 5
-    assert stgc_bytes_per_gaussian(run / "model.stgc") == pytest.approx(result.file_bytes / 2000)
+    assert result.ply_bytes == 2000 * 152 and result.ratio_vs_ply > 5  # against the input model's rows
+    assert stgc_bytes_per_gaussian(run / "model.stgc") == pytest.approx(result.file_bytes / result.num_gaussians)
     assert f"{result.file_bytes} bytes" in str(result) and "B/Gaussian" in str(result)
+    assert f"{invisible} Gaussians left out" in str(result)
+    assert read_stgc(run / "model.stgc").metadata["dropped_invisible"] == invisible
+    kept = compress_run(run, tmp_path / "all.stgc", config=CodecConfig(drop_invisible=False))
+    assert kept.num_gaussians == 2000 and kept.dropped_invisible == 0
+    assert "dropped_invisible" not in read_stgc(tmp_path / "all.stgc").metadata
 
     out = tmp_path / "restored"
     iteration_dir = decompress(run / "model.stgc", out)
@@ -61,7 +73,7 @@ def test_load_model_gives_a_renderable_model_with_the_stored_activation(run_dir)
                  config=CodecConfig(embed_run_config=False))
     model = load_model(run / "it500.stgc")
     assert isinstance(model, STGModel)
-    assert (model.variant, model.num_gaussians, model.decoder_activation) == ("full", 2000, "clamp")
+    assert (model.variant, model.decoder_activation) == ("full", "clamp") and model.num_gaussians <= 2000
     header = read_stgc_header(run / "it500.stgc")
     assert header.quality == 2
     assert decode(run / "it500.stgc").metadata["iteration"] == 500  # decode also takes a path

@@ -19,12 +19,18 @@ from stgc.codec.synthetic import synthetic_model
 from stgc.errors import FormatError
 
 CASES = 1200
-MEMORY_LIMIT = 32 << 20  # a 300-Gaussian file decodes in well under 1 MB; nothing may claim more than this
+MEMORY_LIMIT = 32 << 20  # a 500-Gaussian file decodes in well under 1 MB; nothing may claim more than this
 
 # Layout from docs/stgc-format.md (kept separate from the codec's own structs on purpose).
 HEADER = struct.Struct("<8sHBBIHHII")
 ENTRY = struct.Struct("<4sBBBBIII")
 QPARAM_SIZE = 16
+PREDICT = 8  # section flag: C(C-1)/2 int16 prediction coefficients follow the quantizers
+
+
+def entry_size(entry) -> int:
+    comps, flags = entry[3], entry[4]
+    return ENTRY.size + comps * QPARAM_SIZE + (comps * (comps - 1) if flags & PREDICT else 0)
 
 
 def reseal(data: bytearray) -> bytearray:
@@ -40,12 +46,12 @@ def reseal(data: bytearray) -> bytearray:
             if pos + ENTRY.size > table_end:
                 break
             entry = list(ENTRY.unpack_from(data, pos))
-            comps, size = entry[3], entry[6]
+            size = entry[6]
             if payload + size <= len(data):
                 entry[7] = zlib.crc32(bytes(data[payload: payload + size]))
                 ENTRY.pack_into(data, pos, *entry)
             payload += size
-            pos += ENTRY.size + comps * QPARAM_SIZE
+            pos += entry_size(entry)
         fields[8] = zlib.crc32(bytes(data[32:table_end]))
     HEADER.pack_into(data, 0, *fields)
     struct.pack_into("<I", data, 28, zlib.crc32(bytes(data[:28])))
@@ -81,7 +87,7 @@ def mutate(rng: np.random.Generator, data: bytes, table_end: int) -> bytearray:
 
 @pytest.fixture(scope="module")
 def valid_file() -> tuple[bytes, int]:
-    arrays, decoder = synthetic_model(300, "full", seed=5)
+    arrays, decoder = synthetic_model(500, "full", seed=5)  # large enough for delta-coded positions
     data = encode(arrays, "full", decoder, metadata={"iteration": 7, "scene_extent": 2.5})
     table_size = HEADER.unpack_from(data)[7]
     return data, 32 + table_size
@@ -97,9 +103,9 @@ def _check_valid(model: DecodedModel) -> None:
 
 def test_unmodified_file_decodes(valid_file):
     _check_valid(decode(valid_file[0]))
-    # The mutations below only reach the layouts this file uses: it must have delta and centred sections.
+    # The mutations below only reach the layouts this file uses: it must have delta, centred, predicted sections.
     flags = [e[4] for _, e in _entries(valid_file[0])]
-    assert any(f & 1 for f in flags) and any(f & 4 for f in flags)
+    assert any(f & 1 for f in flags) and any(f & 4 for f in flags) and any(f & PREDICT for f in flags)
 
 
 def test_random_mutations_end_in_format_error_or_a_valid_model(valid_file):
@@ -175,7 +181,7 @@ def test_a_zstd_bomb_claim_is_refused_before_decompression(valid_file):
         if tag not in (b"DECO", b"META"):
             entry[5] = n * comps * (1 if bits <= 8 else 2 if bits <= 16 else 4)
             ENTRY.pack_into(mutated, pos, *entry)
-        pos += ENTRY.size + comps * QPARAM_SIZE
+        pos += entry_size(entry)
     tracemalloc.start()
     try:
         with pytest.raises(FormatError, match="more than zstd can expand"):
@@ -192,7 +198,7 @@ def _entries(data: bytes):
     for _ in range(num_sections):
         entry = ENTRY.unpack_from(data, pos)
         out.append((pos, list(entry)))
-        pos += ENTRY.size + entry[3] * QPARAM_SIZE
+        pos += entry_size(entry)
     return out
 
 
@@ -212,16 +218,30 @@ def test_centred_sections_are_checked(valid_file):
     with pytest.raises(FormatError, match="combines centring"):
         decode(_set_flags(data, b"ROTN", 4))  # quaternion indices are not centred
     # A plain 8-bit section read as centred needs a 9-bit (uint16) container: the sizes disagree.
-    plain = next(e for _, e in _entries(data) if e[4] & 5 == 0 and e[2] == 8 and e[0] != b"ROTN")
+    arrays, decoder = synthetic_model(500, "full", seed=5)
+    eight = encode(arrays, "full", decoder, group_bits={"OPAC": 8})  # opacity: plain at any depth
+    plain = next(e for _, e in _entries(eight) if e[0] == b"OPAC")
+    assert plain[4] & 5 == 0 and plain[2] == 8
     with pytest.raises(FormatError, match="does not match"):
-        decode(_set_flags(data, plain[0], plain[4] | 4))
+        decode(_set_flags(eight, plain[0], plain[4] | 4))
 
 
-def test_a_version_2_file_is_still_read():
+def test_predicted_sections_are_checked(valid_file):
+    data, _ = valid_file
+    predicted = next(e for _, e in _entries(data) if e[4] & PREDICT)
+    with pytest.raises(FormatError, match="predicted without being centred"):
+        decode(_set_flags(data, predicted[0], predicted[4] & ~4))
+    # Without the flag the coefficients are unexplained table bytes.
+    with pytest.raises(FormatError, match="trailing bytes|runs? past|does not match"):
+        decode(_set_flags(data, predicted[0], predicted[4] & ~PREDICT))
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_files_of_earlier_versions_are_still_read(version):
     arrays, decoder = synthetic_model(300, "full", seed=5)
-    v2 = encode(arrays, "full", decoder, adaptive_delta=False)  # no centred sections: a valid version 2 file
-    assert not any(e[4] & 4 for _, e in _entries(v2))
-    old = bytearray(v2)
-    struct.pack_into("<H", old, 8, 2)
+    plain = encode(arrays, "full", decoder, adaptive_delta=False)  # no centred or predicted sections
+    assert not any(e[4] & (4 | PREDICT) for _, e in _entries(plain))
+    old = bytearray(plain)
+    struct.pack_into("<H", old, 8, version)
     model = decode(bytes(reseal(old)))
-    assert np.array_equal(model.arrays["x"], decode(v2).arrays["x"])
+    assert np.array_equal(model.arrays["x"], decode(plain).arrays["x"])

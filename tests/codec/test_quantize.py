@@ -30,6 +30,14 @@ def test_quantizer_error_is_at_most_half_a_step_and_codes_fit(bits):
         assert err.max() <= q.step / 2 * (1 + 1e-9)
         # The step is set by the range: (max - min) / (2**bits - 2).
         assert q.step == pytest.approx((values.max() - values.min()) / (2**bits - 2))
+        # A coarsened step (an encoder's choice for a less visible component) keeps both guarantees.
+        for factor in (1.19, 2.0, 16.0):
+            coarse = fit_quantizer(values, bits, coarsen=factor)
+            codes = quantize(values, coarse)
+            assert coarse.step == pytest.approx(q.step * factor) and int(codes.max()) < 2**bits
+            assert np.abs(dequantize(codes, coarse) - values).max() <= coarse.step / 2 * (1 + 1e-9)
+    with pytest.raises(ValueError, match="coarsen"):
+        fit_quantizer(values, bits, coarsen=0.5)  # finer than the range allows: codes would not fit
 
 
 def test_zero_and_constants_are_reproduced_exactly():
@@ -98,3 +106,35 @@ def test_zigzag_and_centring_round_trip():
         assert stored.dtype == container_dtype(bits + 1) and int(stored.max()) < 2 ** (bits + 1)
         assert np.array_equal(unzigzag(stored) + centre[:, None], codes.astype(np.int64))
         assert np.array_equal(centre, np.round(np.median(codes, axis=1)))
+
+
+def test_prediction_round_trips_any_input_and_keeps_the_centred_range():
+    from stgc.codec.quantize import fit_prediction, predict_decode, predict_encode
+
+    rng = np.random.default_rng(4)
+    for bits in (2, 7, 12):
+        half = 2**bits
+        signed = rng.integers(-half, half, (4, 500))
+        coefficients = np.tril(rng.integers(-40000, 40000, (4, 4)), -1).clip(-32767, 32767)
+        residual = predict_encode(signed, coefficients, bits)
+        assert residual.min() >= -half and residual.max() < half  # wraps: no extra bit needed
+        assert np.array_equal(predict_decode(residual, coefficients, bits), signed)
+        # Corrupted residuals (anything in the container) still decode into the centred range.
+        junk = predict_decode(rng.integers(-half, half, (4, 500)), coefficients, bits)
+        assert junk.min() >= -half and junk.max() < half
+        assert fit_prediction(signed).shape == (4, 4)
+
+
+def test_fitted_prediction_recovers_a_linear_relation_and_skips_unrelated_rows():
+    from stgc.codec.quantize import PREDICTION_SHIFT, fit_prediction, predict_encode
+
+    rng = np.random.default_rng(5)
+    first = rng.integers(-100, 100, 3000)
+    second = np.rint(0.75 * first + rng.normal(0, 1.0, 3000)).astype(np.int64)  # 3/4 of the first, plus noise
+    unrelated = rng.integers(-100, 100, 3000)
+    coefficients = fit_prediction(np.stack([first, second, unrelated]))
+    assert abs(coefficients[1, 0] - 0.75 * 2**PREDICTION_SHIFT) <= 2
+    assert np.all(np.triu(coefficients) == 0)
+    residual = predict_encode(np.stack([first, second, unrelated]), coefficients, 8)
+    assert np.abs(residual[1]).mean() < 1.0 < np.abs(second).mean() / 10
+    assert np.all(coefficients[2] == 0)  # a prediction that would not shrink the residuals is not used

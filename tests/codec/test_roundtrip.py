@@ -242,6 +242,23 @@ def test_bad_input_is_refused_with_a_clear_error(models):
         encode(arrays, "lite", None, position_bits=30)
     with pytest.raises(ValueError, match="unknown groups"):
         encode(arrays, "lite", None, group_bits={"NOPE": 3})
+    with pytest.raises(ValueError, match="one factor per stored component"):
+        encode(arrays, "lite", None, step_scales={"FDC_": [1.0] * 6})  # lite has 3 colour components
+    with pytest.raises(ValueError, match="one factor per stored component"):
+        encode(arrays, "lite", None, step_scales={"ROTN": [1.0] * 4})  # the index row is not scaled
+
+
+def test_step_scales_coarsen_exactly_the_components_named(models):
+    from stgc.codec.format import read_header
+
+    arrays, _ = models["lite"]
+    base = {s.tag: s for s in read_header(encode(arrays, "lite", None)).sections}
+    scaled = {s.tag: s for s in read_header(encode(arrays, "lite", None, step_scales={
+        "MOTN": [1, 1, 1, 2, 2, 2, 8, 8, 8], "ROTN": [2.0, 2.0, 2.0]})).sections}
+    for tag, factors in (("MOTN", [1, 1, 1, 2, 2, 2, 8, 8, 8]), ("ROTN", [2.0, 2.0, 2.0, 1.0])):
+        for q0, q1, f in zip(base[tag].quantizers, scaled[tag].quantizers, factors):
+            assert q1.step == pytest.approx(q0.step * f)
+    assert scaled["MOTN"].payload_size < base["MOTN"].payload_size
 
 
 def test_outlier_guard_keeps_the_bulk_precise_when_one_gaussian_is_far_out(models):
@@ -284,5 +301,22 @@ def test_centred_layout_is_used_where_components_peak_apart_and_decodes_identica
     assert flags["MOTN"] & FLAG_CENTRED
     assert len(centred) < len(plain)
     a, b = decode(centred).arrays, decode(plain).arrays
+    for name in ply_fields("full"):
+        assert np.array_equal(a[name], b[name]), name
+
+
+def test_predicted_layout_is_used_where_components_correlate_and_decodes_identically(models):
+    from stgc.codec.format import FLAG_CENTRED, FLAG_PREDICT, read_header
+
+    arrays, decoder = models["full"]
+    assert np.corrcoef(arrays["f_dc_0"], arrays["f_dc_1"])[0, 1] > 0.9  # albedo channels share brightness
+    predicted = encode(arrays, "full", decoder)
+    sections = {s.tag: s for s in read_header(predicted).sections}
+    fdc = sections["FDC_"]
+    assert fdc.flags & FLAG_PREDICT and fdc.flags & FLAG_CENTRED
+    assert len(fdc.prediction) == 15 and fdc.prediction[0] > 0  # f_dc_1 predicted from f_dc_0, positively
+    plain = encode(arrays, "full", decoder, adaptive_delta=False)
+    assert fdc.payload_size < {s.tag: s for s in read_header(plain).sections}["FDC_"].payload_size
+    a, b = decode(predicted).arrays, decode(plain).arrays
     for name in ply_fields("full"):
         assert np.array_equal(a[name], b[name]), name

@@ -9,17 +9,24 @@ mean_view(e_g / m0) <= 10^(L/10) - 1, with e_g measured by rendering the model w
 (errors of different attribute groups are close to independent, so they add). The encoder
 
 1. renders a few training views of the float model (reference) and reads their ground truth (m0 per view);
-2. for each group and each candidate bit depth, encodes/decodes the model with only that group coarse, renders,
-   and records the section's bytes and its relative added error;
-3. picks one depth per group minimising total bytes under the budget (a multiple-choice knapsack, solved exactly
+2. shapes the steps inside each group whose components play different roles (motion's three powers of time,
+   albedo against the decoder's features, ...): each component is measured alone at the ladder's q3 depth, and
+   since at fine quantization a component's error grows with the square of its step, the group's error for a
+   given number of bits is smallest when every component adds the same error. The less visible components get
+   steps coarser by sqrt(largest error / their error) (in quarter bits, at most 4 bits);
+3. for each group and each integer bit depth, encodes/decodes the model with only that group coarse, renders,
+   and records the section's bytes and its relative added error; quarter-bit depths in between (a step
+   2^(1/4) coarser per quarter, codes in the next integer depth's container) are interpolated: bytes linearly,
+   log error linearly (both are, at fine quantization);
+4. picks one depth per group minimising total bytes under the budget (a multiple-choice knapsack, solved exactly
    on a fine grid of the error axis);
-4. renders the model with all groups at the chosen depths and measures the mean PSNR drop over the views plus one
+5. renders the model with all groups at the chosen depths and measures the mean PSNR drop over the views plus one
    standard error. The per-group errors do not add up exactly (in practice their sum over-estimates the joint
-   error), so the knapsack's budget is searched (geometric bisection, steps 3-4 repeated) for the cheapest
-   allocation whose measured bound is within the budget.
+   error) and interpolated options are estimates, so the knapsack's budget is searched (geometric bisection,
+   steps 4-5 repeated) for the cheapest allocation whose measured bound is within the budget.
 
-Only training views are used, never test views. The decoder needs nothing of this: bit depths are in the section
-table, as for the ladder. docs/stgc-format.md section 7 ("Rate-distortion optimised allocation").
+Only training views are used, never test views. The decoder needs nothing of this: every component's step is in
+the section table, as for the ladder. docs/stgc-format.md section 7 ("Rate-distortion optimised allocation").
 """
 
 from __future__ import annotations
@@ -31,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from .format import GROUP_BY_TAG, QUALITY_LEVELS, bits_for, decode, encode, groups_for
+from .format import DEFAULT_QUALITY, GROUP_BY_TAG, QUALITY_LEVELS, QUAT_SMALLEST3, bits_for, decode, encode, groups_for
 from .quantize import MAX_BITS, MIN_BITS
 
 # PSNR budget on the training views per quality level: each level is ~3x (in added squared error) stricter than
@@ -43,6 +50,9 @@ _NEAR_LOSSLESS_BITS = 20  # the other groups while one group is measured: far be
 _PROBE_ZSTD_LEVEL = 3  # section sizes are measured at a fast level; the ranking of depths does not depend on it
 _GRID = 2000  # error-axis resolution of the knapsack (errors are rounded up: the solution never exceeds the budget)
 _MAX_ROUNDS = 8
+_STEPS_PER_BIT = 4  # depths and step shapes are searched in quarter bits (step factors are powers of 2**(1/4))
+_PROBE_FINER_BITS = 8  # while one component is measured, the rest of its group is this much finer (error / 4**8)
+_MAX_COARSER_BITS = 4.0  # a component's step is at most 16x its group's finest
 
 
 def budget_db(quality: int) -> float:
@@ -52,27 +62,79 @@ def budget_db(quality: int) -> float:
 
 
 def candidate_bits(tag: str) -> list[int]:
+    """The integer depths measured for a group."""
     group = GROUP_BY_TAG[tag.encode("latin-1")]
     lo = max(MIN_BITS, bits_for(group, 1) - _BELOW_LADDER)
     hi = min(MAX_BITS, bits_for(group, 5))
     return list(range(lo, hi + 1))
 
 
+def shapeable_groups(variant: str) -> list[str]:
+    """Groups whose components play different roles, so that each may deserve its own step."""
+    return [g.tag.decode("latin-1") for g in groups_for(variant) if len(g.fields(variant)) > 1 and not g.exchangeable]
+
+
+def coarser_bits(errors: Sequence[float]) -> list[float]:
+    """Per component, how many bits coarser than the most visible one its step should be (multiples of 1/4, at
+    most _MAX_COARSER_BITS) so that all components add about the same error, given the error each added alone
+    at a common depth. A component that added no measurable error gets the maximum."""
+    largest = max(errors)
+    if not largest > 0:
+        return [0.0] * len(errors)
+    shifts = []
+    for error in errors:
+        bits = 0.5 * math.log2(largest / error) if error > 0 else _MAX_COARSER_BITS
+        shifts.append(min(_MAX_COARSER_BITS, math.floor(bits * _STEPS_PER_BIT) / _STEPS_PER_BIT))
+    return shifts
+
+
+def encoder_settings(variant: str, depths: Mapping[str, float], shapes: Mapping[str, Sequence[float]] | None = None,
+                     ) -> tuple[dict[str, int], dict[str, list[float]]]:
+    """(group_bits, step_scales) for format.encode: a fractional depth d is coded in ceil(d) bits with every step
+    2**(ceil(d) - d) coarser; a shaped group's components are coarser still by 2**shape."""
+    group_bits, step_scales = {}, {}
+    for tag, depth in depths.items():
+        bits = math.ceil(depth)
+        shape = list((shapes or {}).get(tag, ()))
+        if bits != depth or any(shape):
+            group = GROUP_BY_TAG[tag.encode("latin-1")]
+            shape = shape or [0.0] * (3 if group.domain == QUAT_SMALLEST3 else len(group.fields(variant)))
+            step_scales[tag] = [2.0 ** (bits - depth + b) for b in shape]
+        group_bits[tag] = bits
+    return group_bits, step_scales
+
+
 @dataclass(frozen=True)
 class Option:
     """One bit depth of one group: the section's bytes and the relative squared error it adds."""
 
-    bits: int
-    bytes: int
+    depth: float
+    bytes: float
     error: float
+
+
+def with_fractional_depths(measured: Sequence[Option]) -> list[Option]:
+    """`measured` (consecutive integer depths, ascending) plus quarter-bit depths in between: bytes interpolated
+    linearly, error geometrically (linearly where either end is 0)."""
+    options = [measured[0]]
+    for lo, hi in zip(measured, measured[1:]):
+        for k in range(1, _STEPS_PER_BIT):
+            w = k / _STEPS_PER_BIT
+            if lo.error > 0 and hi.error > 0:
+                error = math.exp((1 - w) * math.log(lo.error) + w * math.log(hi.error))
+            else:
+                error = (1 - w) * lo.error + w * hi.error
+            options.append(Option(lo.depth + w, (1 - w) * lo.bytes + w * hi.bytes, error))
+        options.append(hi)
+    return options
 
 
 def _units(error: float, unit: float) -> int:
     return math.ceil(error / unit) if error > 0 else 0
 
 
-def solve(options: Mapping[str, Sequence[Option]], budget: float) -> dict[str, int] | None:
-    """Bit depth per group with the fewest total bytes such that the sum of errors stays <= budget.
+def solve(options: Mapping[str, Sequence[Option]], budget: float) -> dict[str, float] | None:
+    """Depth per group with the fewest total bytes such that the sum of errors stays <= budget.
 
     Exact multiple-choice knapsack on the error axis discretised into _GRID steps of budget/_GRID, each error
     rounded *up* (so the true sum never exceeds the budget). None when even the most precise options do not fit."""
@@ -81,7 +143,7 @@ def solve(options: Mapping[str, Sequence[Option]], budget: float) -> dict[str, i
         exact = {t: [o for o in options[t] if o.error <= 0] for t in tags}
         if not all(exact.values()):
             return None
-        return {t: min(exact[t], key=lambda o: o.bytes).bits for t in tags}
+        return {t: min(exact[t], key=lambda o: o.bytes).depth for t in tags}
     unit = budget / _GRID
     inf = math.inf
     # best[k] = fewest bytes of the groups so far using at most k error units; picks[g][k] = the option taken.
@@ -103,11 +165,11 @@ def solve(options: Mapping[str, Sequence[Option]], budget: float) -> dict[str, i
         picks.append(pick)
     if not np.isfinite(best[_GRID]):
         return None
-    chosen: dict[str, int] = {}
+    chosen: dict[str, float] = {}
     k = _GRID
     for tag, pick in zip(reversed(tags), reversed(picks)):
         option = options[tag][int(pick[k])]
-        chosen[tag] = option.bits
+        chosen[tag] = option.depth
         k -= _units(option.error, unit)
     return dict(reversed(list(chosen.items())))
 
@@ -116,9 +178,11 @@ def solve(options: Mapping[str, Sequence[Option]], budget: float) -> dict[str, i
 class Allocation:
     """What the optimiser chose and measured (stored in the file's metadata as `allocation`)."""
 
-    bits: dict[str, int]
+    variant: str
+    depths: dict[str, float]  # per group, in quarter bits (encoder_settings turns them into depths and steps)
+    shapes: dict[str, list[float]]  # per shaped group, how many bits coarser each component is than the finest
     budget_db: float
-    measured_loss_db: float  # mean PSNR drop on the sampled training views with every group at `bits`
+    measured_loss_db: float  # mean PSNR drop on the sampled training views with every group at `depths`
     loss_bound_db: float  # measured + one standard error over the views: what is held to the budget
     predicted_loss_db: float
     views: int
@@ -126,8 +190,12 @@ class Allocation:
     within_budget: bool
     table: dict[str, list[Option]] = field(default_factory=dict, repr=False)
 
+    def encoder_settings(self) -> tuple[dict[str, int], dict[str, list[float]]]:
+        return encoder_settings(self.variant, self.depths, self.shapes)
+
     def summary(self) -> dict[str, Any]:
-        return {"mode": "rd-optimised", "bits": dict(self.bits), "budget_db": self.budget_db,
+        return {"mode": "rd-optimised", "depths": dict(self.depths),
+                "coarser_bits": {t: list(v) for t, v in self.shapes.items()}, "budget_db": self.budget_db,
                 "train_view_loss_db": round(self.measured_loss_db, 5),
                 "train_view_loss_bound_db": round(self.loss_bound_db, 5),
                 "predicted_loss_db": round(self.predicted_loss_db, 5), "views": self.views,
@@ -157,11 +225,11 @@ def optimise_allocation(
     outlier_guard: bool = True,
     progress: Callable[[int, int], None] | None = None,
 ) -> Allocation:
-    """Choose the bit depth of every attribute group (see the module docstring).
+    """Choose the depth and step shape of every attribute group (see the module docstring).
 
     `render(arrays, decoder_state)` renders the sampled training views of the model given as official PLY arrays
-    (float images in [0, 1], same order as `ground_truth`). `fixed_bits` pins groups (e.g. a user's
-    position_bits); the other groups are optimised over candidate_bits()."""
+    (float images in [0, 1], same order as `ground_truth`). `fixed_bits` pins groups to an integer depth with
+    unshaped steps (e.g. a user's position_bits); the other groups are optimised."""
     if not ground_truth:
         raise ValueError("optimise_allocation needs at least one training view")
     if not loss_budget_db > 0:
@@ -169,14 +237,19 @@ def optimise_allocation(
     tags = [g.tag.decode("latin-1") for g in groups_for(variant)]
     fixed = dict(fixed_bits or {})
     candidates = {t: ([fixed[t]] if t in fixed else candidate_bits(t)) for t in tags}
-    # Progress counts encode/decode/render trials: the table's, then one per rate-control round (grows the total).
-    planned = sum(len(c) for c in candidates.values()) + 1
+    shaped = [t for t in shapeable_groups(variant) if t not in fixed]
+    shapes: dict[str, list[float]] = {}
+    # Progress counts encode/decode/render trials: probes and table, then one per rate-control round (grows it).
+    width = {t: len(GROUP_BY_TAG[t.encode("latin-1")].fields(variant)) for t in tags}
+    planned = 1 + sum(width[t] for t in shaped) + sum(len(c) for c in candidates.values()) + 1
     done = 0
 
-    def trial(bits: Mapping[str, int]) -> tuple[list[np.ndarray], dict[str, int]]:
+    def trial(depths: Mapping[str, float], shape: Mapping[str, Sequence[float]] | None = None,
+              ) -> tuple[list[np.ndarray], dict[str, int]]:
         nonlocal done
-        data = encode(arrays, variant, decoder_state, zstd_level=_PROBE_ZSTD_LEVEL, group_bits=bits,
-                      outlier_guard=outlier_guard)
+        group_bits, step_scales = encoder_settings(variant, depths, shapes if shape is None else shape)
+        data = encode(arrays, variant, decoder_state, zstd_level=_PROBE_ZSTD_LEVEL, group_bits=group_bits,
+                      step_scales=step_scales, outlier_guard=outlier_guard)
         decoded = decode(data)
         images = list(render(decoded.arrays, decoded.decoder_state))
         done += 1
@@ -200,33 +273,45 @@ def optimise_allocation(
     def relative_error(images: Sequence[np.ndarray]) -> float:
         return float(np.mean([_mse(i, r) / m for i, r, m in zip(images, reference, base_mse)]))
 
-    near_lossless = {t: (fixed[t] if t in fixed else _NEAR_LOSSLESS_BITS) for t in tags}
+    near_lossless = {t: float(fixed[t] if t in fixed else _NEAR_LOSSLESS_BITS) for t in tags}
     images, _ = trial(near_lossless)
     floor = relative_error(images)  # fp16 decoder weights, float32 casts: common to every option
+    for tag in shaped:  # each component alone at the ladder's q3 depth, the rest of its group much finer
+        probe_depth = bits_for(GROUP_BY_TAG[tag.encode("latin-1")], DEFAULT_QUALITY) + _PROBE_FINER_BITS
+        errors = []
+        for component in range(width[tag]):
+            probe = [float(_PROBE_FINER_BITS) if c == component else 0.0 for c in range(width[tag])]
+            images, _ = trial({**near_lossless, tag: probe_depth}, {tag: probe})
+            errors.append(relative_error(images) - floor)
+        shapes[tag] = coarser_bits(errors)
     table: dict[str, list[Option]] = {}
     for tag in tags:
-        options = []
+        measured = []
         for bits in candidates[tag]:
-            images, sizes = trial({**near_lossless, tag: bits})
-            options.append(Option(bits, sizes[tag], max(0.0, relative_error(images) - floor)))
+            images, sizes = trial({**near_lossless, tag: float(bits)})
+            measured.append(Option(float(bits), sizes[tag], max(0.0, relative_error(images) - floor)))
         # Fewer bits never remove error; where measurement noise says otherwise, a depth is charged the largest
         # error measured at it or any finer depth (the conservative envelope).
         monotone, largest = [], 0.0
-        for option in reversed(options):
+        for option in reversed(measured):
             largest = max(largest, option.error)
-            monotone.append(Option(option.bits, option.bytes, largest))
-        table[tag] = list(reversed(monotone))
+            monotone.append(Option(option.depth, option.bytes, largest))
+        monotone.reverse()
+        table[tag] = monotone if tag in fixed else with_fractional_depths(monotone)
 
     # Rate control: the sum of per-group errors only approximates the joint error (in practice it over-estimates
     # it), so the knapsack budget is searched (geometric bisection) for the cheapest allocation whose *measured*
     # loss on the views stays within the budget.
     target = 10.0 ** (loss_budget_db / 10.0) - 1.0
-    most_precise = {t: candidates[t][-1] for t in tags}
+    most_precise = {t: table[t][-1].depth for t in tags}
 
-    def estimated_bytes(bits: Mapping[str, int]) -> int:
-        return sum(next(o.bytes for o in table[t] if o.bits == bits[t]) for t in tags)
+    def option_of(tag: str, depth: float) -> Option:
+        return next(o for o in table[tag] if o.depth == depth)
 
-    measured_at: dict[tuple[int, ...], tuple[float, float]] = {}
+    def estimated_bytes(depths: Mapping[str, float]) -> float:
+        return sum(option_of(t, depths[t]).bytes for t in tags)
+
+    measured_at: dict[tuple[float, ...], tuple[float, float]] = {}
     best: Allocation | None = None
     fallback: Allocation | None = None
     # Positive even when the fixed floor alone uses the budget up (then only the most precise depths can pass).
@@ -238,11 +323,11 @@ def optimise_allocation(
             images, _ = trial(chosen)
             measured_at[key] = loss(images)
         measured, bound = measured_at[key]
-        predicted = floor + sum(next(o.error for o in table[t] if o.bits == chosen[t]) for t in tags)
-        candidate = Allocation(chosen, loss_budget_db, measured, bound, 10.0 * math.log10(1.0 + predicted),
+        predicted = floor + sum(option_of(t, chosen[t]).error for t in tags)
+        candidate = Allocation(variant, chosen, shapes, loss_budget_db, measured, bound, 10.0 * math.log10(1.0 + predicted),
                                len(reference), round_index, bound <= loss_budget_db, table)
         if candidate.within_budget:
-            if best is None or estimated_bytes(chosen) < estimated_bytes(best.bits):
+            if best is None or estimated_bytes(chosen) < estimated_bytes(best.depths):
                 best = candidate
             feasible = internal if feasible is None else max(feasible, internal)
         else:
@@ -262,6 +347,7 @@ def optimise_allocation(
         images, _ = trial(most_precise)
         measured, bound = loss(images)
         predicted = floor + sum(table[t][-1].error for t in tags)
-        result = Allocation(most_precise, loss_budget_db, measured, bound, 10.0 * math.log10(1.0 + predicted),
-                            len(reference), _MAX_ROUNDS, bound <= loss_budget_db, table)
+        result = Allocation(variant, most_precise, shapes, loss_budget_db, measured, bound,
+                            10.0 * math.log10(1.0 + predicted), len(reference), _MAX_ROUNDS, bound <= loss_budget_db,
+                            table)
     return result

@@ -30,6 +30,7 @@ _MAX_FILE_BYTES = MAX_GAUSSIANS * ply_bytes_per_gaussian("full")
 
 
 ALLOCATION_MODES = ("auto", "optimised", "ladder")
+RESTORED_CONFIG_SECTIONS = ("data", "model")
 
 
 @dataclass
@@ -55,8 +56,12 @@ class CodecConfig:
         "help": "per section, also try delta coding along the Morton order and keep whichever is smaller"})
     outlier_guard: bool = field(default=True, metadata={
         "help": "add bits to an attribute group whose range a few outliers stretch (keeps the bulk's precision)"})
+    drop_invisible: bool = field(default=True, metadata={
+        "help": "leave out Gaussians that no frame can show (temporal opacity below the rasterizer's 1/255 cut at "
+                "every t in [0, 1]); renders are unchanged"})
     embed_run_config: bool = field(default=True, metadata={
-        "help": "store the run's config.json (about 1 KB compressed) so `decompress` restores an evaluable run"})
+        "help": "store the data and model sections of the run's config.json (about 0.4 KB compressed) so that "
+                "`decompress` restores a run that can be evaluated"})
 
     def validate(self) -> None:
         if self.quality not in QUALITY_LEVELS:
@@ -77,8 +82,9 @@ class CompressResult:
     num_gaussians: int
     variant: str
     file_bytes: int
-    ply_bytes: int  # the official float32 PLY rows (152 B full / 128 B lite per Gaussian), the paper's anchor
+    ply_bytes: int  # the input model's float32 PLY rows (152 B full / 128 B lite per Gaussian), the paper's anchor
     allocation: dict[str, Any] | None = None  # Allocation.summary() when the bit depths were rd-optimised
+    dropped_invisible: int = 0  # Gaussians of the input left out because no frame shows them
 
     @property
     def bytes_per_gaussian(self) -> float:
@@ -90,11 +96,14 @@ class CompressResult:
 
     def __str__(self) -> str:
         text = (f"{self.path}: {self.num_gaussians} Gaussians ({self.variant}), {self.file_bytes} bytes = "
-                f"{self.bytes_per_gaussian:.2f} B/Gaussian, {self.ratio_vs_ply:.2f}x smaller than float32 PLY rows")
+                f"{self.bytes_per_gaussian:.2f} B/Gaussian, {self.ratio_vs_ply:.2f}x smaller than the input's "
+                "float32 PLY rows")
+        if self.dropped_invisible:
+            text += f"\n{self.dropped_invisible} Gaussians left out: no frame shows them (opacity < 1/255 at every t)"
         if self.allocation:
             a = self.allocation
             text += (f"\nbit depths rd-optimised on {a['views']} training views: "
-                     f"{' '.join(f'{k}={v}' for k, v in a['bits'].items())}; PSNR drop on those views "
+                     f"{' '.join(f'{k}={v:g}' for k, v in a['depths'].items())}; PSNR drop on those views "
                      f"{a['train_view_loss_db']:+.3f} dB, with one standard error {a['train_view_loss_bound_db']:+.3f} dB "
                      f"(budget {a['budget_db']} dB)")
             if not a["within_budget"]:
@@ -105,11 +114,12 @@ class CompressResult:
 
 
 def encode_with_config(arrays: dict, variant: str, decoder_state: dict | None, config: CodecConfig,
-                       metadata: dict[str, Any] | None = None, group_bits: dict[str, int] | None = None) -> bytes:
-    """Encode with `config`'s ladder, or with explicit per-group depths (`group_bits`, e.g. an Allocation's)."""
+                       metadata: dict[str, Any] | None = None, allocation: Allocation | None = None) -> bytes:
+    """Encode with `config`'s ladder, or with an rd-optimised allocation's depths and step shapes."""
     config.validate()
+    group_bits, step_scales = allocation.encoder_settings() if allocation else (None, None)
     return encode(arrays, variant, decoder_state, config.quality, zstd_level=config.zstd_level,
-                  position_bits=config.position_bits or None, group_bits=group_bits,
+                  position_bits=config.position_bits or None, group_bits=group_bits, step_scales=step_scales,
                   adaptive_delta=config.adaptive_delta, outlier_guard=config.outlier_guard, metadata=metadata)
 
 
@@ -169,14 +179,18 @@ def _iteration_of(path: Path) -> int | None:
 def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: int | None = None,
                  config: CodecConfig | None = None) -> CompressResult:
     """Compress a trained model (a run dir -> its latest iteration, an iteration dir, or a point_cloud.ply)."""
-    # The model package owns the run layout and PLY reading.
-    from stgc.model import STGModel, run_dir_of
+    # The model package owns the run layout, PLY reading and what a render can show.
+    from stgc.model import MIN_VISIBLE_OPACITY, STGModel, run_dir_of
 
     config = CodecConfig(**vars(config)) if config is not None else CodecConfig()
     if quality is not None:
         config.quality = quality
     source = Path(run_or_model_path)
     model = STGModel.load(source)
+    input_gaussians = model.num_gaussians
+    if config.drop_invisible:
+        # A small margin below the cut: float rounding in a render must not be able to bring a dropped one back.
+        model.prune(model.peak_temporal_opacity() >= MIN_VISIBLE_OPACITY * (1.0 - 1e-3))
     arrays = model.to_ply_arrays()
     # scene_extent is not stored: the official files do not carry it (it comes from the dataset's cameras).
     metadata: dict[str, Any] = {"source": source.name}
@@ -185,21 +199,25 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
     iteration = _iteration_of(source)
     if iteration is not None:
         metadata["iteration"] = iteration
+    if model.num_gaussians < input_gaussians:
+        metadata["dropped_invisible"] = input_gaussians - model.num_gaussians
     run_dir = run_dir_of(source)
     if config.embed_run_config and run_dir is not None:
-        metadata["run_config"] = read_json_object(run_dir / "config.json")
+        saved = read_json_object(run_dir / "config.json") or {}
+        # What evaluating the restored run needs (its dataset and model options); training options would only
+        # add bytes: a compressed model cannot resume training anyway.
+        metadata["run_config"] = {key: saved[key] for key in RESTORED_CONFIG_SECTIONS if key in saved}
     allocation = None
     if config.allocation != "ladder":
         dataset = _training_dataset(run_dir, source, required=config.allocation == "optimised")
         if dataset is not None:
             allocation = _optimise(model, arrays, dataset, config)
             metadata["allocation"] = allocation.summary()
-    data = encode_with_config(arrays, model.variant, model.decoder_state(), config, metadata,
-                              group_bits=allocation.bits if allocation else None)
+    data = encode_with_config(arrays, model.variant, model.decoder_state(), config, metadata, allocation)
     out = write_stgc(out_path, data)
-    n = model.num_gaussians
-    return CompressResult(out, n, model.variant, len(data), n * ply_bytes_per_gaussian(model.variant),
-                          allocation.summary() if allocation else None)
+    return CompressResult(out, model.num_gaussians, model.variant, len(data),
+                          input_gaussians * ply_bytes_per_gaussian(model.variant),
+                          allocation.summary() if allocation else None, input_gaussians - model.num_gaussians)
 
 
 def _training_dataset(run_dir: Path | None, source: Path, required: bool) -> Any:

@@ -15,7 +15,7 @@ import json
 import os
 import struct
 import zlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -34,17 +34,23 @@ from .quantize import (
     delta_decode,
     delta_encode,
     dequantize,
+    fit_prediction,
     fit_quantizer,
     from_byte_planes,
     morton_order,
+    predict_decode,
+    predict_encode,
+    prediction_size,
     quantize,
     to_byte_planes,
     unzigzag,
+    zigzag,
 )
 
 MAGIC = b"STGC\r\n\x1a\n"  # the CR-LF / ^Z / LF tail catches text-mode and line-ending mangling, as PNG's does
-VERSION = 3  # 2: motion and omega are stored scaled by each Gaussian's time span (TIME_SPAN); 3: FLAG_CENTRED
-READABLE_VERSIONS = (2, 3)  # version 3 only adds a section flag, so every version 2 file is a valid version 3 file
+# 2: motion and omega are stored scaled by each Gaussian's time span (TIME_SPAN); 3: FLAG_CENTRED; 4: FLAG_PREDICT
+VERSION = 4
+READABLE_VERSIONS = (2, 3, 4)  # versions 3 and 4 only add section flags: an older file is a valid newer one
 QUALITY_LEVELS = (1, 2, 3, 4, 5)
 DEFAULT_QUALITY = 3
 DEFAULT_ZSTD_LEVEL = 19  # encoding is offline; 19 is ~3.5 % smaller than 12 (6x slower) and decodes as fast
@@ -65,6 +71,7 @@ _HEADER_CRC = struct.Struct("<I")
 HEADER_SIZE = _HEADER.size + _HEADER_CRC.size  # 32
 _ENTRY = struct.Struct("<4sBBBBIII")  # tag codec bits components flags raw_size payload_size payload_crc
 _QPARAM = struct.Struct("<dq")  # step (float64), zero_point (int64)
+_COEFFICIENT = struct.Struct("<h")  # one prediction coefficient (FLAG_PREDICT), units of 2**-PREDICTION_SHIFT
 
 _VARIANT_CODES = {"full": 1, "lite": 2}
 _VARIANT_NAMES = {v: k for k, v in _VARIANT_CODES.items()}
@@ -76,7 +83,10 @@ FLAG_INTERLEAVE = 2  # byte planes hold each Gaussian's components side by side 
 # Codes are zigzag(code - centre) in a (bits+1)-bit container, the centre folded into the quantizer's zero point
 # (value = (signed + zero_point) * step). Not with FLAG_DELTA, not for quaternion groups.
 FLAG_CENTRED = 4
-KNOWN_FLAGS = FLAG_DELTA | FLAG_INTERLEAVE | FLAG_CENTRED
+# With FLAG_CENTRED only: each component's signed codes are stored as the residual of a linear prediction from the
+# components before it (coefficients in the section table), wrapped into the same range (quantize.predict_encode).
+FLAG_PREDICT = 8
+KNOWN_FLAGS = FLAG_DELTA | FLAG_INTERLEAVE | FLAG_CENTRED | FLAG_PREDICT
 
 # Domains: how a component is mapped before uniform quantization (and back after).
 LINEAR = "linear"
@@ -105,6 +115,9 @@ class AttributeGroup:
     domain: str
     bits_by_quality: tuple[int, int, int, int, int]
     span_powers: tuple[int, ...] = ()  # TIME_SPAN domain: the power of dt each component multiplies
+    # The components play the same role (world axes, a quaternion's components): one precision suits them all,
+    # so an encoder has no reason to give them different step scales (see encode's step_scales).
+    exchangeable: bool = False
 
     def fields(self, variant: str) -> tuple[str, ...]:
         return self.fields_full if variant == "full" else self.fields_lite
@@ -121,15 +134,15 @@ def _names(prefix: str, n: int) -> tuple[str, ...]:
 # trained shared models (docs/stgc-format.md section 7): motion, log-scale and rotation are the most visible
 # after position; omega and f_t the least.
 GROUPS: tuple[AttributeGroup, ...] = (
-    AttributeGroup(b"POSI", ("x", "y", "z"), ("x", "y", "z"), LINEAR, (12, 13, 14, 16, 18)),
+    AttributeGroup(b"POSI", ("x", "y", "z"), ("x", "y", "z"), LINEAR, (12, 13, 14, 16, 18), exchangeable=True),
     AttributeGroup(b"TCEN", ("trbf_center",), ("trbf_center",), LINEAR, (8, 9, 9, 11, 13)),
     AttributeGroup(b"TSCL", ("trbf_scale",), ("trbf_scale",), LINEAR, (5, 6, 7, 8, 9)),
     AttributeGroup(b"MOTN", _names("motion", 9), _names("motion", 9), TIME_SPAN, (5, 6, 7, 8, 9),
                    span_powers=(1, 1, 1, 2, 2, 2, 3, 3, 3)),
     AttributeGroup(b"FDC_", _names("f_dc", 6), _names("f_dc", 3), LINEAR, (5, 6, 7, 8, 10)),
     AttributeGroup(b"OPAC", ("opacity",), ("opacity",), SIGMOID, (5, 6, 7, 8, 9)),
-    AttributeGroup(b"SCAL", _names("scale", 3), _names("scale", 3), LINEAR, (5, 6, 8, 9, 10)),
-    AttributeGroup(b"ROTN", _names("rot", 4), _names("rot", 4), QUAT_SMALLEST3, (5, 6, 7, 8, 9)),
+    AttributeGroup(b"SCAL", _names("scale", 3), _names("scale", 3), LINEAR, (5, 6, 8, 9, 10), exchangeable=True),
+    AttributeGroup(b"ROTN", _names("rot", 4), _names("rot", 4), QUAT_SMALLEST3, (5, 6, 7, 8, 9), exchangeable=True),
     AttributeGroup(b"OMGA", _names("omega", 4), _names("omega", 4), TIME_SPAN, (3, 4, 4, 6, 8),
                    span_powers=(1, 1, 1, 1)),
     AttributeGroup(b"FT__", _names("f_t", 3), (), LINEAR, (3, 3, 3, 5, 8)),
@@ -168,6 +181,16 @@ class SectionInfo:
     payload_size: int
     payload_crc: int
     quantizers: tuple[Quantizer, ...] = ()
+    prediction: tuple[int, ...] = ()  # FLAG_PREDICT: the strictly lower-triangular coefficients, row by row
+
+    @property
+    def table_bytes(self) -> int:
+        return _ENTRY.size + self.components * _QPARAM.size + len(self.prediction) * _COEFFICIENT.size
+
+    def prediction_matrix(self) -> np.ndarray:
+        matrix = np.zeros((self.components, self.components), np.int64)
+        matrix[np.tril_indices(self.components, -1)] = self.prediction
+        return matrix
 
 
 @dataclass(frozen=True)
@@ -280,10 +303,14 @@ def outlier_guard_bits(values: np.ndarray, bits: int) -> int:
     return min(MAX_BITS, bits + min(extra, 8))
 
 
-def _fit_group(values: np.ndarray, domain: str, bits: int) -> tuple[Quantizer, ...]:
-    if domain == QUAT_SMALLEST3:  # the index row is stored as is
-        return tuple(fit_quantizer(v, bits) for v in values[:3]) + (Quantizer(step=1.0, zero_point=0, bits=bits),)
-    return tuple(fit_quantizer(v, bits) for v in values)
+def _fit_group(values: np.ndarray, domain: str, bits: int,
+               coarsen: Sequence[float] | None = None) -> tuple[Quantizer, ...]:
+    stored = values[:3] if domain == QUAT_SMALLEST3 else values  # the quaternion's index row is kept as is
+    factors = coarsen if coarsen is not None else [1.0] * len(stored)
+    quantizers = tuple(fit_quantizer(v, bits, float(f)) for v, f in zip(stored, factors))
+    if domain == QUAT_SMALLEST3:
+        quantizers += (Quantizer(step=1.0, zero_point=0, bits=bits),)
+    return quantizers
 
 
 def _validated_columns(arrays: Mapping[str, np.ndarray], variant: str) -> tuple[int, dict[str, np.ndarray]]:
@@ -318,30 +345,46 @@ def _stored_dtype(bits: int, flags: int) -> np.dtype:
     return container_dtype(bits + 1 if flags & FLAG_CENTRED else bits)
 
 
+@dataclass(frozen=True)
+class _EncodedSection:
+    codec: int
+    flags: int
+    payload: bytes
+    raw_size: int
+    quantizers: tuple[Quantizer, ...]  # as stored (centring moves each component's centre into its zero point)
+    prediction: tuple[int, ...] = ()
+
+
 def _encode_codes(codes: np.ndarray, bits: int, level: int, adaptive: bool, quantizers: tuple[Quantizer, ...],
-                  centrable: bool) -> tuple[int, int, bytes, int, tuple[Quantizer, ...]]:
-    """codes [C, N] -> (codec, flags, payload, raw_size, quantizers as stored). With `adaptive`, the layouts
-    (plain, delta or centred) x (planar or interleaved) are compared and the smallest kept: which wins depends on
-    the data. The comparison runs at a fast zstd level (the ranking barely depends on it); only the winner is
-    compressed at `level`. Centring moves each component's centre into its quantizer's zero point."""
-    candidates = [(0, codes, quantizers)]
+                  centrable: bool) -> _EncodedSection:
+    """codes [C, N] -> the section. With `adaptive`, the layouts (plain, delta, centred or centred + predicted)
+    x (planar or interleaved) are compared and the smallest kept: which wins depends on the data. The comparison
+    runs at a fast zstd level (the ranking barely depends on it); only the winner is compressed at `level`."""
+    candidates: list[tuple[int, np.ndarray, tuple[Quantizer, ...], tuple[int, ...]]] = [(0, codes, quantizers, ())]
     if adaptive and codes.shape[1] > 1:
-        candidates.append((FLAG_DELTA, delta_encode(codes, bits), quantizers))
+        candidates.append((FLAG_DELTA, delta_encode(codes, bits), quantizers, ()))
         if centrable and bits < MAX_BITS:
             centred, centre = centre_encode(codes, bits)
             shifted = tuple(Quantizer(q.step, q.zero_point + int(c), q.bits) for q, c in zip(quantizers, centre))
-            candidates.append((FLAG_CENTRED, centred, shifted))
+            candidates.append((FLAG_CENTRED, centred, shifted, ()))
+            if codes.shape[0] > 1:
+                signed = codes.astype(np.int64) - centre[:, None]
+                matrix = fit_prediction(signed)
+                if np.any(matrix):
+                    residual = zigzag(predict_encode(signed, matrix, bits)).astype(centred.dtype)
+                    coefficients = tuple(int(a) for a in matrix[np.tril_indices(len(matrix), -1)])
+                    candidates.append((FLAG_CENTRED | FLAG_PREDICT, residual, shifted, coefficients))
     layouts = []
-    for flags, stream, stored in candidates:
+    for flags, stream, stored, prediction in candidates:
         for interleave in ((False, True) if adaptive and codes.shape[0] > 1 else (False,)):
             layouts.append((flags | (FLAG_INTERLEAVE if interleave else 0), to_byte_planes(stream, interleave),
-                            stored))
+                            stored, prediction))
     if len(layouts) > 1:
         probe = min(level, _PROBE_LEVEL)
         layouts = [min(layouts, key=lambda item: len(_compress(item[1], probe)[1]))]
-    flags, raw, stored = layouts[0]
+    flags, raw, stored, prediction = layouts[0]
     codec, payload = _compress(raw, level)
-    return codec, flags, payload, len(raw), stored
+    return _EncodedSection(codec, flags, payload, len(raw), stored, prediction)
 
 
 def _pack_decoder(state: Mapping[str, Any]) -> bytes:
@@ -372,6 +415,7 @@ def encode(
     zstd_level: int = DEFAULT_ZSTD_LEVEL,
     position_bits: int | None = None,
     group_bits: Mapping[str, int] | None = None,
+    step_scales: Mapping[str, Sequence[float]] | None = None,
     adaptive_delta: bool = True,
     outlier_guard: bool = True,
     metadata: Mapping[str, Any] | None = None,
@@ -379,13 +423,19 @@ def encode(
     """Encode official-layout PLY arrays (float32 [N] per field; normals ignored) into a .stgc bitstream.
 
     quality 1..5 selects the bit depths (GROUPS); position_bits overrides the position depth, group_bits any
-    group's ({"MOTN": 10, ...}, keyed by section tag). outlier_guard adds bits to a linear group whose range
+    group's ({"MOTN": 10, ...}, keyed by section tag). step_scales ({"FDC_": [1, 1, 1, 8, 8, 4], ...}) multiplies
+    the steps of a group's components by factors >= 1 (one per stored component; ROTN: its three stored ones):
+    components whose errors show less get coarser steps at the same depth. outlier_guard adds bits to a linear group whose range
     is stretched by outliers (outlier_guard_bits). The Gaussians are reordered along the Morton curve of their
     quantized positions. metadata: small JSON-able dict kept verbatim."""
     n, cols = _validated_columns(arrays, variant)
-    unknown = set(group_bits or ()) - GROUP_TAGS
+    unknown = (set(group_bits or ()) | set(step_scales or ())) - GROUP_TAGS
     if unknown:
-        raise ValueError(f"group_bits names unknown groups {sorted(unknown)}")
+        raise ValueError(f"group_bits/step_scales name unknown groups {sorted(unknown)}")
+    for tag, factors in (step_scales or {}).items():
+        group = GROUP_BY_TAG[tag.encode("latin-1")]
+        if len(factors) != (3 if group.domain == QUAT_SMALLEST3 else len(group.fields(variant))):
+            raise ValueError(f"step_scales[{tag!r}] needs one factor per stored component (3 for ROTN)")
     if quality not in QUALITY_LEVELS:
         raise ValueError(f"quality must be one of {QUALITY_LEVELS}, got {quality!r}")
     if variant == "full" and decoder_state is None:
@@ -396,7 +446,7 @@ def encode(
     for i in range(4):
         cols[f"rot_{i}"], cols[f"omega_{i}"] = rot[:, i], omega[:, i]
 
-    sections: list[tuple[bytes, int, int, int, int, int, bytes, tuple[Quantizer, ...]]] = []
+    sections: list[tuple[bytes, int, _EncodedSection]] = []  # tag, bit depth, content
     order: np.ndarray | None = None
     decoded_time: dict[bytes, np.ndarray] = {}
     span = np.ones(n)
@@ -412,7 +462,7 @@ def encode(
             values = values * _span_factors(group, span)
         if group.domain in (LINEAR, TIME_SPAN) and outlier_guard:  # the others are bounded ([0, 1], unit quaternion)
             bits = outlier_guard_bits(values, bits)
-        quantizers = _fit_group(values, group.domain, bits)
+        quantizers = _fit_group(values, group.domain, bits, (step_scales or {}).get(group.tag.decode("latin-1")))
         codes = np.stack([quantize(v, q) for v, q in zip(values, quantizers)], axis=0)
         if group.tag in (b"TCEN", b"TSCL"):  # the decoder sees only the quantized values: derive the span from them
             decoded_time[group.tag] = dequantize(codes[0], quantizers[0])
@@ -421,31 +471,33 @@ def encode(
         if order is None:  # POSI comes first: its codes define the Morton order used by every section
             order = morton_order(codes.T, bits)
         codes = codes[:, order]
-        codec, flags, payload, raw_size, quantizers = _encode_codes(
-            codes, bits, zstd_level, adaptive_delta, quantizers, centrable=group.domain != QUAT_SMALLEST3)
-        sections.append((group.tag, codec, bits, len(quantizers), flags, raw_size, payload, quantizers))
+        sections.append((group.tag, bits, _encode_codes(codes, bits, zstd_level, adaptive_delta, quantizers,
+                                                        centrable=group.domain != QUAT_SMALLEST3)))
 
     if decoder_state is not None:
         raw = _pack_decoder(decoder_state)
         codec, payload = _compress(raw, zstd_level)
-        sections.append((TAG_DECODER, codec, 16, 0, 0, len(raw), payload, ()))
+        sections.append((TAG_DECODER, 16, _EncodedSection(codec, 0, payload, len(raw), ())))
     if metadata:
         raw = json.dumps(dict(metadata), sort_keys=True, separators=(",", ":")).encode("utf-8")
         if len(raw) > MAX_META_BYTES:
             raise DataError(None, f"metadata is {len(raw)} bytes; the limit is {MAX_META_BYTES}")
         codec, payload = _compress(raw, zstd_level)
-        sections.append((TAG_META, codec, 8, 0, 0, len(raw), payload, ()))
+        sections.append((TAG_META, 8, _EncodedSection(codec, 0, payload, len(raw), ())))
 
     table = bytearray()
-    for tag, codec, bits, comps, flags, raw_size, payload, quantizers in sections:
-        if raw_size > 0xFFFFFFFF:  # the table stores sizes as uint32
-            raise DataError(None, f"section {tag.decode()} would hold {raw_size} bytes, beyond the 4 GiB limit")
-        table += _ENTRY.pack(tag, codec, bits, comps, flags, raw_size, len(payload), zlib.crc32(payload))
-        for q in quantizers:
+    for tag, bits, sec in sections:
+        if sec.raw_size > 0xFFFFFFFF:  # the table stores sizes as uint32
+            raise DataError(None, f"section {tag.decode()} would hold {sec.raw_size} bytes, beyond the 4 GiB limit")
+        table += _ENTRY.pack(tag, sec.codec, bits, len(sec.quantizers), sec.flags, sec.raw_size, len(sec.payload),
+                             zlib.crc32(sec.payload))
+        for q in sec.quantizers:
             table += _QPARAM.pack(q.step, q.zero_point)
+        for a in sec.prediction:
+            table += _COEFFICIENT.pack(a)
     head = _HEADER.pack(MAGIC, VERSION, _VARIANT_CODES[variant], quality, n, len(sections), 0, len(table),
                         zlib.crc32(table))
-    return b"".join([head, _HEADER_CRC.pack(zlib.crc32(head)), bytes(table)] + [s[6] for s in sections])
+    return b"".join([head, _HEADER_CRC.pack(zlib.crc32(head)), bytes(table)] + [sec.payload for _, _, sec in sections])
 
 
 # =====================================================================================================================
@@ -499,8 +551,15 @@ def read_header(data: bytes, source: str | None = None) -> StgcHeader:
             step, zero_point = _QPARAM.unpack_from(table, pos)
             pos += _QPARAM.size
             quantizers.append(Quantizer(step=step, zero_point=zero_point, bits=bits))
+        prediction: tuple[int, ...] = ()
+        if sflags & FLAG_PREDICT:
+            count = prediction_size(comps)
+            if pos + count * _COEFFICIENT.size > table_size:
+                raise _fail(f"section {tag!r} prediction coefficients run past the section table", source)
+            prediction = struct.unpack_from(f"<{count}h", table, pos)
+            pos += count * _COEFFICIENT.size
         sections.append(SectionInfo(tag, codec, bits, comps, sflags, raw_size, payload_size,
-                                    payload_crc, tuple(quantizers)))
+                                    payload_crc, tuple(quantizers), prediction))
     if pos != table_size:
         raise _fail(f"section table has {table_size - pos} unexplained trailing bytes", source)
     payload_total = sum(s.payload_size for s in sections)
@@ -519,6 +578,8 @@ def _check_section(sec: SectionInfo, source: str | None) -> None:
                                      or GROUP_BY_TAG[sec.tag.encode("latin-1")].domain == QUAT_SMALLEST3):
         raise _fail(f"section {sec.tag!r} combines centring with delta coding, a quaternion group or "
                     f"{sec.bits} bits", source)
+    if sec.flags & FLAG_PREDICT and not (sec.flags & FLAG_CENTRED and sec.components > 1):
+        raise _fail(f"section {sec.tag!r} is predicted without being centred or with one component", source)
     if sec.codec == CODEC_STORED:
         if sec.raw_size != sec.payload_size:
             raise _fail(f"stored section {sec.tag!r}: raw size {sec.raw_size} != payload {sec.payload_size}", source)
@@ -563,6 +624,8 @@ def _decode_attribute(raw: bytes, sec: SectionInfo, group: AttributeGroup, n: in
         if n and int(codes.max()) >= (1 << (sec.bits + 1)):
             raise _fail(f"section {sec.tag!r} holds centred codes beyond its {sec.bits + 1}-bit range", source)
         codes = unzigzag(codes)  # signed, in [-2**bits, 2**bits): the centre is in the quantizer's zero point
+        if sec.flags & FLAG_PREDICT:
+            codes = predict_decode(codes, sec.prediction_matrix(), sec.bits)  # stays in that range
     elif n and int(codes.max()) >= (1 << sec.bits):
         raise _fail(f"section {sec.tag!r} holds codes beyond its {sec.bits}-bit range", source)
     if group.domain == QUAT_SMALLEST3:
@@ -682,7 +745,7 @@ def decode(data: bytes | str | os.PathLike, source: str | None = None) -> Decode
     decoder_state = None
     metadata: dict[str, Any] = {}
     attribute_payloads: dict[str, tuple[bytes, SectionInfo]] = {}
-    offset = HEADER_SIZE + sum(_ENTRY.size + s.components * _QPARAM.size for s in header.sections)
+    offset = HEADER_SIZE + sum(s.table_bytes for s in header.sections)
     for sec in header.sections:
         raw = _unpack_payload(data, offset, sec, source)
         offset += sec.payload_size

@@ -5,6 +5,7 @@ Everything here is pure numpy and knows nothing of files; `format.py` assembles 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,16 +42,20 @@ def container_dtype(bits: int) -> np.dtype:
     return np.dtype(np.uint8 if bits <= 8 else np.uint16 if bits <= 16 else np.uint32)
 
 
-def fit_quantizer(values: np.ndarray, bits: int) -> Quantizer:
+def fit_quantizer(values: np.ndarray, bits: int, coarsen: float = 1.0) -> Quantizer:
     """Quantizer covering [min, max] of `values` (finite) with 2**bits levels.
 
     step = (max - min) / (2**bits - 2): one level of slack pays for snapping the grid origin to a multiple of
-    step (zero_point = floor(min / step)); then every code fits in `bits` bits and |error| <= step / 2."""
+    step (zero_point = floor(min / step)); then every code fits in `bits` bits and |error| <= step / 2.
+    `coarsen` >= 1 multiplies the step (the codes then use fewer than 2**bits levels, so they still fit): an
+    encoder spends fewer bits on a component whose errors matter less than its group's others."""
     container_dtype(bits)
+    if not (math.isfinite(coarsen) and coarsen >= 1.0):
+        raise ValueError(f"coarsen must be a finite factor >= 1, got {coarsen!r}")
     lo = float(np.min(values)) if values.size else 0.0
     hi = float(np.max(values)) if values.size else 0.0
     if hi > lo:
-        step = (hi - lo) / ((1 << bits) - 2)
+        step = (hi - lo) / ((1 << bits) - 2) * coarsen
         return Quantizer(step=step, zero_point=int(np.floor(lo / step)), bits=bits)
     # Constant component: the constant itself is represented exactly as (+-1) * step.
     step = abs(lo) if lo != 0.0 else 1.0
@@ -143,6 +148,70 @@ def centre_encode(codes: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]
     c = codes.astype(np.int64)
     centre = np.round(np.median(c, axis=1)).astype(np.int64) if c.shape[1] else np.zeros(c.shape[0], np.int64)
     return zigzag(c - centre[:, None]).astype(container_dtype(bits + 1)), centre
+
+
+# --- prediction: each component from the ones before it -------------------------------------------------------------
+
+PREDICTION_SHIFT = 8  # prediction coefficients are integers in units of 2**-8
+_COEFFICIENT_LIMIT = (1 << 15) - 1  # they are stored as int16
+
+
+def prediction_size(components: int) -> int:
+    """Number of coefficients of a [C, C] strictly lower-triangular prediction matrix."""
+    return components * (components - 1) // 2
+
+
+def _predicted(signed: np.ndarray, coefficients: np.ndarray, row: int) -> np.ndarray:
+    """Integer prediction of row `row` from rows 0..row-1: floor((sum_k a_k s_k + 2**(P-1)) / 2**P)."""
+    acc = np.zeros(signed.shape[1], np.int64)
+    for k in range(row):
+        if coefficients[row, k]:
+            acc += np.int64(coefficients[row, k]) * signed[k]
+    return (acc + (1 << (PREDICTION_SHIFT - 1))) >> PREDICTION_SHIFT
+
+
+def _wrap(values: np.ndarray, bits: int) -> np.ndarray:
+    """Into [-2**bits, 2**bits) modulo 2**(bits+1): the range of a centred code, so residuals need no extra bit."""
+    half = np.int64(1) << np.int64(bits)
+    return (values + half) % (2 * half) - half
+
+
+def fit_prediction(signed: np.ndarray) -> np.ndarray:
+    """[C, C] int64 strictly lower-triangular coefficients (units of 2**-PREDICTION_SHIFT) predicting each row of
+    the centred codes `signed` [C, N] linearly from the rows before it (least squares). A row whose prediction
+    would not shrink its residuals (sum of absolute values) keeps coefficients 0."""
+    c, n = signed.shape
+    coefficients = np.zeros((c, c), np.int64)
+    values = signed.astype(np.float64)
+    for row in range(1, c):
+        if n < 2:
+            break
+        solution, *_ = np.linalg.lstsq(values[:row].T, values[row], rcond=None)
+        scaled = np.clip(np.rint(solution * (1 << PREDICTION_SHIFT)), -_COEFFICIENT_LIMIT, _COEFFICIENT_LIMIT)
+        coefficients[row, :row] = scaled.astype(np.int64)
+        residual = signed[row] - _predicted(signed, coefficients, row)
+        if np.abs(residual).sum() >= np.abs(signed[row].astype(np.int64)).sum():
+            coefficients[row, :row] = 0
+    return coefficients
+
+
+def predict_encode(signed: np.ndarray, coefficients: np.ndarray, bits: int) -> np.ndarray:
+    """Centred codes [C, N] in [-2**bits, 2**bits) -> residuals (same range): each row minus its prediction from
+    the rows before it, wrapped modulo 2**(bits+1)."""
+    s = signed.astype(np.int64)
+    out = np.empty_like(s)
+    for row in range(s.shape[0]):
+        out[row] = _wrap(s[row] - _predicted(s, coefficients, row), bits)
+    return out
+
+
+def predict_decode(residual: np.ndarray, coefficients: np.ndarray, bits: int) -> np.ndarray:
+    """Inverse of predict_encode; any input (even corrupted) gives rows in [-2**bits, 2**bits)."""
+    r = residual.astype(np.int64)
+    out = np.empty_like(r)
+    for row in range(r.shape[0]):
+        out[row] = _wrap(r[row] + _predicted(out, coefficients, row), bits)
+    return out
 
 
 # --- byte planes ----------------------------------------------------------------------------------------------------

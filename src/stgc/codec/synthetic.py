@@ -59,8 +59,10 @@ def synthetic_model(n: int, variant: str = "full", seed: int = 0, extent: float 
             m = np.where(dynamic, rng.laplace(0, scale * extent, n), rng.normal(0, 1e-4, n))
             cols[f"motion_{3 * k + axis}"] = m
     n_dc = 6 if variant == "full" else 3
-    # Colour and size are coherent per surface patch / cluster (texture varies around a base), as in real scenes.
-    base = rng.beta(2.0, 2.5, (n_groups, 3))[group] + rng.normal(0, 0.1, (n, 3))
+    # Colour and size are coherent per surface patch / cluster (texture varies around a base), as in real scenes;
+    # the colour channels share the patch's brightness, so they are strongly correlated (as in trained models).
+    brightness = rng.beta(2.0, 2.5, (n_groups, 1))[group] + rng.normal(0, 0.1, (n, 1))
+    base = brightness + rng.normal(0, 0.06, (n_groups, 3))[group] + rng.normal(0, 0.03, (n, 3))
     for c in range(n_dc):
         if c < 3:
             cols[f"f_dc_{c}"] = base[:, c] + rng.normal(0, 0.02, n)
