@@ -17,8 +17,11 @@ from stgc.codec.allocation import (
     Option,
     budget_db,
     candidate_bits,
+    coarser_bits,
+    encoder_settings,
     optimise_allocation,
     solve,
+    with_fractional_depths,
 )
 from stgc.codec.format import bits_for, groups_for
 from stgc.codec.synthetic import synthetic_model
@@ -62,6 +65,21 @@ def test_knapsack_edge_cases():
     assert solve(options, 0.3) == {"A": 4, "B": 3}
     assert solve(options, 1.0) == {"A": 2, "B": 3}
     assert solve({"A": [Option(2, 10, 0.5)]}, 0.1) is None
+
+
+def test_step_shapes_equalise_errors_and_fractional_depths_interpolate():
+    # Error grows with the square of the step: a component 4x less visible gets a step 2x (1 bit) coarser.
+    assert coarser_bits([1.0, 0.25, 1 / 16, 0.3, 0.0, 1e-9]) == [0.0, 1.0, 2.0, 0.75, 4.0, 4.0]
+    assert coarser_bits([0.0, -1e-9]) == [0.0, 0.0]  # nothing measurable: no shaping
+    options = with_fractional_depths([Option(3.0, 100, 0.4), Option(4.0, 200, 0.1), Option(5.0, 300, 0.0)])
+    assert [o.depth for o in options] == [3.0, 3.25, 3.5, 3.75, 4.0, 4.25, 4.5, 4.75, 5.0]
+    assert options[2].bytes == 150 and options[2].error == pytest.approx(0.2)  # geometric mean of 0.4 and 0.1
+    assert options[6].error == pytest.approx(0.05)  # towards an error-free depth: linear
+    bits, scales = encoder_settings("full", {"MOTN": 6.75, "POSI": 12.0, "ROTN": 7.5},
+                                    {"MOTN": [0.0] * 6 + [1.0] * 3})
+    assert bits == {"MOTN": 7, "POSI": 12, "ROTN": 8}
+    assert scales["MOTN"] == pytest.approx([2**0.25] * 6 + [2**1.25] * 3)
+    assert scales["ROTN"] == pytest.approx([2**0.5] * 3) and "POSI" not in scales
 
 
 def test_budgets_and_candidates():
