@@ -150,7 +150,15 @@ def cmd_render(args: argparse.Namespace) -> int:
     from stgc.eval.video import render_still, render_video
 
     out = Path(args.out)
-    if out.suffix.lower() == ".png":
+    if args.contact_sheet:
+        if out.suffix.lower() != ".png" or args.orbit or args.time is not None:
+            raise StgcError(f"{out}: a contact sheet is a .png of test cameras at --frames (not --orbit/--time)")
+        from stgc.eval.video import contact_sheet, load_model_and_dataset
+
+        model, dataset = load_model_and_dataset(args.run)
+        frames = args.frames or f"{min(dataset.frames)},{max(dataset.frames)}"
+        contact_sheet(model, dataset, frames, out, cameras=[args.camera] if args.camera else None)
+    elif out.suffix.lower() == ".png":
         if args.orbit or args.frames:
             raise StgcError(f"{out}: a .png is one still; use .mp4 for --orbit or --frames")
         from stgc.eval.video import load_model_and_dataset
@@ -281,7 +289,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", help="camera name (default: the first test camera)")
     p.add_argument("--orbit", action="store_true", help="smooth camera path through the training cameras")
     p.add_argument("--time", type=float, help="normalised time of a still (default 0)")
-    p.add_argument("--frames", help="frame range A:B of a video (default: all)")
+    p.add_argument("--frames", help="frame range A:B of a video (default: all), or frames A,B,... of a contact sheet")
+    p.add_argument("--contact-sheet", action="store_true",
+                   help="FILE.png with one row per test camera (or --camera) and frame: ground truth | render | "
+                        "|error| x4 (default frames: the first and the last)")
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("compress", help="write a trained run as a compact .stgc bitstream")

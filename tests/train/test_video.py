@@ -64,3 +64,17 @@ def test_still_from_a_run_directory_reopens_its_dataset(tiny_toys, make_model, t
     img = iio.imread(out)
     direct = render_still(model, "cam00", 0.25, tmp_path / "d.png", dataset=tiny_toys)
     assert np.array_equal(img, iio.imread(direct))
+
+
+def test_render_verb_writes_the_contact_sheet_of_the_first_and_last_frame(tiny_toys, make_model, tmp_path, capsys):
+    from stgc.cli import main
+    from stgc.train import TrainConfig, train
+
+    model = make_model(tiny_toys, 100)
+    cfg = TrainConfig(iterations=1, progress=False, tensorboard=False, eval_at_end=False, save_iterations=())
+    train(tiny_toys, None, None, cfg, None, tmp_path / "run", model=model)
+    assert main(["render", str(tmp_path / "run"), "--contact-sheet", "--out", str(tmp_path / "cli.png")]) == 0
+    direct = contact_sheet(model, tiny_toys, [0, 2], tmp_path / "direct.png")
+    assert np.array_equal(iio.imread(tmp_path / "cli.png"), iio.imread(direct))
+    assert main(["render", str(tmp_path / "run"), "--contact-sheet", "--orbit", "--out", str(tmp_path / "x.png")]) == 2
+    assert "contact sheet" in capsys.readouterr().err
