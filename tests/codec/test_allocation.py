@@ -23,7 +23,7 @@ from stgc.codec.allocation import (
     solve,
     with_fractional_depths,
 )
-from stgc.codec.format import bits_for, groups_for
+from stgc.codec.format import bits_for, decode, encode, groups_for
 from stgc.codec.synthetic import synthetic_model
 from stgc.errors import DataError
 from stgc.model import STGModel
@@ -186,3 +186,19 @@ def test_optimised_allocation_without_the_dataset_is_a_clear_error_and_auto_fall
     assert not (tmp_path / "x.stgc").exists()
     auto = compress_run(toys_run, tmp_path / "y.stgc", config=CodecConfig(allocation="auto"))
     assert auto.allocation is None
+
+
+def test_optimiser_on_the_lite_variant_shapes_its_three_colour_channels():
+    arrays, _ = synthetic_model(800, "lite", seed=3)
+    render = _projection_renderer({"f_dc_0": 1.0, "motion_0": 0.5})
+    reference = render(arrays, None)
+    rng = np.random.default_rng(6)
+    truth = [r + rng.normal(0, 0.002, r.shape) for r in reference]
+    result = optimise_allocation(arrays, "lite", None, render, truth, 0.3)
+    assert result.within_budget and "FT__" not in result.depths
+    assert set(result.shapes) == {"MOTN", "FDC_", "OMGA"}
+    assert result.shapes["FDC_"][0] == 0.0 and result.shapes["FDC_"][1:] == [4.0, 4.0]  # only red shows
+    assert result.shapes["MOTN"][0] == 0.0 and min(result.shapes["MOTN"][1:]) == 4.0
+    group_bits, step_scales = result.encoder_settings()
+    decoded = decode(encode(arrays, "lite", None, group_bits=group_bits, step_scales=step_scales))
+    assert decoded.num_gaussians == 800
