@@ -9,10 +9,9 @@ from stgc.fileio import atomic_open, write_json
 def test_atomic_write_replaces_only_on_success(tmp_path):
     target = tmp_path / "out.json"
     write_json(target, {"a": 1})
-    with pytest.raises(RuntimeError):
-        with atomic_open(target, "w") as f:
-            f.write("half")
-            raise RuntimeError("interrupted")
+    with pytest.raises(RuntimeError), atomic_open(target, "w") as f:
+        f.write("half")
+        raise RuntimeError("interrupted")
     assert target.read_text().startswith("{") and list(tmp_path.iterdir()) == [target]
 
 

@@ -38,7 +38,16 @@ from typing import Any
 
 import numpy as np
 
-from .format import DEFAULT_QUALITY, GROUP_BY_TAG, QUALITY_LEVELS, QUAT_SMALLEST3, bits_for, decode, encode, groups_for
+from .format import (
+    DEFAULT_QUALITY,
+    GROUP_BY_TAG,
+    QUALITY_LEVELS,
+    QUAT_SMALLEST3,
+    bits_for,
+    decode,
+    encode,
+    groups_for,
+)
 from .quantize import MAX_BITS, MIN_BITS
 
 # PSNR budget on the training views per quality level: each level is ~3x (in added squared error) stricter than

@@ -66,7 +66,7 @@ def preprocess_points(cloud: PointCloud, mode: str = "none", fraction: float = 0
             keep[idx] = _stg_isolated(cloud.xyz[idx], fraction)
         elif mode == "closest-pairs":
             keep[idx] = _closest_pairs(cloud.xyz[idx], fraction)
-        report.per_frame.append({"time": float(t), "before": int(len(idx)), "after": int(keep[idx].sum())})
+        report.per_frame.append({"time": float(t), "before": len(idx), "after": int(keep[idx].sum())})
     return cloud.select(keep), report
 
 
