@@ -31,6 +31,7 @@ the section table, as for the ladder. docs/stgc-format.md section 7 ("Rate-disto
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -59,6 +60,7 @@ _NEAR_LOSSLESS_BITS = 20  # the other groups while one group is measured: far be
 _PROBE_ZSTD_LEVEL = 3  # section sizes are measured at a fast level; the ranking of depths does not depend on it
 _GRID = 2000  # error-axis resolution of the knapsack (errors are rounded up: the solution never exceeds the budget)
 _MAX_ROUNDS = 8
+_BRACKET = 1.05  # rate control stops once the feasible and infeasible knapsack budgets are within 5 %
 _STEPS_PER_BIT = 4  # depths and step shapes are searched in quarter bits (step factors are powers of 2**(1/4))
 _PROBE_FINER_BITS = 8  # while one component is measured, the rest of its group is this much finer (error / 4**8)
 _MAX_COARSER_BITS = 4.0  # a component's step is at most 16x its group's finest
@@ -126,7 +128,7 @@ def with_fractional_depths(measured: Sequence[Option]) -> list[Option]:
     """`measured` (consecutive integer depths, ascending) plus quarter-bit depths in between: bytes interpolated
     linearly, error geometrically (linearly where either end is 0)."""
     options = [measured[0]]
-    for lo, hi in zip(measured, measured[1:]):
+    for lo, hi in itertools.pairwise(measured):
         for k in range(1, _STEPS_PER_BIT):
             w = k / _STEPS_PER_BIT
             if lo.error > 0 and hi.error > 0:
@@ -282,7 +284,7 @@ def optimise_allocation(
     def relative_error(images: Sequence[np.ndarray]) -> float:
         return float(np.mean([_mse(i, r) / m for i, r, m in zip(images, reference, base_mse)]))
 
-    near_lossless = {t: float(fixed[t] if t in fixed else _NEAR_LOSSLESS_BITS) for t in tags}
+    near_lossless = {t: float(fixed.get(t, _NEAR_LOSSLESS_BITS)) for t in tags}
     images, _ = trial(near_lossless)
     floor = relative_error(images)  # fp16 decoder weights, float32 casts: common to every option
     for tag in shaped:  # each component alone at the ladder's q3 depth, the rest of its group much finer
@@ -333,8 +335,9 @@ def optimise_allocation(
             measured_at[key] = loss(images)
         measured, bound = measured_at[key]
         predicted = floor + sum(option_of(t, chosen[t]).error for t in tags)
-        candidate = Allocation(variant, chosen, shapes, loss_budget_db, measured, bound, 10.0 * math.log10(1.0 + predicted),
-                               len(reference), round_index, bound <= loss_budget_db, table)
+        candidate = Allocation(variant, chosen, shapes, loss_budget_db, measured, bound,
+                               10.0 * math.log10(1.0 + predicted), len(reference), round_index,
+                               bound <= loss_budget_db, table)
         if candidate.within_budget:
             if best is None or estimated_bytes(chosen) < estimated_bytes(best.depths):
                 best = candidate
@@ -345,7 +348,7 @@ def optimise_allocation(
             if chosen == most_precise:
                 break
         if feasible is not None and infeasible is not None:
-            if infeasible / feasible < 1.15:
+            if infeasible / feasible < _BRACKET:
                 break
             internal = math.sqrt(feasible * infeasible)
         else:
