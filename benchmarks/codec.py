@@ -93,11 +93,9 @@ def trained_rows(runs: list[str], qualities: tuple[int, ...] = QUALITY_LEVELS,
                 record = evaluate_run(target, measure_fps=False)
                 rows.append({
                     "table": "trained", "run": str(run), "allocation": allocation, "quality": quality,
-                    "gaussians": result.num_gaussians + result.dropped_invisible,
-                    "dropped_invisible": result.dropped_invisible, "encode_seconds": round(seconds, 1),
-                    # per Gaussian of the input model, so that 152 / bytes_per_gaussian = ratio_vs_ply
-                    "bytes_per_gaussian": round(result.file_bytes / (result.num_gaussians + result.dropped_invisible),
-                                                3),
+                    "gaussians": result.input_gaussians, "dropped_invisible": result.dropped_invisible,
+                    "encode_seconds": round(seconds, 1),
+                    "bytes_per_gaussian": round(result.bytes_per_input_gaussian, 3),  # 152 / it = ratio_vs_ply
                     "ratio_vs_ply": round(result.ratio_vs_ply, 2), "size_mb": record["size_mb"],
                     "mbps": record["mbps"], "psnr": record["psnr"], "float_psnr": base["psnr"],
                     "float_size_mb": base["size_mb"], "float_mbps": base["mbps"],

@@ -48,6 +48,8 @@ def test_compress_then_decompress_restores_an_equivalent_run(run_dir, tmp_path):
     assert result.variant == "full"
     assert result.file_bytes == stgc_file_bytes(run / "model.stgc") == (run / "model.stgc").stat().st_size
     assert result.ply_bytes == 2000 * 152 and result.ratio_vs_ply > 5  # against the input model's rows
+    assert result.input_gaussians == 2000
+    assert result.bytes_per_input_gaussian == pytest.approx(152 / result.ratio_vs_ply)
     assert stgc_bytes_per_gaussian(run / "model.stgc") == pytest.approx(result.file_bytes / result.num_gaussians)
     assert f"{result.file_bytes} bytes" in str(result) and "B/Gaussian" in str(result)
     assert f"{invisible} Gaussians left out" in str(result)

@@ -87,8 +87,18 @@ class CompressResult:
     dropped_invisible: int = 0  # Gaussians of the input left out because no frame shows them
 
     @property
+    def input_gaussians(self) -> int:
+        return self.num_gaussians + self.dropped_invisible
+
+    @property
     def bytes_per_gaussian(self) -> float:
+        """File bytes per Gaussian stored in it (per input Gaussian: bytes_per_input_gaussian)."""
         return self.file_bytes / self.num_gaussians if self.num_gaussians else float("nan")
+
+    @property
+    def bytes_per_input_gaussian(self) -> float:
+        """File bytes per Gaussian of the input model: PLY row bytes / ratio_vs_ply."""
+        return self.file_bytes / self.input_gaussians if self.input_gaussians else float("nan")
 
     @property
     def ratio_vs_ply(self) -> float:
