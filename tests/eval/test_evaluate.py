@@ -117,7 +117,7 @@ def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
             return _noisy_render(cam)
 
     class FakeDataset:
-        test, frames, fps = CAMS, list(range(4)), 2.0
+        test, frames, fps, background = CAMS, list(range(4)), 2.0, (0.0, 0.0, 0.0)
 
         def load_image(self, cam: FakeCam) -> np.ndarray:
             return _gt(cam)

@@ -260,7 +260,7 @@ def _optimise(model: Any, arrays: dict, dataset: Any, config: CodecConfig) -> Al
         return image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else image.astype(np.float32)
 
     truth = [ground_truth(cam) for cam in views]
-    background = torch.zeros(3)
+    background = torch.tensor(dataset.background, dtype=torch.float32)
 
     @torch.no_grad()
     def render(candidate: Any, decoder_state: Any) -> list:

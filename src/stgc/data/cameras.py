@@ -17,6 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+# The official STG rasterizers (and 3DGS, and Dynamic 3D Gaussians' fork) cull every Gaussian whose centre lies at
+# view depth <= 0.2 (`in_frustum`). A format may state a larger one (SourceScene.near_plane); data.near_plane
+# overrides both.
+DEFAULT_NEAR_PLANE = 0.2
+
 
 @dataclass(frozen=True, eq=False)
 class Camera:
@@ -29,6 +34,7 @@ class Camera:
     w2c:    float64 [4, 4] world-to-camera (OpenCV).
     width, height: image size in pixels (after any downscale).
     image:  where the pixels come from: a file path, or a callable returning uint8 [H, W, 3].
+    near:   view depth at or below which a Gaussian's centre is culled when this camera renders.
     """
 
     name: str
@@ -39,6 +45,7 @@ class Camera:
     width: int
     height: int
     image: Path | Callable[[], np.ndarray] | None = field(default=None, repr=False)
+    near: float = DEFAULT_NEAR_PLANE
 
     @property
     def c2w(self) -> np.ndarray:

@@ -41,6 +41,9 @@ class DataConfig:
         "help": "fraction used by the preprocess rule (0.25 in STG and the paper)"})
     background: str = field(default="black", metadata={
         "help": "colour that transparent pixels of RGBA images are composited on: black or white"})
+    near_plane: float | None = field(default=None, metadata={
+        "help": "view depth at or below which Gaussians are culled, in scene units; default: the format's (1.0 "
+                "Panoptic, as Dynamic 3D Gaussians; 0.2 otherwise, as the official STG rasterizers)"})
     yuv_range: str = field(default="limited", metadata={
         "help": "MIV YUV sample range: limited (video, 16-235 at 8 bits) or full"})
     image_cache_mb: int = field(default=2048, metadata={
@@ -54,7 +57,7 @@ class DataConfig:
         return open_dataset(path, format=self.format, downscale=self.downscale, start=self.start,
                             duration=self.duration, test_cameras=self.test_cameras, fps=self.fps,
                             image_cache_mb=self.image_cache_mb, background=self.background,
-                            yuv_range=self.yuv_range)
+                            yuv_range=self.yuv_range, near_plane=self.near_plane)
 
     def initial_points(self, dataset):
         """Initial points of `dataset` with these options: (cloud, report).

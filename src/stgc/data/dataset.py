@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from .cameras import Camera
+from .cameras import DEFAULT_NEAR_PLANE, Camera
 from .images import ImageCache, image_size, read_image, resize_image
 
 DEFAULT_FPS = 30.0
@@ -82,6 +82,8 @@ class SourceScene:
     cameras: one per (view, available frame); `time` is filled in by `assemble`.
     multiview: every view is expected to have every frame (False for monocular D-NeRF).
     points: frame -> (xyz float [M,3], rgb float [M,3] in [0,1]) of points shipped with the data, or None.
+    near_plane: the culling depth this source's reference renderer is used with (see cameras.DEFAULT_NEAR_PLANE).
+    masks: camera -> path of its foreground mask (0 background, 255 foreground), or None where it has none.
     """
 
     name: str
@@ -95,6 +97,8 @@ class SourceScene:
     points: Callable[[int], tuple[np.ndarray, np.ndarray] | None] | None = None
     points_description: str | None = None
     default_start: int | None = None
+    near_plane: float = DEFAULT_NEAR_PLANE
+    masks: Callable[[Camera], Path | None] | None = None
     notes: list[str] = field(default_factory=list)
 
 
@@ -115,7 +119,7 @@ class Dataset:
     def __init__(self, scene: SourceScene, *, start: int, duration: int, frames: list[int], train: list[Camera],
                  test: list[Camera], downscale: float, native_size: dict[int, tuple[int, int]], fps: float,
                  cache_bytes: int, background: tuple[float, float, float],
-                 test_cameras: list[str] | None = None):
+                 test_cameras: list[str] | None = None, near_plane: float | None = None):
         self._scene = scene
         self.name = scene.name
         self.format = scene.format
@@ -130,6 +134,7 @@ class Dataset:
         self.background = background
         self._native_size = native_size  # id(camera) -> native (width, height) of its image source
         self._test_cameras = test_cameras  # the split as requested (None = the format's default)
+        self._near_plane = near_plane  # as requested (None = the format's)
         self._cache = ImageCache(cache_bytes)
         self._train_by_frame = _group(train)
         self._test_by_frame = _group(test)
@@ -153,6 +158,11 @@ class Dataset:
         return self.train + self.test
 
     @property
+    def near_plane(self) -> float:
+        """The culling depth every camera of this dataset renders with."""
+        return (self.train or self.test)[0].near
+
+    @property
     def train_views(self) -> list[str]:
         return _unique_names(self.train)
 
@@ -170,7 +180,7 @@ class Dataset:
         """The same source, another frame segment (same downscale, split and cache size)."""
         return assemble(self._scene, downscale=self.downscale, start=start, duration=duration,
                         test_cameras=self._test_cameras, fps=self.fps, cache_bytes=self._cache.max_bytes,
-                        background=self.background)
+                        background=self.background, near_plane=self._near_plane)
 
     # ------------------------------------------------------------------ images
     def load_image(self, camera: Camera) -> np.ndarray:
@@ -290,8 +300,10 @@ def _unique_names(cameras: list[Camera]) -> list[str]:
 def assemble(scene: SourceScene, *, downscale: float = 1, start: int | None = None, duration: int | None = None,
              test_cameras: list[str] | str | None = None, fps: float | None = None,
              cache_bytes: int = DEFAULT_CACHE_BYTES, background=(0.0, 0.0, 0.0),
-             check_images: bool = True) -> Dataset:
-    """Select the segment [start, start + duration), split, downscale and check a `SourceScene`."""
+             check_images: bool = True, near_plane: float | None = None) -> Dataset:
+    """Select the segment [start, start + duration), split, downscale and check a `SourceScene`.
+
+    near_plane: the culling depth of every camera (None: the format's, `scene.near_plane`)."""
     if not scene.cameras:
         raise DataError(scene.meta_file, "no cameras found")
     available = sorted({c.frame for c in scene.cameras})
@@ -326,10 +338,13 @@ def assemble(scene: SourceScene, *, downscale: float = 1, start: int | None = No
 
     if downscale <= 0 or not math.isfinite(downscale):
         raise ValueError(f"downscale must be positive, not {downscale}")
+    near = scene.near_plane if near_plane is None else float(near_plane)
+    if not (near > 0 and math.isfinite(near)):
+        raise ValueError(f"near_plane must be a positive depth, not {near_plane}")
     native_size: dict[int, tuple[int, int]] = {}
     train, test = [], []
     for cam in in_segment:
-        out = replace(cam, time=(cam.frame - start) / duration)
+        out = replace(cam, time=(cam.frame - start) / duration, near=near)
         if downscale != 1:
             out = out.scaled(1.0 / downscale)
         native_size[id(out)] = (cam.width, cam.height)
@@ -343,7 +358,8 @@ def assemble(scene: SourceScene, *, downscale: float = 1, start: int | None = No
     dataset = Dataset(scene, start=start, duration=duration, frames=frames, train=train, test=test,
                       downscale=downscale, native_size=native_size, fps=float(fps or scene.fps or DEFAULT_FPS),
                       cache_bytes=cache_bytes, background=tuple(background),
-                      test_cameras=None if test_cameras is None else list(test_cameras))
+                      test_cameras=None if test_cameras is None else list(test_cameras),
+                      near_plane=None if near_plane is None else near)
     if check_images:
         _check_image_headers(dataset, native_size)
     return dataset

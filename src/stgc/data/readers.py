@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -55,13 +56,14 @@ def open_dataset(path: str | Path, format: str = "auto", downscale: float = 1, s
                  duration: int | None = None, test_cameras: list[str] | str | None = None,
                  fps: float | None = None, *, image_cache_mb: int = DEFAULT_CACHE_BYTES >> 20,
                  background: str | tuple[float, float, float] = "black", yuv_range: str = "limited",
-                 check_images: bool = True) -> Dataset:
+                 check_images: bool = True, near_plane: float | None = None) -> Dataset:
     """Open a multi-view video dataset, picking the reader from the files present (or `format=`).
 
     start/duration select frames [start, start + duration) (default: everything); test_cameras
     overrides the format's held-out views; fps overrides the format's frame rate (default 30).
     background ("black", "white" or RGB in [0, 1]) is what RGBA images are composited on; decoded
-    images are kept in an LRU cache of at most image_cache_mb MiB."""
+    images are kept in an LRU cache of at most image_cache_mb MiB. near_plane overrides the format's culling
+    depth (`SourceScene.near_plane`)."""
     path = Path(path)
     if not path.exists():
         raise DataError(path, "dataset path does not exist")
@@ -80,7 +82,7 @@ def open_dataset(path: str | Path, format: str = "auto", downscale: float = 1, s
     scene = reader(path)
     return assemble(scene, downscale=downscale, start=start, duration=duration, test_cameras=test_cameras,
                     fps=fps, cache_bytes=int(image_cache_mb) << 20, background=_background(background),
-                    check_images=check_images)
+                    check_images=check_images, near_plane=near_plane)
 
 
 def _background(value: str | tuple[float, float, float]) -> tuple[float, float, float]:
@@ -195,7 +197,30 @@ def read_panoptic(path: Path) -> SourceScene:
         points = lambda frame: _panoptic_points(npz) if frame == first else None
         description = f"{npz.name} (static cloud, tagged with the first frame)"
     return SourceScene(name=root.name, format="panoptic", root=root, cameras=cameras, default_test=test_names,
-                       meta_file=meta_files[0], fps=30.0, points=points, points_description=description)
+                       meta_file=meta_files[0], fps=30.0, points=points, points_description=description,
+                       near_plane=PANOPTIC_NEAR_PLANE, masks=_panoptic_masks(root))
+
+
+# Dynamic 3D Gaussians sets up every Panoptic camera with near = 1.0 (its rasterizer still culls at 0.2; the 1.0
+# shapes its depth). The cameras sit on the dome wall, about 3 units from the centre, and nothing of the scene comes
+# within 1 unit of a lens, so culling there removes only what the training views cannot place: Gaussians in front
+# of one camera that haze a held-out view.
+PANOPTIC_NEAR_PLANE = 1.0
+
+
+def _panoptic_masks(root: Path) -> Callable[[Camera], Path | None] | None:
+    """seg/<cam>/<frame>.png beside ims/<cam>/<frame>.jpg (the release ships them for the training cameras)."""
+    if not (root / "seg").is_dir():
+        return None
+
+    def mask_of(camera: Camera) -> Path | None:
+        rel = Path(camera.image).relative_to(root / "ims") if isinstance(camera.image, Path) else None
+        if rel is None:
+            return None
+        path = (root / "seg" / rel).with_suffix(".png")
+        return path if path.is_file() else None
+
+    return mask_of
 
 
 def _panoptic_points(npz: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -277,6 +277,7 @@ def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstre
     import dataclasses
 
     from stgc.data import DataConfig  # the data package is only needed here
+    from stgc.data.cameras import DEFAULT_NEAR_PLANE
 
     config_path = run_dir / "config.json"
     data_cfg: dict[str, Any] = {}
@@ -298,6 +299,8 @@ def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstre
         where = "config.json has no data.path" if config_path.is_file() else "no run config found"
         raise DataError(config_path, f"no data path ({where}); pass the dataset with --data")
     known = {f.name for f in dataclasses.fields(DataConfig)}
+    # Runs saved before the near plane was recorded trained with the official one, whatever their format.
+    data_cfg.setdefault("near_plane", DEFAULT_NEAR_PLANE)
     return DataConfig(**{k: v for k, v in data_cfg.items() if k in known}).open(path)
 
 
@@ -338,7 +341,7 @@ def evaluate_run(
         info = bitstream_size(target, model.num_gaussians, model.variant, duration_s)
     else:
         info = size_of_saved_model(target, duration_s)
-    background = torch.zeros(3)  # black, as the trainer renders (STG's default)
+    background = torch.tensor(dataset.background, dtype=torch.float32)  # what the trainer rendered on
     result = evaluate(
         lambda cam: model.render(cam, t=float(cam.time), background=background), dataset.test, dataset.load_image,
         lpips_net=lpips_net, warmup=warmup,

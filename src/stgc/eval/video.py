@@ -200,6 +200,11 @@ def _camera_at(dataset: Any, name: str, frame: int) -> Any:
     raise DataError(None, f"camera {name!r} has no view at frame {frame}")
 
 
+def _background(dataset: Any, background: Sequence[float] | None) -> Sequence[float]:
+    """The colour asked for, else the dataset's (what training composited its images on)."""
+    return tuple(dataset.background) if background is None else background
+
+
 # ------------------------------------------------------------------------------------------------ public API
 def render_still(
     run_or_model: Any,
@@ -213,7 +218,7 @@ def render_still(
     """Render the dataset camera `camera_name` at time `time` in [0, 1] to `out_png`."""
     model, dataset = load_model_and_dataset(run_or_model, dataset)
     camera = find_camera(dataset, camera_name, time)
-    return write_png(out_png, render_image(model, camera, time, background))
+    return write_png(out_png, render_image(model, camera, time, _background(dataset, background)))
 
 
 def render_video(
@@ -242,7 +247,8 @@ def render_video(
     else:
         name = camera_name or str((dataset.test or dataset.train)[0].name)
         cameras = [_camera_at(dataset, name, f) for f in _frame_selection(frames, list(dataset.frames))]
-    images = (render_image(model, cam, None, background) for cam in cameras)
+    bg = _background(dataset, background)
+    images = (render_image(model, cam, None, bg) for cam in cameras)
     return write_video(out, images, rate)
 
 
@@ -260,6 +266,7 @@ def contact_sheet(
     model, dataset = load_model_and_dataset(model, dataset)
     names = list(cameras) if cameras else sorted({str(c.name) for c in dataset.test}) or [str(dataset.train[0].name)]
     rows = []
+    background = _background(dataset, background)
     for frame in _frame_selection(frames, list(dataset.frames)):
         for name in names:
             cam = _camera_at(dataset, name, frame)

@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from stgc import render as _render
+from stgc.data.cameras import DEFAULT_NEAR_PLANE
 from stgc.errors import DataError, FormatError
 from stgc.fileio import read_json_object
 from stgc.model import ply as _ply
@@ -53,8 +54,10 @@ MIN_VISIBLE_OPACITY = _render.ALPHA_MIN
 # auxiliary.h, in_frustum) drop every Gaussian whose view-space depth is <= 0.2 scene units, in training and at
 # test time. It matters on captures whose cameras sit inside the scene (a dome): Gaussians that reconstruct the
 # wall next to a held-out camera would otherwise fill its whole view with haze (panoptic_basketball, trained
-# model: 21.62 dB with gsplat's 0.01 near plane, 22.76 dB with 0.2). Override with render(..., near_plane=x).
-NEAR_PLANE = 0.2
+# model: 21.62 dB with gsplat's 0.01 near plane, 22.76 dB with 0.2). Every camera carries its near plane
+# (`Camera.near`: this value unless the format or data.near_plane says otherwise); render(..., near_plane=x)
+# overrides it for one call.
+NEAR_PLANE = DEFAULT_NEAR_PLANE
 
 # Official clamp of the initial log scale (oursfull/ourslite create_from_pcd) and floor of the squared distance.
 INIT_LOG_SCALE_RANGE = (-10.0, 1.0)
@@ -302,7 +305,7 @@ class STGModel:
         albedo channels, the rest zero). Extra keyword arguments go to `stgc.render.rasterize`.
         """
         t = float(camera.time if t is None else t)
-        raster_options.setdefault("near_plane", NEAR_PLANE)
+        raster_options.setdefault("near_plane", float(camera.near))
         opacity = self.temporal_opacity(t)
         index = torch.nonzero(opacity.detach() >= MIN_VISIBLE_OPACITY, as_tuple=False)[:, 0]
         if len(index) == self.num_gaussians:  # nothing culled (e.g. early training): skip the row copies

@@ -146,7 +146,7 @@ class Trainer:
         self.images = ImageCache(dataset)
         self.frames = list(dataset.frames)
         self.train_centers = np.array([c.center for c in dataset.train], dtype=np.float64).reshape(-1, 3)
-        self.background = torch.zeros(3)
+        self.background = torch.tensor(dataset.background, dtype=torch.float32)
         self.elapsed_before = 0.0
         self.start_iteration = 0
         self.densify_rounds_done = 0
@@ -179,6 +179,7 @@ class Trainer:
         ds = self.dataset
         data = {k: getattr(ds, k) for k in ("format", "downscale", "start", "duration") if hasattr(ds, k)}
         data.update(_config_dict(self.data_cfg) or {})
+        data["near_plane"] = ds.near_plane  # resolved: what every later verb must render with
         root = getattr(ds, "root", None) or getattr(ds, "path", None)
         if "path" not in data and root is not None:
             data["path"] = str(root)
