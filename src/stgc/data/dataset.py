@@ -83,6 +83,7 @@ class SourceScene:
     multiview: every view is expected to have every frame (False for monocular D-NeRF).
     points: frame -> (xyz float [M,3], rgb float [M,3] in [0,1]) of points shipped with the data, or None.
     near_plane: the culling depth this source's reference renderer is used with (see cameras.DEFAULT_NEAR_PLANE).
+    synthetic: rendered images (every camera has the same response), not a real rig's.
     masks: camera -> path of its foreground mask (0 background, 255 foreground), or None where it has none.
     """
 
@@ -98,6 +99,7 @@ class SourceScene:
     points_description: str | None = None
     default_start: int | None = None
     near_plane: float = DEFAULT_NEAR_PLANE
+    synthetic: bool = False
     masks: Callable[[Camera], Path | None] | None = None
     notes: list[str] = field(default_factory=list)
 
@@ -156,6 +158,11 @@ class Dataset:
     @property
     def cameras(self) -> list[Camera]:
         return self.train + self.test
+
+    @property
+    def synthetic(self) -> bool:
+        """Rendered images (identical camera responses), not a real capture."""
+        return self._scene.synthetic
 
     @property
     def near_plane(self) -> float:

@@ -315,7 +315,7 @@ def read_blender(path: Path) -> SourceScene:
     notes = [] if multiview else ["monocular: each image is its own view"]
     return SourceScene(name=root.name, format="blender", root=root, cameras=cameras, default_test=test_names,
                        meta_file=meta_file, fps=float(fps) if fps else None, multiview=multiview, points=points,
-                       points_description=description, notes=notes)
+                       points_description=description, notes=notes, synthetic=True)
 
 
 def _check_duplicates(cameras: list[Camera], meta: Path) -> None:

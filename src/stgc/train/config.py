@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import Literal
 
 
 @dataclass(frozen=True)
@@ -31,6 +32,9 @@ class LearningRates:
     trbf_center: float = field(default=1e-4, metadata={"help": "temporal centre mu_t lr"})
     trbf_scale: float = field(default=3e-2, metadata={"help": "log temporal scale lr"})
     decoder: float = field(default=1e-4, metadata={"help": "feature decoder MLP lr (full variant)"})
+    colour_correction: float = field(
+        default=2e-3, metadata={"help": "per-camera colour correction lr (log gain and offset, SparseAdam)"}
+    )
 
 
 @dataclass(frozen=True)
@@ -108,6 +112,11 @@ class TrainConfig:
     batch: int = field(default=2, metadata={"help": "training views of one timestamp per iteration (grads averaged)"})
     lambda_dssim: float = field(default=0.2, metadata={"help": "loss = (1-l)*L1 + l*(1-SSIM)"})
     seed: int = field(default=0, metadata={"help": "seed of every random stream (frame/view sampling, densification)"})
+    colour_correction: Literal["auto", "on", "off"] = field(
+        default="auto",
+        metadata={"help": "learn a gain and offset per training camera and channel (Dynamic 3D Gaussians); auto: on "
+                          "for real captures, off for synthetic renders (Blender/D-NeRF), whose cameras agree"},
+    )
     backend: str = field(default="auto", metadata={"help": "rasterizer backend passed to stgc.render"})
     threads: int = field(default=0, metadata={"help": "torch threads (0 = leave as is)"})
     lr: LearningRates = field(default_factory=LearningRates)

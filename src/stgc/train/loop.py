@@ -30,6 +30,7 @@ from stgc.train.checkpoint import (
     restore_rng_states,
     save_checkpoint,
 )
+from stgc.train.colour import ColourCorrection
 from stgc.train.config import Schedule, TrainConfig, resolve_schedule
 from stgc.train.densify import (
     DensificationStats,
@@ -41,6 +42,9 @@ from stgc.train.densify import (
 )
 from stgc.train.ems import ErrorGuidedSampler
 from stgc.train.monitor import JsonLines, Progress, TensorBoard
+
+# Saved beside point_cloud.ply: the training cameras' learned colour correction (never applied to other views).
+COLOUR_CORRECTION_NAME = "colour_correction.json"
 
 IterationCallback = Callable[[int, dict[str, Any]], None]
 
@@ -165,6 +169,7 @@ class Trainer:
             learning_rates(train_cfg, self.extent, self.model.params), train_cfg.lr.decoder
         )
         self.stats = DensificationStats(self.model.num_gaussians)
+        self.colour = self._make_colour_correction()
         self.compactor = self._make_compactor()
         self.ems = ErrorGuidedSampler(
             train_cfg.ems, self.schedule.ems_start, self.schedule.ems_min_gap,
@@ -204,6 +209,12 @@ class Trainer:
 
         return STKNNCompactor(cfg, total_iterations=self.schedule.iterations)
 
+    def _make_colour_correction(self) -> ColourCorrection | None:
+        mode = self.cfg.colour_correction
+        if mode == "off" or (mode == "auto" and self.dataset.synthetic):
+            return None
+        return ColourCorrection(self.dataset.train_views, self.cfg.lr.colour_correction)
+
     def _model_from_checkpoint(self, ckpt: dict[str, Any]) -> Any:
         from stgc.model import STGModel
 
@@ -219,6 +230,8 @@ class Trainer:
             self.ems.state = ckpt["ems"]
         if self.compactor is not None and ckpt.get("compactor") is not None:
             self.compactor.load_state_dict(ckpt["compactor"])
+        if self.colour is not None and ckpt.get("colour_correction") is not None:
+            self.colour.load_state_dict(ckpt["colour_correction"])
         restore_rng_states(ckpt["rng"])
         self.metrics_log.truncate_after(self.start_iteration)
         self.compaction_log.truncate_after(self.start_iteration)
@@ -234,6 +247,7 @@ class Trainer:
             "densify_rounds_done": self.densify_rounds_done,
             "compactor": None if self.compactor is None else self.compactor.state_dict(),
             "ems": self.ems.state,
+            "colour_correction": None if self.colour is None else self.colour.state_dict(),
         }
 
     # ------------------------------------------------------------------------------------------- one step
@@ -272,12 +286,13 @@ class Trainer:
         for cam in views:
             gt = self.images.get(cam)
             out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend)
-            loss, ssim_value = self._loss(out.rgb, gt)
+            rgb = out.rgb if self.colour is None else self.colour.apply(out.rgb, cam.name)
+            loss, ssim_value = self._loss(rgb, gt)
             (loss / batch).backward()
             if self.ems.observe(iteration, cam, ssim_value) and ems_view is None:
-                ems_view = (cam, out.rgb.detach(), gt)
+                ems_view = (cam, rgb.detach(), gt)
             total_loss += float(loss.detach())
-            total_mse += float(((out.rgb.detach().clamp(0, 1) - gt) ** 2).mean())
+            total_mse += float(((rgb.detach().clamp(0, 1) - gt) ** 2).mean())
             last = out
         # Official: the screen-space gradient of the LAST view of the batch feeds the densification statistics.
         # Its gradient was computed from loss/batch, hence the factor batch to get the per-view gradient.
@@ -286,6 +301,8 @@ class Trainer:
             self.stats.add(last.index, grad_norm, last.raster.visible)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+        if self.colour is not None:
+            self.colour.step()
         mean_loss = total_loss / batch
         mean_mse = total_mse / batch
         return {"t": t, "frame": frame, "loss": mean_loss, "psnr": -10.0 * math.log10(max(mean_mse, 1e-12)),
@@ -349,6 +366,8 @@ class Trainer:
     def save_model(self, iteration: int) -> Path:
         iteration_dir = self.out / "point_cloud" / f"iteration_{iteration}"
         self.model.save(iteration_dir)
+        if self.colour is not None:
+            write_json(iteration_dir / COLOUR_CORRECTION_NAME, self.colour.to_json())
         return iteration_dir
 
     def evaluate(self) -> Any:
@@ -449,6 +468,8 @@ class Trainer:
             "variant": self.model.variant,
             "finished": finished,
         }
+        if self.colour is not None:
+            summary["colour_correction"] = self.colour.summary()
         if finished:
             # The summary goes first: the evaluation record reads the training time from it.
             write_json(self.out / "train_summary.json", summary)
