@@ -26,6 +26,9 @@ class DataConfig:
         "help": "take initial points from every k-th frame of the segment (1 = all frames, as STG)"})
     max_points_per_frame: int | None = field(default=None, metadata={
         "help": "random subsample of each frame's initial points to at most this many (None = keep all)"})
+    mask_points_per_frame: int = field(default=1000, metadata={
+        "help": "where the data has foreground masks (Panoptic seg/), add up to this many initial points per frame "
+                "inside the masks' visual hull: the moving subjects, which triangulation misses (0 = never)"})
     triangulation_upsample: float = field(default=2.0, metadata={
         "help": "upsample images by this factor before SIFT extraction (2 gives ~10x more points on small frames)"})
     min_track_length: int = field(default=3, metadata={
@@ -75,7 +78,8 @@ class DataConfig:
         raw = initial_points(dataset, source=self.init_source, frames=frames, seed=self.seed,
                              triangulation_upsample=self.triangulation_upsample,
                              min_track_length=self.min_track_length,
-                             triangulation_cache=self.triangulation_cache, **kwargs)
+                             triangulation_cache=self.triangulation_cache,
+                             mask_points_per_frame=self.mask_points_per_frame, **kwargs)
         kept, report = preprocess_points(raw, self.preprocess, self.preprocess_fraction)
         return thin_like(kept, raw, self.max_points_per_frame, self.seed), report
 

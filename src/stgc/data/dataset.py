@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import DataError
 from .cameras import DEFAULT_NEAR_PLANE, Camera
 from .images import ImageCache, image_size, read_image, resize_image
+from .masks import read_mask
 
 DEFAULT_FPS = 30.0
 DEFAULT_CACHE_BYTES = 2 << 30
@@ -158,6 +159,18 @@ class Dataset:
     @property
     def cameras(self) -> list[Camera]:
         return self.train + self.test
+
+    @property
+    def has_masks(self) -> bool:
+        """Whether the source ships foreground masks (for some training views at least)."""
+        return self._scene.masks is not None and any(self._scene.masks(c) is not None for c in self.train[:1])
+
+    def load_mask(self, camera: Camera) -> np.ndarray | None:
+        """bool [H, W] foreground of `camera`'s mask at its (downscaled) size, or None where it has none."""
+        if self._scene.masks is None:
+            return None
+        path = self._scene.masks(camera)
+        return None if path is None else read_mask(path, camera.width, camera.height)
 
     @property
     def synthetic(self) -> bool:

@@ -80,13 +80,16 @@ def thin_like(cloud: PointCloud, raw: PointCloud, cap: int | None, seed: int = 0
 def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | None = None,
                    max_points_per_frame: int | None = None, seed: int = 0, *, triangulation_upsample: float = 2.0,
                    min_track_length: int = 3, random_points_per_frame: int = 2000,
-                   triangulation_cache: bool = True) -> PointCloud:
+                   triangulation_cache: bool = True, mask_points_per_frame: int = 0) -> PointCloud:
     """Initial points of the frames `frames` (absolute indices; default: all frames of the segment).
 
     source: "data" = points shipped with the data (COLMAP points3D, points3d/NNNN.npy, init_pt_cld.npz);
     "triangulate" = SIFT + known-pose triangulation with pycolmap from the training views; "random" =
     uniform points in the region the cameras see (with a warning); "auto" = data if present, else
-    triangulation if pycolmap imports, else random."""
+    triangulation if pycolmap imports, else random.
+
+    mask_points_per_frame > 0 adds, where the data has foreground masks, up to that many points per frame inside
+    the masks' visual hull (`mask_hull_points`): the moving subjects, which triangulation misses."""
     if source not in SOURCES:
         raise ValueError(f"source must be one of {SOURCES}, not {source!r}")
     frames = list(dataset.frames if frames is None else frames)
@@ -131,10 +134,42 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
             xyz, rgb = random_points(dataset, frame, count, rng)
         xyz, rgb = _subsample(np.asarray(xyz), np.asarray(rgb), max_points_per_frame, rng)
         clouds.append(PointCloud(xyz, rgb, np.full(len(xyz), t)))
+        if mask_points_per_frame > 0 and dataset.has_masks:
+            hull_xyz, hull_rgb = mask_hull_points(dataset, frame, mask_points_per_frame, rng)
+            log.info("frame %d: %d points inside the masks' visual hull", frame, len(hull_xyz))
+            clouds.append(PointCloud(hull_xyz, hull_rgb, np.full(len(hull_xyz), t)))
     cloud = PointCloud.concatenate(clouds)
     if len(cloud) == 0:
         raise DataError(dataset.root, f"no initial points found for frames {frames} with source {source!r}")
     return cloud
+
+
+def mask_hull_points(dataset: Dataset, frame: int, count: int, rng: np.random.Generator,
+                     resolution: int = 96) -> tuple[np.ndarray, np.ndarray]:
+    """Up to `count` voxel centres of the visual hull of the training views' masks at `frame` (a cube of side twice
+    the viewing radius around the viewing region, `resolution` voxels a side), coloured from the foreground pixels
+    they project to; each jittered uniformly within its voxel. Views without a mask are left out."""
+    from .masks import hull_colours, visual_hull
+
+    cameras, masks = [], []
+    for cam in dataset.train_at(frame):
+        mask = dataset.load_mask(cam)
+        if mask is not None:
+            cameras.append(cam)
+            masks.append(mask)
+    if len(cameras) < 2:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+    focus, radius = viewing_region(dataset)
+    # Seen by a good share of the rig, so from several sides: a voxel that only the cameras of one side see is
+    # inside all their masks anywhere along the cone behind the subject.
+    min_views = max(2, int(np.ceil(0.4 * len(cameras))))
+    points = visual_hull(cameras, masks, focus - radius, focus + radius, resolution=resolution, min_views=min_views)
+    if len(points) > count:
+        points = points[np.sort(rng.choice(len(points), size=count, replace=False))]
+    side = 2 * radius / resolution
+    points = points + rng.uniform(-side / 2, side / 2, size=points.shape)
+    images = [dataset.load_image(cam) for cam in cameras]
+    return points.astype(np.float32), hull_colours(points, cameras, images, masks)
 
 
 def viewing_region(dataset: Dataset) -> tuple[np.ndarray, float]:

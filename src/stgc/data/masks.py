@@ -1,0 +1,78 @@
+"""Foreground masks shipped with a capture (Panoptic `seg/`), and initial points for the moving subjects from them.
+
+A real multi-camera capture triangulates well on its textured static surroundings and hardly at all on the people
+in it (they move, wear plain clothes and fill few pixels). Where the data has foreground masks, the visual hull
+(the voxels whose projection falls inside the mask of every camera that sees them) is a coarse but complete shape
+of the subjects at each frame; its voxels give the initial points for them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from ..errors import DataError
+from .cameras import Camera
+
+# A pixel is foreground when its (resampled) mask value is at least this (0-255 masks; 0/255 in Panoptic).
+FOREGROUND_LEVEL = 128
+
+
+def read_mask(path: Path, width: int, height: int) -> np.ndarray:
+    """bool [height, width]: the foreground of the mask image at `path`, area-averaged to the camera's size when
+    the image is a whole multiple of it (the downscaled dataset), else a DataError naming the file."""
+    try:
+        with Image.open(path) as im:
+            im.load()
+            mask = np.asarray(im.convert("L"), dtype=np.float32)
+    except FileNotFoundError:
+        raise DataError(path, "mask file is missing") from None
+    except (UnidentifiedImageError, OSError, ValueError) as exc:
+        raise DataError(path, f"unreadable mask: {exc}") from None
+    h, w = mask.shape
+    if (w, h) != (width, height):
+        f = w // width if width else 0
+        if not (f >= 1 and w == f * width and h == f * height):
+            raise DataError(path, f"mask is {w}x{h} but its image is {width}x{height} (or a whole multiple of it)")
+        mask = mask.reshape(height, f, width, f).mean(axis=(1, 3))
+    return mask >= FOREGROUND_LEVEL
+
+
+def visual_hull(cameras: list[Camera], masks: list[np.ndarray], lower: np.ndarray, upper: np.ndarray,
+                resolution: int = 96, min_views: int = 4, misses_allowed: int = 1) -> np.ndarray:
+    """Centres [M, 3] of the voxels of the box [lower, upper] (cubes of side max extent / resolution) that at least
+    `min_views` cameras see and that fall inside the foreground of every one of them but `misses_allowed`
+    (a tolerance for mask noise and calibration error)."""
+    lower, upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+    side = float((upper - lower).max()) / resolution
+    axes = [np.arange(lo + side / 2, hi, side) for lo, hi in zip(lower, upper)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    seen = np.zeros(len(grid), np.int32)
+    inside = np.zeros(len(grid), np.int32)
+    for camera, mask in zip(cameras, masks):
+        uv, depth = camera.project(grid)
+        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        visible = (depth > camera.near) & (u >= 0) & (v >= 0) & (u < camera.width) & (v < camera.height)
+        seen += visible
+        hit = np.zeros(len(grid), bool)
+        hit[visible] = mask[v[visible], u[visible]]
+        inside += hit
+    keep = (seen >= min_views) & (inside >= seen - misses_allowed) & (inside > 0)
+    return grid[keep]
+
+
+def hull_colours(points: np.ndarray, cameras: list[Camera], images: list[np.ndarray],
+                 masks: list[np.ndarray]) -> np.ndarray:
+    """float [M, 3] in [0, 1]: the mean colour of each point's projections that land on foreground pixels."""
+    total = np.zeros((len(points), 3))
+    count = np.zeros(len(points))
+    for camera, image, mask in zip(cameras, images, masks):
+        uv, depth = camera.project(points)
+        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        ok = (depth > camera.near) & (u >= 0) & (v >= 0) & (u < camera.width) & (v < camera.height)
+        ok[ok] &= mask[v[ok], u[ok]]
+        total[ok] += image[v[ok], u[ok], :3] / 255.0
+        count[ok] += 1
+    return (total / np.maximum(count, 1)[:, None]).astype(np.float32)

@@ -1,0 +1,56 @@
+"""Foreground masks: reading them, and initial points for the subjects from their visual hull."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+from scenes import BALL_CENTRE, BALL_RADIUS, write_panoptic_scene
+
+from stgc.data import open_dataset
+from stgc.data.points import initial_points, mask_hull_points
+from stgc.errors import DataError
+
+
+@pytest.fixture(scope="module")
+def masked_scene(tmp_path_factory):
+    return write_panoptic_scene(tmp_path_factory.mktemp("masked"), views=12, frames=2, width=64, height=48,
+                                masks=True)
+
+
+def test_hull_points_lie_inside_the_known_object(masked_scene):
+    dataset = open_dataset(masked_scene.root)
+    assert dataset.has_masks
+    xyz, rgb = mask_hull_points(dataset, 0, 500, np.random.default_rng(0), resolution=64)
+    assert len(xyz) > 100
+    distance = np.linalg.norm(xyz - BALL_CENTRE, axis=1)
+    # The hull of 11 views encloses the ball tightly: every point within a voxel diagonal and a pixel of slack.
+    voxel = 2 * 3.0 / 64  # the viewing radius is the ring's 3 units
+    assert distance.max() < BALL_RADIUS + 1.5 * voxel
+    assert np.median(distance) < BALL_RADIUS
+    # Coloured from the ball's foreground pixels: red (0.9, 0.2, 0.1) blended with the grey shell behind it.
+    assert rgb[:, 0].mean() > rgb[:, 2].mean() + 0.15
+
+
+def test_initial_points_add_the_hull_only_where_masks_exist(masked_scene, tmp_path):
+    dataset = open_dataset(masked_scene.root)
+    plain = initial_points(dataset, source="random", random_points_per_frame=50)
+    with_hull = initial_points(dataset, source="random", random_points_per_frame=50, mask_points_per_frame=80)
+    assert len(with_hull) == len(plain) + 2 * 80
+
+
+def test_mask_of_the_wrong_size_is_an_error_naming_the_file(masked_scene, tmp_path):
+    import shutil
+
+    root = tmp_path / "scene"
+    shutil.copytree(masked_scene.root, root)
+    bad = root / "seg" / "1" / "000000.png"
+    Image.fromarray(np.zeros((10, 13), np.uint8)).save(bad)
+    dataset = open_dataset(root)
+    camera = next(c for c in dataset.train if c.name == "1" and c.frame == 0)
+    with pytest.raises(DataError, match="mask is 13x10") as err:
+        dataset.load_mask(camera)
+    assert str(bad) in str(err.value)
+    bad.write_bytes(b"not a png")
+    with pytest.raises(DataError, match="unreadable mask"):
+        dataset.load_mask(camera)
