@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 
 from stgc.cli import build_parser, default_configs, main, resolve_configs
@@ -68,7 +70,7 @@ def test_experiment_passes_preprocess_and_bd_method_to_run_plan(monkeypatch, tmp
 
     def fake_run_plan(data, plan, out, **kwargs):
         seen.update(kwargs, data=data, plan=plan)
-        return "done"
+        return SimpleNamespace(failed=[], outcomes=["r"])
 
     monkeypatch.setattr(stgc.experiment, "run_plan", fake_run_plan)
     assert main(["experiment", "scene", "--plan", "table2", "--out", str(tmp_path), "--preprocess", "closest-pairs",

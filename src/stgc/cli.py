@@ -21,6 +21,7 @@ from stgc.config import (
     from_dict,
     parse_set_arguments,
     split_sections,
+    validate_config,
 )
 from stgc.errors import StgcError
 from stgc.fileio import read_json_object
@@ -77,6 +78,8 @@ def resolve_configs(
     for layer in (shortcuts, options, split_sections(sets, set(configs))):
         for section, overrides in layer.items():
             configs[section] = apply_overrides(configs[section], overrides, section)
+    for section, cfg in configs.items():
+        validate_config(cfg, section)
     return configs
 
 
@@ -92,7 +95,7 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
         section = dict(saved.get(name) or {})
         section.pop("path", None)
         section.pop("resolved_schedule", None)
-        out[name] = from_dict(cls, section)
+        out[name] = validate_config(from_dict(cls, section), name)
     out["data_path"] = (saved.get("data") or {}).get("path")
     return out
 
@@ -124,9 +127,16 @@ def cmd_train(args: argparse.Namespace) -> int:
         data_path = args.data
     if data_path is None:
         raise StgcError("no DATA given and the run has no saved data path")
+    if args.resume and args.overwrite:
+        raise StgcError("--resume continues a run and --overwrite replaces it: give one of them")
     dataset = configs["data"].open(data_path)
+    if not args.resume:
+        from stgc.run import prepare_new_run
+
+        prepare_new_run(out, overwrite=args.overwrite)  # before minutes of triangulation
     train(
-        dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=args.resume
+        dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=args.resume,
+        overwrite=args.overwrite,
     )
     print(f"run written to {out}")
     if (out / "eval.json").is_file():
@@ -180,7 +190,8 @@ def cmd_compress(args: argparse.Namespace) -> int:
     overrides = collect_overrides(args).get("codec", {})
     if args.quality is not None:
         overrides["quality"] = str(args.quality)
-    config = apply_overrides(CodecConfig(), overrides, "codec")
+    overrides.update(split_sections(parse_set_arguments(args.set), {"codec"}).get("codec", {}))
+    config = validate_config(apply_overrides(CodecConfig(), overrides, "codec"), "codec")
     result = compress_run(args.run, args.out, config=config)
     print(result)
     return 0
@@ -219,6 +230,9 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         codec_qualities=args.codec_quality or [], preprocess=args.preprocess, bd_method=args.bd_method,
     )
     print(result)
+    if result.failed:
+        print(f"stgc: {len(result.failed)} of {len(result.outcomes)} runs failed", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -255,6 +269,7 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
         "--criterion", choices=["timestamp", "scale", "importance"], help="which member of a pair is removed"
     )
     p.add_argument("--resume", action="store_true", help="continue RUN from its last checkpoint")
+    p.add_argument("--overwrite", action="store_true", help="replace the run already in RUN (its files are removed)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override any option, e.g. train.iterations=3000")
     try:
         configs = default_configs("cpu")
@@ -299,6 +314,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("run", help="run directory, iteration directory or .ply")
     p.add_argument("--out", required=True, help="output .stgc file")
     p.add_argument("--quality", type=int, help="quality level 1..5 (shortcut for --codec.quality)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a codec option, e.g. "
+                   "codec.allocation=ladder")
     from stgc.codec import CodecConfig
 
     add_config_arguments(p, "codec", CodecConfig, "codec options (stgc.codec.CodecConfig)")

@@ -158,6 +158,27 @@ def _replace_nested(obj: Any, values: dict[str, Any]) -> Any:
     return dataclasses.replace(obj, **direct)
 
 
+def check(condition: bool, name: str, value: Any, expected: str) -> None:
+    """Raise a ConfigError naming the field unless `condition` holds (what every config's `validate` uses)."""
+    if not condition:
+        raise ConfigError(f"{name}: {value!r} is not allowed ({expected})")
+
+
+def validate_config(obj: Any, section: str = "") -> Any:
+    """Call `validate(prefix)` on `obj` and on every nested config dataclass that defines it; returns `obj`."""
+    if not dataclasses.is_dataclass(obj):
+        return obj
+    prefix = f"{section}." if section else ""
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            validate_config(value, f"{prefix}{f.name}")
+    validator = getattr(obj, "validate", None)
+    if callable(validator):
+        validator(prefix)
+    return obj
+
+
 def to_dict(obj: Any) -> dict[str, Any]:
     return dataclasses.asdict(obj)
 

@@ -85,7 +85,7 @@ def test_builtin_plans_match_the_paper() -> None:
 
 def test_train_command_layout() -> None:
     cmd = build_train_command("DATA", "OUT/r", "cpu", {"compaction.case": "2"}, python="py")
-    assert cmd == ["py", "-m", "stgc.cli", "train", "DATA", "--out", "OUT/r", "--preset", "cpu",
+    assert cmd == ["py", "-m", "stgc.cli", "train", "DATA", "--out", "OUT/r", "--overwrite", "--preset", "cpu",
                    "--set", "compaction.case=2"]
     resumed = build_train_command("DATA", "OUT/r", "cpu", {"compaction.case": "2"}, resume=True, python="py")
     assert resumed == ["py", "-m", "stgc.cli", "train", "DATA", "--out", "OUT/r", "--resume"]

@@ -63,7 +63,7 @@ class CodecConfig:
         "help": "store the data and model sections of the run's config.json (about 0.4 KB compressed) so that "
                 "`decompress` restores a run that can be evaluated"})
 
-    def validate(self) -> None:
+    def validate(self, prefix: str = "") -> None:
         if self.quality not in QUALITY_LEVELS:
             raise ValueError(f"quality must be one of {QUALITY_LEVELS}, got {self.quality}")
         if not 1 <= self.zstd_level <= 22:
@@ -195,6 +195,9 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
     config = CodecConfig(**vars(config)) if config is not None else CodecConfig()
     if quality is not None:
         config.quality = quality
+    config.validate()  # before minutes of bit allocation
+    if Path(out_path).suffix.lower() != ".stgc":
+        raise ValueError(f"{out_path}: the bitstream is written as a .stgc file (the name must end in .stgc)")
     source = Path(run_or_model_path)
     model = STGModel.load(source)
     input_gaussians = model.num_gaussians

@@ -94,7 +94,7 @@ class CompactionConfig:
     )
     min_gaussians: int = field(default=0, metadata={"help": "never prune below this many Gaussians"})
 
-    def validate(self) -> None:
+    def validate(self, prefix: str = "") -> None:
         """Raise ValueError naming the field when a value cannot work."""
         if self.method not in METHODS:
             raise ValueError(f"compaction.method {self.method!r}: expected one of {METHODS}")

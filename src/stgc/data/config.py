@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 
@@ -52,6 +53,34 @@ class DataConfig:
     image_cache_mb: int = field(default=2048, metadata={
         "help": "memory bound of the decoded-image cache in MiB (least recently used images are dropped)"})
     seed: int = field(default=0, metadata={"help": "seed for subsampling and random initial points"})
+
+    def validate(self, prefix: str = "") -> None:
+        from stgc.config import check
+
+        from .points import SOURCES
+        from .preprocess import MODES
+        from .readers import FORMATS, FORMAT_ALIASES
+
+        check(self.format == "auto" or self.format.lower() in (*FORMATS, *FORMAT_ALIASES), f"{prefix}format", self.format,
+              f"auto or one of {', '.join(FORMATS)}")
+        check(math.isfinite(self.downscale) and self.downscale > 0, f"{prefix}downscale", self.downscale, "> 0")
+        check(self.start is None or self.start >= 0, f"{prefix}start", self.start, ">= 0")
+        check(self.duration is None or self.duration >= 1, f"{prefix}duration", self.duration, ">= 1")
+        check(self.fps is None or (math.isfinite(self.fps) and self.fps > 0), f"{prefix}fps", self.fps, "> 0")
+        check(self.init_source in SOURCES, f"{prefix}init_source", self.init_source, f"one of {', '.join(SOURCES)}")
+        check(self.init_frames_every >= 1, f"{prefix}init_frames_every", self.init_frames_every, ">= 1")
+        check(self.max_points_per_frame is None or self.max_points_per_frame >= 1, f"{prefix}max_points_per_frame",
+              self.max_points_per_frame, ">= 1, or none")
+        check(self.mask_points_per_frame >= 0, f"{prefix}mask_points_per_frame", self.mask_points_per_frame, ">= 0")
+        check(self.triangulation_upsample > 0, f"{prefix}triangulation_upsample", self.triangulation_upsample, "> 0")
+        check(self.min_track_length >= 2, f"{prefix}min_track_length", self.min_track_length, ">= 2")
+        check(self.preprocess in MODES, f"{prefix}preprocess", self.preprocess, f"one of {', '.join(MODES)}")
+        check(0 < self.preprocess_fraction < 1, f"{prefix}preprocess_fraction", self.preprocess_fraction, "in (0, 1)")
+        check(self.near_plane is None or (math.isfinite(self.near_plane) and self.near_plane > 0),
+              f"{prefix}near_plane", self.near_plane, "a depth > 0, or none for the format's")
+        check(self.background in ("black", "white"), f"{prefix}background", self.background, "black or white")
+        check(self.yuv_range in ("limited", "full"), f"{prefix}yuv_range", self.yuv_range, "limited or full")
+        check(self.image_cache_mb >= 0, f"{prefix}image_cache_mb", self.image_cache_mb, ">= 0")
 
     def open(self, path):
         """Open `path` with these options."""

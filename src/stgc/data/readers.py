@@ -42,7 +42,7 @@ from .images import image_size
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 FORMATS = ("panoptic", "blender", "n3dv", "stg-colmap", "technicolor", "miv")
-_ALIASES = {
+FORMAT_ALIASES = {
     "d3dgs": "panoptic", "dynamic3dgaussians": "panoptic", "panopticsports": "panoptic",
     "dnerf": "blender", "d-nerf": "blender", "nerf": "blender",
     "dynerf": "n3dv", "llff": "n3dv", "n3d": "n3dv",
@@ -68,7 +68,7 @@ def open_dataset(path: str | Path, format: str = "auto", downscale: float = 1, s
     if not path.exists():
         raise DataError(path, "dataset path does not exist")
     path = path.resolve()
-    fmt = detect_format(path) if format == "auto" else _ALIASES.get(format.lower(), format.lower())
+    fmt = detect_format(path) if format == "auto" else FORMAT_ALIASES.get(format.lower(), format.lower())
     if fmt not in FORMATS:
         raise DataError(path, f"unknown format {format!r}; choose one of {', '.join(FORMATS)} or 'auto'")
     reader = {

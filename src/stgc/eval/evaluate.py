@@ -153,14 +153,17 @@ def evaluate(
     )
 
 
-def eval_paths(target: str | Path) -> tuple[Path, Path]:
+def eval_paths(target: str | Path, other_data: str | None = None) -> tuple[Path, Path]:
     """Where the evaluation of `target` goes: RUN/eval.json + RUN/eval_per_view.csv for a run directory,
-    RUN/eval_<stem>.json + RUN/eval_<stem>_per_view.csv for a bitstream RUN/<stem>.stgc."""
+    RUN/eval_<stem>.json + RUN/eval_<stem>_per_view.csv for a bitstream RUN/<stem>.stgc. Evaluated on a dataset
+    other than the run's own (`other_data`, its folder name), `_on_<name>` is added, so the run's own record
+    (what `stgc report` shows) is never replaced by a score on other data."""
     target = Path(target)
+    suffix = f"_on_{other_data}" if other_data else ""
     if target.suffix == ".stgc":
-        base = target.parent / f"eval_{target.stem}"
+        base = target.parent / f"eval_{target.stem}{suffix}"
         return base.with_suffix(".json"), target.parent / f"{base.name}_per_view.csv"
-    return target / "eval.json", target / "eval_per_view.csv"
+    return target / f"eval{suffix}.json", target / f"eval{suffix}_per_view.csv"
 
 
 def _finite(x: Any) -> Any:
@@ -209,11 +212,13 @@ def write_eval(
     *,
     target: str | Path | None = None,
     extra: Mapping[str, Any] | None = None,
+    other_data: str | None = None,
 ) -> dict[str, Any]:
-    """Write eval.json and eval_per_view.csv atomically (paths from `eval_paths(target or run_dir)`) and return
-    the eval.json record (`format_eval_table` prints it). Training time is read from RUN/train_summary.json."""
+    """Write eval.json and eval_per_view.csv atomically (paths from `eval_paths(target or run_dir, other_data)`)
+    and return the eval.json record (`format_eval_table` prints it). Training time is read from
+    RUN/train_summary.json."""
     run_dir = Path(run_dir)
-    json_path, csv_path = eval_paths(target if target is not None else run_dir)
+    json_path, csv_path = eval_paths(target if target is not None else run_dir, other_data)
     summary = read_train_summary(run_dir) if run_dir.is_dir() else None
     more = {"train_seconds": training_seconds(summary)}
     if summary and "iterations" in summary:
@@ -348,7 +353,14 @@ def evaluate_run(
     )
     if not measure_fps:
         result.speed = None
-    return write_eval(run_dir, result, info, target=target)
+    recorded = (read_json_object(run_dir / "config.json") or {}).get("data")
+    recorded = recorded if isinstance(recorded, dict) else {}
+    other = None
+    if data_path is not None and (recorded.get("path") is None
+                                  or Path(data_path).resolve() != Path(recorded["path"]).resolve()):
+        other = Path(data_path).resolve().name
+    return write_eval(run_dir, result, info, target=target, other_data=other,
+                      extra={"data": str(getattr(dataset, "root", data_path or recorded.get("path")))})
 
 
 def _default_model_loader(target: Path) -> Any:

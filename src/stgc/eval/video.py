@@ -53,6 +53,8 @@ def find_camera(dataset: Any, camera_name: str, time: float | None = None) -> An
         raise DataError(None, f"no camera named {camera_name!r}; cameras are {', '.join(names)}")
     if time is None:
         return matches[0]
+    if not (0.0 <= float(time) <= 1.0):  # also false for nan
+        raise DataError(None, f"time {time} is outside the model's [0, 1] (0 = first frame, 1 = end of the segment)")
     best = min(matches, key=lambda c: abs(float(c.time) - float(time)))
     return dataclasses.replace(best, time=float(time))
 
@@ -174,14 +176,20 @@ def _frame_selection(frames: Any, available: Sequence[int]) -> list[int]:
     if frames is None:
         return list(available)
     if isinstance(frames, str):
-        if ":" in frames:
-            a, b = frames.split(":", 1)
-            frames = slice(int(a) if a else None, int(b) if b else None)
-        else:
-            frames = [int(x) for x in frames.split(",") if x.strip()]
+        try:
+            if ":" in frames:
+                a, b = frames.split(":", 1)
+                frames = slice(int(a) if a else None, int(b) if b else None)
+            else:
+                frames = [int(x) for x in frames.split(",") if x.strip()]
+        except ValueError:
+            raise DataError(None, f"frames {frames!r}: expected A:B or A,B,... of frame numbers") from None
     if isinstance(frames, slice):
         lo = frames.start if frames.start is not None else min(available)
         hi = frames.stop if frames.stop is not None else max(available) + 1
+        if lo < min(available) or hi > max(available) + 1 or lo >= hi:
+            raise DataError(None, f"frames {lo}:{hi} are not within the dataset's frames "
+                                  f"{min(available)}:{max(available) + 1}")
         chosen = [f for f in available if lo <= f < hi]
     else:
         chosen = [int(f) for f in frames]

@@ -58,6 +58,8 @@ def build_train_command(
     cmd = [python, "-m", CLI_MODULE, "train", str(data_path), "--out", str(run_dir)]
     if resume:
         return cmd + ["--resume"]
+    # Not resumable (no checkpoint): whatever partial run is there is this run's own false start.
+    cmd.append("--overwrite")
     if preset:
         cmd += ["--preset", preset]
     for key, value in overrides.items():

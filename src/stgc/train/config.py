@@ -10,8 +10,12 @@ Operational counters (logging, checkpointing, `stop_after`) are in real iteratio
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Literal
+
+from stgc.config import check
+from stgc.render.api import BACKENDS
 
 
 @dataclass(frozen=True)
@@ -35,6 +39,13 @@ class LearningRates:
     colour_correction: float = field(
         default=2e-3, metadata={"help": "per-camera colour correction lr (log gain and offset, SparseAdam)"}
     )
+
+    def validate(self, prefix: str = "") -> None:
+        # Zero is allowed: it freezes a group.
+        for name, value in dataclasses.asdict(self).items():
+            check(math.isfinite(value) and value >= 0, f"{prefix}{name}", value, "a learning rate >= 0")
+        check(self.xyz_init > 0 and self.xyz_final > 0, f"{prefix}xyz_final", self.xyz_final,
+              "the xyz rates decay log-linearly, so both must be > 0")
 
 
 @dataclass(frozen=True)
@@ -65,6 +76,17 @@ class DensifyConfig:
         default=9000, metadata={"help": "no opacity reset at or after this iteration (schedule units)"}
     )
     opacity_reset_value: float = field(default=0.01, metadata={"help": "opacities are clamped to at most this value"})
+
+    def validate(self, prefix: str = "") -> None:
+        for name in ("start", "rounds", "prune_until", "opacity_reset_interval", "opacity_reset_until"):
+            check(getattr(self, name) >= 0, f"{prefix}{name}", getattr(self, name), ">= 0")
+        check(self.interval >= 1, f"{prefix}interval", self.interval, ">= 1")
+        check(self.split_count >= 2, f"{prefix}split_count", self.split_count, ">= 2")
+        check(math.isfinite(self.grad_threshold) and self.grad_threshold > 0, f"{prefix}grad_threshold",
+              self.grad_threshold, "> 0")
+        check(0 < self.percent_dense < 1, f"{prefix}percent_dense", self.percent_dense, "in (0, 1)")
+        check(0 <= self.prune_opacity < 1, f"{prefix}prune_opacity", self.prune_opacity, "in [0, 1)")
+        check(0 < self.opacity_reset_value < 1, f"{prefix}opacity_reset_value", self.opacity_reset_value, "in (0, 1)")
 
 
 @dataclass(frozen=True)
@@ -137,6 +159,18 @@ class TrainConfig:
         default=None,
         metadata={"help": "stop (checkpoint, unfinished) after this many iterations, as if killed; resume continues"},
     )
+
+    def validate(self, prefix: str = "") -> None:
+        check(self.iterations >= 1, f"{prefix}iterations", self.iterations, ">= 1")
+        check(math.isfinite(self.schedule_scale) and self.schedule_scale > 0, f"{prefix}schedule_scale",
+              self.schedule_scale, "> 0")
+        check(self.batch >= 1, f"{prefix}batch", self.batch, ">= 1")
+        check(0 <= self.lambda_dssim <= 1, f"{prefix}lambda_dssim", self.lambda_dssim, "in [0, 1]")
+        check(self.threads >= 0, f"{prefix}threads", self.threads, ">= 0 (0 = leave as is)")
+        for name in ("checkpoint_every", "log_every", "eval_every"):
+            check(getattr(self, name) >= 0, f"{prefix}{name}", getattr(self, name), ">= 0 (0 = never)")
+        check(self.stop_after is None or self.stop_after >= 1, f"{prefix}stop_after", self.stop_after, ">= 1")
+        check(self.backend in BACKENDS, f"{prefix}backend", self.backend, f"one of {', '.join(BACKENDS)}")
 
 
 # 0.2 x 30k = 6,000 iterations. Measured on this 2-core machine when it was idle: the full model on blender_toys

@@ -22,8 +22,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from stgc.config import validate_config
 from stgc.errors import DataError
 from stgc.fileio import write_json
+from stgc.run import prepare_new_run
 from stgc.train.checkpoint import (
     CHECKPOINT_NAME,
     load_checkpoint,
@@ -135,12 +137,17 @@ class Trainer:
         *,
         model: Any | None = None,
         resume: bool = False,
+        overwrite: bool = False,
         callback: IterationCallback | None = None,
     ):
+        validate_config(train_cfg, "train")
         self.dataset, self.data_cfg, self.model_cfg = dataset, data_cfg, model_cfg
         self.cfg, self.compaction_cfg = train_cfg, compaction_cfg
         self.out = Path(out_dir)
-        self.out.mkdir(parents=True, exist_ok=True)
+        resuming = resume and (self.out / CHECKPOINT_NAME).exists()
+        if not resuming:
+            # A resume with nothing to resume restarts the same run, so its own partial files may go.
+            prepare_new_run(self.out, overwrite=overwrite or resume)
         self.callback = callback
         self.schedule: Schedule = resolve_schedule(train_cfg)
         if train_cfg.threads > 0:
@@ -156,7 +163,7 @@ class Trainer:
         self.densify_rounds_done = 0
 
         checkpoint = None
-        if resume and (self.out / CHECKPOINT_NAME).exists():
+        if resuming:
             checkpoint = load_checkpoint(self.out)
             self.model = self._model_from_checkpoint(checkpoint)
         else:
@@ -506,15 +513,17 @@ def train(
     out_dir: str | Path,
     resume: bool = False,
     *,
+    overwrite: bool = False,
     model: Any | None = None,
     callback: IterationCallback | None = None,
 ) -> dict[str, Any]:
     """Train an STG model on `dataset` into the run directory `out_dir`; returns the summary.
 
-    resume: continue from out_dir/checkpoint.pt when it exists (else start afresh). model: start from this model
+    resume: continue from out_dir/checkpoint.pt when it exists (else start afresh). A fresh start refuses a
+    directory that already holds a run unless overwrite (or resume) is given (`stgc.run`). model: start from this model
     instead of building one from the data config's initial points. callback(iteration, numbers) runs after every
     iteration. Writes config.json, metrics.jsonl, compaction.jsonl, checkpoint.pt, point_cloud/iteration_<N>/,
     eval.json, eval_per_view.csv and train_summary.json (see docs/training.md)."""
     trainer = Trainer(dataset, data_cfg, model_cfg, train_cfg, compaction_cfg, out_dir,
-                      model=model, resume=resume, callback=callback)
+                      model=model, resume=resume, overwrite=overwrite, callback=callback)
     return trainer.run()

@@ -1,0 +1,116 @@
+"""Cases that once gave a silently wrong result (issue #19), each driven through the command line as a user would.
+
+Every test here failed on the code before the fix: it either wrote a wrong file or exited 0."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import pytest
+from scenes import write_panoptic_scene
+
+from stgc.cli import main
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return write_panoptic_scene(tmp_path_factory.mktemp("scene"), views=5, frames=2, width=32, height=24)
+
+
+@pytest.fixture(scope="module")
+def trained_run(scene, tmp_path_factory):
+    run = tmp_path_factory.mktemp("runs") / "run"
+    assert main(["train", str(scene.root), "--out", str(run), "--set", "train.iterations=10",
+                 "--set", "train.schedule_scale=1", "--set", "data.init_source=random",
+                 "--set", "train.progress=false", "--set", "train.tensorboard=false",
+                 "--set", "train.save_iterations=[10]"]) == 0
+    return run
+
+
+def _train_args(scene, run, iterations="10", *extra):
+    return ["train", str(scene.root), "--out", str(run), "--set", f"train.iterations={iterations}",
+            "--set", "train.schedule_scale=1", "--set", "data.init_source=random", "--set", "train.progress=false",
+            "--set", "train.tensorboard=false", "--set", f"train.save_iterations=[{iterations}]", *extra]
+
+
+def test_training_into_an_existing_run_is_refused_and_overwrite_replaces_it(scene, trained_run, tmp_path, capsys):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    (run / "notes.txt").write_text("mine")
+    assert main(_train_args(scene, run, "12")) == 2
+    assert "already holds a run" in capsys.readouterr().err
+    assert (run / "point_cloud" / "iteration_10").is_dir()  # untouched
+    assert main(_train_args(scene, run, "12", "--overwrite")) == 0
+    assert sorted(p.name for p in (run / "point_cloud").iterdir()) == ["iteration_12"]  # no stale model left
+    assert (run / "notes.txt").read_text() == "mine"  # not a run file: kept
+
+
+def test_eval_on_other_data_keeps_the_runs_own_record(scene, trained_run, tmp_path):
+    import shutil
+
+    other = tmp_path / "other_scene"
+    shutil.copytree(scene.root, other)
+    own = json.loads((trained_run / "eval.json").read_text())
+    assert main(["eval", str(trained_run), "--data", str(other), "--no-fps"]) == 0
+    assert json.loads((trained_run / "eval.json").read_text()) == own
+    record = json.loads((trained_run / "eval_on_other_scene.json").read_text())
+    assert record["data"] == str(other.resolve())
+
+
+@pytest.mark.parametrize("setting, field", [("train.iterations=0", "train.iterations"),
+                                            ("train.iterations=-5", "train.iterations"),
+                                            ("train.batch=0", "train.batch"),
+                                            ("train.lr.opacity=nan", "train.lr.opacity"),
+                                            ("data.near_plane=-1", "data.near_plane")])
+def test_invalid_options_are_refused_before_anything_runs(setting, field, tmp_path, capsys):
+    assert main(["train", "nowhere", "--out", str(tmp_path / "r"), "--set", setting]) == 2
+    assert field in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("option", [["--time", "5"], ["--time", "-0.5"], ["--time", "nan"]])
+def test_render_refuses_a_time_outside_the_model(trained_run, tmp_path, option, capsys):
+    out = tmp_path / "still.png"
+    assert main(["render", str(trained_run), "--out", str(out), *option]) == 2
+    assert "outside the model's [0, 1]" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_render_refuses_frames_outside_the_data(trained_run, tmp_path, capsys):
+    out = tmp_path / "video.mp4"
+    assert main(["render", str(trained_run), "--out", str(out), "--frames", "0:500"]) == 2
+    assert "not within the dataset's frames" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_compress_refuses_a_non_stgc_name_and_a_bad_allocation_at_once(trained_run, tmp_path, capsys):
+    assert main(["compress", str(trained_run), "--out", str(tmp_path / "model.ply")]) == 2
+    assert "must end in .stgc" in capsys.readouterr().err
+    assert main(["compress", str(trained_run), "--out", str(tmp_path / "m.stgc"), "--codec.allocation", "bogus"]) == 2
+    assert "allocation must be one of" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
+def test_compress_takes_the_readmes_set_option(trained_run, tmp_path):
+    out = tmp_path / "m.stgc"
+    assert main(["compress", str(trained_run), "--out", str(out), "--set", "codec.allocation=ladder"]) == 0
+    assert out.is_file()
+
+
+def test_experiment_exits_non_zero_when_a_run_failed(monkeypatch, tmp_path, capsys):
+    import stgc.experiment
+
+    monkeypatch.setattr(stgc.experiment, "run_plan",
+                        lambda *a, **k: SimpleNamespace(failed=["a", "b"], outcomes=["a", "b"]))
+    assert main(["experiment", "scene", "--plan", "table2", "--out", str(tmp_path)]) == 1
+    assert "2 of 2 runs failed" in capsys.readouterr().err
+
+
+def test_out_whose_parent_is_a_file_is_a_clear_error(scene, tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert main(_train_args(scene, blocker / "run")) == 2
+    assert "is a file" in capsys.readouterr().err
