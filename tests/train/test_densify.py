@@ -163,3 +163,22 @@ def test_train_config_is_cli_ready():
     assert cfg.densify.rounds == 12 and cfg.save_iterations == (100, 200) and cfg.ems.enabled
     assert from_dict(TrainConfig, to_dict(cfg)) == cfg
     assert train_preset("paper").schedule_scale == 1.0 and resolve_schedule(train_preset("cpu")).iterations < 30000
+
+
+def test_gaussian_budget_takes_the_largest_gradients_and_never_exceeds_the_cap():
+    model = _model(40)
+    with torch.no_grad():  # rows 0-19 small (a clone adds 1), rows 20-39 large (a split into 2 adds 1 as well)
+        model.params["scaling"][:20] = np.log(0.001)
+        model.params["scaling"][20:] = np.log(0.5)
+    stats = DensificationStats(40)
+    grads = torch.linspace(1.0, 40.0, 40, dtype=torch.float64) * 1e-3  # every row a candidate; row 39 largest
+    stats.add(torch.arange(40), grads, torch.ones(40, dtype=torch.bool))
+    xyz_before = model.params["xyz"].detach().clone()
+    done = clone_and_split(model, stats, 1e-4, 0.01, 2, torch.Generator().manual_seed(0), max_gaussians=46)
+    assert model.num_gaussians == 46
+    assert done == {"cloned": 0, "split": 6}  # the six largest gradients are rows 34-39, all large: split
+    kept = model.params["xyz"].detach()[:34]
+    torch.testing.assert_close(kept, xyz_before[:34])  # the rest wait; the originals of the split rows are gone
+    # Without room nothing changes; without a cap all 40 go.
+    stats.add(torch.arange(46), torch.ones(46, dtype=torch.float64), torch.ones(46, dtype=torch.bool))
+    assert clone_and_split(model, stats, 1e-4, 0.01, 2, torch.Generator(), max_gaussians=46) == {"cloned": 0, "split": 0}

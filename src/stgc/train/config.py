@@ -76,6 +76,16 @@ class DensifyConfig:
         default=9000, metadata={"help": "no opacity reset at or after this iteration (schedule units)"}
     )
     opacity_reset_value: float = field(default=0.01, metadata={"help": "opacities are clamped to at most this value"})
+    stats_views: Literal["last", "all"] = field(
+        default="all",
+        metadata={"help": "views of each batch whose screen-space gradients feed the statistics: all, or only the "
+                          "last (official STG; half the signal for the same iterations)"},
+    )
+    max_gaussians: int = field(
+        default=0,
+        metadata={"help": "clone/split never takes the model above this many Gaussians: the candidates with the "
+                          "largest gradients go first (0 = no cap). Bounds memory and iteration time"},
+    )
 
     def validate(self, prefix: str = "") -> None:
         for name in ("start", "rounds", "prune_until", "opacity_reset_interval", "opacity_reset_until"):
@@ -87,6 +97,7 @@ class DensifyConfig:
         check(0 < self.percent_dense < 1, f"{prefix}percent_dense", self.percent_dense, "in (0, 1)")
         check(0 <= self.prune_opacity < 1, f"{prefix}prune_opacity", self.prune_opacity, "in [0, 1)")
         check(0 < self.opacity_reset_value < 1, f"{prefix}opacity_reset_value", self.opacity_reset_value, "in (0, 1)")
+        check(self.max_gaussians >= 0, f"{prefix}max_gaussians", self.max_gaussians, ">= 0 (0 = no cap)")
 
 
 @dataclass(frozen=True)
@@ -180,8 +191,8 @@ CPU_SCHEDULE_SCALE = 0.2
 
 
 def paper_preset() -> TrainConfig:
-    """The official STG schedule (30k iterations, N3D densify mode 1)."""
-    return TrainConfig(preset="paper")
+    """The official STG schedule (30k iterations, N3D densify mode 1, statistics from the last view of a batch)."""
+    return TrainConfig(preset="paper", densify=DensifyConfig(stats_views="last"))
 
 
 def cpu_preset() -> TrainConfig:

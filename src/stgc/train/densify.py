@@ -65,6 +65,7 @@ def clone_and_split(
     percent_dense: float,
     split_count: int,
     generator: torch.Generator,
+    max_gaussians: int = 0,
 ) -> dict[str, int]:
     """One official densification round. Returns counts {"cloned", "split"}; `stats` is reset afterwards.
 
@@ -77,6 +78,9 @@ def clone_and_split(
     max_scale = model.scales.detach().max(dim=1).values
     size_limit = percent_dense * model.scene_extent
     high = grads >= grad_threshold
+    if max_gaussians > 0:
+        high = _within_budget(high, grads, max_scale > percent_dense * model.scene_extent, split_count,
+                              max_gaussians - n0)
     clone_mask = high & (max_scale <= size_limit)
     split_mask = high & (max_scale > size_limit)
     n_clone, n_split = int(clone_mask.sum()), int(split_mask.sum())
@@ -108,6 +112,17 @@ def clone_and_split(
         model.prune(keep)
     stats.reset(model.num_gaussians)
     return {"cloned": n_clone, "split": n_split}
+
+
+def _within_budget(candidates: torch.Tensor, grads: torch.Tensor, is_split: torch.Tensor, split_count: int,
+                   room: int) -> torch.Tensor:
+    """The candidates, largest gradient first, whose added Gaussians (1 per clone, split_count - 1 per split) fit
+    in `room`."""
+    order = torch.argsort(grads.masked_fill(~candidates, -1.0), descending=True)[: int(candidates.sum())]
+    added = torch.where(is_split[order], split_count - 1, 1).cumsum(0)
+    keep = torch.zeros_like(candidates)
+    keep[order[added <= max(room, 0)]] = True
+    return keep
 
 
 @torch.no_grad()

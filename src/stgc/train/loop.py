@@ -288,9 +288,9 @@ class Trainer:
         lr_xyz = self._set_xyz_lr(iteration)
 
         total_loss, total_mse = 0.0, 0.0
-        last = None
         ems_view = None
-        for cam in views:
+        collect = self.densify_rounds_done < self.cfg.densify.rounds and self.cfg.densify.enabled
+        for k, cam in enumerate(views):
             gt = self.images.get(cam)
             out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend)
             rgb = out.rgb if self.colour is None else self.colour.apply(out.rgb, cam.name)
@@ -300,12 +300,11 @@ class Trainer:
                 ems_view = (cam, rgb.detach(), gt)
             total_loss += float(loss.detach())
             total_mse += float(((rgb.detach().clamp(0, 1) - gt) ** 2).mean())
-            last = out
-        # Official: the screen-space gradient of the LAST view of the batch feeds the densification statistics.
-        # Its gradient was computed from loss/batch, hence the factor batch to get the per-view gradient.
-        if self.densify_rounds_done < self.cfg.densify.rounds and self.cfg.densify.enabled and last is not None:
-            grad_norm = last.raster.means2d_grad_ndc_norm() * batch
-            self.stats.add(last.index, grad_norm, last.raster.visible)
+            if collect and (self.cfg.densify.stats_views == "all" or k == len(views) - 1):
+                # Each view's screen-space gradient is its own (a render's means2d is its own tensor); it came from
+                # loss/batch, hence the factor batch to get the per-view gradient.
+                grad_norm = out.raster.means2d_grad_ndc_norm() * batch
+                self.stats.add(out.index, grad_norm, out.raster.visible)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         if self.colour is not None:
@@ -321,7 +320,8 @@ class Trainer:
         if sched.is_densify_step(iteration):
             if d.enabled and self.densify_rounds_done < d.rounds:
                 report.update(
-                    clone_and_split(self.model, self.stats, d.grad_threshold, d.percent_dense, d.split_count, generator)
+                    clone_and_split(self.model, self.stats, d.grad_threshold, d.percent_dense, d.split_count, generator,
+                                    max_gaussians=d.max_gaussians)
                 )
                 self.densify_rounds_done += 1
             elif iteration < sched.prune_until:
