@@ -18,7 +18,9 @@ torch.set_num_threads(min(2, os.cpu_count() or 1))
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
-        pytest.fail(f"shared test data not found at {SHARED_DATA} (set STGC_SHARED_DATA)")
+        # A user's fresh clone has no ../shared: these tests check readers and training against the project's
+        # shared scenes; every other test runs on generated scenes (tests/scenes.py).
+        pytest.skip(f"shared test data not found at {SHARED_DATA} (set STGC_SHARED_DATA to run these tests)")
     return SHARED_DATA
 
 

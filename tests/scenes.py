@@ -126,3 +126,24 @@ def ball_mask(camera: Camera) -> np.ndarray:
     disc = b**2 - (o @ o - BALL_RADIUS**2)
     hit = (disc >= 0) & (-b - np.sqrt(np.maximum(disc, 0)) > 0)
     return (hit.reshape(camera.height, camera.width) * 255).astype(np.uint8)
+
+
+def add_blender_transforms(scene: SyntheticScene) -> Path:
+    """Describe the same images and cameras as a Blender/D-NeRF multi-view scene (transforms_train/test.json, c2w
+    in OpenGL axes) in the scene's folder; returns the folder. A synthetic render, so the Blender reader's
+    defaults apply (no colour correction, the official near plane)."""
+    splits: dict[str, list] = {"train": [], "test": []}
+    frames = sorted({c.frame for c in scene.cameras})
+    for cam in scene.cameras:
+        c2w = np.linalg.inv(cam.w2c)
+        c2w[:3, 1:3] *= -1  # OpenCV (y down, z forward) -> OpenGL (y up, z backward)
+        split = "test" if cam.name in scene.test_names else "train"
+        splits[split].append({"file_path": f"ims/{cam.name}/{cam.frame:06d}.png", "camera": cam.name,
+                              "frame_index": cam.frame, "time": cam.frame / len(frames),
+                              "transform_matrix": c2w.tolist()})
+    cam = scene.cameras[0]
+    for split, entries in splits.items():
+        meta = {"fl_x": cam.K[0, 0], "fl_y": cam.K[1, 1], "cx": cam.K[0, 2], "cy": cam.K[1, 2], "w": cam.width,
+                "h": cam.height, "frames": entries}
+        (scene.root / f"transforms_{split}.json").write_text(json.dumps(meta))
+    return scene.root

@@ -286,6 +286,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="stgc",
         description="Spacetime Gaussians with spatiotemporal KNN compaction: train, compact, evaluate, compress, report.",
     )
+    from stgc import __version__
+
+    parser.add_argument("--version", action="version", version=f"stgc {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more detail (DEBUG messages)")
+    parser.add_argument("-q", "--quiet", action="count", default=0, help="errors only")
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
     sub.required = True
 
@@ -366,9 +371,29 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def configure_logging(verbosity: int) -> None:
+    """stgc's messages go to stderr through `logging` ("stgc: message"): warnings always, what each stage did
+    (INFO) by default, its details with -v; -q leaves only errors. Python warnings are routed to the same place."""
+    import logging
+
+    level = {-1: logging.ERROR, 0: logging.INFO}.get(max(-1, min(verbosity, 1)), logging.DEBUG)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("stgc: %(message)s"))
+    logger = logging.getLogger("stgc")
+    logger.handlers[:] = [handler]
+    logger.setLevel(level)
+    logger.propagate = False
+    logging.captureWarnings(True)
+    warnings_logger = logging.getLogger("py.warnings")
+    warnings_logger.handlers[:] = [handler]
+    warnings_logger.setLevel(logging.ERROR if verbosity < 0 else logging.WARNING)
+    warnings_logger.propagate = False
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    configure_logging(args.verbose - args.quiet)
     try:
         return int(args.func(args) or 0)
     except (StgcError, ValueError) as exc:

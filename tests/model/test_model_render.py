@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from types import SimpleNamespace
 
 import numpy as np
@@ -172,6 +174,11 @@ def test_gaussians_closer_than_the_official_near_plane_are_not_drawn(depth, seen
     assert (out.alpha.max().item() > 0.5) is seen
     near = model.render(camera, t=0.5, background=torch.zeros(3), backend="torch", near_plane=0.01)
     assert near.alpha.max().item() > 0.5  # the override reaches the rasterizer
+    # A camera carries its own near plane (the format's): one at 0.3 culls both depths, one at 0.1 neither.
+    for near_plane, drawn in ((0.3, False), (0.1, True)):
+        out = model.render(dataclasses.replace(camera, near=near_plane), t=0.5, background=torch.zeros(3),
+                           backend="torch")
+        assert (out.alpha.max().item() > 0.5) is drawn
 
 
 def test_gaussians_below_the_cut_at_their_peak_never_show_so_leaving_them_out_changes_no_render():

@@ -152,11 +152,15 @@ def mask_hull_points(dataset: Dataset, frame: int, count: int, rng: np.random.Ge
     from .masks import hull_colours, visual_hull
 
     cameras, masks = [], []
-    for cam in dataset.train_at(frame):
+    views = dataset.train_at(frame)
+    for cam in views:
         mask = dataset.load_mask(cam)
         if mask is not None:
             cameras.append(cam)
             masks.append(mask)
+    if len(cameras) < len(views) and not _said_once(("masks missing", str(dataset.root))):
+        log.warning("%s: %d of %d training views have no foreground mask; the visual hull uses the other %d",
+                    dataset.name, len(views) - len(cameras), len(views), len(cameras))
     if len(cameras) < 2:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
     focus, radius = viewing_region(dataset)
@@ -170,6 +174,17 @@ def mask_hull_points(dataset: Dataset, frame: int, count: int, rng: np.random.Ge
     points = points + rng.uniform(-side / 2, side / 2, size=points.shape)
     images = [dataset.load_image(cam) for cam in cameras]
     return points.astype(np.float32), hull_colours(points, cameras, images, masks)
+
+
+_SAID: set = set()
+
+
+def _said_once(key: object) -> bool:
+    """False the first time `key` is seen in this process, True after (for messages given once per run)."""
+    if key in _SAID:
+        return True
+    _SAID.add(key)
+    return False
 
 
 def viewing_region(dataset: Dataset) -> tuple[np.ndarray, float]:

@@ -1,0 +1,77 @@
+"""What every render of a run is drawn with (near plane, background) comes from the data, and reaches the trainer,
+the evaluator and the codec alike."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from scenes import add_blender_transforms, write_panoptic_scene
+
+from stgc.cli import main
+from stgc.data import open_dataset
+from stgc.data.cameras import DEFAULT_NEAR_PLANE
+from stgc.data.readers import PANOPTIC_NEAR_PLANE
+from stgc.eval.evaluate import open_run_dataset
+from stgc.model import STGModel
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    scene = write_panoptic_scene(tmp_path_factory.mktemp("scene"), views=5, frames=2, width=32, height=24)
+    add_blender_transforms(scene)
+    return scene
+
+
+def test_the_near_plane_follows_the_format_and_an_override_wins(scene):
+    panoptic = open_dataset(scene.root, format="panoptic")
+    blender = open_dataset(scene.root, format="blender")
+    assert PANOPTIC_NEAR_PLANE == 1.0 and DEFAULT_NEAR_PLANE == 0.2
+    assert {c.near for c in panoptic.cameras} == {1.0} and panoptic.near_plane == 1.0
+    assert {c.near for c in blender.cameras} == {0.2}
+    for fmt in ("panoptic", "blender"):
+        override = open_dataset(scene.root, format=fmt, near_plane=0.5)
+        assert {c.near for c in override.cameras} == {0.5}
+        assert override.segment(1, 1).near_plane == 0.5  # a segment keeps the choice
+
+
+def test_a_run_records_its_near_plane_and_old_runs_keep_the_official_one(scene, tmp_path):
+    run = tmp_path / "run"
+    assert main(["train", str(scene.root), "--out", str(run), "--set", "data.format=panoptic",
+                 "--set", "data.near_plane=0.7", *_tiny()]) == 0
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["data"]["near_plane"] == 0.7
+    assert open_run_dataset(run).near_plane == 0.7
+    del saved["data"]["near_plane"]  # as written before the near plane was recorded
+    (run / "config.json").write_text(json.dumps(saved))
+    assert open_run_dataset(run).near_plane == DEFAULT_NEAR_PLANE
+
+
+def _tiny(iterations: int = 6) -> list[str]:
+    return ["--set", f"train.iterations={iterations}", "--set", "train.schedule_scale=1", "--set",
+            "data.init_source=random", "--set", "train.progress=false", "--set", "train.tensorboard=false",
+            "--set", f"train.save_iterations=[{iterations}]"]
+
+
+def test_the_background_reaches_the_trainer_the_evaluator_and_the_codec(scene, tmp_path, monkeypatch):
+    seen: list[tuple[str, tuple]] = []
+    original = STGModel.render
+
+    def recording_render(self, camera, t=None, background=None, *args, **kwargs):
+        if background is not None:
+            seen.append((stage, tuple(round(float(v), 3) for v in torch.as_tensor(background).reshape(-1))))
+        return original(self, camera, t, background, *args, **kwargs)
+
+    monkeypatch.setattr(STGModel, "render", recording_render)
+    run = tmp_path / "run"
+    stage = "train"
+    assert main(["train", str(scene.root), "--out", str(run), "--set", "data.format=blender",
+                 "--set", "data.background=white", *_tiny()]) == 0
+    stage = "eval"
+    assert main(["eval", str(run), "--no-fps"]) == 0
+    stage = "codec"
+    assert main(["compress", str(run), "--out", str(run / "m.stgc"), "--set", "codec.allocation=optimised",
+                 "--set", "codec.allocation_views=2"]) == 0
+    by_stage = {s: {bg for st, bg in seen if st == s} for s in ("train", "eval", "codec")}
+    assert by_stage == {s: {(1.0, 1.0, 1.0)} for s in by_stage}, by_stage
