@@ -114,3 +114,31 @@ def test_out_whose_parent_is_a_file_is_a_clear_error(scene, tmp_path, capsys):
     blocker.write_text("x")
     assert main(_train_args(scene, blocker / "run")) == 2
     assert "is a file" in capsys.readouterr().err
+
+
+def test_iterations_are_real_iterations_and_the_help_shows_the_presets(capsys):
+    from stgc.cli import resolve_configs
+    from stgc.train.config import resolve_schedule
+
+    configs = resolve_configs("cpu", {}, {"train": {"iterations": "300"}}, {})
+    schedule = resolve_schedule(configs["train"])
+    assert schedule.iterations == 300  # was 60: the number was scaled by the preset's 0.2
+    assert schedule.densify_start == 100  # the schedule points still follow the preset's scale
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "iterations to train (real iterations, not scaled) (default: 6000)" in help_text
+
+
+def test_a_run_saved_with_iterations_in_schedule_units_resumes_with_its_real_count(trained_run, tmp_path):
+    import shutil
+
+    from stgc.cli import configs_from_run
+
+    run = tmp_path / "old"
+    shutil.copytree(trained_run, run)
+    saved = json.loads((run / "config.json").read_text())
+    saved["train"].update(iterations=50, schedule_scale=0.2)  # the old meaning: 50 x 0.2 = 10 real iterations
+    saved["train"]["resolved_schedule"]["iterations"] = 10
+    (run / "config.json").write_text(json.dumps(saved))
+    assert configs_from_run(run)["train"].iterations == 10

@@ -94,7 +94,11 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
     for name, cls in classes.items():
         section = dict(saved.get(name) or {})
         section.pop("path", None)
-        section.pop("resolved_schedule", None)
+        resolved = section.pop("resolved_schedule", None)
+        if name == "train" and isinstance(resolved, dict) and "iterations" in resolved:
+            # Runs saved before `iterations` meant real iterations stored it in schedule units; the resolved
+            # schedule always held the real number.
+            section["iterations"] = resolved["iterations"]
         out[name] = validate_config(from_dict(cls, section), name)
     out["data_path"] = (saved.get("data") or {}).get("path")
     return out

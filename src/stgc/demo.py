@@ -25,6 +25,7 @@ DEMO_SCENE = REPO_ROOT / "demo" / "toys_small"
 DEMO_OVERRIDES = {
     # The scene has only 10 frames: take the initial points of all of them (30k), not every 3rd as the cpu preset.
     "data.init_frames_every": "1",
+    "train.iterations": "1500",
     "train.schedule_scale": "0.05",
     "train.checkpoint_every": "100",
     "train.log_every": "20",

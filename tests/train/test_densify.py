@@ -141,7 +141,7 @@ def test_floater_rules():
 
 
 def test_schedule_scaling_and_xyz_decay():
-    sched = resolve_schedule(TrainConfig(schedule_scale=0.1))
+    sched = resolve_schedule(TrainConfig(iterations=3000, schedule_scale=0.1))
     assert sched.iterations == 3000 and sched.densify_start == 50 and sched.densify_interval == 10
     assert sched.densify_end == 50 + 6 * 10 and sched.opacity_reset_interval == 300
     assert sched.save_iterations[-1] == 3000 and 700 in sched.save_iterations

@@ -1,10 +1,11 @@
 """Training configuration: optimisation, densification, floater control, EMS, logging, checkpoints.
 
-Every iteration number that belongs to the *schedule* (total iterations, densification start/interval, pruning and
-reset windows, EMS start, PLY save points) is written on the official 30k-iteration scale and multiplied by ONE
-factor, `schedule_scale`, when the run starts (`resolve_schedule`). The `paper` preset is scale 1 (the official
-STG schedule); the `cpu` preset shrinks the same schedule so a 2-core CPU finishes in well under an hour.
-Operational counters (logging, checkpointing, `stop_after`) are in real iterations and are not scaled.
+`iterations` is the number of real iterations a run trains. Every other iteration number that belongs to the
+*schedule* (densification start/interval, pruning and reset windows, EMS start, PLY save points) is written on
+the official 30k-iteration scale and multiplied by ONE factor, `schedule_scale`, when the run starts
+(`resolve_schedule`). The `paper` preset is scale 1 with 30,000 iterations (the official STG schedule); the `cpu`
+preset shrinks the same schedule by 0.2 and trains 6,000 iterations, so a 2-core CPU finishes in well under an
+hour. Operational counters (logging, checkpointing, `stop_after`) are in real iterations and are not scaled.
 """
 
 from __future__ import annotations
@@ -138,7 +139,7 @@ class TrainConfig:
     """Everything the trainer needs besides data, model and compaction configs."""
 
     preset: str = field(default="custom", metadata={"help": "name of the preset these values came from (informational)"})
-    iterations: int = field(default=30000, metadata={"help": "total iterations (schedule units)"})
+    iterations: int = field(default=30000, metadata={"help": "iterations to train (real iterations, not scaled)"})
     schedule_scale: float = field(
         default=1.0, metadata={"help": "multiplies every schedule iteration (1 = official 30k schedule)"}
     )
@@ -197,7 +198,7 @@ def paper_preset() -> TrainConfig:
 
 def cpu_preset() -> TrainConfig:
     """The official schedule shrunk by `CPU_SCHEDULE_SCALE` for a 2-core CPU."""
-    return TrainConfig(preset="cpu", schedule_scale=CPU_SCHEDULE_SCALE)
+    return TrainConfig(preset="cpu", iterations=round(30000 * CPU_SCHEDULE_SCALE), schedule_scale=CPU_SCHEDULE_SCALE)
 
 
 PRESETS = {"paper": paper_preset, "cpu": cpu_preset}
@@ -235,7 +236,7 @@ class Schedule:
 
 
 def resolve_schedule(cfg: TrainConfig) -> Schedule:
-    """Scale every schedule point by `cfg.schedule_scale` (never below one iteration)."""
+    """Scale every schedule point but `iterations` by `cfg.schedule_scale` (never below one iteration)."""
     s = cfg.schedule_scale
     if s <= 0:
         raise ValueError(f"train.schedule_scale must be positive, got {s}")
@@ -244,7 +245,7 @@ def resolve_schedule(cfg: TrainConfig) -> Schedule:
         return max(1, int(round(x * s)))
 
     d = cfg.densify
-    iterations = scaled(cfg.iterations)
+    iterations = int(cfg.iterations)
     start, interval = scaled(d.start), scaled(d.interval)
     saves = sorted({min(scaled(x), iterations) for x in cfg.save_iterations} | {iterations})
     return Schedule(
