@@ -44,6 +44,14 @@ class ModelConfig:
         default=0,
         metadata={"help": "Seed of the decoder's random initial weights (full variant)."},
     )
+    decoder_ray_origin: bool = field(
+        default=False,
+        metadata={"help": "Let the decoder see the ray origin, i.e. the camera centre (official STG: true). Off, its "
+                          "weights on the origin are zero and stay zero: colour may still depend on the viewing "
+                          "direction, but not on which camera looks (a per-camera code that held-out cameras do not "
+                          "share; docs/model.md). The files stay official: a renderer that feeds the origin gets "
+                          "the same colours."},
+    )
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:

@@ -20,6 +20,9 @@ from stgc.model.config import DECODER_ACTIVATIONS
 FEATURE_CHANNELS = 9
 RAY_CHANNELS = 6
 HIDDEN_CHANNELS = 6
+# Columns of the first layer's input [specular(3), time feature(3), ray origin(3), ray direction(3)] that carry the
+# ray origin.
+RAY_ORIGIN_INPUTS = slice(6, 9)
 
 
 class SandwichDecoder(nn.Module):
@@ -36,6 +39,20 @@ class SandwichDecoder(nn.Module):
 
     def extra_repr(self) -> str:
         return f"activation={self.activation!r}"
+
+    def ignore_ray_origin(self) -> None:
+        """Zero the first layer's weights on the ray origin and keep them zero while training (their gradient is
+        masked), so the colour no longer depends on the camera's position. Idempotent."""
+        with torch.no_grad():
+            self.mlp1.weight[:, RAY_ORIGIN_INPUTS] = 0.0
+        if not getattr(self, "_origin_hook", None):
+            mask = torch.ones_like(self.mlp1.weight)
+            mask[:, RAY_ORIGIN_INPUTS] = 0.0
+            self._origin_hook = self.mlp1.weight.register_hook(lambda grad: grad * mask)
+
+    @property
+    def uses_ray_origin(self) -> bool:
+        return bool(self.mlp1.weight.detach()[:, RAY_ORIGIN_INPUTS].abs().sum() > 0)
 
     def forward(self, features: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
         if features.shape[-1] != FEATURE_CHANNELS:

@@ -25,6 +25,7 @@ import torch
 from stgc.config import validate_config
 from stgc.errors import DataError
 from stgc.fileio import write_json
+from stgc.model import ModelConfig
 from stgc.run import prepare_new_run
 from stgc.train.checkpoint import (
     CHECKPOINT_NAME,
@@ -171,6 +172,8 @@ class Trainer:
             self.metrics_log.clear()
             self.compaction_log.clear()
             self._write_config()
+        if self.model.decoder is not None and not (model_cfg or ModelConfig()).decoder_ray_origin:
+            self.model.decoder.ignore_ray_origin()
         self.extent = float(self.model.scene_extent)
         self.optimizer = self.model.make_optimizer(
             learning_rates(train_cfg, self.extent, self.model.params), train_cfg.lr.decoder
