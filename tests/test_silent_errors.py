@@ -142,3 +142,20 @@ def test_a_run_saved_with_iterations_in_schedule_units_resumes_with_its_real_cou
     saved["train"]["resolved_schedule"]["iterations"] = 10
     (run / "config.json").write_text(json.dumps(saved))
     assert configs_from_run(run)["train"].iterations == 10
+
+
+def test_a_truncated_image_is_found_by_inspect_decode_and_before_training(scene, tmp_path, capsys):
+    import shutil
+
+    root = tmp_path / "scene"
+    shutil.copytree(scene.root, root)
+    bad = root / "ims" / "2" / "000001.png"
+    data = bad.read_bytes()
+    bad.write_bytes(data[: int(len(data) * 0.6)])
+    assert main(["data", "inspect", str(root)]) == 0  # the header alone looks fine
+    capsys.readouterr()
+    assert main(["data", "inspect", str(root), "--decode"]) == 2
+    assert str(bad) in capsys.readouterr().err
+    assert main(_train_args(scene, tmp_path / "run")[:1] + [str(root)] + _train_args(scene, tmp_path / "run")[2:]) == 2
+    assert str(bad) in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()

@@ -134,6 +134,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.resume and args.overwrite:
         raise StgcError("--resume continues a run and --overwrite replaces it: give one of them")
     dataset = configs["data"].open(data_path)
+    dataset.verify_images(dataset.train, progress=True)  # a corrupt image fails now, not at iteration 14
     if not args.resume:
         from stgc.run import prepare_new_run
 
@@ -212,7 +213,7 @@ def cmd_decompress(args: argparse.Namespace) -> int:
 def cmd_data_inspect(args: argparse.Namespace) -> int:
     from stgc.data import inspect_text
 
-    print(inspect_text(args.path, format=args.format))
+    print(inspect_text(args.path, format=args.format, decode=args.decode))
     return 0
 
 
@@ -341,6 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
     q = data_sub.add_parser("inspect", help="print what a dataset directory holds")
     q.add_argument("path", help="dataset directory")
     q.add_argument("--format", default="auto", help="force a reader instead of detecting the layout")
+    q.add_argument("--decode", action="store_true", help="decode every image and mask file (finds truncated ones)")
     q.set_defaults(func=cmd_data_inspect)
 
     p = sub.add_parser("plot", help="plot pruning ratio, loss and Gaussian count of a run over iterations")

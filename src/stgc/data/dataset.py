@@ -203,6 +203,23 @@ class Dataset:
                         background=self.background, near_plane=self._near_plane)
 
     # ------------------------------------------------------------------ images
+    def verify_images(self, cameras: list[Camera] | None = None, progress: bool = False) -> int:
+        """Decode the image files (and masks) of `cameras` (default all) once, so that a truncated or corrupt file
+        is a DataError naming it now rather than an error in the middle of a training. Video frames are left to
+        their decoder. Returns how many files were decoded."""
+        cams = [c for c in (self.cameras if cameras is None else cameras) if isinstance(c.image, (str, Path))]
+        if progress:
+            from tqdm import tqdm
+
+            cams = tqdm(cams, desc="checking images", unit="image", leave=False)
+        count = 0
+        for cam in cams:
+            read_image(Path(cam.image), self.background)
+            count += 1
+            if self.load_mask(cam) is not None:
+                count += 1
+        return count
+
     def load_image(self, camera: Camera) -> np.ndarray:
         """uint8 [H, W, 3] at the camera's (downscaled) size; a private copy of the cached image, so callers
         may modify it or hand it to torch.from_numpy."""

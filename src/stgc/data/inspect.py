@@ -8,10 +8,14 @@ from pathlib import Path
 from .readers import open_dataset
 
 
-def inspect(path: str | Path, format: str = "auto", **kwargs) -> dict:
-    """Summary of the dataset at `path` (all frames unless start/duration are given) plus point availability."""
+def inspect(path: str | Path, format: str = "auto", decode: bool = False, **kwargs) -> dict:
+    """Summary of the dataset at `path` (all frames unless start/duration are given) plus point availability.
+    decode: also decode every image and mask file (a truncated or corrupt one is a DataError naming it)."""
     dataset = open_dataset(path, format=format, **kwargs)
     info = dataset.summary()
+    info["decoded_files"] = dataset.verify_images(progress=True) if decode else None
+    info["masks"] = dataset.has_masks
+    info["near_plane"] = dataset.near_plane
     if dataset.has_points:
         counts = []
         for frame in dataset.frames:
@@ -57,6 +61,10 @@ def inspect_text(path: str | Path, **kwargs) -> str:
         ("memory", f"{_bytes(info['memory_uint8_bytes'])} as uint8, {_bytes(info['memory_float32_bytes'])} as float32"),
         ("initial points", "none shipped (triangulate or random)" if pts is None else
          f"{info['points']}: {pts['total']} in all, {pts['min']}..{pts['max']} per frame"),
+        ("masks", "foreground masks for the training views" if info["masks"] else "none"),
+        ("near plane", f"{info['near_plane']:g}"),
+        ("decoded", "not checked (add --decode to decode every file)" if info["decoded_files"] is None
+         else f"all {info['decoded_files']} image and mask files decode"),
     ]
     rows += [("note", n) for n in info["notes"]]
     for key, value in rows:
