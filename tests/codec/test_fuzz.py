@@ -234,14 +234,3 @@ def test_predicted_sections_are_checked(valid_file):
     # Without the flag the coefficients are unexplained table bytes.
     with pytest.raises(FormatError, match="trailing bytes|runs? past|does not match"):
         decode(_set_flags(data, predicted[0], predicted[4] & ~PREDICT))
-
-
-@pytest.mark.parametrize("version", [2, 3])
-def test_files_of_earlier_versions_are_still_read(version):
-    arrays, decoder = synthetic_model(300, "full", seed=5)
-    plain = encode(arrays, "full", decoder, adaptive_delta=False)  # no centred or predicted sections
-    assert not any(e[4] & (4 | PREDICT) for _, e in _entries(plain))
-    old = bytearray(plain)
-    struct.pack_into("<H", old, 8, version)
-    model = decode(bytes(reseal(old)))
-    assert np.array_equal(model.arrays["x"], decode(plain).arrays["x"])
