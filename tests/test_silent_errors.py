@@ -159,3 +159,19 @@ def test_a_truncated_image_is_found_by_inspect_decode_and_before_training(scene,
     assert main(_train_args(scene, tmp_path / "run")[:1] + [str(root)] + _train_args(scene, tmp_path / "run")[2:]) == 2
     assert str(bad) in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_the_latest_iteration_is_one_rule_for_every_verb(trained_run, tmp_path):
+    """An iteration folder without its PLY (a save that was interrupted) is not "the latest model" for anyone."""
+    import shutil
+
+    from stgc.codec.files import iteration_of
+    from stgc.eval.accounting import latest_iteration_dir
+    from stgc.model.ply import resolve_ply_path
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    (run / "point_cloud" / "iteration_99").mkdir()  # empty: no point_cloud.ply
+    assert latest_iteration_dir(run).name == "iteration_10"
+    assert resolve_ply_path(run).parent.name == "iteration_10"
+    assert iteration_of(run) == 10

@@ -9,6 +9,7 @@ run's files, and only those: other files in the folder, such as an experiment's 
 
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 
@@ -26,6 +27,40 @@ RUN_FILES = (
     "compaction.png",
 )
 RUN_FOLDERS = ("point_cloud", "tensorboard", "eval")
+
+
+# RUN/point_cloud/iteration_<N>/point_cloud.ply: one saved model per N (official layout).
+_ITERATION_DIR = re.compile(r"^iteration_(\d+)$")
+SAVED_MODEL = "point_cloud.ply"
+
+
+def saved_iterations(run_dir: str | Path) -> dict[int, Path]:
+    """{N: RUN/point_cloud/iteration_<N>} for every iteration whose PLY is there."""
+    root = Path(run_dir) / "point_cloud"
+    found: dict[int, Path] = {}
+    if root.is_dir():
+        for child in root.iterdir():
+            match = _ITERATION_DIR.match(child.name)
+            if match and (child / SAVED_MODEL).is_file():
+                found[int(match.group(1))] = child
+    return found
+
+
+def latest_iteration_dir(run_dir: str | Path) -> Path | None:
+    """The saved iteration with the largest N (the one rule every verb uses for "the run's model"), or None."""
+    found = saved_iterations(run_dir)
+    return found[max(found)] if found else None
+
+
+def iteration_of(path: str | Path) -> int | None:
+    """The training iteration a model path refers to: an iteration dir (or a file in it), or a run dir's latest."""
+    path = Path(path)
+    for candidate in (path, path.parent):
+        match = _ITERATION_DIR.match(candidate.name)
+        if match:
+            return int(match.group(1))
+    found = saved_iterations(path)
+    return max(found) if found else None
 
 
 class RunExistsError(StgcError):

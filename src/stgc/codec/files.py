@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -10,6 +9,7 @@ from typing import Any
 from stgc.errors import DataError, FormatError
 from stgc.fileio import atomic_path, read_json_object, write_json
 from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
+from stgc.run import iteration_of
 
 from .allocation import Allocation, budget_db, optimise_allocation
 from .format import (
@@ -172,20 +172,6 @@ def stgc_bytes_per_gaussian(path: str | Path) -> float:
     return read_stgc_header(path).bytes_per_gaussian
 
 
-_ITERATION_DIR = re.compile(r"iteration_(\d+)$")
-
-
-def _iteration_of(path: Path) -> int | None:
-    """The training iteration a model path refers to (run dir: its latest saved iteration)."""
-    for candidate in (path, path.parent):
-        m = _ITERATION_DIR.search(candidate.name)
-        if m:
-            return int(m.group(1))
-    iterations = [int(m.group(1)) for p in (path / "point_cloud").glob("iteration_*")
-                  if (m := _ITERATION_DIR.search(p.name))]
-    return max(iterations) if iterations else None
-
-
 def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: int | None = None,
                  config: CodecConfig | None = None) -> CompressResult:
     """Compress a trained model (a run dir -> its latest iteration, an iteration dir, or a point_cloud.ply)."""
@@ -209,7 +195,7 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
     metadata: dict[str, Any] = {"source": source.name}
     if model.decoder_activation is not None:  # not in the official files; renders depend on it
         metadata["decoder_activation"] = model.decoder_activation
-    iteration = _iteration_of(source)
+    iteration = iteration_of(source)
     if iteration is not None:
         metadata["iteration"] = iteration
     if model.num_gaussians < input_gaussians:

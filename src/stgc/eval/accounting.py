@@ -25,6 +25,7 @@ import numpy as np
 
 from stgc.errors import DataError, FormatError
 from stgc.fileio import read_json_object
+from stgc import run as run_layout
 from stgc.model.layout import bytes_per_gaussian, ply_fields
 
 BYTES_PER_MIB = 2**20
@@ -215,17 +216,11 @@ def variant_of_fields(names: Sequence[str], path: str | Path | None = None) -> s
 
 
 def latest_iteration_dir(run_dir: str | Path) -> Path:
-    """RUN/point_cloud/iteration_<N> with the largest N."""
-    run_dir = Path(run_dir)
-    root = run_dir / "point_cloud"
-    candidates = []
-    for d in root.glob("iteration_*") if root.is_dir() else []:
-        suffix = d.name.removeprefix("iteration_")
-        if d.is_dir() and suffix.isdigit() and (d / "point_cloud.ply").is_file():
-            candidates.append((int(suffix), d))
-    if not candidates:
+    """RUN/point_cloud/iteration_<N> with the largest N (`stgc.run.latest_iteration_dir`), else a DataError."""
+    latest = run_layout.latest_iteration_dir(run_dir)
+    if latest is None:
         raise DataError(run_dir, "no point_cloud/iteration_<N>/point_cloud.ply in this run directory")
-    return max(candidates)[1]
+    return latest
 
 
 def size_of_saved_model(path: str | Path, duration_s: float) -> ModelSize:

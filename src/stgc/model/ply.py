@@ -6,7 +6,6 @@ Arrays are exchanged as {official field name: float32 [N]} in `layout.ply_fields
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
@@ -16,11 +15,11 @@ from plyfile import PlyData, PlyElement
 from stgc.errors import FormatError
 from stgc.fileio import atomic_path
 from stgc.model.layout import NORMAL_FIELDS, ply_fields
+from stgc.run import SAVED_MODEL, latest_iteration_dir
 
-PLY_NAME = "point_cloud.ply"
+PLY_NAME = SAVED_MODEL
 DECODER_NAME = "point_cloud.pt"
 DECODER_SHAPES = {"mlp1.weight": (6, 12, 1, 1), "mlp2.weight": (3, 6, 1, 1)}
-_ITERATION_DIR = re.compile(r"^iteration_(\d+)$")
 
 
 def detect_variant(field_names: list[str] | set[str], path: Path | None = None) -> str:
@@ -139,12 +138,7 @@ def resolve_ply_path(path: str | Path) -> Path:
         raise FormatError(path, "no such file or directory")
     if (path / PLY_NAME).is_file():
         return path / PLY_NAME
-    iterations = []
-    if (path / "point_cloud").is_dir():
-        for child in (path / "point_cloud").iterdir():
-            match = _ITERATION_DIR.match(child.name)
-            if match and (child / PLY_NAME).is_file():
-                iterations.append((int(match.group(1)), child))
-    if not iterations:
+    latest = latest_iteration_dir(path)
+    if latest is None:
         raise FormatError(path, f"no {PLY_NAME} here nor under point_cloud/iteration_<N>/")
-    return max(iterations)[1] / PLY_NAME
+    return latest / PLY_NAME
