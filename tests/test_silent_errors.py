@@ -175,3 +175,16 @@ def test_the_latest_iteration_is_one_rule_for_every_verb(trained_run, tmp_path):
     assert latest_iteration_dir(run).name == "iteration_10"
     assert resolve_ply_path(run).parent.name == "iteration_10"
     assert iteration_of(run) == 10
+
+
+def test_a_run_config_with_an_unknown_data_key_is_an_error_naming_the_file(trained_run, tmp_path, capsys):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    saved = json.loads((run / "config.json").read_text())
+    saved["data"]["downscal"] = 2  # a typo was dropped before: the run was evaluated at the wrong size
+    (run / "config.json").write_text(json.dumps(saved))
+    assert main(["eval", str(run), "--no-fps"]) == 2
+    err = capsys.readouterr().err
+    assert "config.json" in err and "downscal" in err

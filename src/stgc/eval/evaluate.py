@@ -279,8 +279,7 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
 def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstream: Path | None = None) -> Any:
     """The dataset a run was trained on, opened with the run's own data options: RUN/config.json, or for a
     `.stgc` file away from its run, the run config the encoder embedded in it."""
-    import dataclasses
-
+    from stgc.config import ConfigError, from_dict, validate_config
     from stgc.data import DataConfig  # the data package is only needed here
     from stgc.data.cameras import DEFAULT_NEAR_PLANE
 
@@ -303,10 +302,14 @@ def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstre
     if path is None:
         where = "config.json has no data.path" if config_path.is_file() else "no run config found"
         raise DataError(config_path, f"no data path ({where}); pass the dataset with --data")
-    known = {f.name for f in dataclasses.fields(DataConfig)}
+    data_cfg.pop("path", None)
     # Runs saved before the near plane was recorded trained with the official one, whatever their format.
     data_cfg.setdefault("near_plane", DEFAULT_NEAR_PLANE)
-    return DataConfig(**{k: v for k, v in data_cfg.items() if k in known}).open(path)
+    try:  # strictly: an unknown or ill-typed key is an error naming the file, never silently dropped
+        config = validate_config(from_dict(DataConfig, data_cfg), "data")
+    except ConfigError as exc:
+        raise FormatError(config_path, f"run config: {exc}") from None
+    return config.open(path)
 
 
 def dataset_duration_s(dataset: Any) -> float:
