@@ -1,7 +1,8 @@
 """stgc: Spacetime Gaussians with spatiotemporal KNN compaction, measured.
 
-Layers (data flows down, nothing imports upward):
-cli -> experiment -> train -> compaction | eval | codec -> model -> data | render
+Layers (a package imports only from its own layer or below; tests/test_layers.py checks it, docs/architecture.md):
+cli | demo | experiment -> eval -> train | compaction | codec -> model -> data | render -> errors | fileio | config | run
+(one known exception: the trainer uses stgc.eval for SSIM and its end-of-training evaluation)
 """
 
 import os as _os

@@ -9,6 +9,7 @@ from typing import Any
 from stgc.errors import DataError, FormatError
 from stgc.fileio import atomic_path, read_json_object, write_json
 from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
+from stgc.data.config import open_run_dataset
 from stgc.run import iteration_of
 
 from .allocation import Allocation, budget_db, optimise_allocation
@@ -221,8 +222,6 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
 
 def _training_dataset(run_dir: Path | None, source: Path, required: bool) -> Any:
     """The dataset the run was trained on, or None (ladder) when it cannot be opened and is not required."""
-    from stgc.eval import open_run_dataset  # eval owns "which dataset did this run use"
-
     try:
         if run_dir is None:
             raise DataError(source, "not inside a run directory, so its dataset is unknown")

@@ -114,6 +114,46 @@ class DataConfig:
 
 
 
+def data_config_from_saved(section: dict, source) -> tuple[DataConfig, str | None]:
+    """(DataConfig, dataset path) from the `data` section a run saved (RUN/config.json, or the copy a .stgc file
+    embeds), read strictly: an unknown or ill-typed key is a FormatError naming `source`, never dropped."""
+    from stgc.config import ConfigError, from_dict, validate_config
+    from stgc.errors import FormatError
+
+    from .cameras import DEFAULT_NEAR_PLANE
+
+    if not isinstance(section, dict):
+        raise FormatError(source, "the run config's 'data' section is not an object")
+    section = dict(section)
+    path = section.pop("path", None)
+    # Runs saved before the near plane was recorded trained with the official one, whatever their format.
+    section.setdefault("near_plane", DEFAULT_NEAR_PLANE)
+    try:
+        return validate_config(from_dict(DataConfig, section), "data"), path
+    except ConfigError as exc:
+        raise FormatError(source, f"run config: {exc}") from None
+
+
+def open_run_dataset(run_dir, data_path=None):
+    """The dataset the run in `run_dir` trained on, opened with its own saved data options (RUN/config.json);
+    `data_path` replaces the saved location (the same data moved, or other data)."""
+    from pathlib import Path
+
+    from stgc.errors import DataError
+    from stgc.fileio import read_json_object
+
+    config_path = Path(run_dir) / "config.json"
+    saved = read_json_object(config_path)
+    if saved is None:
+        if data_path is not None:  # a model without its run: the given data, with default options
+            return DataConfig().open(data_path)
+        raise DataError(config_path, "no run config found; pass the dataset with --data")
+    config, path = data_config_from_saved(saved.get("data") or {}, config_path)
+    if data_path is None and path is None:
+        raise DataError(config_path, "config.json has no data.path; pass the dataset with --data")
+    return config.open(data_path if data_path is not None else path)
+
+
 def initial_points_from_config(dataset, cfg: DataConfig | None = None):
     """The trainer's entry point: initial points of `dataset` as `cfg` asks, after preprocessing (PointCloud).
 

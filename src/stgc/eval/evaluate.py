@@ -279,37 +279,21 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
 def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstream: Path | None = None) -> Any:
     """The dataset a run was trained on, opened with the run's own data options: RUN/config.json, or for a
     `.stgc` file away from its run, the run config the encoder embedded in it."""
-    from stgc.config import ConfigError, from_dict, validate_config
-    from stgc.data import DataConfig  # the data package is only needed here
-    from stgc.data.cameras import DEFAULT_NEAR_PLANE
+    from stgc.data.config import data_config_from_saved
+    from stgc.data.config import open_run_dataset as open_saved_run_dataset
 
-    config_path = run_dir / "config.json"
-    data_cfg: dict[str, Any] = {}
-    saved = read_json_object(config_path)
-    if saved is not None:
-        section = saved.get("data") or {}
-        if not isinstance(section, dict):
-            raise FormatError(config_path, "the run config's 'data' section is not an object")
-        data_cfg = dict(section)
-    elif bitstream is not None:
-        from stgc.codec import read_stgc
+    if (run_dir / "config.json").is_file() or bitstream is None:
+        return open_saved_run_dataset(run_dir, data_path)
+    from stgc.codec import read_stgc
 
-        embedded = read_stgc(bitstream).metadata.get("run_config")
-        data_section = embedded.get("data") if isinstance(embedded, dict) else None
-        if isinstance(data_section, dict):
-            data_cfg, config_path = dict(data_section), bitstream
-    path = data_path if data_path is not None else data_cfg.get("path")
-    if path is None:
-        where = "config.json has no data.path" if config_path.is_file() else "no run config found"
-        raise DataError(config_path, f"no data path ({where}); pass the dataset with --data")
-    data_cfg.pop("path", None)
-    # Runs saved before the near plane was recorded trained with the official one, whatever their format.
-    data_cfg.setdefault("near_plane", DEFAULT_NEAR_PLANE)
-    try:  # strictly: an unknown or ill-typed key is an error naming the file, never silently dropped
-        config = validate_config(from_dict(DataConfig, data_cfg), "data")
-    except ConfigError as exc:
-        raise FormatError(config_path, f"run config: {exc}") from None
-    return config.open(path)
+    embedded = read_stgc(bitstream).metadata.get("run_config")
+    section = embedded.get("data") if isinstance(embedded, dict) else None
+    if not isinstance(section, dict):
+        raise DataError(bitstream, "no run config found beside or inside the bitstream; pass the dataset with --data")
+    config, path = data_config_from_saved(section, bitstream)
+    if data_path is None and path is None:
+        raise DataError(bitstream, "the embedded run config has no data.path; pass the dataset with --data")
+    return config.open(data_path if data_path is not None else path)
 
 
 def dataset_duration_s(dataset: Any) -> float:

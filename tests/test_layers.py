@@ -1,0 +1,65 @@
+"""The package layers (docs/architecture.md): a module imports only from its own layer or the layers below it.
+
+Checked on the source's import statements (top-level and inside functions alike), so a function-level import
+cannot hide a cycle. The two known upward imports are listed with what removing them takes; a new one fails."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "stgc"
+
+LAYERS = [
+    {"errors", "fileio", "config", "run"},  # foundations: no stgc imports but these
+    {"data", "render"},
+    {"model"},
+    {"train", "compaction", "codec"},
+    {"eval"},
+    {"experiment", "demo", "cli", "__init__", "__main__"},
+]
+LEVEL = {name: i for i, names in enumerate(LAYERS) for name in names}
+
+# (importing module, imported package): the trainer evaluates and scores SSIM with stgc.eval. Removing it means
+# moving SSIM below the trainer and handing the end-of-training evaluation in from above.
+KNOWN_UPWARD = {("train/loop.py", "eval")}
+
+
+def _package_of(path: Path) -> str:
+    rel = path.relative_to(SRC)
+    return rel.parts[0].removesuffix(".py")
+
+
+def _imported_packages(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    own = _package_of(path)
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            if node.level == 1:
+                continue  # same package
+            if node.level >= 2:
+                found.add((node.module or "").split(".")[0] or own)
+            elif node.module and node.module.split(".")[0] == "stgc":
+                parts = node.module.split(".")
+                # `from stgc import x`: a submodule, or a name of the root package itself
+                found.update([parts[1]] if len(parts) > 1 else
+                             [a.name if a.name in LEVEL else "__init__" for a in node.names])
+        elif isinstance(node, ast.Import):
+            found.update(a.name.split(".")[1] for a in node.names if a.name.startswith("stgc."))
+    return {p for p in found if p and p != own}
+
+
+def test_every_package_is_in_a_layer():
+    packages = {_package_of(p) for p in SRC.rglob("*.py")}
+    assert packages <= set(LEVEL), sorted(packages - set(LEVEL))
+
+
+def test_no_module_imports_from_a_higher_layer():
+    upward = set()
+    for path in SRC.rglob("*.py"):
+        own = LEVEL[_package_of(path)]
+        for package in _imported_packages(path):
+            if LEVEL[package] > own:
+                upward.add((str(path.relative_to(SRC)), package))
+    assert upward == KNOWN_UPWARD, f"new: {sorted(upward - KNOWN_UPWARD)}, gone: {sorted(KNOWN_UPWARD - upward)}"
