@@ -266,13 +266,15 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("data", nargs="?", help="dataset directory (any supported layout; see `stgc data inspect`)")
     p.add_argument("--out", required=True, help="run directory to write (or to resume)")
-    p.add_argument("--preset", default="cpu", choices=["cpu", "paper"], help="training schedule preset")
-    p.add_argument("--variant", choices=["full", "lite"], help="STG variant (shortcut for --model.variant)")
-    p.add_argument("--compaction", choices=["none", "st-knn"], help="compaction method (default none)")
-    p.add_argument("--case", type=int, choices=[1, 2, 3, 4], help="paper pruning window case (compaction.case)")
-    p.add_argument(
-        "--criterion", choices=["timestamp", "scale", "importance"], help="which member of a pair is removed"
-    )
+    from stgc.compaction.config import CASE_WINDOWS, CRITERIA, METHODS
+    from stgc.model.layout import VARIANTS
+    from stgc.train.config import PRESETS
+
+    p.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="training schedule preset")
+    p.add_argument("--variant", choices=list(VARIANTS), help="STG variant (shortcut for --model.variant)")
+    p.add_argument("--compaction", choices=list(METHODS), help="compaction method (default none)")
+    p.add_argument("--case", type=int, choices=sorted(CASE_WINDOWS), help="paper pruning window case (compaction.case)")
+    p.add_argument("--criterion", choices=list(CRITERIA), help="which member of a pair is removed")
     p.add_argument("--resume", action="store_true", help="continue RUN from its last checkpoint")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in RUN (its files are removed)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override any option, e.g. train.iterations=3000")
@@ -354,7 +356,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", help="dataset directory")
     p.add_argument("--plan", required=True, help="table2 | table3 | PLAN.toml")
     p.add_argument("--out", required=True, help="experiment directory (resumable)")
-    p.add_argument("--preset", default="cpu", choices=["cpu", "paper"], help="training preset of every run")
+    from stgc.train.config import PRESETS
+
+    p.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="training preset of every run")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override applied to every run")
     p.add_argument("--codec-quality", type=int, action="append", help="also add .stgc rate points at this quality")
     p.add_argument("--preprocess", choices=["stg-isolated", "closest-pairs"],
