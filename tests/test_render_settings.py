@@ -4,7 +4,9 @@ the evaluator and the codec alike."""
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import torch
 from scenes import add_blender_transforms, write_panoptic_scene
@@ -75,3 +77,24 @@ def test_the_background_reaches_the_trainer_the_evaluator_and_the_codec(scene, t
                  "--set", "codec.allocation_views=2"]) == 0
     by_stage = {s: {bg for st, bg in seen if st == s} for s in ("train", "eval", "codec")}
     assert by_stage == {s: {(1.0, 1.0, 1.0)} for s in by_stage}, by_stage
+
+
+def test_real_captures_train_without_the_decoders_ray_origin_and_with_colour_correction(scene, tmp_path):
+    from stgc.model import ModelConfig
+    from stgc.train import TrainConfig
+    from stgc.train.loop import Trainer
+
+    def trainer(fmt, **model):
+        dataset = open_dataset(scene.root, format=fmt)
+        model_cfg = ModelConfig(**model)
+        xyz = scene.model.params["xyz"].detach().numpy()
+        cloud = SimpleNamespace(xyz=xyz, rgb=np.full_like(xyz, 0.5), time=np.full(len(xyz), 0.5, np.float32))
+        start = STGModel.from_points(cloud, variant="full", scene_extent=3.3)
+        return Trainer(dataset, None, model_cfg, TrainConfig(iterations=1, progress=False, tensorboard=False),
+                       None, tmp_path / f"{fmt}{len(model)}", model=start)
+
+    real, synthetic = trainer("panoptic"), trainer("blender")
+    assert not real.decoder_ray_origin and not real.model.decoder.uses_ray_origin and real.colour is not None
+    assert synthetic.decoder_ray_origin and synthetic.model.decoder.uses_ray_origin and synthetic.colour is None
+    forced = trainer("panoptic", decoder_ray_origin="on")
+    assert forced.model.decoder.uses_ray_origin

@@ -182,3 +182,12 @@ def test_gaussian_budget_takes_the_largest_gradients_and_never_exceeds_the_cap()
     # Without room nothing changes; without a cap all 40 go.
     stats.add(torch.arange(46), torch.ones(46, dtype=torch.float64), torch.ones(46, dtype=torch.bool))
     assert clone_and_split(model, stats, 1e-4, 0.01, 2, torch.Generator(), max_gaussians=46) == {"cloned": 0, "split": 0}
+
+
+def test_the_growth_cap_is_relative_to_the_initial_count_and_the_smaller_cap_wins():
+    from stgc.train.config import DensifyConfig
+
+    assert DensifyConfig().cap(10_000) == 0
+    assert DensifyConfig(max_growth=2.0).cap(15_000) == 30_000
+    assert DensifyConfig(max_growth=2.0, max_gaussians=20_000).cap(15_000) == 20_000
+    assert DensifyConfig(max_gaussians=20_000).cap(15_000) == 20_000

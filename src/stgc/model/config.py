@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 from stgc.model.layout import VARIANTS
 
@@ -44,13 +45,14 @@ class ModelConfig:
         default=0,
         metadata={"help": "Seed of the decoder's random initial weights (full variant)."},
     )
-    decoder_ray_origin: bool = field(
-        default=False,
-        metadata={"help": "Let the decoder see the ray origin, i.e. the camera centre (official STG: true). Off, its "
+    decoder_ray_origin: Literal["auto", "on", "off"] = field(
+        default="auto",
+        metadata={"help": "let the decoder see the ray origin, i.e. the camera centre (official STG: on). Off, its "
                           "weights on the origin are zero and stay zero: colour may still depend on the viewing "
-                          "direction, but not on which camera looks (a per-camera code that held-out cameras do not "
-                          "share; docs/model.md). The files stay official: a renderer that feeds the origin gets "
-                          "the same colours."},
+                          "direction, not on which camera looks, and the files stay official. auto: off for real "
+                          "captures, whose cameras differ in exposure (the origin becomes a per-camera colour code "
+                          "that held-out cameras do not share; the colour correction takes that role), on for "
+                          "synthetic renders (docs/model.md)"},
     )
 
     def __post_init__(self) -> None:

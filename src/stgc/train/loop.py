@@ -172,13 +172,16 @@ class Trainer:
             self.metrics_log.clear()
             self.compaction_log.clear()
             self._write_config()
-        if self.model.decoder is not None and not (model_cfg or ModelConfig()).decoder_ray_origin:
+        origin = (model_cfg or ModelConfig()).decoder_ray_origin
+        self.decoder_ray_origin = origin == "on" or (origin == "auto" and dataset.synthetic)
+        if self.model.decoder is not None and not self.decoder_ray_origin:
             self.model.decoder.ignore_ray_origin()
         self.extent = float(self.model.scene_extent)
         self.optimizer = self.model.make_optimizer(
             learning_rates(train_cfg, self.extent, self.model.params), train_cfg.lr.decoder
         )
         self.stats = DensificationStats(self.model.num_gaussians)
+        self.initial_gaussians = self.model.num_gaussians  # a resumed run restores its own below
         self.colour = self._make_colour_correction()
         self.compactor = self._make_compactor()
         self.ems = ErrorGuidedSampler(
@@ -236,6 +239,7 @@ class Trainer:
         self.start_iteration = int(ckpt["iteration"])
         self.elapsed_before = float(ckpt["elapsed_s"])
         self.densify_rounds_done = int(ckpt["densify_rounds_done"])
+        self.initial_gaussians = int(ckpt.get("initial_gaussians", self.initial_gaussians))
         if ckpt.get("ems"):
             self.ems.state = ckpt["ems"]
         if self.compactor is not None and ckpt.get("compactor") is not None:
@@ -255,6 +259,7 @@ class Trainer:
             "optimizer": self.optimizer.state_dict(),
             "densify_stats": self.stats.state_dict(),
             "densify_rounds_done": self.densify_rounds_done,
+            "initial_gaussians": self.initial_gaussians,
             "compactor": None if self.compactor is None else self.compactor.state_dict(),
             "ems": self.ems.state,
             "colour_correction": None if self.colour is None else self.colour.state_dict(),
@@ -324,7 +329,7 @@ class Trainer:
             if d.enabled and self.densify_rounds_done < d.rounds:
                 report.update(
                     clone_and_split(self.model, self.stats, d.grad_threshold, d.percent_dense, d.split_count, generator,
-                                    max_gaussians=d.max_gaussians)
+                                    max_gaussians=d.cap(self.initial_gaussians))
                 )
                 self.densify_rounds_done += 1
             elif iteration < sched.prune_until:
