@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import csv
 import json
 import sys
@@ -101,7 +103,8 @@ def test_the_resume_command_is_accepted_by_the_cli(tmp_path: Path, monkeypatch: 
     run.mkdir()
     (run / "config.json").write_text('{"compaction": {"method": "st-knn", "case": "3"}}')
     calls = []
-    monkeypatch.setattr(stgc.data.DataConfig, "open", lambda self, path: path)
+    monkeypatch.setattr(stgc.data.DataConfig, "open", lambda self, path: SimpleNamespace(
+        path=path, train=[], verify_images=lambda cameras, progress=False: 0))
     monkeypatch.setattr(stgc.train, "train", lambda *a, **k: calls.append((a, k)))
     cmd = build_train_command("DATA", run, "cpu", {"compaction.case": "3"}, resume=True, python="py")
     assert main(cmd[3:]) == 0
