@@ -209,18 +209,9 @@ def paper_preset() -> TrainConfig:
     return TrainConfig(preset="paper", densify=DensifyConfig(stats_views="last"))
 
 
-# The official densification (six clone/split rounds right after iteration 500) suits its dense initial clouds
-# (COLMAP points of every frame). From a sparse cloud (a few thousand triangulated points) it leaves the model far
-# too small: on panoptic_basketball 8-10k Gaussians, soft everywhere. The cpu preset densifies like 3DGS instead,
-# every 100 real iterations for the first 35 % of the run, and bounds the growth to twice the initial count so the
-# run stays within the CPU budget whatever the scene (benchmarks/RESULTS.md, "Real captures").
-CPU_DENSIFY = DensifyConfig(interval=500, rounds=20, max_growth=2.0)
-
-
 def cpu_preset() -> TrainConfig:
-    """The official schedule shrunk by `CPU_SCHEDULE_SCALE` for a 2-core CPU, with longer, bounded densification."""
-    return TrainConfig(preset="cpu", iterations=round(30000 * CPU_SCHEDULE_SCALE), schedule_scale=CPU_SCHEDULE_SCALE,
-                       densify=CPU_DENSIFY)
+    """The official schedule shrunk by `CPU_SCHEDULE_SCALE` for a 2-core CPU."""
+    return TrainConfig(preset="cpu", iterations=round(30000 * CPU_SCHEDULE_SCALE), schedule_scale=CPU_SCHEDULE_SCALE)
 
 
 PRESETS = {"paper": paper_preset, "cpu": cpu_preset}
