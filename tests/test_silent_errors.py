@@ -188,3 +188,22 @@ def test_a_run_config_with_an_unknown_data_key_is_an_error_naming_the_file(train
     assert main(["eval", str(run), "--no-fps"]) == 2
     err = capsys.readouterr().err
     assert "config.json" in err and "downscal" in err
+
+
+def test_a_run_saved_before_the_real_capture_options_resumes_as_it_trained(trained_run, tmp_path):
+    import shutil
+
+    from stgc.cli import configs_from_run
+
+    run = tmp_path / "old"
+    shutil.copytree(trained_run, run)
+    saved = json.loads((run / "config.json").read_text())
+    for section, key in (("data", "near_plane"), ("data", "mask_points_per_frame"), ("model", "decoder_ray_origin"),
+                         ("train", "colour_correction")):
+        del saved[section][key]
+    del saved["train"]["densify"]["stats_views"]
+    (run / "config.json").write_text(json.dumps(saved))
+    configs = configs_from_run(run)
+    assert configs["data"].near_plane == 0.2 and configs["data"].mask_points_per_frame == 0
+    assert configs["model"].decoder_ray_origin == "on" and configs["train"].colour_correction == "off"
+    assert configs["train"].densify.stats_views == "last"

@@ -89,10 +89,16 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
     saved = read_json_object(path)
     if saved is None:
         raise StgcError(f"{path}: not found; is {run_dir} a stgc run directory?")
+    from stgc.data.config import data_config_from_saved
+
     classes = _section_classes()
     out: dict[str, Any] = {}
     for name, cls in classes.items():
         section = dict(saved.get(name) or {})
+        if name == "data":
+            out[name], _ = data_config_from_saved(section, path)
+            continue
+        _fill_legacy_defaults(name, section)
         section.pop("path", None)
         resolved = section.pop("resolved_schedule", None)
         if name == "train" and isinstance(resolved, dict) and "iterations" in resolved:
@@ -102,6 +108,24 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
         out[name] = validate_config(from_dict(cls, section), name)
     out["data_path"] = (saved.get("data") or {}).get("path")
     return out
+
+
+# Options added after runs were already saved, with the value that reproduces how those runs trained (a resumed
+# run continues as it started; the new defaults apply to new runs only).
+# (The data section's are applied by stgc.data.config.data_config_from_saved, which every verb reads it with.)
+LEGACY_DEFAULTS: dict[str, dict[str, Any]] = {
+    "model": {"decoder_ray_origin": "on"},
+    "train": {"colour_correction": "off", "densify.stats_views": "last"},
+}
+
+
+def _fill_legacy_defaults(section_name: str, section: dict[str, Any]) -> None:
+    for dotted, value in LEGACY_DEFAULTS.get(section_name, {}).items():
+        target = section
+        *parents, key = dotted.split(".")
+        for parent in parents:
+            target = target.setdefault(parent, {})
+        target.setdefault(key, value)
 
 
 # --------------------------------------------------------------------------------------------- verbs

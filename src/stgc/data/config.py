@@ -126,8 +126,10 @@ def data_config_from_saved(section: dict, source) -> tuple[DataConfig, str | Non
         raise FormatError(source, "the run config's 'data' section is not an object")
     section = dict(section)
     path = section.pop("path", None)
-    # Runs saved before the near plane was recorded trained with the official one, whatever their format.
+    # Runs saved before these options existed trained with the official near plane, whatever their format, and
+    # without visual-hull points.
     section.setdefault("near_plane", DEFAULT_NEAR_PLANE)
+    section.setdefault("mask_points_per_frame", 0)
     try:
         return validate_config(from_dict(DataConfig, section), "data"), path
     except ConfigError as exc:
