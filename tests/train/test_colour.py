@@ -14,7 +14,8 @@ from stgc.model import STGModel
 from stgc.train import TrainConfig
 from stgc.train.colour import ColourCorrection
 from stgc.train.config import DensifyConfig, LearningRates
-from stgc.train.loop import COLOUR_CORRECTION_NAME, Trainer
+from stgc.train.colour import COLOUR_CORRECTION_NAME
+from stgc.train.loop import Trainer
 
 # Log gains and offsets that average to zero over the six training cameras (views 1-6; view 0 is the test view),
 # the gauge the correction fixes: the model keeps the average camera's colour.

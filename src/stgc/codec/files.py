@@ -211,7 +211,7 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
     if config.allocation != "ladder":
         dataset = _training_dataset(run_dir, source, required=config.allocation == "optimised")
         if dataset is not None:
-            allocation = _optimise(model, arrays, dataset, config)
+            allocation = _optimise(model, arrays, dataset, config, _corrections_of(source))
             metadata["allocation"] = allocation.summary()
     data = encode_with_config(arrays, model.variant, model.decoder_state(), config, metadata, allocation)
     out = write_stgc(out_path, data)
@@ -232,7 +232,18 @@ def _training_dataset(run_dir: Path | None, source: Path, required: bool) -> Any
         return None
 
 
-def _optimise(model: Any, arrays: dict, dataset: Any, config: CodecConfig) -> Allocation:
+def _corrections_of(source: Path) -> dict:
+    """The training cameras' colour correction saved beside the model (empty when it was trained without)."""
+    from stgc.model.ply import resolve_ply_path
+    from stgc.train.colour import COLOUR_CORRECTION_NAME, saved_corrections
+
+    return saved_corrections(resolve_ply_path(source).parent / COLOUR_CORRECTION_NAME)
+
+
+def _optimise(model: Any, arrays: dict, dataset: Any, config: CodecConfig, corrections: dict) -> Allocation:
+    """The rd-optimised allocation measured on training views, each rendered as training saw it: with its camera's
+    colour correction (on a real rig a raw render of a training camera is off by that camera's tint, which would
+    hide part of the quantization error and loosen the budget)."""
     import numpy as np
     import torch
     from tqdm import tqdm
@@ -254,8 +265,12 @@ def _optimise(model: Any, arrays: dict, dataset: Any, config: CodecConfig) -> Al
     def render(candidate: Any, decoder_state: Any) -> list:
         trial = STGModel.from_ply_arrays(dict(candidate), model.variant, decoder_state,
                                          decoder_activation=model.decoder_activation or "sigmoid")
-        return [trial.render(cam, t=float(cam.time), background=background).rgb.clamp(0, 1).numpy()
-                for cam in views]
+        out = []
+        for cam in views:
+            rgb = trial.render(cam, t=float(cam.time), background=background).rgb.numpy()
+            gain, offset = corrections.get(str(cam.name), (1.0, 0.0))
+            out.append(np.clip(rgb * gain + offset, 0.0, 1.0))
+        return out
 
     fixed = {"POSI": config.position_bits} if config.position_bits else None
     with tqdm(total=1, desc="allocating bits", unit="trial", leave=False) as bar:

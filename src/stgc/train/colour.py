@@ -16,10 +16,16 @@ before the loss: exp(m) * render + c. stgc does the same for the training camera
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
+
+
+# Saved beside point_cloud.ply: the training cameras' learned colour correction (never applied to other views).
+COLOUR_CORRECTION_NAME = "colour_correction.json"
 
 
 class ColourCorrection:
@@ -86,3 +92,20 @@ class ColourCorrection:
             self.table.weight.copy_(state["table"])
         self.optimizer.load_state_dict(state["optimizer"])
 
+
+
+def saved_corrections(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """{camera: (gain [3], offset [3])} from a saved colour_correction.json; {} when the file does not exist (a model
+    trained without correction, or a synthetic scene). A file that exists but cannot be read is a FormatError."""
+    from stgc.errors import FormatError
+    from stgc.fileio import read_json_object
+
+    if not path.is_file():
+        return {}
+    saved = read_json_object(path)
+    try:
+        return {str(name): (np.asarray(entry["gain"], np.float32).reshape(3),
+                            np.asarray(entry["offset"], np.float32).reshape(3))
+                for name, entry in (saved or {})["cameras"].items()}
+    except (KeyError, TypeError, ValueError):
+        raise FormatError(path, "not a colour correction file (cameras: {name: {gain, offset}})") from None

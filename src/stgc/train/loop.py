@@ -33,7 +33,7 @@ from stgc.train.checkpoint import (
     restore_rng_states,
     save_checkpoint,
 )
-from stgc.train.colour import ColourCorrection
+from stgc.train.colour import COLOUR_CORRECTION_NAME, ColourCorrection
 from stgc.train.config import Schedule, TrainConfig, resolve_schedule
 from stgc.train.densify import (
     DensificationStats,
@@ -45,9 +45,6 @@ from stgc.train.densify import (
 )
 from stgc.train.ems import ErrorGuidedSampler
 from stgc.train.monitor import JsonLines, Progress, TensorBoard
-
-# Saved beside point_cloud.ply: the training cameras' learned colour correction (never applied to other views).
-COLOUR_CORRECTION_NAME = "colour_correction.json"
 
 IterationCallback = Callable[[int, dict[str, Any]], None]
 
