@@ -243,3 +243,14 @@ def test_the_codec_allocation_measures_training_views_with_their_colour_correcti
     expected = np.clip(raw * np.array([2.0, 1.0, 0.5]) + np.array([0.0, 0.1, 0.0]), 0, 1)
     np.testing.assert_allclose(corrected[inside], expected[inside], atol=1e-6)
     assert inside.mean() > 0.5
+
+
+def test_render_takes_a_bitstream_as_its_help_says(trained_run, tmp_path):
+    stgc_file = tmp_path / "away" / "m.stgc"
+    stgc_file.parent.mkdir()
+    assert main(["compress", str(trained_run), "--out", str(stgc_file), "--set", "codec.allocation=ladder"]) == 0
+    out = tmp_path / "still.png"
+    assert main(["render", str(stgc_file), "--out", str(out)]) == 0  # the dataset from the embedded run config
+    from PIL import Image
+
+    assert Image.open(out).size == (32, 24)

@@ -25,15 +25,22 @@ from stgc.fileio import atomic_path
 
 # ------------------------------------------------------------------------------------------------ loading
 def load_model_and_dataset(run_or_model: Any, dataset: Any | None = None) -> tuple[Any, Any]:
-    """(model, dataset) from a run directory / iteration dir / PLY path, or an in-memory model."""
+    """(model, dataset) from a run directory / iteration dir / PLY path / `.stgc` bitstream, or an in-memory model.
+    A bitstream renders what it decodes to, with the dataset of the run beside it or of the config it embeds."""
     if isinstance(run_or_model, (str, Path)):
+        from stgc.eval.evaluate import open_run_dataset
         from stgc.model import STGModel, run_dir_of
 
         path = Path(run_or_model)
+        if path.suffix == ".stgc":
+            from stgc.codec import load_model
+
+            model = load_model(path)
+            if dataset is None:
+                dataset = open_run_dataset(path.parent, None, path)
+            return model, dataset
         model = STGModel.load(path)
         if dataset is None:
-            from stgc.eval.evaluate import open_run_dataset
-
             run_dir = run_dir_of(path)
             if run_dir is None:
                 raise DataError(path, "cannot find the run's config.json: pass the dataset explicitly")
