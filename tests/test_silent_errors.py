@@ -254,3 +254,16 @@ def test_render_takes_a_bitstream_as_its_help_says(trained_run, tmp_path):
     from PIL import Image
 
     assert Image.open(out).size == (32, 24)
+
+
+def test_decompressing_into_an_existing_run_is_refused_unless_overwrite(trained_run, tmp_path, capsys):
+    stgc_file = tmp_path / "m.stgc"
+    assert main(["compress", str(trained_run), "--out", str(stgc_file), "--set", "codec.allocation=ladder"]) == 0
+    target = tmp_path / "restored"
+    assert main(["decompress", str(stgc_file), "--out", str(target)]) == 0
+    (target / "point_cloud" / "iteration_99").mkdir()  # as if another run had lived here
+    (target / "point_cloud" / "iteration_99" / "point_cloud.ply").write_text("old")
+    assert main(["decompress", str(stgc_file), "--out", str(target)]) == 2
+    assert "already holds a run" in capsys.readouterr().err
+    assert main(["decompress", str(stgc_file), "--out", str(target), "--overwrite"]) == 0
+    assert sorted(p.name for p in (target / "point_cloud").iterdir()) == ["iteration_10"]

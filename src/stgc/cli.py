@@ -229,7 +229,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
 def cmd_decompress(args: argparse.Namespace) -> int:
     from stgc.codec import decompress
 
-    path = decompress(args.file, args.out)
+    path = decompress(args.file, args.out, overwrite=args.overwrite)
     print(f"decoded model written to {path}")
     return 0
 
@@ -360,6 +360,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("decompress", help="decode a .stgc file into an official-layout run directory")
     p.add_argument("file", help=".stgc file")
     p.add_argument("--out", required=True, help="output run directory")
+    p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (its files are removed)")
     p.set_defaults(func=cmd_decompress)
 
     p = sub.add_parser("data", help="dataset tools")

@@ -10,7 +10,7 @@ from stgc.errors import DataError, FormatError
 from stgc.fileio import atomic_path, read_json_object, write_json
 from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
 from stgc.data.config import open_run_dataset
-from stgc.run import iteration_of
+from stgc.run import iteration_of, prepare_new_run
 
 from .allocation import Allocation, budget_db, optimise_allocation
 from .format import (
@@ -307,15 +307,16 @@ def load_model(stgc_path: str | Path) -> Any:
     return _model_from_decoded(read_stgc(stgc_path), stgc_path)
 
 
-def decompress(stgc_path: str | Path, out_run_dir: str | Path) -> Path:
+def decompress(stgc_path: str | Path, out_run_dir: str | Path, *, overwrite: bool = False) -> Path:
     """Restore a run directory from a .stgc file: point_cloud/iteration_<N>/ (official PLY + decoder) and, when
-    the file embeds it, config.json. Returns the iteration directory."""
+    the file embeds it, config.json. Returns the iteration directory. Like a training, it refuses a folder that
+    already holds a run unless `overwrite` (its old model would stay beside the decoded one)."""
     decoded = read_stgc(stgc_path)
     iteration = decoded.metadata.get("iteration", 0)
     if isinstance(iteration, bool) or not isinstance(iteration, int) or iteration < 0:
         raise FormatError(stgc_path, f"metadata iteration {iteration!r} is not a non-negative integer")
     model = _model_from_decoded(decoded, stgc_path)
-    out_run_dir = Path(out_run_dir)
+    out_run_dir = prepare_new_run(out_run_dir, overwrite=overwrite)
     iteration_dir = out_run_dir / "point_cloud" / f"iteration_{iteration}"
     model.save(iteration_dir)
     run_config = decoded.metadata.get("run_config")
