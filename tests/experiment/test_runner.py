@@ -137,7 +137,7 @@ def test_run_plan_is_resumable(tmp_path: Path) -> None:
     out = tmp_path / "exp"
     messages: list[str] = []
     first = run_plan("DATA", plan_path, out, preset="cpu", extra_overrides=["train.iterations=10"],
-                     codec_qualities=[4], runner=fake_runner, python=sys.executable, log=messages.append)
+                     codec_qualities=[4], runner=fake_runner, check_options=False, python=sys.executable, log=messages.append)
     status = {o.name: o.status for o in first.outcomes}
     assert status == {"stg": "finished", "stg-q4": "finished", "pre": "finished", "pre-q4": "finished",
                       "c1": "finished", "c1-q4": "finished", "c3": "finished", "c3-q4": "finished",
@@ -165,7 +165,7 @@ def test_run_plan_is_resumable(tmp_path: Path) -> None:
 
     # Second invocation: only the failed run is launched again; nothing else trains, compresses or evaluates.
     second = run_plan("DATA", plan_path, out, preset="cpu", extra_overrides=["train.iterations=10"],
-                      codec_qualities=[4], runner=fake_runner, python=sys.executable, log=messages.append)
+                      codec_qualities=[4], runner=fake_runner, check_options=False, python=sys.executable, log=messages.append)
     new_calls = _invocations(out)[len(calls):]
     assert len(new_calls) == 1 and new_calls[0].startswith("train") and "fake.fail=1" in new_calls[0]
     assert {o.name: o.status for o in second.outcomes}["c1"] == "skipped"
@@ -181,7 +181,7 @@ def test_interrupted_run_is_resumed(tmp_path: Path) -> None:
     (run / "checkpoint.pt").write_bytes(b"x")
     plan = load_plan("table2")
     one = type(plan)(plan.name, plan.runs[:1], plan.baseline)
-    result = run_plan("DATA", one, out, preset="paper", runner=fake_runner, python=sys.executable,
+    result = run_plan("DATA", one, out, preset="paper", runner=fake_runner, check_options=False, python=sys.executable,
                       log=lambda m: None)
     (call,) = _invocations(out)
     assert "--resume" in call and "--set" not in call
@@ -189,7 +189,7 @@ def test_interrupted_run_is_resumed(tmp_path: Path) -> None:
 
 
 def test_dry_run_launches_nothing(tmp_path: Path) -> None:
-    result = run_plan("DATA", "table3", tmp_path, runner=fake_runner, dry_run=True, log=lambda m: None)
+    result = run_plan("DATA", "table3", tmp_path, runner=fake_runner, check_options=False, dry_run=True, log=lambda m: None)
     assert all(o.status == "dry-run" for o in result.outcomes) and len(result.outcomes) == 9
     assert "stgc.cli train DATA" in result.outcomes[1].message and not _invocations(tmp_path)
 
@@ -215,7 +215,7 @@ def test_plan_overrides_are_real_config_keys(plan_name: str) -> None:
 
 def test_two_plans_share_one_folder_and_train_their_common_runs_once(tmp_path: Path) -> None:
     out = tmp_path / "exp"
-    quiet = {"runner": fake_runner, "python": sys.executable, "log": lambda m: None}
+    quiet = {"runner": fake_runner, "check_options": False, "python": sys.executable, "log": lambda m: None}
     run_plan("DATA", "table2", out, preset="cpu", **quiet)
     trained_by_table2 = [c for c in _invocations(out) if c.startswith("train")]
     run_plan("DATA", "table3", out, preset="cpu", **quiet)
@@ -224,3 +224,16 @@ def test_two_plans_share_one_folder_and_train_their_common_runs_once(tmp_path: P
     assert len(trained_by_table3) == 4 and all("criterion=scale" in c for c in trained_by_table3)
     assert len(_results(out, "table2")) == 6 and len(_results(out, "table3")) == 9
     assert (out / "report-table2" / "report.md").is_file() and (out / "report-table3" / "report.md").is_file()
+
+
+def test_plan_options_are_checked_before_the_first_run(tmp_path: Path) -> None:
+    from stgc.config import ConfigError
+
+    plan_path = tmp_path / "p.toml"
+    plan_path.write_text("name = 'p'\n[[runs]]\nname = 'good'\n[runs.overrides]\n'compaction.case' = '2'\n"
+                         "[[runs]]\nname = 'typo'\n[runs.overrides]\n'train.iteratons' = '10'\n")
+    calls = []
+    with pytest.raises(ConfigError, match="run 'typo'.*did you mean train.iterations"):
+        run_plan("DATA", plan_path, tmp_path / "out", runner=lambda cmd, log: calls.append(cmd) or 0,
+                 make_report_files=False, log=lambda m: None)
+    assert calls == []  # not even the good run started

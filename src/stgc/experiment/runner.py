@@ -67,6 +67,19 @@ def build_train_command(
     return cmd
 
 
+def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str]) -> None:
+    """Resolve and validate every run's options before the first training starts: a typo in the plan's last run
+    must not surface hours later. Raises ConfigError naming the run."""
+    from stgc.cli import resolve_configs
+    from stgc.config import ConfigError
+
+    for spec in plan.runs:
+        try:
+            resolve_configs(preset or "cpu", {}, {}, {**spec.overrides, **extra})
+        except ConfigError as exc:
+            raise ConfigError(f"plan {plan.name!r}, run {spec.name!r}: {exc}") from None
+
+
 def build_eval_command(target: str | Path, *, python: str = sys.executable) -> list[str]:
     return [python, "-m", CLI_MODULE, "eval", str(target), "--json"]
 
@@ -208,6 +221,7 @@ def run_plan(
     bd_method: str = "pchip",
     dry_run: bool = False,
     log: Callable[[str], None] | None = None,
+    check_options: bool = True,
 ) -> PlanResult:
     """Train, evaluate (and optionally compress + evaluate at each codec quality) every run of `plan` under
     OUT, skipping what is already done; write OUT/results-<plan>.csv and the report in OUT/report-<plan>.
@@ -221,6 +235,8 @@ def run_plan(
     say = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     result = PlanResult(plan, out_dir, results_csv=out_dir / f"results-{plan.name}.csv")
     qualities = [int(q) for q in codec_qualities]
+    if check_options:  # off only for a stand-in trainer with options of its own (tests)
+        check_plan_options(plan, preset, extra)
 
     for spec in plan.runs:
         run_dir = out_dir / spec.name
