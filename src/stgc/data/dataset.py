@@ -162,8 +162,9 @@ class Dataset:
 
     @property
     def has_masks(self) -> bool:
-        """Whether the source ships foreground masks (for some training views at least)."""
-        return self._scene.masks is not None and any(self._scene.masks(c) is not None for c in self.train[:1])
+        """Whether the source ships foreground masks (judged by the first training view; views without one are left
+        out where masks are used)."""
+        return self._scene.masks is not None and bool(self.train) and self._scene.masks(self.train[0]) is not None
 
     def load_mask(self, camera: Camera) -> np.ndarray | None:
         """bool [H, W] foreground of `camera`'s mask at its (downscaled) size, or None where it has none."""
