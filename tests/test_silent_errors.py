@@ -43,8 +43,11 @@ def test_training_into_an_existing_run_is_refused_and_overwrite_replaces_it(scen
     assert main(_train_args(scene, run, "12")) == 2
     assert "already holds a run" in capsys.readouterr().err
     assert (run / "point_cloud" / "iteration_10").is_dir()  # untouched
+    (run / "model_q3.stgc").write_bytes(b"old bitstream")  # derived from the old model, with its evaluation
+    (run / "eval_model_q3.json").write_text("{}")
     assert main(_train_args(scene, run, "12", "--overwrite")) == 0
     assert sorted(p.name for p in (run / "point_cloud").iterdir()) == ["iteration_12"]  # no stale model left
+    assert not (run / "model_q3.stgc").exists() and not (run / "eval_model_q3.json").exists()
     assert (run / "notes.txt").read_text() == "mine"  # not a run file: kept
 
 
@@ -267,3 +270,11 @@ def test_decompressing_into_an_existing_run_is_refused_unless_overwrite(trained_
     assert "already holds a run" in capsys.readouterr().err
     assert main(["decompress", str(stgc_file), "--out", str(target), "--overwrite"]) == 0
     assert sorted(p.name for p in (target / "point_cloud").iterdir()) == ["iteration_10"]
+    # Restoring into the folder that holds the bitstream: the old run's derived files go, the input stays.
+    import shutil
+
+    inside = target / "model_q3.stgc"
+    shutil.copy(stgc_file, inside)
+    (target / "eval_model_q3.json").write_text("{}")
+    assert main(["decompress", str(inside), "--out", str(target), "--overwrite"]) == 0
+    assert inside.is_file() and not (target / "eval_model_q3.json").exists()

@@ -18,7 +18,7 @@ from stgc.config import (
     add_config_arguments,
     apply_overrides,
     collect_overrides,
-    from_dict,
+    from_saved,
     parse_set_arguments,
     split_sections,
     validate_config,
@@ -98,34 +98,15 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
         if name == "data":
             out[name], _ = data_config_from_saved(section, path)
             continue
-        _fill_legacy_defaults(name, section)
         section.pop("path", None)
         resolved = section.pop("resolved_schedule", None)
         if name == "train" and isinstance(resolved, dict) and "iterations" in resolved:
             # Runs saved before `iterations` meant real iterations stored it in schedule units; the resolved
             # schedule always held the real number.
             section["iterations"] = resolved["iterations"]
-        out[name] = validate_config(from_dict(cls, section), name)
+        out[name] = validate_config(from_saved(cls, section), name)
     out["data_path"] = (saved.get("data") or {}).get("path")
     return out
-
-
-# Options added after runs were already saved, with the value that reproduces how those runs trained (a resumed
-# run continues as it started; the new defaults apply to new runs only).
-# (The data section's are applied by stgc.data.config.data_config_from_saved, which every verb reads it with.)
-LEGACY_DEFAULTS: dict[str, dict[str, Any]] = {
-    "model": {"decoder_ray_origin": "on"},
-    "train": {"colour_correction": "off", "densify.stats_views": "last"},
-}
-
-
-def _fill_legacy_defaults(section_name: str, section: dict[str, Any]) -> None:
-    for dotted, value in LEGACY_DEFAULTS.get(section_name, {}).items():
-        target = section
-        *parents, key = dotted.split(".")
-        for parent in parents:
-            target = target.setdefault(parent, {})
-        target.setdefault(key, value)
 
 
 # --------------------------------------------------------------------------------------------- verbs
@@ -159,10 +140,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise StgcError("--resume continues a run and --overwrite replaces it: give one of them")
     dataset = configs["data"].open(data_path)
     dataset.verify_images(dataset.train, progress=True)  # a corrupt image fails now, not at iteration 14
-    if not args.resume:
-        from stgc.run import prepare_new_run
-
-        prepare_new_run(out, overwrite=args.overwrite)  # before minutes of triangulation
+    # The trainer claims the run folder (stgc.run.prepare_new_run) before it triangulates anything.
     train(
         dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=args.resume,
         overwrite=args.overwrite,
@@ -300,7 +278,7 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--case", type=int, choices=sorted(CASE_WINDOWS), help="paper pruning window case (compaction.case)")
     p.add_argument("--criterion", choices=list(CRITERIA), help="which member of a pair is removed")
     p.add_argument("--resume", action="store_true", help="continue RUN from its last checkpoint")
-    p.add_argument("--overwrite", action="store_true", help="replace the run already in RUN (its files are removed)")
+    p.add_argument("--overwrite", action="store_true", help="replace the run already in RUN (its files, bitstreams and evaluations are removed)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override any option, e.g. train.iterations=3000")
     try:
         configs = default_configs("cpu")
@@ -360,7 +338,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("decompress", help="decode a .stgc file into an official-layout run directory")
     p.add_argument("file", help=".stgc file")
     p.add_argument("--out", required=True, help="output run directory")
-    p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (its files are removed)")
+    p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (its files, bitstreams and evaluations are removed; not the input)")
     p.set_defaults(func=cmd_decompress)
 
     p = sub.add_parser("data", help="dataset tools")

@@ -198,6 +198,20 @@ def from_dict(cls: type, data: dict[str, Any]) -> Any:
     return apply_overrides(cls(), flat)
 
 
+def from_saved(cls: type, data: dict[str, Any]) -> Any:
+    """`from_dict` for a config saved by an earlier version of stgc: a key it lacks takes the value in
+    `cls.SAVED_BEFORE` (dotted names), the option's behaviour before it existed, so a saved run is read as it
+    trained; the current default applies to new configs only."""
+    data = json.loads(json.dumps(data))  # a deep copy of plain JSON values
+    for dotted, value in getattr(cls, "SAVED_BEFORE", {}).items():
+        target = data
+        *parents, key = dotted.split(".")
+        for parent in parents:
+            target = target.setdefault(parent, {})
+        target.setdefault(key, value)
+    return from_dict(cls, data)
+
+
 def parse_set_arguments(items: list[str] | None) -> dict[str, str]:
     """`["train.iterations=5000", ...]` -> {"train.iterations": "5000"}."""
     out: dict[str, str] = {}

@@ -15,7 +15,8 @@ from pathlib import Path
 
 from stgc.errors import StgcError
 
-# Everything a training writes into its run directory (docs/training.md lists them).
+# Everything a training writes into its run directory (docs/training.md lists them): their presence means the
+# folder holds a run.
 RUN_FILES = (
     "config.json",
     "metrics.jsonl",
@@ -26,7 +27,10 @@ RUN_FILES = (
     "eval_per_view.csv",
     "compaction.png",
 )
-RUN_FOLDERS = ("point_cloud", "tensorboard", "eval")
+RUN_FOLDERS = ("point_cloud", "tensorboard")
+# What later verbs derive from the run's model and keep beside it: bitstreams and their evaluations, evaluations on
+# other data. They describe the old model, so replacing the run removes them too.
+DERIVED_PATTERNS = ("*.stgc", "eval_*.json", "eval_*_per_view.csv")
 
 
 # RUN/point_cloud/iteration_<N>/point_cloud.ply: one saved model per N (official layout).
@@ -72,9 +76,10 @@ def run_contents(path: Path) -> list[Path]:
     return [path / name for name in (*RUN_FILES, *RUN_FOLDERS) if (path / name).exists()]
 
 
-def prepare_new_run(path: str | Path, *, overwrite: bool = False) -> Path:
+def prepare_new_run(path: str | Path, *, overwrite: bool = False, keep: Path | None = None) -> Path:
     """Make `path` ready for a new run: create it, or refuse (RunExistsError) when it already holds one, unless
-    `overwrite` (then the old run's files are removed first). Clear errors when `path` cannot be a directory."""
+    `overwrite` (then the old run's files, and the bitstreams and evaluations derived from it, are removed first;
+    `keep` is spared: the input being restored there). Clear errors when `path` cannot be a directory."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise StgcError(f"{path}: exists and is not a directory")
@@ -88,6 +93,9 @@ def prepare_new_run(path: str | Path, *, overwrite: bool = False) -> Path:
         names = ", ".join(p.name for p in existing[:4]) + (", ..." if len(existing) > 4 else "")
         raise RunExistsError(f"{path}: already holds a run ({names}); use --resume to continue it or --overwrite to "
                              "replace it")
+    if overwrite and path.is_dir():
+        spared = keep.resolve() if keep is not None else None
+        existing += [p for pattern in DERIVED_PATTERNS for p in path.glob(pattern) if p.resolve() != spared]
     for item in existing:
         if item.is_dir():
             shutil.rmtree(item)

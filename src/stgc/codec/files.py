@@ -316,7 +316,7 @@ def decompress(stgc_path: str | Path, out_run_dir: str | Path, *, overwrite: boo
     if isinstance(iteration, bool) or not isinstance(iteration, int) or iteration < 0:
         raise FormatError(stgc_path, f"metadata iteration {iteration!r} is not a non-negative integer")
     model = _model_from_decoded(decoded, stgc_path)
-    out_run_dir = prepare_new_run(out_run_dir, overwrite=overwrite)
+    out_run_dir = prepare_new_run(out_run_dir, overwrite=overwrite, keep=Path(stgc_path))
     iteration_dir = out_run_dir / "point_cloud" / f"iteration_{iteration}"
     model.save(iteration_dir)
     run_config = decoded.metadata.get("run_config")

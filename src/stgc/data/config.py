@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 
 @dataclass
@@ -53,6 +54,10 @@ class DataConfig:
     image_cache_mb: int = field(default=2048, metadata={
         "help": "memory bound of the decoded-image cache in MiB (least recently used images are dropped)"})
     seed: int = field(default=0, metadata={"help": "seed for subsampling and random initial points"})
+
+    # How a run saved before these options existed was trained (stgc.config.from_saved): the official near plane
+    # whatever the format, and no visual-hull points.
+    SAVED_BEFORE: ClassVar[dict] = {"near_plane": 0.2, "mask_points_per_frame": 0}
 
     def validate(self, prefix: str = "") -> None:
         from stgc.config import check
@@ -117,23 +122,28 @@ class DataConfig:
 def data_config_from_saved(section: dict, source) -> tuple[DataConfig, str | None]:
     """(DataConfig, dataset path) from the `data` section a run saved (RUN/config.json, or the copy a .stgc file
     embeds), read strictly: an unknown or ill-typed key is a FormatError naming `source`, never dropped."""
-    from stgc.config import ConfigError, from_dict, validate_config
+    from stgc.config import ConfigError, from_saved, validate_config
     from stgc.errors import FormatError
-
-    from .cameras import DEFAULT_NEAR_PLANE
 
     if not isinstance(section, dict):
         raise FormatError(source, "the run config's 'data' section is not an object")
     section = dict(section)
     path = section.pop("path", None)
-    # Runs saved before these options existed trained with the official near plane, whatever their format, and
-    # without visual-hull points.
-    section.setdefault("near_plane", DEFAULT_NEAR_PLANE)
-    section.setdefault("mask_points_per_frame", 0)
     try:
-        return validate_config(from_dict(DataConfig, section), "data"), path
+        return validate_config(from_saved(DataConfig, section), "data"), path
     except ConfigError as exc:
         raise FormatError(source, f"run config: {exc}") from None
+
+
+def saved_run_data(run_dir) -> tuple[DataConfig, str | None] | None:
+    """(DataConfig, dataset path) that the run in `run_dir` saved in its config.json, or None without one."""
+    from pathlib import Path
+
+    from stgc.fileio import read_json_object
+
+    config_path = Path(run_dir) / "config.json"
+    saved = read_json_object(config_path)
+    return None if saved is None else data_config_from_saved(saved.get("data") or {}, config_path)
 
 
 def open_run_dataset(run_dir, data_path=None):
@@ -142,15 +152,14 @@ def open_run_dataset(run_dir, data_path=None):
     from pathlib import Path
 
     from stgc.errors import DataError
-    from stgc.fileio import read_json_object
 
     config_path = Path(run_dir) / "config.json"
-    saved = read_json_object(config_path)
+    saved = saved_run_data(run_dir)
     if saved is None:
         if data_path is not None:  # a model without its run: the given data, with default options
             return DataConfig().open(data_path)
         raise DataError(config_path, "no run config found; pass the dataset with --data")
-    config, path = data_config_from_saved(saved.get("data") or {}, config_path)
+    config, path = saved
     if data_path is None and path is None:
         raise DataError(config_path, "config.json has no data.path; pass the dataset with --data")
     return config.open(data_path if data_path is not None else path)

@@ -30,7 +30,7 @@ from stgc.eval.accounting import (
     training_seconds,
 )
 from stgc.eval.metrics import LPIPS, psnr, ssim
-from stgc.fileio import atomic_open, read_json_object, write_json
+from stgc.fileio import atomic_open, write_json
 
 PER_VIEW_COLUMNS = ("camera", "frame", "time", "psnr", "ssim", "lpips", "render_ms")
 
@@ -340,14 +340,16 @@ def evaluate_run(
     )
     if not measure_fps:
         result.speed = None
-    recorded = (read_json_object(run_dir / "config.json") or {}).get("data")
-    recorded = recorded if isinstance(recorded, dict) else {}
     other = None
-    if data_path is not None and (recorded.get("path") is None
-                                  or Path(data_path).resolve() != Path(recorded["path"]).resolve()):
-        other = Path(data_path).resolve().name
+    if data_path is not None:  # given data: another dataset unless it is where the run's config points
+        from stgc.data.config import saved_run_data
+
+        saved = saved_run_data(run_dir)
+        saved_path = saved[1] if saved is not None else None
+        if saved_path is None or Path(data_path).resolve() != Path(saved_path).resolve():
+            other = Path(data_path).resolve().name
     return write_eval(run_dir, result, info, target=target, other_data=other,
-                      extra={"data": str(getattr(dataset, "root", data_path or recorded.get("path")))})
+                      extra={"data": str(getattr(dataset, "root", data_path))})
 
 
 def _default_model_loader(target: Path) -> Any:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 from stgc.model.layout import VARIANTS
 
@@ -54,6 +54,9 @@ class ModelConfig:
                           "that held-out cameras do not share; the colour correction takes that role), on for "
                           "synthetic renders (docs/model.md)"},
     )
+
+    # How a run saved before these options existed was trained (stgc.config.from_saved).
+    SAVED_BEFORE: ClassVar[dict] = {"decoder_ray_origin": "on"}
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:

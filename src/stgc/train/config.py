@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 from stgc.config import check
 from stgc.render.api import BACKENDS
@@ -184,6 +184,9 @@ class TrainConfig:
         default=None,
         metadata={"help": "stop (checkpoint, unfinished) after this many iterations, as if killed; resume continues"},
     )
+
+    # How a run saved before these options existed was trained (stgc.config.from_saved).
+    SAVED_BEFORE: ClassVar[dict] = {"colour_correction": "off", "densify.stats_views": "last"}
 
     def validate(self, prefix: str = "") -> None:
         check(self.iterations >= 1, f"{prefix}iterations", self.iterations, ">= 1")
