@@ -64,7 +64,7 @@ def test_recovers_known_gain_and_offset_of_each_training_camera_within_one_perce
     assert set(saved["cameras"]) == set(names)
 
 
-def test_correction_off_for_synthetic_renders_and_when_asked(tinted_scene, tmp_path):
+def test_correction_off_when_asked(tinted_scene, tmp_path):
     dataset = open_dataset(tinted_scene.root)
     off = Trainer(dataset, None, None, _config(iterations=1, colour_correction="off"), None, tmp_path / "a",
                   model=STGModel.from_state_dict(tinted_scene.model.state_dict()))

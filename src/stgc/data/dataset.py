@@ -164,13 +164,15 @@ class Dataset:
     def has_masks(self) -> bool:
         """Whether the source ships foreground masks (judged by the first training view; views without one are left
         out where masks are used)."""
-        return self._scene.masks is not None and bool(self.train) and self._scene.masks(self.train[0]) is not None
+        return bool(self.train) and self.mask_path(self.train[0]) is not None
+
+    def mask_path(self, camera: Camera) -> Path | None:
+        """The file of `camera`'s foreground mask, or None where it has none."""
+        return None if self._scene.masks is None else self._scene.masks(camera)
 
     def load_mask(self, camera: Camera) -> np.ndarray | None:
         """bool [H, W] foreground of `camera`'s mask at its (downscaled) size, or None where it has none."""
-        if self._scene.masks is None:
-            return None
-        path = self._scene.masks(camera)
+        path = self.mask_path(camera)
         return None if path is None else read_mask(path, camera.width, camera.height)
 
     @property
@@ -206,7 +208,8 @@ class Dataset:
     # ------------------------------------------------------------------ images
     def verify_images(self, cameras: list[Camera] | None = None, progress: bool = False) -> int:
         """Decode the image files (and masks) of `cameras` (default all) once, so that a truncated or corrupt file
-        is a DataError naming it now rather than an error in the middle of a training. Video frames are left to
+        is a DataError naming it now rather than an error in the middle of a training. The images go through
+        `load_image`, so they stay in the dataset's cache for the training that follows. Video frames are left to
         their decoder. Returns how many files were decoded."""
         cams = [c for c in (self.cameras if cameras is None else cameras) if isinstance(c.image, (str, Path))]
         if progress:
@@ -215,7 +218,7 @@ class Dataset:
             cams = tqdm(cams, desc="checking images", unit="image", leave=False)
         count = 0
         for cam in cams:
-            read_image(Path(cam.image), self.background)
+            self.load_image(cam)
             count += 1
             if self.load_mask(cam) is not None:
                 count += 1

@@ -41,10 +41,12 @@ def read_mask(path: Path, width: int, height: int) -> np.ndarray:
 
 
 def visual_hull(cameras: list[Camera], masks: list[np.ndarray], lower: np.ndarray, upper: np.ndarray,
-                resolution: int = 96, min_views: int = 4, misses_allowed: int = 1) -> np.ndarray:
+                resolution: int = 96, min_views: int = 2, misses_allowed: int = 1) -> np.ndarray:
     """Centres [M, 3] of the voxels of the box [lower, upper] (cubes of side max extent / resolution) that at least
     `min_views` cameras see and that fall inside the foreground of every one of them but `misses_allowed`
-    (a tolerance for mask noise and calibration error)."""
+    (a tolerance for mask noise and calibration error); min_views must exceed misses_allowed."""
+    if min_views <= misses_allowed:
+        raise ValueError("min_views must exceed misses_allowed, or voxels no mask covers would be kept")
     lower, upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
     side = float((upper - lower).max()) / resolution
     axes = [np.arange(lo + side / 2, hi, side) for lo, hi in zip(lower, upper)]
@@ -59,7 +61,7 @@ def visual_hull(cameras: list[Camera], masks: list[np.ndarray], lower: np.ndarra
         hit = np.zeros(len(grid), bool)
         hit[visible] = mask[v[visible], u[visible]]
         inside += hit
-    keep = (seen >= min_views) & (inside >= seen - misses_allowed) & (inside > 0)
+    keep = (seen >= min_views) & (inside >= seen - misses_allowed)
     return grid[keep]
 
 

@@ -110,6 +110,12 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
             except ImportError:
                 source = "random"
     rng = np.random.default_rng(seed)
+    hull = mask_points_per_frame > 0 and dataset.has_masks
+    if hull:
+        unmasked = [c.name for c in dataset.train_at(frames[0]) if dataset.mask_path(c) is None]
+        if unmasked:  # said once here, not per frame
+            log.warning("%s: training views %s have no foreground mask; the visual hull uses the others",
+                        dataset.name, ", ".join(unmasked))
     clouds = []
     for frame in frames:
         t = dataset.time_of(frame)
@@ -134,7 +140,7 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
             xyz, rgb = random_points(dataset, frame, count, rng)
         xyz, rgb = _subsample(np.asarray(xyz), np.asarray(rgb), max_points_per_frame, rng)
         clouds.append(PointCloud(xyz, rgb, np.full(len(xyz), t)))
-        if mask_points_per_frame > 0 and dataset.has_masks:
+        if hull:
             hull_xyz, hull_rgb = mask_hull_points(dataset, frame, mask_points_per_frame, rng)
             log.info("frame %d: %d points inside the masks' visual hull", frame, len(hull_xyz))
             clouds.append(PointCloud(hull_xyz, hull_rgb, np.full(len(hull_xyz), t)))
@@ -152,15 +158,11 @@ def mask_hull_points(dataset: Dataset, frame: int, count: int, rng: np.random.Ge
     from .masks import hull_colours, visual_hull
 
     cameras, masks = [], []
-    views = dataset.train_at(frame)
-    for cam in views:
+    for cam in dataset.train_at(frame):
         mask = dataset.load_mask(cam)
         if mask is not None:
             cameras.append(cam)
             masks.append(mask)
-    if len(cameras) < len(views) and not _said_once(("masks missing", str(dataset.root))):
-        log.warning("%s: %d of %d training views have no foreground mask; the visual hull uses the other %d",
-                    dataset.name, len(views) - len(cameras), len(views), len(cameras))
     if len(cameras) < 2:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
     focus, radius = viewing_region(dataset)
@@ -174,17 +176,6 @@ def mask_hull_points(dataset: Dataset, frame: int, count: int, rng: np.random.Ge
     points = points + rng.uniform(-side / 2, side / 2, size=points.shape)
     images = [dataset.load_image(cam) for cam in cameras]
     return points.astype(np.float32), hull_colours(points, cameras, images, masks)
-
-
-_SAID: set = set()
-
-
-def _said_once(key: object) -> bool:
-    """False the first time `key` is seen in this process, True after (for messages given once per run)."""
-    if key in _SAID:
-        return True
-    _SAID.add(key)
-    return False
 
 
 def viewing_region(dataset: Dataset) -> tuple[np.ndarray, float]:

@@ -109,19 +109,14 @@ def _blur(stack: torch.Tensor, window_size: int, sigma: float) -> torch.Tensor:
 
     On the CPU (float32/float64): two 1-D passes in numba (`_SeparableBlur`, 22 instead of 121 taps a pixel; in a
     training iteration at 320x180 it replaced an 11x11 depthwise convolution that cost more than the rasterizer,
-    forward and backward). Elsewhere (CUDA tensors, other dtypes): one depthwise 11x11 convolution, which is what
-    torch's CPU kernels also did fastest (their 1-D-shaped convolutions measured 4-10x slower)."""
-    if stack.device.type == "cpu" and stack.dtype in (torch.float32, torch.float64) and _numba_available():
+    forward and backward; benchmarks/eval_metrics.py). Elsewhere (CUDA tensors, other dtypes): one depthwise 11x11
+    convolution, faster than torch's own 1-D-shaped convolutions."""
+    if stack.device.type == "cpu" and stack.dtype in (torch.float32, torch.float64):
         taps = _gaussian_taps(window_size, sigma, stack.dtype)
         return _SeparableBlur.apply(stack, taps)
     n = stack.shape[0]
     window = _window_2d(window_size, sigma, n, stack.dtype).to(stack.device)
     return F.conv2d(stack[None], window, padding=window_size // 2, groups=n)[0]
-
-
-@functools.lru_cache(maxsize=1)
-def _numba_available() -> bool:
-    return importlib.util.find_spec("numba") is not None
 
 
 class _SeparableBlur(torch.autograd.Function):

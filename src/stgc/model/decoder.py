@@ -10,6 +10,7 @@ under the names `mlp1.weight` / `mlp2.weight` so that the state_dict is intercha
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import torch
@@ -36,6 +37,7 @@ class SandwichDecoder(nn.Module):
         in_channels = 3 + 3 + RAY_CHANNELS
         self.mlp1 = _Conv1x1Weight(_conv_default_init(HIDDEN_CHANNELS, in_channels, generator))
         self.mlp2 = _Conv1x1Weight(_conv_default_init(3, HIDDEN_CHANNELS, generator))
+        self._origin_hook: Any = None  # set by ignore_ray_origin
 
     def extra_repr(self) -> str:
         return f"activation={self.activation!r}"
@@ -45,7 +47,7 @@ class SandwichDecoder(nn.Module):
         masked), so the colour no longer depends on the camera's position. Idempotent."""
         with torch.no_grad():
             self.mlp1.weight[:, RAY_ORIGIN_INPUTS] = 0.0
-        if not getattr(self, "_origin_hook", None):
+        if self._origin_hook is None:
             mask = torch.ones_like(self.mlp1.weight)
             mask[:, RAY_ORIGIN_INPUTS] = 0.0
             self._origin_hook = self.mlp1.weight.register_hook(lambda grad: grad * mask)

@@ -23,6 +23,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from stgc.errors import FormatError
+from stgc.fileio import read_json_object
 
 # Saved beside point_cloud.ply: the training cameras' learned colour correction (never applied to other views).
 COLOUR_CORRECTION_NAME = "colour_correction.json"
@@ -93,13 +95,9 @@ class ColourCorrection:
         self.optimizer.load_state_dict(state["optimizer"])
 
 
-
 def saved_corrections(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """{camera: (gain [3], offset [3])} from a saved colour_correction.json; {} when the file does not exist (a model
     trained without correction, or a synthetic scene). A file that exists but cannot be read is a FormatError."""
-    from stgc.errors import FormatError
-    from stgc.fileio import read_json_object
-
     if not path.is_file():
         return {}
     saved = read_json_object(path)

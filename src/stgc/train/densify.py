@@ -78,11 +78,11 @@ def clone_and_split(
     max_scale = model.scales.detach().max(dim=1).values
     size_limit = percent_dense * model.scene_extent
     high = grads >= grad_threshold
+    large = max_scale > size_limit
     if max_gaussians > 0:
-        high = _within_budget(high, grads, max_scale > percent_dense * model.scene_extent, split_count,
-                              max_gaussians - n0)
-    clone_mask = high & (max_scale <= size_limit)
-    split_mask = high & (max_scale > size_limit)
+        high = _within_budget(high, grads, large, split_count, max_gaussians - n0)
+    clone_mask = high & ~large
+    split_mask = high & large
     n_clone, n_split = int(clone_mask.sum()), int(split_mask.sum())
 
     new_parts: list[dict[str, torch.Tensor]] = []

@@ -169,8 +169,7 @@ class Trainer:
             self.metrics_log.clear()
             self.compaction_log.clear()
             self._write_config()
-        origin = (model_cfg or ModelConfig()).decoder_ray_origin
-        self.decoder_ray_origin = origin == "on" or (origin == "auto" and dataset.synthetic)
+        self.decoder_ray_origin = _chosen((model_cfg or ModelConfig()).decoder_ray_origin, dataset.synthetic)
         if self.model.decoder is not None and not self.decoder_ray_origin:
             self.model.decoder.ignore_ray_origin()
         self.extent = float(self.model.scene_extent)
@@ -220,8 +219,7 @@ class Trainer:
         return STKNNCompactor(cfg, total_iterations=self.schedule.iterations)
 
     def _make_colour_correction(self) -> ColourCorrection | None:
-        mode = self.cfg.colour_correction
-        if mode == "off" or (mode == "auto" and self.dataset.synthetic):
+        if not _chosen(self.cfg.colour_correction, not self.dataset.synthetic):
             return None
         return ColourCorrection(self.dataset.train_views, self.cfg.lr.colour_correction)
 
@@ -493,6 +491,11 @@ class Trainer:
             summary["eval_seconds"] = round(time.perf_counter() - e0, 3)
             write_json(self.out / "train_summary.json", summary)
         return summary
+
+
+def _chosen(mode: str, auto: bool) -> bool:
+    """An on/off/auto option of the real-capture rules: `auto` is what the data calls for."""
+    return mode == "on" or (mode == "auto" and auto)
 
 
 def _jsonable(obj: Any) -> Any:
