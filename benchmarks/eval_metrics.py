@@ -3,9 +3,10 @@
 Images are random float32 [H, W, 3] pairs at the sizes given (default: 256x256, quarter- and half-resolution
 N3DV 676x507 and 1352x1014). Timed: SSIM forward, and forward + backward with respect to the image (what the
 trainer does every iteration). Implementations:
-- stgc: `stgc.eval.ssim`, the five local moments stacked into one depthwise 11x11 convolution call;
+- stgc: `stgc.eval.ssim`, the five local moments stacked and blurred by a separable numba kernel that is its own
+  backward (CPU);
 - 3DGS: the `loss_utils.ssim` structure, five grouped 11x11 convolutions (one per moment);
-- separable: two 1-D passes (11x1 then 1x11) over the stacked moments, 22 instead of 121 taps per pixel.
+- separable: two torch 1-D convolutions (11x1 then 1x11) over the stacked moments, 22 instead of 121 taps per pixel.
 All compute the same numbers (tests/eval/test_metrics.py); |Δssim| is the largest difference to stgc's value. Wall seconds are the median of --repeats after
 one warm-up call; process CPU seconds are also reported, since the machine may be shared.
 
