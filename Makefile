@@ -21,6 +21,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 test: install
+	$(PY) -m mypy
 	$(PY) -m pytest -q
 
 demo: install

@@ -146,9 +146,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
     )
     print(f"run written to {out}")
-    if (out / "eval.json").is_file():
+    record = read_json_object(out / "eval.json")
+    if record is not None:
         from stgc.eval import format_eval_table
-        print(format_eval_table(read_json_object(out / "eval.json")))
+        print(format_eval_table(record))
     return 0
 
 

@@ -9,6 +9,7 @@ stopped (finished runs are skipped, an unfinished training resumes from its chec
 
 from __future__ import annotations
 
+import io
 import signal
 import subprocess
 import sys
@@ -59,9 +60,10 @@ def tee_runner(cmd: list[str], log_path: Path) -> int:
         log.write(f"\n$ {' '.join(cmd)}\n")
         log.flush()
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-        assert proc.stdout is not None
+        output = proc.stdout
+        assert isinstance(output, io.BufferedReader)
         try:
-            for chunk in iter(lambda: proc.stdout.read1(4096), b""):  # type: ignore[union-attr]
+            for chunk in iter(lambda: output.read1(4096), b""):
                 sys.stdout.buffer.write(chunk)
                 sys.stdout.flush()
                 log.write(chunk.decode(errors="replace"))

@@ -297,14 +297,14 @@ def optimise_allocation(
         shapes[tag] = coarser_bits(errors)
     table: dict[str, list[Option]] = {}
     for tag in tags:
-        measured = []
+        trials = []
         for bits in candidates[tag]:
             images, sizes = trial({**near_lossless, tag: float(bits)})
-            measured.append(Option(float(bits), sizes[tag], max(0.0, relative_error(images) - floor)))
+            trials.append(Option(float(bits), sizes[tag], max(0.0, relative_error(images) - floor)))
         # Fewer bits never remove error; where measurement noise says otherwise, a depth is charged the largest
         # error measured at it or any finer depth (the conservative envelope).
         monotone, largest = [], 0.0
-        for option in reversed(measured):
+        for option in reversed(trials):
             largest = max(largest, option.error)
             monotone.append(Option(option.depth, option.bytes, largest))
         monotone.reverse()

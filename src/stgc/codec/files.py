@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -142,7 +143,7 @@ def write_stgc(path: str | Path, data: bytes) -> Path:
     return path
 
 
-def _read_bytes(path: str | Path) -> bytes:
+def _read_bytes(path: str | os.PathLike) -> bytes:
     path = Path(path)
     try:
         size = path.stat().st_size
@@ -153,7 +154,7 @@ def _read_bytes(path: str | Path) -> bytes:
     return path.read_bytes()
 
 
-def read_stgc(path: str | Path) -> DecodedModel:
+def read_stgc(path: str | os.PathLike) -> DecodedModel:
     """Decode a .stgc file; any defect raises FormatError naming the file."""
     return decode(_read_bytes(path), source=str(path))
 

@@ -153,8 +153,8 @@ TAG_DECODER = b"DECO"
 TAG_META = b"META"
 _DECO, _META = TAG_DECODER.decode("latin-1"), TAG_META.decode("latin-1")
 
-_DTYPE_CODES = {np.dtype(np.float16): 1, np.dtype(np.float32): 2}
-_DTYPE_BY_CODE = {v: k for k, v in _DTYPE_CODES.items()}
+_DTYPE_CODES: dict[np.dtype, int] = {np.dtype(np.float16): 1, np.dtype(np.float32): 2}
+_DTYPE_BY_CODE: dict[int, np.dtype] = {v: k for k, v in _DTYPE_CODES.items()}
 _FP16_MAX = 65504.0
 
 
@@ -432,10 +432,10 @@ def encode(
     unknown = (set(group_bits or ()) | set(step_scales or ())) - GROUP_TAGS
     if unknown:
         raise ValueError(f"group_bits/step_scales name unknown groups {sorted(unknown)}")
-    for tag, factors in (step_scales or {}).items():
-        group = GROUP_BY_TAG[tag.encode("latin-1")]
+    for tag_name, factors in (step_scales or {}).items():
+        group = GROUP_BY_TAG[tag_name.encode("latin-1")]
         if len(factors) != (3 if group.domain == QUAT_SMALLEST3 else len(group.fields(variant))):
-            raise ValueError(f"step_scales[{tag!r}] needs one factor per stored component (3 for ROTN)")
+            raise ValueError(f"step_scales[{tag_name!r}] needs one factor per stored component (3 for ROTN)")
     if quality not in QUALITY_LEVELS:
         raise ValueError(f"quality must be one of {QUALITY_LEVELS}, got {quality!r}")
     if variant == "full" and decoder_state is None:

@@ -146,7 +146,9 @@ def centre_encode(codes: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]
     bulk on the same small symbols, so their mixture is as compressible as each alone (for attributes that peak
     at a different code per component, e.g. motion coefficients, whose 0.0 sits at a different code in each)."""
     c = codes.astype(np.int64)
-    centre = np.round(np.median(c, axis=1)).astype(np.int64) if c.shape[1] else np.zeros(c.shape[0], np.int64)
+    centre = np.zeros(c.shape[0], np.int64)
+    if c.shape[1]:
+        centre = np.asarray(np.median(c, axis=1)).round().astype(np.int64)
     return zigzag(c - centre[:, None]).astype(container_dtype(bits + 1)), centre
 
 

@@ -55,9 +55,9 @@ def synthetic_model(n: int, variant: str = "full", seed: int = 0, extent: float 
         cols[name] = np.zeros(n)
     dynamic = rng.random(n) < 0.35
     for k, scale in enumerate((0.05, 0.02, 0.01)):  # linear, quadratic, cubic coefficients per axis
-        for axis in range(3):
+        for component in range(3):
             m = np.where(dynamic, rng.laplace(0, scale * extent, n), rng.normal(0, 1e-4, n))
-            cols[f"motion_{3 * k + axis}"] = m
+            cols[f"motion_{3 * k + component}"] = m
     n_dc = 6 if variant == "full" else 3
     # Colour and size are coherent per surface patch / cluster (texture varies around a base), as in real scenes;
     # the colour channels share the patch's brightness, so they are strongly correlated (as in trained models).

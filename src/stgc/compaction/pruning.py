@@ -23,7 +23,7 @@ Mutual pairs were merged into one earlier (`matching.match_from_neighbors`).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,7 +43,7 @@ class PruneSelection:
 
 
 def removal_scores(
-    params: dict[str, torch.Tensor], criterion: str, importance: Callable[[], torch.Tensor | np.ndarray] | None = None
+    params: Mapping[str, torch.Tensor], criterion: str, importance: Callable[[], torch.Tensor | np.ndarray] | None = None
 ) -> np.ndarray:
     """Per-Gaussian score; in a selected pair the member with the higher score is removed."""
     n = params["xyz"].shape[0]

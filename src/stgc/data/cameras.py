@@ -17,6 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+# Where a view's pixels come from: an image file, or a callable that returns uint8 [H, W, 3] (a video frame).
+ImageSource = Path | str | Callable[[], np.ndarray]
+
 # The official STG rasterizers (and 3DGS, and Dynamic 3D Gaussians' fork) cull every Gaussian whose centre lies at
 # view depth <= 0.2 (`in_frustum`). A format may state a larger one (SourceScene.near_plane); data.near_plane
 # overrides both.
@@ -44,7 +47,7 @@ class Camera:
     w2c: np.ndarray
     width: int
     height: int
-    image: Path | Callable[[], np.ndarray] | None = field(default=None, repr=False)
+    image: ImageSource | None = field(default=None, repr=False)
     near: float = DEFAULT_NEAR_PLANE
 
     @property
@@ -186,9 +189,9 @@ def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
     else:
         s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
         q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return q if q[0] >= 0 else -q
+    quat = np.array(q)
+    quat /= np.linalg.norm(quat)
+    return quat if quat[0] >= 0 else -quat
 
 
 def colmap_to_w2c(qvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:

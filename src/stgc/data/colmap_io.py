@@ -107,7 +107,7 @@ class _Reader:
         self.pos += size
         return values
 
-    def take_array(self, dtype: str, count: int) -> np.ndarray:
+    def take_array(self, dtype: str | np.dtype, count: int) -> np.ndarray:
         dt = np.dtype(dtype)
         size = dt.itemsize * count
         if self.pos + size > len(self.data):
@@ -153,7 +153,7 @@ def _read_images_bin(path: Path) -> dict[int, ColmapImage]:
 _POINT_DTYPE = np.dtype([("id", "<u8"), ("xyz", "<f8", 3), ("rgb", "u1", 3), ("error", "<f8"), ("n", "<u8")])
 
 
-def _read_points_bin(path: Path):
+def _read_points_bin(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     r = _Reader(path)
     count = r.take("<Q")[0]
     xyz = np.zeros((count, 3))
@@ -252,7 +252,7 @@ def _read_images_txt(path: Path) -> dict[int, ColmapImage]:
     return images
 
 
-def _read_points_txt(path: Path):
+def _read_points_txt(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     xyz, rgb, error, track = [], [], [], []
     for number, line in _data_lines(path):
         parts = line.split()

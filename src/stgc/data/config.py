@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import ClassVar
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar
+
+if TYPE_CHECKING:
+    from .dataset import Dataset
+    from .points import PointCloud
+    from .preprocess import PreprocessReport
 
 
 @dataclass
@@ -87,7 +93,7 @@ class DataConfig:
         check(self.yuv_range in ("limited", "full"), f"{prefix}yuv_range", self.yuv_range, "limited or full")
         check(self.image_cache_mb >= 0, f"{prefix}image_cache_mb", self.image_cache_mb, ">= 0")
 
-    def open(self, path):
+    def open(self, path: str | Path) -> Dataset:
         """Open `path` with these options."""
         from .readers import open_dataset
 
@@ -96,7 +102,7 @@ class DataConfig:
                             image_cache_mb=self.image_cache_mb, background=self.background,
                             yuv_range=self.yuv_range, near_plane=self.near_plane)
 
-    def initial_points(self, dataset):
+    def initial_points(self, dataset: Dataset) -> tuple[PointCloud, PreprocessReport]:
         """Initial points of `dataset` with these options: (cloud, report).
 
         The preprocess rule sees each frame's whole cloud, as in STG (its "most isolated 25 %" means isolated
@@ -119,7 +125,7 @@ class DataConfig:
 
 
 
-def data_config_from_saved(section: dict, source) -> tuple[DataConfig, str | None]:
+def data_config_from_saved(section: dict, source: str | Path | None) -> tuple[DataConfig, str | None]:
     """(DataConfig, dataset path) from the `data` section a run saved (RUN/config.json, or the copy a .stgc file
     embeds), read strictly: an unknown or ill-typed key is a FormatError naming `source`, never dropped."""
     from stgc.config import ConfigError, from_saved, validate_config
@@ -135,9 +141,8 @@ def data_config_from_saved(section: dict, source) -> tuple[DataConfig, str | Non
         raise FormatError(source, f"run config: {exc}") from None
 
 
-def saved_run_data(run_dir) -> tuple[DataConfig, str | None] | None:
+def saved_run_data(run_dir: str | Path) -> tuple[DataConfig, str | None] | None:
     """(DataConfig, dataset path) that the run in `run_dir` saved in its config.json, or None without one."""
-    from pathlib import Path
 
     from stgc.fileio import read_json_object
 
@@ -146,11 +151,9 @@ def saved_run_data(run_dir) -> tuple[DataConfig, str | None] | None:
     return None if saved is None else data_config_from_saved(saved.get("data") or {}, config_path)
 
 
-def open_run_dataset(run_dir, data_path=None):
+def open_run_dataset(run_dir: str | Path, data_path: str | Path | None = None) -> Dataset:
     """The dataset the run in `run_dir` trained on, opened with its own saved data options (RUN/config.json);
     `data_path` replaces the saved location (the same data moved, or other data)."""
-    from pathlib import Path
-
     from stgc.errors import DataError
 
     config_path = Path(run_dir) / "config.json"
@@ -160,12 +163,13 @@ def open_run_dataset(run_dir, data_path=None):
             return DataConfig().open(data_path)
         raise DataError(config_path, "no run config found; pass the dataset with --data")
     config, path = saved
-    if data_path is None and path is None:
+    target = data_path if data_path is not None else path
+    if target is None:
         raise DataError(config_path, "config.json has no data.path; pass the dataset with --data")
-    return config.open(data_path if data_path is not None else path)
+    return config.open(target)
 
 
-def initial_points_from_config(dataset, cfg: DataConfig | None = None):
+def initial_points_from_config(dataset: Dataset, cfg: DataConfig | None = None) -> PointCloud:
     """The trainer's entry point: initial points of `dataset` as `cfg` asks, after preprocessing (PointCloud).
 
     The per-frame counts before/after preprocessing are logged at INFO level."""

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from .cameras import DEFAULT_NEAR_PLANE, Camera
+from .cameras import DEFAULT_NEAR_PLANE, Camera, ImageSource
 from .images import ImageCache, image_size, read_image, resize_image
 from .masks import read_mask
 
@@ -241,17 +241,17 @@ class Dataset:
         native = self._decode_source(source)
         return self._fit(native, camera, source)
 
-    def _decode_source(self, source) -> np.ndarray:
+    def _decode_source(self, source: ImageSource) -> np.ndarray:
         if isinstance(source, (str, Path)):
             return read_image(Path(source), self.background)
         image = source()
         return np.asarray(image, dtype=np.uint8)
 
-    def _fit(self, native: np.ndarray, camera: Camera, source) -> np.ndarray:
+    def _fit(self, native: np.ndarray, camera: Camera, source: ImageSource) -> np.ndarray:
         expected = self._native_size.get(id(camera))
         h, w = native.shape[:2]
         if expected is not None and (w, h) != expected:
-            where = source.path if hasattr(source, "path") else source
+            where = source.path if isinstance(source, VideoFrame) else source if isinstance(source, (str, Path)) else None
             raise DataError(where, f"image is {w}x{h} but {expected[0]}x{expected[1]} was expected "
                                    f"(camera {camera.name}, from {self._scene.meta_file.name})")
         if expected is None and abs(w / h - camera.width / camera.height) > 0.02:
@@ -262,12 +262,13 @@ class Dataset:
     def _decode_video_segment(self, camera: Camera) -> None:
         """Decode every frame of this camera's video in the segment in one pass into the cache: videos
         cannot be seeked cheaply, and training visits frames in random order."""
-        same_view = [c for c in self.cameras if c.name == camera.name and isinstance(c.image, VideoFrame)]
-        path = camera.image.path
-        decoded = decode_video(path, [c.image.index for c in same_view])
-        for cam in same_view:
-            image = self._fit(decoded[cam.image.index], cam, cam.image)
-            self._cache.get(_cache_key(cam), lambda image=image: image)
+        same_view = [(c, c.image) for c in self.cameras if c.name == camera.name and isinstance(c.image, VideoFrame)]
+        if not same_view:
+            raise ValueError(f"camera {camera.name} does not come from a video")
+        decoded = decode_video(same_view[0][1].path, [frame.index for _, frame in same_view])
+        for cam, frame in same_view:
+            image = self._fit(decoded[frame.index], cam, frame)
+            self._cache.put(_cache_key(cam), image)
 
     def image_float(self, camera: Camera) -> np.ndarray:
         """float32 [H, W, 3] in [0, 1]."""
@@ -340,7 +341,7 @@ def _unique_names(cameras: list[Camera]) -> list[str]:
 
 def assemble(scene: SourceScene, *, downscale: float = 1, start: int | None = None, duration: int | None = None,
              test_cameras: list[str] | str | None = None, fps: float | None = None,
-             cache_bytes: int = DEFAULT_CACHE_BYTES, background=(0.0, 0.0, 0.0),
+             cache_bytes: int = DEFAULT_CACHE_BYTES, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
              check_images: bool = True, near_plane: float | None = None) -> Dataset:
     """Select the segment [start, start + duration), split, downscale and check a `SourceScene`.
 
@@ -383,7 +384,8 @@ def assemble(scene: SourceScene, *, downscale: float = 1, start: int | None = No
     if not (near > 0 and math.isfinite(near)):
         raise ValueError(f"near_plane must be a positive depth, not {near_plane}")
     native_size: dict[int, tuple[int, int]] = {}
-    train, test = [], []
+    train: list[Camera] = []
+    test: list[Camera] = []
     for cam in in_segment:
         out = replace(cam, time=(cam.frame - start) / duration, near=near)
         if downscale != 1:
@@ -398,7 +400,7 @@ def assemble(scene: SourceScene, *, downscale: float = 1, start: int | None = No
 
     dataset = Dataset(scene, start=start, duration=duration, frames=frames, train=train, test=test,
                       downscale=downscale, native_size=native_size, fps=float(fps or scene.fps or DEFAULT_FPS),
-                      cache_bytes=cache_bytes, background=tuple(background),
+                      cache_bytes=cache_bytes, background=background,
                       test_cameras=None if test_cameras is None else list(test_cameras),
                       near_plane=None if near_plane is None else near)
     if check_images:
@@ -418,14 +420,13 @@ def _check_complete(scene: SourceScene, cameras: list[Camera], views: list[str],
 def _check_image_headers(dataset: Dataset, native_size: dict[int, tuple[int, int]]) -> None:
     """Fail early on missing, unreadable or wrongly sized image files: every file when there are few,
     else the first frame of each view (the rest are checked when loaded)."""
-    cams = [c for c in dataset.cameras if isinstance(c.image, (str, Path))]
-    if len(cams) > 5000:
-        first = {}
-        for c in cams:
-            first.setdefault(c.name, c)
-        cams = list(first.values())
-    for cam in cams:
-        path = Path(cam.image)
+    files = [(c, Path(c.image)) for c in dataset.cameras if isinstance(c.image, (str, Path))]
+    if len(files) > 5000:
+        first: dict[str, tuple[Camera, Path]] = {}
+        for cam, path in files:
+            first.setdefault(cam.name, (cam, path))
+        files = list(first.values())
+    for cam, path in files:
         if not path.is_file():
             raise DataError(path, f"image file is missing (camera {cam.name}, frame {cam.frame})")
         w, h = image_size(path)

@@ -79,7 +79,10 @@ class ImageCache:
                 self._items.move_to_end(key)
                 self.hits += 1
                 return self._items[key]
-        image = load()
+        return self.put(key, load())
+
+    def put(self, key: object, image: np.ndarray) -> np.ndarray:
+        """Cache `image` under `key` (unless it exceeds the whole budget or the key is taken); returns it."""
         image.setflags(write=False)  # cached arrays are shared: callers must copy to modify
         with self._lock:
             self.misses += 1

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
+from typing import Any
 
 from .readers import open_dataset
 
 
-def inspect(path: str | Path, format: str = "auto", decode: bool = False, **kwargs) -> dict:
+def inspect(path: str | Path, format: str = "auto", decode: bool = False, **kwargs: Any) -> dict:
     """Summary of the dataset at `path` (all frames unless start/duration are given) plus point availability.
     decode: also decode every image and mask file (a truncated or corrupt one is a DataError naming it)."""
     dataset = open_dataset(path, format=format, **kwargs)
@@ -28,14 +29,15 @@ def inspect(path: str | Path, format: str = "auto", decode: bool = False, **kwar
 
 
 def _bytes(n: int) -> str:
+    size = float(n)
     for unit in ("B", "KiB", "MiB", "GiB"):
-        if n < 1024 or unit == "GiB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return str(n)
+        if size < 1024 or unit == "GiB":
+            return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
+        size /= 1024
+    return str(size)
 
 
-def inspect_text(path: str | Path, **kwargs) -> str:
+def inspect_text(path: str | Path, **kwargs: Any) -> str:
     """The `inspect` summary rendered as a plain-text table (no terminal colours)."""
     from rich.console import Console
     from rich.table import Table

@@ -53,7 +53,8 @@ class PointCloud:
         return {float(v): int(c) for v, c in zip(values, counts)}
 
 
-def _subsample(xyz: np.ndarray, rgb: np.ndarray, limit: int | None, rng: np.random.Generator):
+def _subsample(xyz: np.ndarray, rgb: np.ndarray, limit: int | None,
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     if limit is None or len(xyz) <= limit:
         return xyz, rgb
     keep = np.sort(rng.choice(len(xyz), size=limit, replace=False))
@@ -184,14 +185,14 @@ def viewing_region(dataset: Dataset) -> tuple[np.ndarray, float]:
     cams = {c.name: c for c in dataset.train}.values()
     A = np.zeros((3, 3))
     b = np.zeros(3)
-    centres = []
+    centre_list = []
     for cam in cams:
         d = cam.c2w[:3, 2]
         P = np.eye(3) - np.outer(d, d)
         A += P
         b += P @ cam.center
-        centres.append(cam.center)
-    centres = np.array(centres)
+        centre_list.append(cam.center)
+    centres = np.array(centre_list)
     try:
         focus = np.linalg.solve(A, b)
     except np.linalg.LinAlgError:  # all axes parallel
@@ -200,7 +201,8 @@ def viewing_region(dataset: Dataset) -> tuple[np.ndarray, float]:
     return focus, radius
 
 
-def random_points(dataset: Dataset, frame: int, count: int, rng: np.random.Generator):
+def random_points(dataset: Dataset, frame: int, count: int,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """`count` points drawn uniformly in a cube around the viewing region, kept where at least two training
     cameras of `frame` see them, coloured from the first camera that sees each point."""
     warnings.warn(f"{dataset.name}: initialising frame {frame} with {count} random points (no data points or "

@@ -189,7 +189,7 @@ def read_panoptic(path: Path) -> SourceScene:
                 cameras.append(Camera(name, frame, 0.0, K, w2c, width, height, root / "ims" / fns[t][c]))
                 if meta_file.name == "test_meta.json" and name not in test_names:
                     test_names.append(name)
-    _check_no_extra_images(root / "ims", {Path(c.image) for c in cameras}, meta_files[0])
+    _check_no_extra_images(root / "ims", {c.image for c in cameras if isinstance(c.image, Path)}, meta_files[0])
     points, description = None, None
     npz = root / "init_pt_cld.npz"
     if npz.is_file():
@@ -376,14 +376,14 @@ def read_n3dv(path: Path) -> SourceScene:
         raise DataError(meta_file, f"{what}: {len(poses)} poses but {len(names)} cameras found ({names[0]}.."
                                    f"{names[-1]})")
     cameras = []
-    notes = []
+    notes: list[str] = []
     for row, name in zip(poses, names):
         if not np.all(np.isfinite(row)):
             raise DataError(meta_file, f"camera {name}: non-finite (NaN or inf) value in its pose row")
         w2c, (h, w, focal) = llff_to_w2c(row[:15])
         if name in frame_dirs:
             files = _frame_files(frame_dirs[name])
-            sources = {frame: f for frame, f in files.items()}
+            sources: dict[int, Path | VideoFrame] = dict(files)
             actual = image_size(next(iter(files.values())))
         else:
             count, video_fps = _video_frames(videos[name])
@@ -422,7 +422,7 @@ def _first_source(sources: dict) -> Path:
 def _frame_files(view_dir: Path) -> dict[int, Path]:
     """frame index -> image file in camXX/ or camXX/images/ (names NNNN.png or N.png)."""
     folder = view_dir / "images" if (view_dir / "images").is_dir() else view_dir
-    files = {}
+    files: dict[int, Path] = {}
     for f in sorted(folder.iterdir()):
         if f.suffix in IMAGE_EXTS and f.stem.isdigit():
             frame = int(f.stem)
@@ -454,7 +454,8 @@ def _video_size(path: Path) -> tuple[int, int]:
         reader.close()
     except (OSError, RuntimeError, StopIteration) as exc:
         raise DataError(path, f"cannot read video: {exc}") from None
-    return tuple(int(v) for v in meta["size"])
+    width, height = (int(v) for v in meta["size"])
+    return width, height
 
 
 # ----------------------------------------------------------------------------------- STG COLMAP

@@ -14,6 +14,7 @@ import json
 import os
 import tempfile
 import time
+from typing import Any
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,7 +40,7 @@ class TriangulationResult:
         return float(np.median(self.errors)) if len(self.errors) else float("nan")
 
 
-def _pycolmap():
+def _pycolmap() -> Any:
     try:
         import pycolmap
     except ImportError:
@@ -111,8 +112,8 @@ def _triangulate(dataset: Dataset, frame: int, cameras: list[Camera], upsample: 
                  min_track_length: int) -> TriangulationResult:
     pycolmap = _pycolmap()
     timings = {}
-    with tempfile.TemporaryDirectory(prefix="stgc_tri_") as tmp:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory(prefix="stgc_tri_") as tmp_name:
+        tmp = Path(tmp_name)
         image_dir = tmp / "images"
         image_dir.mkdir()
         t0 = time.perf_counter()

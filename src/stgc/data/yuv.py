@@ -38,7 +38,8 @@ def _levels(bit_depth: int, color_range: str) -> tuple[float, float, float, floa
     raise ValueError(f"color_range must be 'limited' or 'full', not {color_range!r}")
 
 
-def rgb_to_yuv420(rgb: np.ndarray, bit_depth: int = 10, color_range: str = "limited"):
+def rgb_to_yuv420(rgb: np.ndarray, bit_depth: int = 10,
+                  color_range: str = "limited") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """uint8 or [0,1] float RGB [H, W, 3] -> integer planes (Y [H,W], Cb, Cr [ceil(H/2), ceil(W/2)]).
 
     Chroma is the mean over each 2x2 block (edge blocks padded by replication)."""

@@ -291,9 +291,10 @@ def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstre
     if not isinstance(section, dict):
         raise DataError(bitstream, "no run config found beside or inside the bitstream; pass the dataset with --data")
     config, path = data_config_from_saved(section, bitstream)
-    if data_path is None and path is None:
+    target = data_path if data_path is not None else path
+    if target is None:
         raise DataError(bitstream, "the embedded run config has no data.path; pass the dataset with --data")
-    return config.open(data_path if data_path is not None else path)
+    return config.open(target)
 
 
 def dataset_duration_s(dataset: Any) -> float:

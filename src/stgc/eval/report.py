@@ -15,6 +15,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from stgc.errors import DataError
 from stgc.eval.bjontegaard import BDError, Method, bd_psnr, bd_rate
 from stgc.fileio import atomic_open, atomic_path, read_json_object, write_json
@@ -202,7 +204,8 @@ def rd_plot(rows: Sequence[ReportRow], png: Path, svg: Path | None, title: str, 
         curve = [r for r in _curve(members) if getattr(r, metric) is not None]
         if not curve:
             continue
-        xs, ys = [r.mbps for r in curve], [getattr(r, metric) for r in curve]
+        xs = np.array([r.mbps for r in curve], dtype=float)
+        ys = np.array([getattr(r, metric) for r in curve], dtype=float)
         label = f"{family} (baseline)" if family == baseline else family
         ax.plot(xs, ys, marker=markers[i % len(markers)], linewidth=1.8 if family == baseline else 1.4,
                 linestyle="--" if family == baseline else "-", markersize=6, label=label)
@@ -235,8 +238,12 @@ def make_report(
     notes: Sequence[str] = (),
 ) -> Report:
     """Write OUT/<stem>.md (table + BD deltas), OUT/<stem>_rd.png/.svg (RD plot) and OUT/<stem>.json."""
-    rows = [r if isinstance(r, ReportRow) else ReportRow.from_mapping(r) for r in rows]
-    out_dir = Path(out_dir)
+    parsed = [r if isinstance(r, ReportRow) else ReportRow.from_mapping(r) for r in rows]
+    return _write_report(parsed, Path(out_dir), baseline, title, bd_method, stem, notes)
+
+
+def _write_report(rows: list[ReportRow], out_dir: Path, baseline: str | None, title: str, bd_method: Method,
+                  stem: str, notes: Sequence[str]) -> Report:
     out_dir.mkdir(parents=True, exist_ok=True)
     base = resolve_baseline(rows, baseline)
     bd = bd_table(rows, base, bd_method)

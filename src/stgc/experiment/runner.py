@@ -233,7 +233,8 @@ def run_plan(
     out_dir.mkdir(parents=True, exist_ok=True)
     extra = parse_overrides(extra_overrides)
     say = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
-    result = PlanResult(plan, out_dir, results_csv=out_dir / f"results-{plan.name}.csv")
+    results_csv = out_dir / f"results-{plan.name}.csv"
+    result = PlanResult(plan, out_dir, results_csv=results_csv)
     qualities = [int(q) for q in codec_qualities]
     if check_options:  # off only for a stand-in trainer with options of its own (tests)
         check_plan_options(plan, preset, extra)
@@ -258,7 +259,7 @@ def run_plan(
         if outcome.status != "failed" and not dry_run:
             for q in qualities:
                 result.outcomes.append(_codec_point(spec, run_dir, q, runner, python, log_path, say, overrides))
-        write_results(result.results_csv, plan, result.outcomes, out_dir)
+        write_results(results_csv, plan, result.outcomes, out_dir)
 
     if make_report_files and not dry_run:
         rows = _report_rows(result.outcomes)

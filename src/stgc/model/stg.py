@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -157,7 +157,7 @@ class STGModel:
 
     def __init__(
         self,
-        params: dict[str, torch.Tensor],
+        params: Mapping[str, torch.Tensor],
         variant: str,
         scene_extent: float = 1.0,
         decoder: SandwichDecoder | None = None,
@@ -308,8 +308,9 @@ class STGModel:
         raster_options.setdefault("near_plane", float(camera.near))
         opacity = self.temporal_opacity(t)
         index = torch.nonzero(opacity.detach() >= MIN_VISIBLE_OPACITY, as_tuple=False)[:, 0]
+        rows: Mapping[str, torch.Tensor]
         if len(index) == self.num_gaussians:  # nothing culled (e.g. early training): skip the row copies
-            rows, visible_opacity = dict(self.params), opacity
+            rows, visible_opacity = self.params, opacity
         else:
             rows, visible_opacity = {key: value[index] for key, value in self.params.items()}, opacity[index]
         cached = self._camera_tensors(camera)
@@ -405,9 +406,11 @@ class STGModel:
             if tuple(value.shape) != (count, width):
                 raise ValueError(f"extend: {key!r} has shape {tuple(value.shape)}, expected ({count}, {width})")
             rows[key] = value
+        def with_zero_rows(state: torch.Tensor) -> torch.Tensor:
+            return torch.cat([state, state.new_zeros((count,) + state.shape[1:])])
+
         for key, value in rows.items():
-            grown = torch.cat([self.params[key].detach(), value])
-            self._swap(key, grown, lambda state, m=count: torch.cat([state, state.new_zeros((m,) + state.shape[1:])]))
+            self._swap(key, torch.cat([self.params[key].detach(), value]), with_zero_rows)
 
     def gather(self, selection: torch.Tensor) -> dict[str, torch.Tensor]:
         """Detached copies of the selected rows (bool mask or indices), e.g. to clone Gaussians via extend()."""
@@ -428,7 +431,8 @@ class STGModel:
             capped = torch.clamp(torch.sigmoid(self.params["opacity"]), max=max_value)
             self.replace_param("opacity", torch.log(capped / (1.0 - capped)), reset_moments=True)
 
-    def _swap(self, key: str, value: torch.Tensor, edit_rows) -> None:
+    def _swap(self, key: str, value: torch.Tensor,
+              edit_rows: Callable[[torch.Tensor], torch.Tensor] | None) -> None:
         old = self.params[key]
         new = nn.Parameter(value.contiguous().clone() if value.data_ptr() == old.data_ptr() else value.contiguous())
         if self.optimizer is not None:
@@ -553,27 +557,27 @@ class STGModel:
 
 
 # ---------------------------------------------------------------------- formulas on a dict of rows
-def _temporal_opacity(params: dict[str, torch.Tensor], t: float | torch.Tensor) -> torch.Tensor:
+def _temporal_opacity(params: Mapping[str, torch.Tensor], t: float | torch.Tensor) -> torch.Tensor:
     delta = t - params["trbf_center"]
     return (torch.sigmoid(params["opacity"]) * torch.exp(-torch.square(delta / torch.exp(params["trbf_scale"]))))[:, 0]
 
 
-def _detached_delta(params: dict[str, torch.Tensor], t: float) -> torch.Tensor:
+def _detached_delta(params: Mapping[str, torch.Tensor], t: float) -> torch.Tensor:
     return (t - params["trbf_center"]).detach()
 
 
-def _means_at(params: dict[str, torch.Tensor], t: float) -> torch.Tensor:
+def _means_at(params: Mapping[str, torch.Tensor], t: float) -> torch.Tensor:
     d = _detached_delta(params, t)
     motion = params["motion"]
     return params["xyz"] + motion[:, 0:3] * d + motion[:, 3:6] * (d * d) + motion[:, 6:9] * (d * d * d)
 
 
-def _rotations_at(params: dict[str, torch.Tensor], t: float) -> torch.Tensor:
+def _rotations_at(params: Mapping[str, torch.Tensor], t: float) -> torch.Tensor:
     d = _detached_delta(params, t)
     return torch.nn.functional.normalize(params["rotation"] + d * params["omega"], dim=1)
 
 
-def _features_at(params: dict[str, torch.Tensor], t: float) -> torch.Tensor:
+def _features_at(params: Mapping[str, torch.Tensor], t: float) -> torch.Tensor:
     if "features_t" not in params:
         return params["features_dc"]
     return torch.cat([params["features_dc"], _detached_delta(params, t) * params["features_t"]], dim=1)

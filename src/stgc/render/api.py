@@ -88,7 +88,7 @@ def select_backend(requested: str, device: torch.device) -> str:
     return requested
 
 
-def _to_tensor(name: str, value, shape: tuple, dtype: torch.dtype, device: torch.device) -> Tensor:
+def _to_tensor(name: str, value: object, shape: tuple, dtype: torch.dtype, device: torch.device) -> Tensor:
     """Tensor of `shape` (None = any size, checked by the caller) on `device`/`dtype`; ValueError otherwise."""
     if isinstance(value, np.ndarray):
         value = torch.from_numpy(value)
@@ -110,23 +110,26 @@ def _to_tensor(name: str, value, shape: tuple, dtype: torch.dtype, device: torch
     return value
 
 
-def _check_size(name: str, value) -> int:
+def _check_size(name: str, value: object) -> int:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 1:
         raise ValueError(f"{name}: expected a positive integer, got {value!r}")
     return int(value)
 
 
+ArrayLike = Tensor | np.ndarray
+
+
 def rasterize(
-    means,
-    quats,
-    scales,
-    opacities,
-    features,
-    K,
-    viewmat,
+    means: ArrayLike,
+    quats: ArrayLike,
+    scales: ArrayLike,
+    opacities: ArrayLike,
+    features: ArrayLike,
+    K: ArrayLike,
+    viewmat: ArrayLike,
     width: int,
     height: int,
-    background=None,
+    background: ArrayLike | None = None,
     *,
     backend: str = "auto",
     alpha_max: float = 0.99,
@@ -177,14 +180,14 @@ def rasterize(
 
         module = gsplat_backend.load_gsplat()
         if module is not None and dtype == torch.float32:
-            parts = gsplat_backend.rasterize_gsplat(
+            out = gsplat_backend.rasterize_gsplat(
                 module, means, quats, scales, opacities, features, K, viewmat, width, height, background,
                 alpha_max=alpha_max, near_plane=near_plane, eps2d=eps2d,
                 want_depth=return_depth, want_weights=return_weights,
             )  # fmt: skip
-            if parts["means2d"].requires_grad:
-                parts["means2d"].retain_grad()
-            return RenderOutput(backend="gsplat", **parts)
+            if out.means2d.requires_grad:
+                out.means2d.retain_grad()
+            return out
         chosen = "torch"
 
     proj = project_gaussians(

@@ -14,10 +14,13 @@ Differences from the CPU backends, all documented in docs/rasterizer.md:
 from __future__ import annotations
 
 import warnings
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
+
+if TYPE_CHECKING:
+    from .api import RenderOutput
 
 TILE_SIZE = 16
 
@@ -83,10 +86,9 @@ def rasterize_gsplat(
     eps2d: float,
     want_depth: bool,
     want_weights: bool,
-) -> dict[str, Tensor | None]:
-    """One camera through gsplat's CUDA kernels. Returns the pieces of a RenderOutput (no background composited
-    separately: gsplat adds it itself)."""
-    from .api import T_MIN
+) -> RenderOutput:
+    """One camera through gsplat's CUDA kernels (no background composited separately: gsplat adds it itself)."""
+    from .api import T_MIN, RenderOutput
     from .projection import ALPHA_MIN, bin_tiles_torch, tile_grid, tile_rects
     from .torch_backend import TILE_SIZE as TORCH_TILE
     from .torch_backend import composite_torch
@@ -127,13 +129,6 @@ def rasterize_gsplat(
                 depths_b[0].detach(), offsets, flat, width, height, TORCH_TILE,
                 kernel_alpha_max, ALPHA_MIN, T_MIN, want_depth, want_weights, use_checkpoint=False,
             )  # fmt: skip
-    return {
-        "image": image[0],
-        "alpha": alpha[0, ..., 0],
-        "depth": depth,
-        "weights": weights,
-        "radii": radii.to(torch.int32),
-        "visible": visible,
-        "means2d": means2d,
-        "num_intersections": int(flatten_ids.numel()),
-    }
+    return RenderOutput(image=image[0], alpha=alpha[0, ..., 0], depth=depth, radii=radii.to(torch.int32),
+                        visible=visible, means2d=means2d, weights=weights, backend="gsplat",
+                        num_intersections=int(flatten_ids.numel()))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
 import torch
@@ -15,11 +17,12 @@ from .projection import tile_grid
 TILE_SIZE = 8
 
 
-def _consts(dtype: np.dtype, alpha_max: float, alpha_min: float, t_min: float) -> np.ndarray:
+def _consts(dtype: type[np.floating], alpha_max: float, alpha_min: float, t_min: float) -> np.ndarray:
     return np.array([0.5, 1.0, alpha_max, alpha_min, t_min, 0.0], dtype=dtype)
 
 
-def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, sigma_cut: Tensor, depths: Tensor, dtype) -> np.ndarray:
+def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, sigma_cut: Tensor, depths: Tensor,
+          dtype: type[np.floating]) -> np.ndarray:
     N = means2d.shape[0]
     gdata = np.empty((N, 8), dtype=dtype)
     gdata[:, 0:2] = means2d.detach().numpy()
@@ -35,8 +38,9 @@ class _NumbaComposite(torch.autograd.Function):
     median depth [H,W] | None, weights [N] | None). `gdata` is the packed numpy copy of the first three."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, gdata, offsets, flat, width, height, tile_size, consts,
-                want_depth, want_weights):  # fmt: skip
+    def forward(ctx: Any, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, gdata: np.ndarray,
+                offsets: np.ndarray, flat: np.ndarray, width: int, height: int, tile_size: int, consts: np.ndarray,
+                want_depth: bool, want_weights: bool) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:  # fmt: skip
         np_dtype = gdata.dtype.type
         col = np.ascontiguousarray(colors.detach().numpy(), dtype=np_dtype)
         N, C = col.shape
@@ -65,7 +69,8 @@ class _NumbaComposite(torch.autograd.Function):
         return torch.from_numpy(out_color), torch.from_numpy(out_trans.copy()), depth, weights
 
     @staticmethod
-    def backward(ctx, grad_color, grad_trans, _grad_depth, _grad_weights):
+    def backward(ctx: Any, grad_color: Tensor | None, grad_trans: Tensor | None, _grad_depth: Tensor | None,
+                 _grad_weights: Tensor | None) -> tuple[Tensor | None, ...]:
         gdata, col, offsets, flat, centers_x, centers_y, consts, out_trans, out_last = ctx.arrays
         tile_size, tiles_x, N, C, longest = ctx.layout
         np_dtype = gdata.dtype.type

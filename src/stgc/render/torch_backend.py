@@ -19,8 +19,9 @@ GROUP = 8
 CHUNK = 64
 
 
-def _render_group(pix, inside, ids, means2d, conics, opac, colors, depths, alpha_max, alpha_min, t_min, want_depth,
-                  want_weights):  # fmt: skip
+def _render_group(pix: Tensor, inside: Tensor, ids: Tensor, means2d: Tensor, conics: Tensor, opac: Tensor,
+                  colors: Tensor, depths: Tensor, alpha_max: float, alpha_min: float, t_min: float, want_depth: bool,
+                  want_weights: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
     """pix [G,P,2] pixel centres, inside [G,P] (False for the padding pixels of border tiles), ids [G,K] Gaussian
     ids (padding = dummy index). Returns color [G,P,C], T [G,P], median depth [G,P] (zeros unless want_depth) and
     the contribution weights summed over pixels [G,K] (empty unless want_weights)."""

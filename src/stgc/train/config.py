@@ -164,6 +164,12 @@ class TrainConfig:
         metadata={"help": "learn a gain and offset per training camera and channel (Dynamic 3D Gaussians); auto: on "
                           "for real captures, off for synthetic renders (Blender/D-NeRF), whose cameras agree"},
     )
+    mask_loss: float = field(
+        default=0.0,
+        metadata={"help": "weight of an extra L1 term over the foreground pixels of views that have a mask (Panoptic "
+                          "seg/), normalised by their number, so that small moving subjects count as much as their "
+                          "share of the error and not only of the image; 0 = off"},
+    )
     backend: str = field(default="auto", metadata={"help": "rasterizer backend passed to stgc.render"})
     threads: int = field(default=0, metadata={"help": "torch threads (0 = leave as is)"})
     lr: LearningRates = field(default_factory=LearningRates)
@@ -194,6 +200,8 @@ class TrainConfig:
               self.schedule_scale, "> 0")
         check(self.batch >= 1, f"{prefix}batch", self.batch, ">= 1")
         check(0 <= self.lambda_dssim <= 1, f"{prefix}lambda_dssim", self.lambda_dssim, "in [0, 1]")
+        check(math.isfinite(self.mask_loss) and self.mask_loss >= 0, f"{prefix}mask_loss", self.mask_loss,
+              ">= 0 (0 = off)")
         check(self.threads >= 0, f"{prefix}threads", self.threads, ">= 0 (0 = leave as is)")
         for name in ("checkpoint_every", "log_every", "eval_every"):
             check(getattr(self, name) >= 0, f"{prefix}{name}", getattr(self, name), ">= 0 (0 = never)")

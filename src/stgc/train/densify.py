@@ -20,8 +20,9 @@ class DensificationStats:
     """Per-Gaussian sum of NDC screen-space mean-gradient norms and the number of views that saw it."""
 
     def __init__(self, num_gaussians: int):
-        self.grad_sum = torch.zeros(num_gaussians, dtype=torch.float64)
-        self.count = torch.zeros(num_gaussians, dtype=torch.int64)
+        self.grad_sum: torch.Tensor
+        self.count: torch.Tensor
+        self.reset(num_gaussians)
 
     def __len__(self) -> int:
         return self.grad_sum.shape[0]
@@ -44,7 +45,8 @@ class DensificationStats:
         self.count = torch.cat([self.count, torch.zeros(n, dtype=self.count.dtype)])
 
     def reset(self, num_gaussians: int) -> None:
-        self.__init__(num_gaussians)
+        self.grad_sum = torch.zeros(num_gaussians, dtype=torch.float64)
+        self.count = torch.zeros(num_gaussians, dtype=torch.int64)
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         return {"grad_sum": self.grad_sum.clone(), "count": self.count.clone()}

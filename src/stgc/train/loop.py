@@ -1,7 +1,8 @@
 """The STG training loop (official `train.py`), with resumable checkpoints and compaction hooks.
 
 One iteration: draw one timestamp and `batch` training views of it; render each view, loss
-0.8·L1 + 0.2·(1 − SSIM), backward of loss/batch (so the parameter gradients are the batch mean); one Adam step.
+0.8·L1 + 0.2·(1 − SSIM) (+ `mask_loss` x L1 over the foreground where the view has a mask), backward of
+loss/batch (so the parameter gradients are the batch mean); one Adam step.
 Then density control, opacity reset, the compaction controller, EMS, logging and checkpoints.
 
 Determinism: every random draw of iteration i comes from streams seeded by (seed, i) (frame and view choice,
@@ -12,6 +13,7 @@ from RUN/checkpoint.pt makes exactly the draws an uninterrupted run would have m
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import random
 import time
@@ -48,11 +50,13 @@ from stgc.train.monitor import JsonLines, Progress, TensorBoard
 
 IterationCallback = Callable[[int, dict[str, Any]], None]
 
+log = logging.getLogger(__name__)
+
 
 def _config_dict(cfg: Any) -> Any:
     if cfg is None:
         return None
-    if dataclasses.is_dataclass(cfg):
+    if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type):
         return dataclasses.asdict(cfg)
     return dict(cfg)
 
@@ -121,6 +125,21 @@ class ImageCache:
         return img.to(torch.float32) / 255.0
 
 
+class ForegroundMasks:
+    """Training views' foreground masks as bool tensors, decoded once; None for a view without one."""
+
+    def __init__(self, dataset: Any):
+        self.dataset = dataset
+        self._masks: dict[tuple[str, int], torch.Tensor | None] = {}
+
+    def get(self, camera: Any) -> torch.Tensor | None:
+        key = (camera.name, camera.frame)
+        if key not in self._masks:
+            mask = self.dataset.load_mask(camera)
+            self._masks[key] = None if mask is None else torch.from_numpy(np.ascontiguousarray(mask))
+        return self._masks[key]
+
+
 class Trainer:
     """Holds the state of one run. `train()` is the public entry point; tests drive `Trainer` directly."""
 
@@ -153,6 +172,7 @@ class Trainer:
         self.metrics_log = JsonLines(self.out / "metrics.jsonl")
         self.compaction_log = JsonLines(self.out / "compaction.jsonl")
         self.images = ImageCache(dataset)
+        self.masks = self._make_foreground_masks()
         self.frames = list(dataset.frames)
         self.train_centers = np.array([c.center for c in dataset.train], dtype=np.float64).reshape(-1, 3)
         self.background = torch.tensor(dataset.background, dtype=torch.float32)
@@ -218,6 +238,22 @@ class Trainer:
 
         return STKNNCompactor(cfg, total_iterations=self.schedule.iterations)
 
+    def _make_foreground_masks(self) -> ForegroundMasks | None:
+        """The masks of the mask term, or None when the term is off or the data has no masks (said once)."""
+        if self.cfg.mask_loss <= 0:
+            return None
+        ds = self.dataset
+        name = getattr(ds, "name", "data")
+        if not ds.has_masks:
+            log.warning("%s: train.mask_loss=%g, but the data has no foreground masks: training without the mask term",
+                        name, self.cfg.mask_loss)
+            return None
+        unmasked = sorted({str(c.name) for c in ds.train if ds.mask_path(c) is None})
+        if unmasked:
+            log.warning("%s: training views of cameras %s have no foreground mask and train without the mask term",
+                        name, ", ".join(unmasked))
+        return ForegroundMasks(ds)
+
     def _make_colour_correction(self) -> ColourCorrection | None:
         if not _chosen(self.cfg.colour_correction, not self.dataset.synthetic):
             return None
@@ -268,16 +304,21 @@ class Trainer:
                 group["lr"] = lr
         return lr
 
-    def _loss(self, render_rgb: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, float]:
-        """(loss, SSIM value) of one view."""
+    def view_loss(self, render_rgb: torch.Tensor, gt: torch.Tensor, camera: Any) -> tuple[torch.Tensor, float]:
+        """(loss, SSIM value) of one training view."""
         from stgc.eval import ssim
 
         lam = self.cfg.lambda_dssim
-        l1 = (render_rgb - gt).abs().mean()
-        if lam == 0:
-            return l1, float("nan")
-        s = ssim(render_rgb, gt)
-        return (1.0 - lam) * l1 + lam * (1.0 - s), float(s.detach())
+        error = (render_rgb - gt).abs()
+        loss = error.mean()
+        ssim_value = float("nan")
+        if lam > 0:
+            s = ssim(render_rgb, gt)
+            loss, ssim_value = (1.0 - lam) * loss + lam * (1.0 - s), float(s.detach())
+        foreground = None if self.masks is None else self.masks.get(camera)
+        if foreground is not None and bool(foreground.any()):
+            loss = loss + self.cfg.mask_loss * error[foreground].mean()
+        return loss, ssim_value
 
     def train_step(self, iteration: int) -> dict[str, Any]:
         """Render, backpropagate and update once; returns the iteration's numbers."""
@@ -297,7 +338,7 @@ class Trainer:
             gt = self.images.get(cam)
             out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend)
             rgb = out.rgb if self.colour is None else self.colour.apply(out.rgb, cam.name)
-            loss, ssim_value = self._loss(rgb, gt)
+            loss, ssim_value = self.view_loss(rgb, gt, cam)
             (loss / batch).backward()
             if self.ems.observe(iteration, cam, ssim_value) and ems_view is None:
                 ems_view = (cam, rgb.detach(), gt)
@@ -400,6 +441,7 @@ class Trainer:
             files = [saved / "point_cloud.ply", saved / "point_cloud.pt"]
         except DataError:
             files = []
+        info: Any
         try:
             info = model_size_of(self.model, dataset_duration_s(self.dataset), files)
         except (ValueError, AttributeError, ZeroDivisionError):
@@ -425,7 +467,8 @@ class Trainer:
                 control = self.density_control(iteration, generator)
                 ems_view = step.pop("ems_view")
                 if ems_view is not None:
-                    added = self.ems.insert(iteration, self.model, *ems_view, generator)
+                    camera, render, gt = ems_view
+                    added = self.ems.insert(iteration, self.model, camera, render, gt, generator)
                     self.stats.append(added)
                     control["ems_added"] = added
                 if self.compactor is not None:
