@@ -25,6 +25,7 @@ from stgc.config import (
 )
 from stgc.errors import StgcError
 from stgc.fileio import read_json_object
+from stgc.run import Run
 
 
 # --------------------------------------------------------------------------------------------- config sections
@@ -85,8 +86,9 @@ def resolve_configs(
 
 def configs_from_run(run_dir: Path) -> dict[str, Any]:
     """The configs a run was started with (RUN/config.json)."""
-    path = run_dir / "config.json"
-    saved = read_json_object(path)
+    run = Run(run_dir)
+    path = run.config_path
+    saved = run.read_config()
     if saved is None:
         raise StgcError(f"{path}: not found; is {run_dir} a stgc run directory?")
     from stgc.data.config import data_config_from_saved
@@ -114,7 +116,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from stgc.train import train
 
     out = Path(args.out)
-    if args.resume and (out / "config.json").is_file():
+    if args.resume and Run(out).has_config():
         given = [k for k in ("variant", "compaction", "case", "criterion", "set") if getattr(args, k)]
         given += [f"{section}.{k}" for section, opts in collect_overrides(args).items() for k in opts]
         if given:
@@ -146,7 +148,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
     )
     print(f"run written to {out}")
-    record = read_json_object(out / "eval.json")
+    record = Run(out).read_eval()
     if record is not None:
         from stgc.eval import format_eval_table
         print(format_eval_table(record))

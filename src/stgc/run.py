@@ -12,8 +12,10 @@ from __future__ import annotations
 import re
 import shutil
 from pathlib import Path
+from typing import Any
 
 from stgc.errors import StgcError
+from stgc.fileio import read_json_object, write_json
 
 # Everything a training writes into its run directory (docs/training.md lists them): their presence means the
 # folder holds a run.
@@ -65,6 +67,116 @@ def iteration_of(path: str | Path) -> int | None:
             return int(match.group(1))
     found = saved_iterations(path)
     return max(found) if found else None
+
+
+class Run:
+    """One run directory and its layout: the one place that names a run's files. Every verb reaches a run's
+    config, summary, checkpoint, saved models and evaluation records through it.
+
+        RUN/config.json                      the configs the run was started with (resolved values)
+        RUN/metrics.jsonl, compaction.jsonl  training logs
+        RUN/checkpoint.pt                    the latest training checkpoint (resume)
+        RUN/train_summary.json               iterations, wall seconds, finished
+        RUN/point_cloud/iteration_<N>/       saved models (official layout); the largest N is the run's model
+        RUN/eval.json, eval_per_view.csv     the evaluation on the run's own test views
+        RUN/eval_on_<data>.json              an evaluation on other data (never replaces the run's own)
+        RUN/<name>.stgc, eval_<name>.json    bitstreams of the model and their evaluations
+    """
+
+    CONFIG = "config.json"
+    METRICS = "metrics.jsonl"
+    COMPACTION_LOG = "compaction.jsonl"
+    CHECKPOINT = "checkpoint.pt"
+    SUMMARY = "train_summary.json"
+    EXPERIMENT = "experiment.json"
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+
+    def __repr__(self) -> str:
+        return f"Run({str(self.path)!r})"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Run) and self.path == other.path
+
+    def __hash__(self) -> int:
+        return hash(self.path)
+
+    @classmethod
+    def create(cls, path: str | Path, *, overwrite: bool = False, keep: Path | None = None) -> Run:
+        """A new run at `path` (see `prepare_new_run`: an existing run there is refused unless `overwrite`)."""
+        return cls(prepare_new_run(path, overwrite=overwrite, keep=keep))
+
+    @classmethod
+    def of(cls, path: str | Path) -> Run | None:
+        """The run holding `path` (the run itself, RUN/point_cloud/iteration_<N>, its PLY, or a file in RUN): the
+        nearest of path and its three parents that has a config.json; None if there is none."""
+        path = Path(path)
+        found = next((p for p in [path, *path.parents][:4] if (p / cls.CONFIG).is_file()), None)
+        return None if found is None else cls(found)
+
+    # ------------------------------------------------------------------ files
+    @property
+    def config_path(self) -> Path:
+        return self.path / self.CONFIG
+
+    @property
+    def summary_path(self) -> Path:
+        return self.path / self.SUMMARY
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.path / self.CHECKPOINT
+
+    @property
+    def experiment_path(self) -> Path:
+        return self.path / self.EXPERIMENT
+
+    def iteration_dir(self, iteration: int) -> Path:
+        return self.path / "point_cloud" / f"iteration_{int(iteration)}"
+
+    def eval_paths(self, other_data: str | None = None, bitstream: str | Path | None = None) -> tuple[Path, Path]:
+        """(record .json, per-view .csv) of an evaluation: of the run's model, or of `bitstream` (RUN/<stem>.stgc:
+        eval_<stem>.json); evaluated on a dataset other than the run's own (`other_data`, its folder name),
+        `_on_<name>` is added, so the run's own record (what `stgc report` shows) is never replaced."""
+        suffix = f"_on_{other_data}" if other_data else ""
+        if bitstream is not None:
+            bitstream = Path(bitstream)
+            base = bitstream.parent / f"eval_{bitstream.stem}{suffix}"
+            return base.with_suffix(".json"), bitstream.parent / f"{base.name}_per_view.csv"
+        return self.path / f"eval{suffix}.json", self.path / f"eval{suffix}_per_view.csv"
+
+    # ------------------------------------------------------------------ contents
+    def has_config(self) -> bool:
+        return self.config_path.is_file()
+
+    def read_config(self, *, strict: bool = True) -> dict[str, Any] | None:
+        """RUN/config.json as saved, or None without one (a damaged file: FormatError, or None if not strict)."""
+        return read_json_object(self.config_path, strict=strict)
+
+    def write_config(self, config: dict[str, Any]) -> None:
+        write_json(self.config_path, config)
+
+    def read_summary(self, *, strict: bool = True) -> dict[str, Any] | None:
+        """RUN/train_summary.json (iterations, wall seconds, it/s, final #Gaussians, finished), or None."""
+        return read_json_object(self.summary_path, strict=strict)
+
+    def write_summary(self, summary: dict[str, Any]) -> None:
+        write_json(self.summary_path, summary)
+
+    def training_finished(self) -> bool:
+        """The summary says finished (a damaged summary reads as not finished: the run is redone, not trusted)."""
+        summary = self.read_summary(strict=False)
+        return bool(summary and summary.get("finished"))
+
+    def read_eval(self, other_data: str | None = None, *, strict: bool = True) -> dict[str, Any] | None:
+        return read_json_object(self.eval_paths(other_data)[0], strict=strict)
+
+    def saved_iterations(self) -> dict[int, Path]:
+        return saved_iterations(self.path)
+
+    def latest_model_dir(self) -> Path | None:
+        return latest_iteration_dir(self.path)
 
 
 class RunExistsError(StgcError):

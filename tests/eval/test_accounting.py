@@ -23,12 +23,12 @@ from stgc.eval.accounting import (
     model_size,
     paper_model_bytes,
     ply_file_bytes,
-    read_train_summary,
     size_of_saved_model,
     speed_from_times,
     training_seconds,
 )
 from stgc.model.layout import ply_fields
+from stgc.run import Run
 
 # Paper Table 2 (Mirror, 1-s models): #Gaussians, "MB", Mbps.
 PAPER_TABLE2 = [
@@ -132,9 +132,11 @@ def test_durations_and_speed() -> None:
 
 
 def test_train_summary(tmp_path: Path) -> None:
-    assert read_train_summary(tmp_path) is None
+    run = Run(tmp_path)
+    assert run.read_summary() is None and not run.training_finished()
     (tmp_path / "train_summary.json").write_text(json.dumps({"wall_seconds": 12.5, "finished": True}))
-    assert training_seconds(read_train_summary(tmp_path)) == 12.5
+    assert training_seconds(run.read_summary()) == 12.5 and run.training_finished()
     (tmp_path / "train_summary.json").write_text("{broken")
     with pytest.raises(FormatError, match="train_summary.json"):
-        read_train_summary(tmp_path)
+        run.read_summary()
+    assert not run.training_finished()  # a damaged summary is not trusted to say finished

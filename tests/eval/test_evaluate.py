@@ -14,7 +14,6 @@ from plyfile import PlyData, PlyElement
 
 from stgc.errors import DataError
 from stgc.eval import (
-    eval_paths,
     evaluate,
     evaluate_run,
     format_eval_table,
@@ -22,6 +21,7 @@ from stgc.eval import (
     write_eval,
 )
 from stgc.model.layout import ply_fields
+from stgc.run import Run
 
 
 @dataclass
@@ -98,9 +98,11 @@ def test_write_eval_files(tmp_path: Path) -> None:
 
 
 def test_eval_paths_for_bitstreams(tmp_path: Path) -> None:
-    assert eval_paths(tmp_path) == (tmp_path / "eval.json", tmp_path / "eval_per_view.csv")
-    j, c = eval_paths(tmp_path / "model_q5.stgc")
+    run = Run(tmp_path)
+    assert run.eval_paths() == (tmp_path / "eval.json", tmp_path / "eval_per_view.csv")
+    j, c = run.eval_paths(bitstream=tmp_path / "model_q5.stgc")
     assert j == tmp_path / "eval_model_q5.json" and c == tmp_path / "eval_model_q5_per_view.csv"
+    assert run.eval_paths("other")[0] == tmp_path / "eval_on_other.json"
 
 
 def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 import torch
 
 from stgc.model import STGModel
-from stgc.train.config import TrainConfig, resolve_schedule
+from stgc.train.config import DensifyConfig, TrainConfig, resolve_schedule
 from stgc.train.densify import (
     DensificationStats,
     apply_prune,
@@ -141,7 +142,8 @@ def test_floater_rules():
 
 
 def test_schedule_scaling_and_xyz_decay():
-    sched = resolve_schedule(TrainConfig(iterations=3000, schedule_scale=0.1))
+    official = DensifyConfig().resolved(sparse_cloud=False)
+    sched = resolve_schedule(TrainConfig(iterations=3000, schedule_scale=0.1, densify=official))
     assert sched.iterations == 3000 and sched.densify_start == 50 and sched.densify_interval == 10
     assert sched.densify_end == 50 + 6 * 10 and sched.opacity_reset_interval == 300
     assert sched.save_iterations[-1] == 3000 and 700 in sched.save_iterations
@@ -162,7 +164,21 @@ def test_train_config_is_cli_ready():
                                                 "stop_after": "none", "ems.enabled": "true"})
     assert cfg.densify.rounds == 12 and cfg.save_iterations == (100, 200) and cfg.ems.enabled
     assert from_dict(TrainConfig, to_dict(cfg)) == cfg
-    assert train_preset("paper").schedule_scale == 1.0 and resolve_schedule(train_preset("cpu")).iterations < 30000
+    assert train_preset("paper").schedule_scale == 1.0
+    cpu = train_preset("cpu")
+    assert resolve_schedule(replace(cpu, densify=cpu.densify.resolved(False))).iterations < 30000
+    with pytest.raises(ValueError, match="resolve"):
+        resolve_schedule(cpu)  # interval and rounds left to the data: nothing may guess them
+
+
+def test_densification_defaults_follow_the_initial_clouds_kind_and_an_explicit_value_wins():
+    unset = DensifyConfig()
+    assert unset.resolved(sparse_cloud=False) == replace(unset, **DensifyConfig.OFFICIAL)
+    sparse = unset.resolved(sparse_cloud=True)
+    assert (sparse.interval, sparse.rounds, sparse.max_growth) == (500, 20, 2.0)
+    assert replace(unset, rounds=9).resolved(sparse_cloud=True).rounds == 9
+    assert replace(unset, max_growth=0.0).resolved(sparse_cloud=True).cap(1000) == 0
+    assert sparse.cap(1000) == 2000
 
 
 def test_gaussian_budget_takes_the_largest_gradients_and_never_exceeds_the_cap():
@@ -191,3 +207,24 @@ def test_the_growth_cap_is_relative_to_the_initial_count_and_the_smaller_cap_win
     assert DensifyConfig(max_growth=2.0).cap(15_000) == 30_000
     assert DensifyConfig(max_growth=2.0, max_gaussians=20_000).cap(15_000) == 20_000
     assert DensifyConfig(max_gaussians=20_000).cap(15_000) == 20_000
+
+
+def test_trainer_records_the_densification_its_initial_cloud_called_for(tmp_path):
+    import json
+
+    from scenes import write_panoptic_scene
+
+    from stgc.data import DataConfig, open_dataset
+    from stgc.model import STGModel
+    from stgc.train.loop import Trainer
+
+    scene = write_panoptic_scene(tmp_path / "scene", views=4, frames=1, width=24, height=18)
+    dataset = open_dataset(scene.root)  # Panoptic ships no points: stgc triangulates a sparse cloud
+    quiet = TrainConfig(iterations=1, eval_at_end=False, progress=False, tensorboard=False, checkpoint_every=0)
+    recorded = {}
+    for name, data_cfg in (("auto", DataConfig()), ("shipped", DataConfig(init_source="data"))):
+        model = STGModel.from_state_dict(scene.model.state_dict())
+        Trainer(dataset, data_cfg, None, quiet, None, tmp_path / name, model=model)
+        recorded[name] = json.loads((tmp_path / name / "config.json").read_text())["train"]["densify"]
+    assert (recorded["auto"]["interval"], recorded["auto"]["rounds"], recorded["auto"]["max_growth"]) == (500, 20, 2.0)
+    assert (recorded["shipped"]["interval"], recorded["shipped"]["rounds"]) == (100, 6)

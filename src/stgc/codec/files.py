@@ -8,10 +8,10 @@ from pathlib import Path
 from typing import Any
 
 from stgc.errors import DataError, FormatError
-from stgc.fileio import atomic_path, read_json_object, write_json
+from stgc.fileio import atomic_path
 from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
 from stgc.data.config import open_run_dataset
-from stgc.run import iteration_of, prepare_new_run
+from stgc.run import Run, iteration_of
 
 from .allocation import Allocation, budget_db, optimise_allocation
 from .format import (
@@ -178,7 +178,7 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
                  config: CodecConfig | None = None) -> CompressResult:
     """Compress a trained model (a run dir -> its latest iteration, an iteration dir, or a point_cloud.ply)."""
     # The model package owns the run layout, PLY reading and what a render can show.
-    from stgc.model import MIN_VISIBLE_OPACITY, STGModel, run_dir_of
+    from stgc.model import MIN_VISIBLE_OPACITY, STGModel
 
     config = CodecConfig(**vars(config)) if config is not None else CodecConfig()
     if quality is not None:
@@ -202,9 +202,10 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
         metadata["iteration"] = iteration
     if model.num_gaussians < input_gaussians:
         metadata["dropped_invisible"] = input_gaussians - model.num_gaussians
-    run_dir = run_dir_of(source)
-    if config.embed_run_config and run_dir is not None:
-        saved = read_json_object(run_dir / "config.json") or {}
+    run = Run.of(source)
+    run_dir = None if run is None else run.path
+    if config.embed_run_config and run is not None:
+        saved = run.read_config() or {}
         # What evaluating the restored run needs (its dataset and model options); training options would only
         # add bytes: a compressed model cannot resume training anyway.
         metadata["run_config"] = {key: saved[key] for key in RESTORED_CONFIG_SECTIONS if key in saved}
@@ -317,10 +318,10 @@ def decompress(stgc_path: str | Path, out_run_dir: str | Path, *, overwrite: boo
     if isinstance(iteration, bool) or not isinstance(iteration, int) or iteration < 0:
         raise FormatError(stgc_path, f"metadata iteration {iteration!r} is not a non-negative integer")
     model = _model_from_decoded(decoded, stgc_path)
-    out_run_dir = prepare_new_run(out_run_dir, overwrite=overwrite, keep=Path(stgc_path))
-    iteration_dir = out_run_dir / "point_cloud" / f"iteration_{iteration}"
+    run = Run.create(out_run_dir, overwrite=overwrite, keep=Path(stgc_path))
+    iteration_dir = run.iteration_dir(iteration)
     model.save(iteration_dir)
     run_config = decoded.metadata.get("run_config")
     if isinstance(run_config, dict):
-        write_json(out_run_dir / "config.json", run_config)
+        run.write_config(run_config)
     return iteration_dir

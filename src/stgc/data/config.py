@@ -7,6 +7,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
+from stgc.run import Run
+
 if TYPE_CHECKING:
     from .dataset import Dataset
     from .points import PointCloud
@@ -102,6 +104,11 @@ class DataConfig:
                             image_cache_mb=self.image_cache_mb, background=self.background,
                             yuv_range=self.yuv_range, near_plane=self.near_plane)
 
+    def points_ship_with(self, dataset: Dataset) -> bool:
+        """Whether training starts from the points the data ships (an SfM/MVS cloud per frame, as STG's datasets
+        have), rather than from points stgc triangulates or samples itself (a sparse cloud)."""
+        return self.init_source == "data" or (self.init_source == "auto" and dataset.has_points)
+
     def initial_points(self, dataset: Dataset) -> tuple[PointCloud, PreprocessReport]:
         """Initial points of `dataset` with these options: (cloud, report).
 
@@ -143,12 +150,9 @@ def data_config_from_saved(section: dict, source: str | Path | None) -> tuple[Da
 
 def saved_run_data(run_dir: str | Path) -> tuple[DataConfig, str | None] | None:
     """(DataConfig, dataset path) that the run in `run_dir` saved in its config.json, or None without one."""
-
-    from stgc.fileio import read_json_object
-
-    config_path = Path(run_dir) / "config.json"
-    saved = read_json_object(config_path)
-    return None if saved is None else data_config_from_saved(saved.get("data") or {}, config_path)
+    run = Run(run_dir)
+    saved = run.read_config()
+    return None if saved is None else data_config_from_saved(saved.get("data") or {}, run.config_path)
 
 
 def open_run_dataset(run_dir: str | Path, data_path: str | Path | None = None) -> Dataset:
@@ -156,7 +160,7 @@ def open_run_dataset(run_dir: str | Path, data_path: str | Path | None = None) -
     `data_path` replaces the saved location (the same data moved, or other data)."""
     from stgc.errors import DataError
 
-    config_path = Path(run_dir) / "config.json"
+    config_path = Run(run_dir).config_path
     saved = saved_run_data(run_dir)
     if saved is None:
         if data_path is not None:  # a model without its run: the given data, with default options

@@ -12,7 +12,6 @@ from stgc.eval.accounting import (
     model_size,
     model_size_of,
     paper_model_bytes,
-    read_train_summary,
     size_of_saved_model,
     training_seconds,
 )
@@ -20,7 +19,6 @@ from stgc.eval.bjontegaard import BDError, bd_psnr, bd_rate
 from stgc.eval.evaluate import (
     EvalResult,
     ViewScore,
-    eval_paths,
     eval_record,
     evaluate,
     evaluate_run,
@@ -55,7 +53,6 @@ __all__ = [
     "bd_rate",
     "bitstream_size",
     "duration_seconds",
-    "eval_paths",
     "eval_record",
     "evaluate",
     "evaluate_run",
@@ -73,7 +70,6 @@ __all__ = [
     "paper_model_bytes",
     "psnr",
     "psnr_per_image",
-    "read_train_summary",
     "report_from_runs",
     "size_of_saved_model",
     "ssim",

@@ -24,7 +24,6 @@ from typing import Any
 import numpy as np
 
 from stgc.errors import DataError, FormatError
-from stgc.fileio import read_json_object
 from stgc import run as run_layout
 from stgc.model.layout import bytes_per_gaussian, ply_fields
 
@@ -251,11 +250,6 @@ def size_of_saved_model(path: str | Path, duration_s: float) -> ModelSize:
         floats = state_dict_floats(state)
         files.append(decoder_file)
     return model_size(count, variant, duration_s, floats, files)
-
-
-def read_train_summary(run_dir: str | Path) -> dict[str, Any] | None:
-    """RUN/train_summary.json (iterations, wall seconds, it/s, final #Gaussians, finished), or None."""
-    return read_json_object(Path(run_dir) / "train_summary.json")
 
 
 def training_seconds(summary: Mapping[str, Any] | None) -> float | None:

@@ -24,13 +24,13 @@ from stgc.eval.accounting import (
     RenderSpeed,
     bitstream_size,
     duration_seconds,
-    read_train_summary,
     size_of_saved_model,
     speed_from_times,
     training_seconds,
 )
 from stgc.eval.metrics import LPIPS, psnr, ssim
 from stgc.fileio import atomic_open, write_json
+from stgc.run import Run
 
 PER_VIEW_COLUMNS = ("camera", "frame", "time", "psnr", "ssim", "lpips", "render_ms")
 
@@ -153,19 +153,6 @@ def evaluate(
     )
 
 
-def eval_paths(target: str | Path, other_data: str | None = None) -> tuple[Path, Path]:
-    """Where the evaluation of `target` goes: RUN/eval.json + RUN/eval_per_view.csv for a run directory,
-    RUN/eval_<stem>.json + RUN/eval_<stem>_per_view.csv for a bitstream RUN/<stem>.stgc. Evaluated on a dataset
-    other than the run's own (`other_data`, its folder name), `_on_<name>` is added, so the run's own record
-    (what `stgc report` shows) is never replaced by a score on other data."""
-    target = Path(target)
-    suffix = f"_on_{other_data}" if other_data else ""
-    if target.suffix == ".stgc":
-        base = target.parent / f"eval_{target.stem}{suffix}"
-        return base.with_suffix(".json"), target.parent / f"{base.name}_per_view.csv"
-    return target / f"eval{suffix}.json", target / f"eval{suffix}_per_view.csv"
-
-
 def _finite(x: Any) -> Any:
     # JSON has no inf/nan; a perfect reconstruction's PSNR is reported as null.
     if isinstance(x, float) and not math.isfinite(x):
@@ -214,12 +201,13 @@ def write_eval(
     extra: Mapping[str, Any] | None = None,
     other_data: str | None = None,
 ) -> dict[str, Any]:
-    """Write eval.json and eval_per_view.csv atomically (paths from `eval_paths(target or run_dir, other_data)`)
-    and return the eval.json record (`format_eval_table` prints it). Training time is read from
-    RUN/train_summary.json."""
-    run_dir = Path(run_dir)
-    json_path, csv_path = eval_paths(target if target is not None else run_dir, other_data)
-    summary = read_train_summary(run_dir) if run_dir.is_dir() else None
+    """Write the evaluation record and its per-view CSV atomically (where `Run.eval_paths` puts them: of the run's
+    model, or of the bitstream `target`, on the run's own data or `other_data`) and return the record
+    (`format_eval_table` prints it). Training time is read from RUN/train_summary.json."""
+    run = Run(run_dir)
+    bitstream = target if target is not None and Path(target).suffix == ".stgc" else None
+    json_path, csv_path = run.eval_paths(other_data, bitstream)
+    summary = run.read_summary() if run.path.is_dir() else None
     more = {"train_seconds": training_seconds(summary)}
     if summary and "iterations" in summary:
         more["iterations"] = summary["iterations"]
@@ -282,7 +270,7 @@ def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstre
     from stgc.data.config import data_config_from_saved
     from stgc.data.config import open_run_dataset as open_saved_run_dataset
 
-    if (run_dir / "config.json").is_file() or bitstream is None:
+    if Run(run_dir).has_config() or bitstream is None:
         return open_saved_run_dataset(run_dir, data_path)
     from stgc.codec import read_stgc
 
@@ -315,7 +303,7 @@ def evaluate_run(
     open_dataset: Callable[[Path], Any] | None = None,
 ) -> dict[str, Any]:
     """Evaluate a run directory (its latest iteration) or a `.stgc` bitstream inside a run directory, write
-    the eval files (`eval_paths`), and return the eval.json record (`format_eval_table` prints it). What
+    the eval files (`Run.eval_paths`), and return the eval.json record (`format_eval_table` prints it). What
     `stgc eval RUN` does. With measure_fps=False the record's fps is null.
 
     `load_model` / `open_dataset` default to `stgc.model.STGModel.load` (or `stgc.codec.load_model` for .stgc)

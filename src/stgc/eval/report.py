@@ -20,6 +20,7 @@ import numpy as np
 from stgc.errors import DataError
 from stgc.eval.bjontegaard import BDError, Method, bd_psnr, bd_rate
 from stgc.fileio import atomic_open, atomic_path, read_json_object, write_json
+from stgc.run import Run
 
 SIZE_NOTE = ("Size (MB) is MiB (2^20 bytes) of raw float32 PLY rows (152 B per full Gaussian, normals included) "
              "plus float32 decoder weights, as in the paper; for .stgc rows it is the file size. "
@@ -288,13 +289,14 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise DataError(run_dir, "not a run directory")
-    config = read_json_object(run_dir / "config.json")
-    meta = read_json_object(run_dir / "experiment.json") or {}
+    run = Run(run_dir)
+    config = run.read_config()
+    meta = read_json_object(run.experiment_path) or {}
     family, setting = describe_run(run_dir, config)
     family = str(meta.get("family") or family)
     setting = str(meta.get("label") or meta.get("name") or setting)
     rows = []
-    record = read_json_object(run_dir / "eval.json")
+    record = run.read_eval()
     if record is not None:
         rows.append(ReportRow.from_mapping({**record_fields(record), "name": setting, "family": family,
                                             "run": run_dir.name, "run_dir": str(run_dir)}))

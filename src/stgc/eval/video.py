@@ -21,6 +21,7 @@ import torch
 
 from stgc.errors import DataError
 from stgc.fileio import atomic_path
+from stgc.run import Run
 
 
 # ------------------------------------------------------------------------------------------------ loading
@@ -29,7 +30,7 @@ def load_model_and_dataset(run_or_model: Any, dataset: Any | None = None) -> tup
     A bitstream renders what it decodes to, with the dataset of the run beside it or of the config it embeds."""
     if isinstance(run_or_model, (str, Path)):
         from stgc.eval.evaluate import open_run_dataset
-        from stgc.model import STGModel, run_dir_of
+        from stgc.model import STGModel
 
         path = Path(run_or_model)
         if path.suffix == ".stgc":
@@ -41,10 +42,10 @@ def load_model_and_dataset(run_or_model: Any, dataset: Any | None = None) -> tup
             return model, dataset
         model = STGModel.load(path)
         if dataset is None:
-            run_dir = run_dir_of(path)
-            if run_dir is None:
+            run = Run.of(path)
+            if run is None:
                 raise DataError(path, "cannot find the run's config.json: pass the dataset explicitly")
-            dataset = open_run_dataset(run_dir)
+            dataset = open_run_dataset(run.path)
         return model, dataset
     if dataset is None:
         raise ValueError("rendering an in-memory model needs the dataset (for cameras and intrinsics)")

@@ -29,10 +29,10 @@ from pathlib import Path
 from typing import Any
 
 from stgc.errors import FormatError
-from stgc.eval.evaluate import eval_paths
 from stgc.eval.report import Report, ReportRow, make_report, record_fields
 from stgc.experiment.plans import Plan, RunSpec, load_plan
 from stgc.fileio import atomic_open, read_json_object, write_json
+from stgc.run import Run
 
 RESULT_COLUMNS = ("plan", "name", "family", "label", "status", "num_gaussians", "size_mb", "mbps", "psnr", "ssim",
                   "lpips", "fps", "train_seconds", "overrides", "run_dir")
@@ -98,14 +98,9 @@ def _read_json(path: Path) -> dict[str, Any] | None:
 
 
 def run_is_finished(run_dir: str | Path) -> bool:
-    """Finished = RUN/eval.json present and RUN/train_summary.json with finished: true."""
-    return training_finished(run_dir) and (Path(run_dir) / "eval.json").is_file()
-
-
-def training_finished(run_dir: str | Path) -> bool:
-    """RUN/train_summary.json says finished: true."""
-    summary = _read_json(Path(run_dir) / "train_summary.json")
-    return bool(summary and summary.get("finished"))
+    """Finished = the run's evaluation record is there and its training summary says finished."""
+    run = Run(run_dir)
+    return run.training_finished() and run.eval_paths()[0].is_file()
 
 
 def parse_overrides(items: Sequence[str] | Mapping[str, Any] | None) -> dict[str, str]:
@@ -255,7 +250,7 @@ def run_plan(
             outcome.status = _train_and_eval(spec, run_dir, data_path, preset, overrides, runner, command_builder,
                                              python, log_path, say, outcome)
         outcome.seconds = time.perf_counter() - start
-        outcome.record = _read_json(run_dir / "eval.json")
+        outcome.record = Run(run_dir).read_eval(strict=False)
         if outcome.status != "failed" and not dry_run:
             for q in qualities:
                 result.outcomes.append(_codec_point(spec, run_dir, q, runner, python, log_path, say, overrides))
@@ -274,10 +269,11 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
                     overrides: dict[str, str], runner: Runner, command_builder: Callable[..., list[str]],
                     python: str, log_path: Path, say: Callable[[str], None], outcome: RunOutcome) -> str:
     run_dir.mkdir(parents=True, exist_ok=True)
-    write_json(run_dir / "experiment.json", {"name": spec.name, "family": spec.family, "label": spec.label,
+    write_json(Run(run_dir).experiment_path, {"name": spec.name, "family": spec.family, "label": spec.label,
                                             "overrides": overrides})
-    if not training_finished(run_dir):
-        resume = (run_dir / "checkpoint.pt").is_file() and (run_dir / "config.json").is_file()
+    run = Run(run_dir)
+    if not run.training_finished():
+        resume = run.checkpoint_path.is_file() and run.has_config()
         cmd = command_builder(data_path, run_dir, preset, overrides, resume=resume, python=python)
         say(f"[{spec.name}] {'resuming' if resume else 'training'} (log: {log_path})")
         code = runner(cmd, log_path)
@@ -285,13 +281,13 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
             outcome.message = f"train exited with status {code}; see {log_path}"
             say(f"[{spec.name}] FAILED: {outcome.message}")
             return "failed"
-        if not training_finished(run_dir):
-            outcome.message = f"train exited 0 but {run_dir / 'train_summary.json'} does not say finished"
+        if not run.training_finished():
+            outcome.message = f"train exited 0 but {run.summary_path} does not say finished"
             say(f"[{spec.name}] FAILED: {outcome.message}")
             return "failed"
-    if not (run_dir / "eval.json").is_file():
+    if not run.eval_paths()[0].is_file():
         code = runner(build_eval_command(run_dir, python=python), log_path)
-        if code != 0 or not (run_dir / "eval.json").is_file():
+        if code != 0 or not run.eval_paths()[0].is_file():
             outcome.message = f"evaluation failed (status {code}); see {log_path}"
             return "failed"
     return "finished"
@@ -300,7 +296,7 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
 def _codec_point(spec: RunSpec, run_dir: Path, quality: int, runner: Runner, python: str, log_path: Path,
                  say: Callable[[str], None], overrides: dict[str, str]) -> RunOutcome:
     stgc = run_dir / f"model_q{quality}.stgc"
-    json_path, _ = eval_paths(stgc)
+    json_path, _ = Run(run_dir).eval_paths(bitstream=stgc)
     outcome = RunOutcome(f"{spec.name}-q{quality}", f"{spec.family} + codec", f"{spec.label} q{quality}",
                          "skipped", run_dir, overrides, bitstream=stgc.name)
     if not json_path.is_file():

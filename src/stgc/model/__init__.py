@@ -12,7 +12,6 @@ from stgc.model.stg import (
     initial_log_scales,
     param_widths,
     ply_columns,
-    run_dir_of,
 )
 
 __all__ = [
@@ -31,5 +30,4 @@ __all__ = [
     "param_widths",
     "ply_columns",
     "ply_fields",
-    "run_dir_of",
 ]

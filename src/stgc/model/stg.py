@@ -26,12 +26,12 @@ from torch import nn
 from stgc import render as _render
 from stgc.data.cameras import DEFAULT_NEAR_PLANE
 from stgc.errors import DataError, FormatError
-from stgc.fileio import read_json_object
 from stgc.model import ply as _ply
 from stgc.model.config import ModelConfig
 from stgc.model.decoder import SandwichDecoder, camera_rays
 from stgc.model.layout import NORMAL_FIELDS, VARIANTS, ply_fields
 from stgc.model.optim import replace_group_param
+from stgc.run import Run
 
 PARAM_KEYS = (
     "xyz",
@@ -607,16 +607,9 @@ def _cloud_arrays(cloud: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return xyz.astype(np.float32), rgb.astype(np.float32), time.astype(np.float32)
 
 
-def run_dir_of(path: str | Path) -> Path | None:
-    """The run directory holding `path` (the run itself, RUN/point_cloud/iteration_<N>, its PLY, or a file in
-    RUN): the nearest of path and its three parents that has a config.json; None if there is none."""
-    path = Path(path)
-    return next((p for p in [path, *path.parents][:4] if (p / "config.json").is_file()), None)
-
-
 def _activation_from_run_config(ply_path: Path) -> str | None:
-    run_dir = run_dir_of(ply_path.parent)
-    saved = None if run_dir is None else read_json_object(run_dir / "config.json", strict=False)
+    run = Run.of(ply_path.parent)
+    saved = None if run is None else run.read_config(strict=False)
     model_section = (saved or {}).get("model")
     activation = model_section.get("decoder_activation") if isinstance(model_section, dict) else None
     return activation if isinstance(activation, str) else None

@@ -17,8 +17,8 @@ import torch
 
 from stgc.errors import FormatError
 from stgc.fileio import atomic_path
+from stgc.run import Run
 
-CHECKPOINT_NAME = "checkpoint.pt"
 CHECKPOINT_FORMAT = "stgc-train-checkpoint"
 CHECKPOINT_VERSION = 1
 
@@ -35,7 +35,7 @@ def restore_rng_states(states: dict[str, Any]) -> None:
 
 def save_checkpoint(run_dir: str | Path, payload: dict[str, Any]) -> Path:
     """Write RUN/checkpoint.pt atomically (a kill during the write leaves the previous checkpoint intact)."""
-    path = Path(run_dir) / CHECKPOINT_NAME
+    path = Run(run_dir).checkpoint_path
     data = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "rng": rng_states(), **payload}
     with atomic_path(path) as tmp:
         torch.save(data, tmp)
@@ -44,7 +44,7 @@ def save_checkpoint(run_dir: str | Path, payload: dict[str, Any]) -> Path:
 
 def load_checkpoint(run_dir: str | Path) -> dict[str, Any]:
     """Read RUN/checkpoint.pt; raises FormatError when it is missing, unreadable or not ours."""
-    path = Path(run_dir) / CHECKPOINT_NAME
+    path = Run(run_dir).checkpoint_path
     if not path.is_file():
         raise FormatError(path, "no checkpoint to resume from (was the run started with checkpointing?)")
     try:

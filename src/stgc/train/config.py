@@ -55,8 +55,16 @@ class DensifyConfig:
 
     enabled: bool = field(default=True, metadata={"help": "run clone/split densification at all"})
     start: int = field(default=500, metadata={"help": "first densification iteration (schedule units)"})
-    interval: int = field(default=100, metadata={"help": "iterations between densify/prune steps (schedule units)"})
-    rounds: int = field(default=6, metadata={"help": "number of clone/split rounds (official desicnt: 6 N3D, 12 Technicolor)"})
+    interval: int | None = field(
+        default=None,
+        metadata={"help": "iterations between densify/prune steps (schedule units); default: the official 100 when "
+                          "the data ships its initial points, 500 when they are sparse (see SPARSE_CLOUD)"},
+    )
+    rounds: int | None = field(
+        default=None,
+        metadata={"help": "number of clone/split rounds (official desicnt: 6 N3D, 12 Technicolor); default: 6 when the "
+                          "data ships its initial points, 20 when they are sparse"},
+    )
     grad_threshold: float = field(
         default=2e-4, metadata={"help": "mean NDC screen-space gradient norm above which a Gaussian is densified"}
     )
@@ -87,17 +95,35 @@ class DensifyConfig:
         metadata={"help": "clone/split never takes the model above this many Gaussians: the candidates with the "
                           "largest gradients go first (0 = no cap). Bounds memory and iteration time"},
     )
-    max_growth: float = field(
-        default=0.0,
+    max_growth: float | None = field(
+        default=None,
         metadata={"help": "clone/split never takes the model above this multiple of its initial Gaussian count "
-                          "(0 = no cap; with max_gaussians, the smaller cap wins): a sparse initial cloud may grow, "
-                          "a dense one is not multiplied"},
+                          "(0 = no cap; with max_gaussians, the smaller cap wins); default: no cap when the data "
+                          "ships its initial points, 2 when they are sparse"},
     )
 
+    # The official schedule: 6 rounds, one every 100 iterations right after iteration 500 (of 30k). It suits what
+    # STG trains from, a dense per-frame COLMAP cloud. A cloud stgc builds itself (SIFT triangulation: a few hundred
+    # points per frame; or random points) starts far too sparse for that: its Gaussians stay few and large, and the
+    # render soft. For those, densify for longer (every 500 iterations for 20 rounds, to a third of the run, as 3DGS
+    # does from its sparse SfM clouds), bounded to twice the initial count so that iteration time stays bounded.
+    OFFICIAL: ClassVar[dict] = {"interval": 100, "rounds": 6, "max_growth": 0.0}
+    SPARSE_CLOUD: ClassVar[dict] = {"interval": 500, "rounds": 20, "max_growth": 2.0}
+
+    def resolved(self, sparse_cloud: bool) -> DensifyConfig:
+        """This config with every option left to its default (None) set for the initial cloud's kind."""
+        defaults = self.SPARSE_CLOUD if sparse_cloud else self.OFFICIAL
+        return dataclasses.replace(self, **{k: v for k, v in defaults.items() if getattr(self, k) is None})
+
+    @property
+    def is_resolved(self) -> bool:
+        return all(getattr(self, k) is not None for k in self.OFFICIAL)
+
     def validate(self, prefix: str = "") -> None:
-        for name in ("start", "rounds", "prune_until", "opacity_reset_interval", "opacity_reset_until"):
+        for name in ("start", "prune_until", "opacity_reset_interval", "opacity_reset_until"):
             check(getattr(self, name) >= 0, f"{prefix}{name}", getattr(self, name), ">= 0")
-        check(self.interval >= 1, f"{prefix}interval", self.interval, ">= 1")
+        check(self.rounds is None or self.rounds >= 0, f"{prefix}rounds", self.rounds, ">= 0 (or unset)")
+        check(self.interval is None or self.interval >= 1, f"{prefix}interval", self.interval, ">= 1 (or unset)")
         check(self.split_count >= 2, f"{prefix}split_count", self.split_count, ">= 2")
         check(math.isfinite(self.grad_threshold) and self.grad_threshold > 0, f"{prefix}grad_threshold",
               self.grad_threshold, "> 0")
@@ -105,12 +131,12 @@ class DensifyConfig:
         check(0 <= self.prune_opacity < 1, f"{prefix}prune_opacity", self.prune_opacity, "in [0, 1)")
         check(0 < self.opacity_reset_value < 1, f"{prefix}opacity_reset_value", self.opacity_reset_value, "in (0, 1)")
         check(self.max_gaussians >= 0, f"{prefix}max_gaussians", self.max_gaussians, ">= 0 (0 = no cap)")
-        check(self.max_growth == 0 or self.max_growth >= 1, f"{prefix}max_growth", self.max_growth,
-              "0 (no cap) or >= 1")
+        check(self.max_growth is None or self.max_growth == 0 or self.max_growth >= 1, f"{prefix}max_growth",
+              self.max_growth, "0 (no cap) or >= 1 (or unset)")
 
     def cap(self, initial_gaussians: int) -> int:
         """The Gaussian count clone/split may not exceed (0 = none) for a model that started with this many."""
-        caps = [c for c in (self.max_gaussians, int(self.max_growth * initial_gaussians)) if c > 0]
+        caps = [c for c in (self.max_gaussians, int((self.max_growth or 0) * initial_gaussians)) if c > 0]
         return min(caps) if caps else 0
 
 
@@ -244,6 +270,7 @@ class Schedule:
     densify_start: int
     densify_interval: int
     densify_end: int  # last iteration that may clone/split
+    densify_rounds: int  # clone/split rounds (0 when densification is off)
     prune_until: int
     opacity_reset_interval: int
     opacity_reset_until: int
@@ -269,6 +296,10 @@ def resolve_schedule(cfg: TrainConfig) -> Schedule:
         return max(1, int(round(x * s)))
 
     d = cfg.densify
+    if not d.is_resolved:
+        raise ValueError("train.densify has options left to the data (interval, rounds, max_growth): resolve them "
+                         "with DensifyConfig.resolved(sparse_cloud) first")
+    assert d.interval is not None and d.rounds is not None
     iterations = int(cfg.iterations)
     start, interval = scaled(d.start), scaled(d.interval)
     saves = sorted({min(scaled(x), iterations) for x in cfg.save_iterations} | {iterations})
@@ -279,6 +310,7 @@ def resolve_schedule(cfg: TrainConfig) -> Schedule:
         # Official: the first `desicnt` densification steps clone/split (start + interval * k, k = 1..rounds,
         # because its counter skips the very first call at `start`), later steps only prune.
         densify_end=start + interval * d.rounds if d.enabled else -1,
+        densify_rounds=d.rounds if d.enabled else 0,
         prune_until=scaled(d.prune_until),
         opacity_reset_interval=scaled(d.opacity_reset_interval) if d.opacity_reset_interval > 0 else 0,
         opacity_reset_until=scaled(d.opacity_reset_until),

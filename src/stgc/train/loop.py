@@ -25,12 +25,12 @@ import numpy as np
 import torch
 
 from stgc.config import validate_config
+from stgc.data import DataConfig
 from stgc.errors import DataError
 from stgc.fileio import write_json
 from stgc.model import ModelConfig
-from stgc.run import prepare_new_run
+from stgc.run import Run, prepare_new_run
 from stgc.train.checkpoint import (
-    CHECKPOINT_NAME,
     load_checkpoint,
     restore_rng_states,
     save_checkpoint,
@@ -158,10 +158,15 @@ class Trainer:
         callback: IterationCallback | None = None,
     ):
         validate_config(train_cfg, "train")
+        # Densification options left unset follow the initial cloud's kind (DensifyConfig.SPARSE_CLOUD); the
+        # resolved values are what config.json records.
+        sparse_cloud = not (data_cfg or DataConfig()).points_ship_with(dataset)
+        train_cfg = dataclasses.replace(train_cfg, densify=train_cfg.densify.resolved(sparse_cloud))
         self.dataset, self.data_cfg, self.model_cfg = dataset, data_cfg, model_cfg
         self.cfg, self.compaction_cfg = train_cfg, compaction_cfg
-        self.out = Path(out_dir)
-        resuming = resume and (self.out / CHECKPOINT_NAME).exists()
+        self.out_run = Run(out_dir)
+        self.out = self.out_run.path
+        resuming = resume and self.out_run.checkpoint_path.exists()
         if not resuming:
             # A resume with nothing to resume restarts the same run, so its own partial files may go.
             prepare_new_run(self.out, overwrite=overwrite or resume)
@@ -169,8 +174,8 @@ class Trainer:
         self.schedule: Schedule = resolve_schedule(train_cfg)
         if train_cfg.threads > 0:
             torch.set_num_threads(train_cfg.threads)
-        self.metrics_log = JsonLines(self.out / "metrics.jsonl")
-        self.compaction_log = JsonLines(self.out / "compaction.jsonl")
+        self.metrics_log = JsonLines(self.out / Run.METRICS)
+        self.compaction_log = JsonLines(self.out / Run.COMPACTION_LOG)
         self.images = ImageCache(dataset)
         self.masks = self._make_foreground_masks()
         self.frames = list(dataset.frames)
@@ -220,8 +225,7 @@ class Trainer:
         data = _jsonable(data)
         train = _config_dict(self.cfg)
         train["resolved_schedule"] = self.schedule.to_dict()
-        write_json(
-            self.out / "config.json",
+        self.out_run.write_config(
             {
                 "data": data,
                 "model": _config_dict(self.model_cfg),
@@ -333,7 +337,7 @@ class Trainer:
 
         total_loss, total_mse = 0.0, 0.0
         ems_view = None
-        collect = self.densify_rounds_done < self.cfg.densify.rounds and self.cfg.densify.enabled
+        collect = self.densify_rounds_done < self.schedule.densify_rounds
         for k, cam in enumerate(views):
             gt = self.images.get(cam)
             out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend)
@@ -362,7 +366,7 @@ class Trainer:
         sched, d, fl = self.schedule, self.cfg.densify, self.cfg.floaters
         report: dict[str, int] = {}
         if sched.is_densify_step(iteration):
-            if d.enabled and self.densify_rounds_done < d.rounds:
+            if self.densify_rounds_done < sched.densify_rounds:
                 report.update(
                     clone_and_split(self.model, self.stats, d.grad_threshold, d.percent_dense, d.split_count, generator,
                                     max_gaussians=d.cap(self.initial_gaussians))
@@ -415,7 +419,7 @@ class Trainer:
 
     # ------------------------------------------------------------------------------------------- the run
     def save_model(self, iteration: int) -> Path:
-        iteration_dir = self.out / "point_cloud" / f"iteration_{iteration}"
+        iteration_dir = self.out_run.iteration_dir(iteration)
         self.model.save(iteration_dir)
         if self.colour is not None:
             write_json(iteration_dir / COLOUR_CORRECTION_NAME, self.colour.to_json())
@@ -525,14 +529,14 @@ class Trainer:
             summary["colour_correction"] = self.colour.summary()
         if finished:
             # The summary goes first: the evaluation record reads the training time from it.
-            write_json(self.out / "train_summary.json", summary)
+            self.out_run.write_summary(summary)
         if finished and cfg.eval_at_end:
             e0 = time.perf_counter()
             result = self.evaluate()
             self.write_evaluation(result)
             summary["test_psnr"], summary["test_ssim"] = result.psnr, result.ssim
             summary["eval_seconds"] = round(time.perf_counter() - e0, 3)
-            write_json(self.out / "train_summary.json", summary)
+            self.out_run.write_summary(summary)
         return summary
 
 
