@@ -127,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     view = dataset.train[0]
     print(f"{dataset.name} {view.width}x{view.height}, {model.num_gaussians} Gaussians, batch {train_cfg.batch}, "
           f"{args.threads} threads, load {os.getloadavg()[0]:.2f}: {wall_ms:.1f} ms per iteration (profiled)")
-    print(f"| part | ms per iteration | share |\n|---|---:|---:|")
+    print("| part | ms per iteration | share |\n|---|---:|---:|")
     for name, ms in sorted(parts.items(), key=lambda kv: -kv[1]):
         print(f"| {name} | {ms:.1f} | {100 * ms / wall_ms:.0f} % |")
     print("largest other backward nodes (ms per iteration): "

@@ -33,13 +33,15 @@ def _package_of(path: Path) -> str:
 def _imported_packages(path: Path) -> set[str]:
     tree = ast.parse(path.read_text(encoding="utf-8"))
     own = _package_of(path)
+    # The package a module sits in, as parts below stgc: a relative import of level k climbs k - 1 of them.
+    here = list(path.relative_to(SRC).parent.parts)
     found = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
-            if node.level == 1:
-                continue  # same package
-            if node.level >= 2:
-                found.add((node.module or "").split(".")[0] or own)
+            if node.level >= 1:
+                base = here[: len(here) - (node.level - 1)] if node.level - 1 <= len(here) else []
+                target = base + (node.module.split(".") if node.module else [])
+                found.add(target[0] if target else "__init__")
             elif node.module and node.module.split(".")[0] == "stgc":
                 parts = node.module.split(".")
                 # `from stgc import x`: a submodule, or a name of the root package itself

@@ -14,7 +14,7 @@ from scenes import add_blender_transforms, write_panoptic_scene
 from stgc.cli import main
 from stgc.data import open_dataset
 from stgc.data.cameras import DEFAULT_NEAR_PLANE
-from stgc.data.readers import PANOPTIC_NEAR_PLANE
+from stgc.data.readers.panoptic import PANOPTIC_NEAR_PLANE
 from stgc.eval.evaluate import open_run_dataset
 from stgc.model import STGModel
 

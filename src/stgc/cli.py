@@ -24,7 +24,6 @@ from stgc.config import (
     validate_config,
 )
 from stgc.errors import StgcError
-from stgc.fileio import read_json_object
 from stgc.run import Run
 
 

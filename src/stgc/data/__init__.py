@@ -25,10 +25,9 @@ from .dataset import Dataset, SourceScene, segments
 from .inspect import inspect, inspect_text
 from .points import PointCloud, initial_points
 from .preprocess import PreprocessReport, preprocess_points
-from .readers import FORMATS, detect_format, open_dataset
+from .readers import detect_format, format_names, open_dataset
 
 __all__ = [
-    "FORMATS",
     "Camera",
     "DataConfig",
     "Dataset",
@@ -37,6 +36,7 @@ __all__ = [
     "SourceScene",
     "colmap_to_w2c",
     "detect_format",
+    "format_names",
     "initial_points",
     "initial_points_from_config",
     "inspect",

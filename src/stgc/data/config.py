@@ -72,10 +72,10 @@ class DataConfig:
 
         from .points import SOURCES
         from .preprocess import MODES
-        from .readers import FORMATS, FORMAT_ALIASES
+        from .readers import format_names, resolve_format
 
-        check(self.format == "auto" or self.format.lower() in (*FORMATS, *FORMAT_ALIASES), f"{prefix}format", self.format,
-              f"auto or one of {', '.join(FORMATS)}")
+        check(self.format == "auto" or resolve_format(self.format) is not None, f"{prefix}format", self.format,
+              f"auto or one of {', '.join(format_names())}")
         check(math.isfinite(self.downscale) and self.downscale > 0, f"{prefix}downscale", self.downscale, "> 0")
         check(self.start is None or self.start >= 0, f"{prefix}start", self.start, ">= 0")
         check(self.duration is None or self.duration >= 1, f"{prefix}duration", self.duration, ">= 1")

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from stgc.errors import DataError, FormatError
+from stgc.errors import DataError
 from stgc.eval.accounting import (
     ModelSize,
     RenderSpeed,

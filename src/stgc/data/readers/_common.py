@@ -1,0 +1,63 @@
+"""Helpers shared by the readers."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import DataError
+from ..cameras import check_pose
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+
+
+def _load_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DataError(path, "file is missing") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(path, f"not valid JSON: {exc}") from None
+
+
+def _checked(meta: Path, name: str, frame: int, K: np.ndarray, w2c: np.ndarray) -> None:
+    problem = check_pose(w2c, K)
+    if problem:
+        raise DataError(meta, f"camera {name} frame {frame}: {problem}")
+
+
+def _find_image(base: Path) -> Path | None:
+    """`base` itself if it exists, else `base` with a known image extension (D-NeRF omits it)."""
+    if base.is_file():
+        return base
+    for ext in IMAGE_EXTS:
+        candidate = base.with_name(base.name + ext)
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _rgb01(rgb: np.ndarray) -> np.ndarray:
+    """Colours as float32 in [0, 1], whether stored as [0, 1] floats or 0..255 values."""
+    rgb = np.asarray(rgb, dtype=np.float32)
+    if rgb.size and rgb.max() > 1.0 + 1e-6:
+        rgb = rgb / 255.0
+    return np.clip(rgb, 0.0, 1.0)
+
+
+def _npy_points(folder: Path, frame: int) -> tuple[np.ndarray, np.ndarray] | None:
+    for name in (f"{frame:04d}.npy", f"{frame:06d}.npy", f"{frame}.npy"):
+        f = folder / name
+        if f.is_file():
+            try:
+                data = np.load(f)
+            except (ValueError, OSError) as exc:
+                raise DataError(f, f"unreadable point file: {exc}") from None
+            if data.ndim != 2 or data.shape[1] < 6:
+                raise DataError(f, f"expected an [M, 6] array (x, y, z, r, g, b), got shape {data.shape}")
+            if not np.all(np.isfinite(data[:, :6])):
+                raise DataError(f, "non-finite (NaN or inf) point coordinates or colours")
+            return data[:, :3].astype(np.float32), _rgb01(data[:, 3:6])
+    return None

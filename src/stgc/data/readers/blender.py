@@ -1,0 +1,105 @@
+"""Blender / D-NeRF: transforms_{train,test}.json with per-frame time (multi-view when frames name a camera)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import DataError
+from ..cameras import Camera, fov_to_focal, intrinsics, opengl_c2w_to_w2c
+from ..dataset import SourceScene
+from ..images import image_size
+from ._common import _checked, _find_image, _load_json, _npy_points
+from .registry import ReaderOptions, register_reader
+
+
+def _is_blender(path: Path) -> bool:
+    if path.is_file():
+        return path.name.startswith("transforms_")
+    return (path / "transforms_train.json").is_file()
+
+
+@register_reader("blender", order=30, marker="transforms_train.json (Blender/D-NeRF)", detect=_is_blender,
+                 aliases=("dnerf", "d-nerf", "nerf"))
+def read_blender(path: Path, options: ReaderOptions) -> SourceScene:
+    """transforms_{train,test}.json with per-frame `time` and c2w in OpenGL axes. Frames with a
+    `camera` key are grouped into views (multi-view); otherwise every image is its own view
+    (monocular D-NeRF) and frame indices are the ranks of the distinct times."""
+    root = path.parent if path.is_file() else path
+    splits = {}
+    for split in ("train", "test"):
+        f = root / f"transforms_{split}.json"
+        if f.is_file():
+            splits[split] = (f, _load_json(f))
+    if "train" not in splits:
+        raise DataError(root / "transforms_train.json", "file is missing")
+    meta_file, first_meta = splits["train"]
+    entries = []  # (split, meta_file, meta, frame_dict)
+    for split, (f, meta) in splits.items():
+        frames = meta.get("frames")
+        if not isinstance(frames, list) or not frames:
+            raise DataError(f, "no 'frames' list")
+        entries += [(split, f, meta, fr) for fr in frames]
+    multiview = all("camera" in e[3] for e in entries)
+    all_times = sorted({float(e[3].get("time", 0.0)) for e in entries})
+    cameras, test_names = [], []
+    for split, f, meta, fr in entries:
+        try:
+            file_path = root / fr["file_path"]
+            c2w = np.array(fr["transform_matrix"], dtype=np.float64).reshape(4, 4)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataError(f, f"frame entry without a valid {exc} (need file_path, transform_matrix)") from None
+        image = _find_image(file_path)
+        if image is None:
+            raise DataError(file_path, "image file is missing (no file with this name or a known extension)")
+        get = lambda key: fr.get(key, meta.get(key))
+        width, height = get("w"), get("h")
+        if width is None or height is None:
+            width, height = image_size(image)
+        width, height = int(width), int(height)
+        if get("fl_x") is not None:
+            fx = float(get("fl_x"))
+            fy = float(get("fl_y") if get("fl_y") is not None else fx)
+        elif get("camera_angle_x") is not None:
+            fx = fov_to_focal(float(get("camera_angle_x")), width)
+            fy = fov_to_focal(float(get("camera_angle_y")), height) if get("camera_angle_y") is not None else fx
+        else:
+            raise DataError(f, "no intrinsics: need fl_x (and cx, cy) or camera_angle_x")
+        cx = float(get("cx")) if get("cx") is not None else width / 2.0
+        cy = float(get("cy")) if get("cy") is not None else height / 2.0
+        K = intrinsics(fx, fy, cx, cy)
+        time = float(fr.get("time", 0.0))
+        if multiview:
+            name = str(fr["camera"])
+            frame = int(fr["frame_index"]) if "frame_index" in fr else all_times.index(time)
+        else:
+            name = f"{split}_{Path(fr['file_path']).name}"  # D-NeRF reuses r_000 in train and test
+            frame = all_times.index(time)
+        if not np.all(np.isfinite(c2w)):
+            raise DataError(f, f"camera {name} frame {frame}: non-finite (NaN or inf) value in transform_matrix")
+        w2c = opengl_c2w_to_w2c(c2w)
+        _checked(f, name, frame, K, w2c)
+        cameras.append(Camera(name, frame, 0.0, K, w2c, width, height, image))
+        if split == "test" and name not in test_names:
+            test_names.append(name)
+    if multiview:
+        _check_duplicates(cameras, meta_file)
+    fps = first_meta.get("fps")
+    points_dir = root / "points3d"
+    points, description = None, None
+    if points_dir.is_dir() and any(points_dir.glob("*.npy")):
+        points = lambda frame: _npy_points(points_dir, frame)
+        description = "points3d/NNNN.npy (x, y, z, r, g, b) per frame"
+    notes = [] if multiview else ["monocular: each image is its own view"]
+    return SourceScene(name=root.name, format="blender", root=root, cameras=cameras, default_test=test_names,
+                       meta_file=meta_file, fps=float(fps) if fps else None, multiview=multiview, points=points,
+                       points_description=description, notes=notes, synthetic=True)
+
+
+def _check_duplicates(cameras: list[Camera], meta: Path) -> None:
+    seen = set()
+    for c in cameras:
+        if (c.name, c.frame) in seen:
+            raise DataError(meta, f"camera {c.name} frame {c.frame} appears twice")
+        seen.add((c.name, c.frame))

@@ -1,0 +1,98 @@
+"""The official STG preprocessed layout: colmap_<t>/images + colmap_<t>/sparse/0 per frame."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import DataError
+from ..cameras import Camera, colmap_intrinsics, colmap_to_w2c
+from ..dataset import SourceScene
+from ._common import IMAGE_EXTS, _checked
+from .registry import ReaderOptions, register_reader
+
+
+def _colmap_frame_dirs(root: Path) -> dict[int, Path]:
+    out = {}
+    for d in root.glob("colmap_*"):
+        m = re.fullmatch(r"colmap_(\d+)", d.name)
+        if m and d.is_dir() and (d / "images").is_dir():
+            out[int(m.group(1))] = d
+    return dict(sorted(out.items()))
+
+
+def _is_stg_colmap(path: Path) -> bool:
+    if not path.is_dir():
+        return False
+    return bool(_colmap_frame_dirs(path)) or bool(re.fullmatch(r"colmap_\d+", path.name) and (path / "sparse").is_dir())
+
+
+@register_reader("stg-colmap", order=20, marker="colmap_<t>/sparse (STG COLMAP)", detect=_is_stg_colmap,
+                 aliases=("colmap", "stg"))
+def read_stg_colmap(path: Path, options: ReaderOptions) -> SourceScene:
+    """Official STG preprocessed layout: colmap_<t>/images/camXX.png + colmap_<t>/sparse/0 per frame.
+    Cameras come from the first frame's model (STG reads them from colmap_<start> the same way);
+    each frame's points3D is that frame's initial cloud. `path` may be the scene or one colmap_<t>."""
+    from ..colmap_io import find_model_files, read_model
+
+    default_start = None
+    root = path
+    m = re.fullmatch(r"colmap_(\d+)", path.name)
+    if m:
+        root, default_start = path.parent, int(m.group(1))
+    dirs = _colmap_frame_dirs(root)
+    if not dirs:
+        raise DataError(root, "no colmap_<t>/images folders")
+    first = default_start if default_start in dirs else min(dirs)
+    model_dir = dirs[first] / "sparse" / "0"
+    if find_model_files(model_dir) is None:
+        raise DataError(model_dir, "no COLMAP model (cameras and images .bin or .txt)")
+    model = read_model(model_dir, points=False)
+    meta_file = model_dir / ("cameras.bin" if (model_dir / "cameras.bin").is_file() else "cameras.txt")
+    views = []
+    for im in sorted(model.images.values(), key=lambda im: im.name):
+        if im.camera_id not in model.cameras:
+            raise DataError(model_dir, f"image {im.name} refers to missing camera {im.camera_id}")
+        cam = model.cameras[im.camera_id]
+        K, distorted = colmap_intrinsics(cam.model, cam.params)
+        if distorted:
+            raise DataError(meta_file, f"camera {cam.camera_id} ({cam.model}) has lens distortion: undistort the "
+                                       "images first (COLMAP image_undistorter), as STG does")
+        w2c = colmap_to_w2c(im.qvec, im.tvec)
+        name = Path(im.name).stem
+        _checked(model_dir, name, first, K, w2c)
+        views.append((name, im.name, K, w2c, cam.width, cam.height))
+    if not views:
+        raise DataError(model_dir, "the COLMAP model has no images")
+    cameras = []
+    known = {v[1] for v in views}
+    for frame, d in dirs.items():
+        for f in sorted((d / "images").iterdir()):
+            if f.suffix in IMAGE_EXTS and f.name not in known:
+                raise DataError(f, f"extra image: not in the COLMAP model of {model_dir}")
+        for name, file_name, K, w2c, width, height in views:
+            image = d / "images" / file_name
+            if not image.is_file():
+                raise DataError(image, f"image file is missing (camera {name}, frame {frame})")
+            cameras.append(Camera(name, frame, 0.0, K, w2c, width, height, image))
+    names = [v[0] for v in views]
+    test = ["cam00"] if "cam00" in names else [sorted(names)[0]]
+    points = lambda frame: _colmap_points(dirs.get(frame))
+    return SourceScene(name=root.name, format="stg-colmap", root=root, cameras=cameras, default_test=test,
+                       meta_file=meta_file, fps=30.0, points=points,
+                       points_description="colmap_<t>/sparse/0/points3D per frame", default_start=default_start)
+
+
+def _colmap_points(frame_dir: Path | None) -> tuple[np.ndarray, np.ndarray] | None:
+    from ..colmap_io import find_model_files, read_points
+
+    if frame_dir is None:
+        return None
+    model_dir = frame_dir / "sparse" / "0"
+    ext = find_model_files(model_dir)
+    if ext is None or not (model_dir / f"points3D.{ext}").is_file():
+        return None
+    xyz, rgb, _, _ = read_points(model_dir)
+    return xyz.astype(np.float32), rgb.astype(np.float32) / 255.0
