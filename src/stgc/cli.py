@@ -270,7 +270,8 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("data", nargs="?", help="dataset directory (any supported layout; see `stgc data inspect`)")
     p.add_argument("--out", required=True, help="run directory to write (or to resume)")
-    from stgc.compaction.config import CASE_WINDOWS, CRITERIA, METHODS
+    from stgc.compaction.config import CASE_WINDOWS, METHODS
+    from stgc.compaction.criteria import CRITERIA
     from stgc.model.layout import VARIANTS
     from stgc.train.config import PRESETS
 

@@ -118,3 +118,24 @@ def test_mutual_pairs_are_merged_once():
     # A reference whose searches disagree is dropped.
     pairs = match_from_neighbors([nn, np.array([1, 0, 0, 1])], [dist, dist])
     assert list(zip(pairs.reference.tolist(), pairs.partner.tolist())) == [(0, 1), (3, 1)]
+
+
+def test_a_registered_criterion_reaches_the_config_and_the_scores():
+    from stgc.compaction import CompactionConfig
+    from stgc.compaction.criteria import CRITERIA, register_criterion
+
+    @register_criterion("first-index", "the member with the smaller index (a test criterion)")
+    def _first(params, importance):
+        return -np.arange(params["xyz"].shape[0], dtype=np.float64)
+
+    try:
+        CompactionConfig(criterion="first-index").validate()
+        params = {"xyz": torch.zeros(4, 3)}
+        sel = select_removals(_pairs([0, 2], [1, 3], [0.1, 0.2]), 1.0, removal_scores(params, "first-index"))
+        assert sel.remove.tolist() == [0, 2]
+        with pytest.raises(ValueError, match="already registered"):
+            register_criterion("first-index", "again")(_first)
+    finally:
+        CRITERIA.pop("first-index")
+    with pytest.raises(ValueError, match="first-index"):
+        CompactionConfig(criterion="first-index").validate()

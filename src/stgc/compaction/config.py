@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from .criteria import CRITERIA, criteria_help
+
 PAPER_ITERATIONS = 30_000
 PAPER_INTERVAL = 100
 
@@ -23,7 +25,6 @@ CASE_WINDOWS: dict[int, tuple[float, float]] = {
 }
 
 METHODS = ("none", "st-knn")
-CRITERIA = ("timestamp", "scale", "importance")
 SMOOTHINGS = ("window_mean", "ema")
 
 
@@ -51,12 +52,9 @@ class CompactionConfig:
         default=0,
         metadata={"help": "iterations between pruning steps; 0 = total/300 (the paper's 100 of 30k), at least 1"},
     )
-    criterion: Literal["timestamp", "scale", "importance"] = field(
+    criterion: str = field(
         default="timestamp",
-        metadata={
-            "help": "which member of a selected pair is removed: timestamp = later mu_t (paper), scale = smaller "
-            "volume (product of activated scales), importance = less accumulated blending weight"
-        },
+        metadata={"help": "which member of a selected pair is removed: " + criteria_help()},
     )
     ratio_init: float = field(
         default=0.005, metadata={"help": "fraction of the matched pairs (closest first) pruned at the first step"}
@@ -108,7 +106,7 @@ class CompactionConfig:
         if self.interval < 0:
             raise ValueError(f"compaction.interval {self.interval}: must be >= 0 (0 = automatic)")
         if self.criterion not in CRITERIA:
-            raise ValueError(f"compaction.criterion {self.criterion!r}: expected one of {CRITERIA}")
+            raise ValueError(f"compaction.criterion {self.criterion!r}: expected one of {', '.join(CRITERIA)}")
         if not (0.0 <= self.ratio_min <= self.ratio_max <= 1.0):
             raise ValueError(
                 f"compaction.ratio_min/ratio_max ({self.ratio_min}, {self.ratio_max}): need 0 <= min <= max <= 1"

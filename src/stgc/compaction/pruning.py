@@ -7,7 +7,8 @@ chosen by the criterion, is removed and the other, the *keeper*, must survive:
 - `timestamp` (paper): the loser has the later most-visible time mu_t;
 - `scale`: the loser is the smaller one by volume, the product of its three activated scales (compared as the sum
   of log-scales, which is the same order and cannot overflow);
-- `importance`: the loser has less blending weight accumulated over the training views.
+- `importance`: the loser has less blending weight accumulated over the training views
+(the registry of criteria: `compaction.criteria`).
 Equal scores: the larger index loses (the older Gaussian of the array survives).
 
 Pairs can share Gaussians (chains i->j, j->k, or one Gaussian nearest to several). Selected pairs are resolved
@@ -23,12 +24,13 @@ Mutual pairs were merged into one earlier (`matching.match_from_neighbors`).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from .criteria import CRITERIA, ImportanceFn
 from .matching import PairMatches
 
 _FREE, _KEPT, _REMOVED = 0, 1, 2
@@ -43,26 +45,14 @@ class PruneSelection:
 
 
 def removal_scores(
-    params: Mapping[str, torch.Tensor], criterion: str, importance: Callable[[], torch.Tensor | np.ndarray] | None = None
+    params: Mapping[str, torch.Tensor], criterion: str, importance: ImportanceFn | None = None
 ) -> np.ndarray:
-    """Per-Gaussian score; in a selected pair the member with the higher score is removed."""
-    n = params["xyz"].shape[0]
+    """Per-Gaussian score of the registered `criterion` (`compaction.criteria`); in a selected pair the member with
+    the higher score is removed."""
+    if criterion not in CRITERIA:
+        raise ValueError(f"unknown compaction criterion {criterion!r}; registered: {', '.join(CRITERIA)}")
     with torch.no_grad():
-        if criterion == "timestamp":
-            return params["trbf_center"].detach().reshape(n).to("cpu", torch.float64).numpy()
-        if criterion == "scale":
-            log_volume = params["scaling"].detach().to("cpu", torch.float64).sum(dim=1)
-            return (-log_volume).numpy()
-        if criterion == "importance":
-            if importance is None:
-                raise ValueError("compaction criterion 'importance' needs importance_fn (blending weight per Gaussian)")
-            weight = importance()
-            weight = weight.detach().to("cpu", torch.float64).numpy() if torch.is_tensor(weight) else np.asarray(weight, np.float64)
-            weight = weight.reshape(-1)
-            if weight.size != n:
-                raise ValueError(f"importance_fn returned {weight.size} values for {n} Gaussians")
-            return -weight
-    raise ValueError(f"unknown compaction criterion {criterion!r}")
+        return CRITERIA[criterion].score(params, importance)
 
 
 def select_removals(
