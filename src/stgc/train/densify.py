@@ -2,8 +2,9 @@
 
 Follows the official STG (`GS/scene/oursfull.py` densify_and_clone / densify_and_split, `helper_train.controlgaussians`),
 which is 3DGS density control plus one change: every new Gaussian gets a fresh temporal centre mu_t ~ U[0, 1].
-All row edits go through `model.prune` / `model.extend`, which keep Adam's moments aligned; the trainer's own
-per-Gaussian arrays (`DensificationStats`) are edited here with the same masks.
+All row edits go through `model.prune` / `model.extend`, which keep Adam's moments aligned; the per-Gaussian
+statistics (`DensificationStats`) are edited here with the same masks. `DensityControl` is the whole of it as one
+strategy object that the trainer calls around its step.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import numpy as np
 import torch
 
 from stgc.render.projection import quat_to_rotmat
+from stgc.train.config import DensifyConfig, FloaterConfig, Schedule
 
 
 class DensificationStats:
@@ -172,3 +174,70 @@ def apply_prune(model: Any, stats: DensificationStats, remove: torch.Tensor) -> 
         model.prune(keep)
         stats.keep(keep)
     return n
+
+
+class DensityControl:
+    """The official density control as a strategy around the training step (in the manner of gsplat's
+    `Strategy`): it watches each view's render for the screen-space gradient statistics (`observe`), and after the
+    optimizer step clones/splits, prunes and resets opacities when the schedule says so (`step`). Gaussians that
+    others add (EMS) or remove (compaction) are reported to it (`rows_added`, `rows_kept`), so its statistics stay
+    aligned with the model's rows. Its state goes into the training checkpoint under the keys it always had."""
+
+    def __init__(self, cfg: DensifyConfig, floaters: FloaterConfig, schedule: Schedule, initial_gaussians: int,
+                 train_centers: np.ndarray):
+        self.cfg, self.floaters, self.schedule = cfg, floaters, schedule
+        self.train_centers = train_centers
+        self.stats = DensificationStats(initial_gaussians)
+        self.initial_gaussians = initial_gaussians
+        self.rounds_done = 0
+
+    @property
+    def collecting(self) -> bool:
+        """Whether clone/split rounds are still ahead (the statistics only matter until then)."""
+        return self.rounds_done < self.schedule.densify_rounds
+
+    def observe(self, render: Any, view_index: int, batch: int) -> None:
+        """After the backward of view `view_index` of a `batch`-view step: add its screen-space gradients."""
+        if not self.collecting or (self.cfg.stats_views == "last" and view_index != batch - 1):
+            return
+        # Each view's screen-space gradient is its own (a render's means2d is its own tensor); it came from
+        # loss/batch, hence the factor batch to get the per-view gradient.
+        grad_norm = render.raster.means2d_grad_ndc_norm() * batch
+        self.stats.add(render.index, grad_norm, render.raster.visible)
+
+    def step(self, iteration: int, model: Any, generator: torch.Generator) -> dict[str, int]:
+        """After the optimizer step: what the schedule asks at `iteration`; returns what it did (counts)."""
+        sched, d, fl = self.schedule, self.cfg, self.floaters
+        report: dict[str, int] = {}
+        if sched.is_densify_step(iteration):
+            if self.collecting:
+                report.update(clone_and_split(model, self.stats, d.grad_threshold, d.percent_dense, d.split_count,
+                                              generator, max_gaussians=d.cap(self.initial_gaussians)))
+                self.rounds_done += 1
+            elif iteration < sched.prune_until:
+                report["pruned_opacity"] = apply_prune(model, self.stats, prune_mask_low_opacity(model, d.prune_opacity))
+            if iteration <= sched.floaters_until and (fl.near_camera > 0 or fl.max_world_scale > 0):
+                remove = prune_mask_floaters(model, self.train_centers, fl.near_camera, fl.max_world_scale)
+                report["pruned_floaters"] = apply_prune(model, self.stats, remove)
+            report["pruned_nonfinite"] = apply_prune(model, self.stats, prune_mask_nonfinite(model))
+        if sched.opacity_reset_interval and iteration % sched.opacity_reset_interval == 0 \
+                and iteration < sched.opacity_reset_until:
+            model.reset_opacity(d.opacity_reset_value)
+            report["opacity_reset"] = 1
+        return report
+
+    def rows_added(self, count: int) -> None:
+        self.stats.append(count)
+
+    def rows_kept(self, keep: torch.Tensor) -> None:
+        self.stats.keep(keep)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"densify_stats": self.stats.state_dict(), "densify_rounds_done": self.rounds_done,
+                "initial_gaussians": self.initial_gaussians}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.stats.load_state_dict(state["densify_stats"])
+        self.rounds_done = int(state["densify_rounds_done"])
+        # Checkpoints written before the Gaussian budget existed have no count: keep the model's own.
+        self.initial_gaussians = int(state.get("initial_gaussians", self.initial_gaussians))

@@ -37,14 +37,7 @@ from stgc.train.checkpoint import (
 )
 from stgc.train.colour import COLOUR_CORRECTION_NAME, ColourCorrection
 from stgc.train.config import Schedule, TrainConfig, resolve_schedule
-from stgc.train.densify import (
-    DensificationStats,
-    apply_prune,
-    clone_and_split,
-    prune_mask_floaters,
-    prune_mask_low_opacity,
-    prune_mask_nonfinite,
-)
+from stgc.train.densify import DensityControl
 from stgc.train.ems import ErrorGuidedSampler
 from stgc.train.monitor import JsonLines, Progress, TensorBoard
 
@@ -183,7 +176,6 @@ class Trainer:
         self.background = torch.tensor(dataset.background, dtype=torch.float32)
         self.elapsed_before = 0.0
         self.start_iteration = 0
-        self.densify_rounds_done = 0
 
         checkpoint = None
         if resuming:
@@ -201,8 +193,8 @@ class Trainer:
         self.optimizer = self.model.make_optimizer(
             learning_rates(train_cfg, self.extent, self.model.params), train_cfg.lr.decoder
         )
-        self.stats = DensificationStats(self.model.num_gaussians)
-        self.initial_gaussians = self.model.num_gaussians  # a resumed run restores its own below
+        self.density = DensityControl(train_cfg.densify, train_cfg.floaters, self.schedule, self.model.num_gaussians,
+                                      self.train_centers)
         self.colour = self._make_colour_correction()
         self.compactor = self._make_compactor()
         self.ems = ErrorGuidedSampler(
@@ -270,11 +262,9 @@ class Trainer:
 
     def _restore(self, ckpt: dict[str, Any]) -> None:
         self.optimizer.load_state_dict(ckpt["optimizer"])
-        self.stats.load_state_dict(ckpt["densify_stats"])
+        self.density.load_state_dict(ckpt)
         self.start_iteration = int(ckpt["iteration"])
         self.elapsed_before = float(ckpt["elapsed_s"])
-        self.densify_rounds_done = int(ckpt["densify_rounds_done"])
-        self.initial_gaussians = int(ckpt.get("initial_gaussians", self.initial_gaussians))
         if ckpt.get("ems"):
             self.ems.state = ckpt["ems"]
         if self.compactor is not None and ckpt.get("compactor") is not None:
@@ -292,9 +282,7 @@ class Trainer:
             "elapsed_s": elapsed,
             "model": model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
-            "densify_stats": self.stats.state_dict(),
-            "densify_rounds_done": self.densify_rounds_done,
-            "initial_gaussians": self.initial_gaussians,
+            **self.density.state_dict(),
             "compactor": None if self.compactor is None else self.compactor.state_dict(),
             "ems": self.ems.state,
             "colour_correction": None if self.colour is None else self.colour.state_dict(),
@@ -337,7 +325,6 @@ class Trainer:
 
         total_loss, total_mse = 0.0, 0.0
         ems_view = None
-        collect = self.densify_rounds_done < self.schedule.densify_rounds
         for k, cam in enumerate(views):
             gt = self.images.get(cam)
             out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend)
@@ -348,11 +335,7 @@ class Trainer:
                 ems_view = (cam, rgb.detach(), gt)
             total_loss += float(loss.detach())
             total_mse += float(((rgb.detach().clamp(0, 1) - gt) ** 2).mean())
-            if collect and (self.cfg.densify.stats_views == "all" or k == len(views) - 1):
-                # Each view's screen-space gradient is its own (a render's means2d is its own tensor); it came from
-                # loss/batch, hence the factor batch to get the per-view gradient.
-                grad_norm = out.raster.means2d_grad_ndc_norm() * batch
-                self.stats.add(out.index, grad_norm, out.raster.visible)
+            self.density.observe(out, k, batch)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         if self.colour is not None:
@@ -361,36 +344,6 @@ class Trainer:
         mean_mse = total_mse / batch
         return {"t": t, "frame": frame, "loss": mean_loss, "psnr": -10.0 * math.log10(max(mean_mse, 1e-12)),
                 "lr_xyz": lr_xyz, "ems_view": ems_view}
-
-    def density_control(self, iteration: int, generator: torch.Generator) -> dict[str, int]:
-        sched, d, fl = self.schedule, self.cfg.densify, self.cfg.floaters
-        report: dict[str, int] = {}
-        if sched.is_densify_step(iteration):
-            if self.densify_rounds_done < sched.densify_rounds:
-                report.update(
-                    clone_and_split(self.model, self.stats, d.grad_threshold, d.percent_dense, d.split_count, generator,
-                                    max_gaussians=d.cap(self.initial_gaussians))
-                )
-                self.densify_rounds_done += 1
-            elif iteration < sched.prune_until:
-                report["pruned_opacity"] = apply_prune(
-                    self.model, self.stats, prune_mask_low_opacity(self.model, d.prune_opacity)
-                )
-            if iteration <= sched.floaters_until and (fl.near_camera > 0 or fl.max_world_scale > 0):
-                report["pruned_floaters"] = apply_prune(
-                    self.model,
-                    self.stats,
-                    prune_mask_floaters(self.model, self.train_centers, fl.near_camera, fl.max_world_scale),
-                )
-            report["pruned_nonfinite"] = apply_prune(self.model, self.stats, prune_mask_nonfinite(self.model))
-        if (
-            sched.opacity_reset_interval
-            and iteration % sched.opacity_reset_interval == 0
-            and iteration < sched.opacity_reset_until
-        ):
-            self.model.reset_opacity(d.opacity_reset_value)
-            report["opacity_reset"] = 1
-        return report
 
     def importance_views(self) -> list[Any]:
         """One view per training camera, their frames spread evenly over the segment: every view and every part of
@@ -468,16 +421,16 @@ class Trainer:
                 _seed_globals(_derive_seed(cfg.seed, iteration, 1))
                 generator = torch.Generator().manual_seed(_derive_seed(cfg.seed, iteration, 2))
                 step = self.train_step(iteration)
-                control = self.density_control(iteration, generator)
+                control = self.density.step(iteration, self.model, generator)
                 ems_view = step.pop("ems_view")
                 if ems_view is not None:
                     camera, render, gt = ems_view
                     added = self.ems.insert(iteration, self.model, camera, render, gt, generator)
-                    self.stats.append(added)
+                    self.density.rows_added(added)
                     control["ems_added"] = added
                 if self.compactor is not None:
                     event = self.compactor.step(iteration, step["t"], self.model, step["loss"],
-                                                importance_fn=self.importance, on_prune=self.stats.keep)
+                                                importance_fn=self.importance, on_prune=self.density.rows_kept)
                     if event:
                         self.compaction_log.append(_jsonable(event))  # the event carries its iteration
                 elapsed = self.elapsed_before + (time.perf_counter() - t0)
