@@ -14,9 +14,13 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from stgc.codec import DEFAULT_QUALITY
 from stgc.errors import StgcError
+
+if TYPE_CHECKING:
+    from stgc.experiment import Plan
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEMO_SCENE = REPO_ROOT / "demo" / "toys_small"
@@ -33,7 +37,7 @@ DEMO_OVERRIDES = {
 }
 
 
-def demo_plan():
+def demo_plan() -> Plan:
     from stgc.experiment import Plan, RunSpec
 
     return Plan(

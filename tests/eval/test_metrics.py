@@ -134,3 +134,35 @@ def test_lpips_reports_why_it_is_unavailable_at_each_missing_piece(monkeypatch, 
     (tmp_path / "hub").mkdir()
     (tmp_path / "hub" / "alexnet-owt-7be5be79.pth").write_bytes(b"w")
     assert lpips_status("alex") == (True, "available")
+
+
+def _bt709_yuv420_10bit(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """BT.709 limited-range 10-bit 4:2:0 written out from the standard (ITU-R BT.709-6, items 3.2-3.5), as a
+    second implementation: E'Y = 0.2126 R + 0.7152 G + 0.0722 B; E'CB = (B - Y) / 1.8556; E'CR = (R - Y) / 1.5748;
+    D'Y = round((219 E'Y + 16) 4), D'C = round((224 E'C + 128) 4); chroma is the mean of each 2x2 block."""
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    y = 0.2126 * r + 0.7152 * g + 0.0722 * b
+    cb = (b - y) / 1.8556
+    cr = (r - y) / 1.5748
+    h, w = y.shape
+    cb = cb.reshape(h // 2, 2, w // 2, 2).mean(axis=(1, 3))
+    cr = cr.reshape(h // 2, 2, w // 2, 2).mean(axis=(1, 3))
+    return np.rint((219 * y + 16) * 4), np.rint((224 * cb + 128) * 4), np.rint((224 * cr + 128) * 4)
+
+
+def test_yuv_psnr_matches_bt709_written_out_and_weights_6_1_1():
+    from stgc.eval.metrics import yuv_psnr
+
+    rng = np.random.default_rng(3)
+    ref = rng.uniform(0.05, 0.95, size=(24, 32, 3))
+    img = np.clip(ref + rng.normal(0, 0.03, size=ref.shape), 0, 1)
+    got = yuv_psnr(torch.from_numpy(img), ref)
+    expected = {}
+    for name, a, b in zip("yuv", _bt709_yuv420_10bit(img), _bt709_yuv420_10bit(ref)):
+        expected[name] = 10 * np.log10(1023.0**2 / np.mean((a - b) ** 2))
+    for name in "yuv":
+        assert got[name] == pytest.approx(expected[name], abs=1e-9)
+    assert got["yuv"] == pytest.approx((6 * got["y"] + got["u"] + got["v"]) / 8)
+    assert got["u"] != pytest.approx(got["y"], abs=0.5)  # the planes are scored apart
+    same = yuv_psnr(ref, ref)
+    assert all(np.isinf(v) for v in same.values())

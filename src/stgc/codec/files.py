@@ -9,8 +9,11 @@ from typing import Any
 
 from stgc.errors import DataError, FormatError
 from stgc.fileio import atomic_path
-from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
+from stgc.data.cameras import Camera
 from stgc.data.config import open_run_dataset
+from stgc.data.dataset import Dataset
+from stgc.model import MIN_VISIBLE_OPACITY, STGModel
+from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
 from stgc.run import Run, iteration_of
 
 from .allocation import Allocation, budget_db, optimise_allocation
@@ -177,9 +180,6 @@ def stgc_bytes_per_gaussian(path: str | Path) -> float:
 def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: int | None = None,
                  config: CodecConfig | None = None) -> CompressResult:
     """Compress a trained model (a run dir -> its latest iteration, an iteration dir, or a point_cloud.ply)."""
-    # The model package owns the run layout, PLY reading and what a render can show.
-    from stgc.model import MIN_VISIBLE_OPACITY, STGModel
-
     config = CodecConfig(**vars(config)) if config is not None else CodecConfig()
     if quality is not None:
         config.quality = quality
@@ -242,7 +242,7 @@ def _corrections_of(source: Path) -> dict:
     return saved_corrections(resolve_ply_path(source).parent / COLOUR_CORRECTION_NAME)
 
 
-def _optimise(model: Any, arrays: dict, dataset: Any, config: CodecConfig, corrections: dict) -> Allocation:
+def _optimise(model: STGModel, arrays: dict, dataset: Dataset, config: CodecConfig, corrections: dict) -> Allocation:
     """The rd-optimised allocation measured on training views, each rendered as training saw it: with its camera's
     colour correction (on a real rig a raw render of a training camera is off by that camera's tint, which would
     hide part of the quantization error and loosen the budget)."""
@@ -250,13 +250,12 @@ def _optimise(model: Any, arrays: dict, dataset: Any, config: CodecConfig, corre
     import torch
     from tqdm import tqdm
 
-    from stgc.model import STGModel
 
     train = list(dataset.train)
     picked = np.random.default_rng(0).choice(len(train), size=min(config.allocation_views, len(train)),
                                              replace=False)
     views = [train[i] for i in sorted(picked)]
-    def ground_truth(cam: Any) -> np.ndarray:  # as stgc.eval reads it: uint8 -> [0, 1], colour channels only
+    def ground_truth(cam: Camera) -> np.ndarray:  # as stgc.eval reads it: uint8 -> [0, 1], colour channels only
         image = np.asarray(dataset.load_image(cam))[..., :3]
         return image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else image.astype(np.float32)
 
@@ -288,7 +287,6 @@ def _optimise(model: Any, arrays: dict, dataset: Any, config: CodecConfig, corre
 
 def _model_from_decoded(decoded: DecodedModel, source: str | Path) -> Any:
     # The model package owns the parameter layout and the decoder.
-    from stgc.model import STGModel
 
     meta = decoded.metadata
     extent = meta.get("scene_extent", 1.0)

@@ -25,6 +25,7 @@ import numpy as np
 
 from stgc.errors import DataError, FormatError
 from stgc import run as run_layout
+from stgc.model import STGModel
 from stgc.model.layout import bytes_per_gaussian, ply_fields
 
 BYTES_PER_MIB = 2**20
@@ -152,7 +153,7 @@ def model_size(
     )
 
 
-def model_size_of(model: Any, duration_s: float, files: Iterable[str | Path] = ()) -> ModelSize:
+def model_size_of(model: STGModel, duration_s: float, files: Iterable[str | Path] = ()) -> ModelSize:
     """`model_size` for an `stgc.model.STGModel` (anything with num_gaussians, variant, decoder_state())."""
     decoder = model.decoder_state() if hasattr(model, "decoder_state") else None
     return model_size(model.num_gaussians, model.variant, duration_s, state_dict_floats(decoder), files)

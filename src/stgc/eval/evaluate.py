@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from stgc.data.dataset import Dataset
 from stgc.errors import DataError
 from stgc.eval.accounting import (
     ModelSize,
@@ -28,11 +29,14 @@ from stgc.eval.accounting import (
     speed_from_times,
     training_seconds,
 )
-from stgc.eval.metrics import LPIPS, psnr, ssim
+from stgc.eval.metrics import LPIPS, psnr, ssim, yuv_psnr
 from stgc.fileio import atomic_open, write_json
 from stgc.run import Run
 
-PER_VIEW_COLUMNS = ("camera", "frame", "time", "psnr", "ssim", "lpips", "render_ms")
+PER_VIEW_COLUMNS = ("camera", "frame", "time", "psnr", "ssim", "lpips", "render_ms", "psnr_yuv", "psnr_y", "psnr_u",
+                    "psnr_v")
+# MPEG's YUV-PSNR (`metrics.yuv_psnr`): the 6:1:1 combination, then per plane.
+YUV_KEYS = ("psnr_yuv", "psnr_y", "psnr_u", "psnr_v")
 
 
 @dataclass
@@ -44,6 +48,7 @@ class ViewScore:
     ssim: float
     lpips: float | None
     render_ms: float
+    yuv: dict[str, float] = field(default_factory=dict)  # YUV_KEYS -> dB
 
 
 @dataclass
@@ -73,6 +78,7 @@ def _aggregate(views: Sequence[ViewScore]) -> dict[str, float | None]:
         "psnr": _mean(v.psnr for v in views),
         "ssim": _mean(v.ssim for v in views),
         "lpips": _mean(v.lpips for v in views),
+        **{key: _mean(v.yuv.get(key) for v in views) for key in YUV_KEYS},
         "views": len(views),
     }
 
@@ -137,6 +143,7 @@ def evaluate(
                 ssim=float(ssim(rendered, gt)),
                 lpips=lpips_model(rendered, gt) if lpips_model is not None else None,
                 render_ms=1e3 * elapsed,
+                yuv={f"psnr_{k}": v for k, v in yuv_psnr(rendered, gt).items()},
             )
         )
         if progress:
@@ -170,6 +177,7 @@ def eval_record(
         "ssim": result.overall["ssim"],
         "lpips": result.overall["lpips"],
         "lpips_note": result.lpips_note,
+        **{key: _finite(result.overall.get(key)) for key in YUV_KEYS},
         "num_gaussians": info.get("num_gaussians"),
         "size_mb": info.get("size_mb"),
         "mbps": info.get("mbps"),
@@ -219,7 +227,7 @@ def write_eval(
         writer.writerow(PER_VIEW_COLUMNS)
         for v in result.views:
             writer.writerow([v.camera, v.frame, f"{v.time:.6f}", _fmt(v.psnr, 4), _fmt(v.ssim, 5),
-                             _fmt(v.lpips, 5), _fmt(v.render_ms, 2)])
+                             _fmt(v.lpips, 5), _fmt(v.render_ms, 2), *(_fmt(v.yuv.get(k), 4) for k in YUV_KEYS)])
     return record
 
 
@@ -237,13 +245,14 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
     from rich.table import Table
 
     table = Table(title="evaluation", show_header=True, header_style="bold")
-    for col in ("camera (views)", "PSNR", "SSIM", "LPIPS", "#Gaussians", "size MiB", "Mbps", "FPS"):
+    for col in ("camera (views)", "PSNR", "YUV-PSNR", "SSIM", "LPIPS", "#Gaussians", "size MiB", "Mbps", "FPS"):
         table.add_column(col, justify="right")
 
     def row(name: str, agg: Mapping[str, Any], whole: bool) -> None:
         table.add_row(
             f"{name} ({agg.get('views', agg.get('num_views', ''))})",
-            _fmt(agg.get("psnr"), 2), _fmt(agg.get("ssim"), 4), _fmt(agg.get("lpips"), 4) or "-",
+            _fmt(agg.get("psnr"), 2), _fmt(agg.get("psnr_yuv"), 2) or "-", _fmt(agg.get("ssim"), 4),
+            _fmt(agg.get("lpips"), 4) or "-",
             f"{record['num_gaussians']:,}" if whole and record.get("num_gaussians") is not None else "",
             _fmt(record.get("size_mb"), 2) if whole else "", _fmt(record.get("mbps"), 2) if whole else "",
             _fmt(record.get("fps"), 1) if whole else "",
@@ -285,11 +294,9 @@ def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstre
     return config.open(target)
 
 
-def dataset_duration_s(dataset: Any) -> float:
+def dataset_duration_s(dataset: Dataset) -> float:
     """Seconds of video the dataset's frame window covers (frames / fps)."""
-    frames = dataset.frames
-    count = len(frames) if hasattr(frames, "__len__") else int(frames)
-    return duration_seconds(count, float(dataset.fps))
+    return duration_seconds(len(dataset.frames), float(dataset.fps))
 
 
 def evaluate_run(

@@ -84,6 +84,34 @@ def psnr_per_image(img: Any, ref: Any, max_value: float = 1.0) -> torch.Tensor:
     return 20.0 * torch.log10(max_value / torch.sqrt(err))
 
 
+# MPEG's video-coding habit (JVET and the Gaussian-splat-coding common test conditions report quality in YUV): the
+# render and the reference go to BT.709 YUV 4:2:0 at 10 bits, limited range (the codes a YUV file would hold), PSNR
+# is taken per plane with the peak code 1023, and the planes are combined as (6 Y + U + V) / 8.
+YUV_BIT_DEPTH = 10
+YUV_WEIGHTS = {"y": 6.0, "u": 1.0, "v": 1.0}
+
+
+def yuv_psnr(img: Any, ref: Any, bit_depth: int = YUV_BIT_DEPTH, color_range: str = "limited") -> dict[str, float]:
+    """{"y", "u", "v": PSNR dB of each plane, "yuv": their 6:1:1 weighted mean} of two [H, W, 3] RGB images
+    (floats in [0, 1] or uint8). Identical planes give +inf."""
+    from stgc.data.yuv import rgb_to_yuv420
+
+    def planes(x: Any) -> tuple[np.ndarray, ...]:
+        array = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+        if array.ndim != 3 or array.shape[-1] < 3:
+            raise ValueError(f"yuv_psnr expects [H, W, 3] RGB images, got shape {array.shape}")
+        array = array[..., :3]
+        return rgb_to_yuv420(array if array.dtype == np.uint8 else np.clip(array, 0.0, 1.0), bit_depth, color_range)
+
+    peak = float((1 << bit_depth) - 1)
+    scores: dict[str, float] = {}
+    for name, a, b in zip(("y", "u", "v"), planes(img), planes(ref)):
+        err = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+        scores[name] = math.inf if err == 0 else 10.0 * math.log10(peak * peak / err)
+    scores["yuv"] = sum(YUV_WEIGHTS[k] * scores[k] for k in YUV_WEIGHTS) / sum(YUV_WEIGHTS.values())
+    return scores
+
+
 @functools.lru_cache(maxsize=8)
 def _gaussian_taps(window_size: int, sigma: float, dtype: torch.dtype) -> torch.Tensor:
     centre = window_size // 2

@@ -19,13 +19,19 @@ from typing import Any
 import numpy as np
 import torch
 
+from stgc.data.cameras import Camera
+from stgc.data.dataset import Dataset
 from stgc.errors import DataError
 from stgc.fileio import atomic_path
+from stgc.model import STGModel
 from stgc.run import Run
+
+# A model to render: a run directory, an iteration folder, a PLY or a .stgc bitstream, or one in memory.
+ModelSource = str | Path | STGModel
 
 
 # ------------------------------------------------------------------------------------------------ loading
-def load_model_and_dataset(run_or_model: Any, dataset: Any | None = None) -> tuple[Any, Any]:
+def load_model_and_dataset(run_or_model: ModelSource, dataset: Dataset | None = None) -> tuple[STGModel, Dataset]:
     """(model, dataset) from a run directory / iteration dir / PLY path / `.stgc` bitstream, or an in-memory model.
     A bitstream renders what it decodes to, with the dataset of the run beside it or of the config it embeds."""
     if isinstance(run_or_model, (str, Path)):
@@ -52,7 +58,7 @@ def load_model_and_dataset(run_or_model: Any, dataset: Any | None = None) -> tup
     return run_or_model, dataset
 
 
-def find_camera(dataset: Any, camera_name: str, time: float | None = None) -> Any:
+def find_camera(dataset: Dataset, camera_name: str, time: float | None = None) -> Camera:
     """The dataset camera named `camera_name` (train or test) whose frame time is nearest `time`, with its time
     set to `time` (so any t in [0, 1] can be rendered, not only frame times)."""
     matches = [c for c in [*dataset.test, *dataset.train] if str(c.name) == str(camera_name)]
@@ -68,7 +74,7 @@ def find_camera(dataset: Any, camera_name: str, time: float | None = None) -> An
 
 
 @torch.no_grad()
-def render_image(model: Any, camera: Any, time: float | None = None, background: Sequence[float] | None = None) -> np.ndarray:
+def render_image(model: STGModel, camera: Camera, time: float | None = None, background: Sequence[float] | None = None) -> np.ndarray:
     """uint8 [H, W, 3] render of `camera` at `time` (default the camera's), clamped to [0, 1]."""
     t = float(camera.time if time is None else time)
     rgb = model.render(camera, t=t, background=None if background is None else torch.tensor(background)).rgb
@@ -138,7 +144,7 @@ def _principal_angle_order(centers: np.ndarray) -> np.ndarray:
     return np.roll(order, -start)
 
 
-def orbit_cameras(dataset: Any, num_frames: int) -> list[Any]:
+def orbit_cameras(dataset: Dataset, num_frames: int) -> list[Camera]:
     """`num_frames` cameras on a smooth path through the training cameras (one per view, frame 0 poses).
 
     Centres follow a cubic spline parameterised by chord length, orientations are slerped between neighbouring
@@ -209,26 +215,26 @@ def _frame_selection(frames: Any, available: Sequence[int]) -> list[int]:
     return chosen
 
 
-def _camera_at(dataset: Any, name: str, frame: int) -> Any:
+def _camera_at(dataset: Dataset, name: str, frame: int) -> Camera:
     for cam in [*dataset.test_at(frame), *dataset.train_at(frame)]:
         if str(cam.name) == str(name):
             return cam
     raise DataError(None, f"camera {name!r} has no view at frame {frame}")
 
 
-def _background(dataset: Any, background: Sequence[float] | None) -> Sequence[float]:
+def _background(dataset: Dataset, background: Sequence[float] | None) -> Sequence[float]:
     """The colour asked for, else the dataset's (what training composited its images on)."""
     return tuple(dataset.background) if background is None else background
 
 
 # ------------------------------------------------------------------------------------------------ public API
 def render_still(
-    run_or_model: Any,
+    run_or_model: ModelSource,
     camera_name: str,
     time: float,
     out_png: str | Path,
     *,
-    dataset: Any | None = None,
+    dataset: Dataset | None = None,
     background: Sequence[float] | None = None,
 ) -> Path:
     """Render the dataset camera `camera_name` at time `time` in [0, 1] to `out_png`."""
@@ -238,10 +244,10 @@ def render_still(
 
 
 def render_video(
-    run_or_model: Any,
+    run_or_model: ModelSource,
     out: str | Path,
     *,
-    dataset: Any | None = None,
+    dataset: Dataset | None = None,
     camera_name: str | None = None,
     frames: Any = None,
     orbit: bool = False,
@@ -269,8 +275,8 @@ def render_video(
 
 
 def contact_sheet(
-    model: Any,
-    dataset: Any,
+    model: STGModel,
+    dataset: Dataset,
     frames: Any,
     out_png: str | Path,
     *,

@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from stgc import render as _render
-from stgc.data.cameras import DEFAULT_NEAR_PLANE
+from stgc.data.cameras import DEFAULT_NEAR_PLANE, Camera
 from stgc.errors import DataError, FormatError
 from stgc.model import ply as _ply
 from stgc.model.config import ModelConfig
@@ -291,7 +291,7 @@ class STGModel:
     # ------------------------------------------------------------------ rendering
     def render(
         self,
-        camera: Any,
+        camera: Camera,
         t: float | None = None,
         background: torch.Tensor | Sequence[float] | None = None,
         backend: str = "auto",
@@ -349,7 +349,7 @@ class STGModel:
             raise ValueError(f"background has {bg.numel()} values; the {self.variant} model splats {channels} channels")
         return bg
 
-    def _camera_tensors(self, camera: Any) -> dict[str, torch.Tensor]:
+    def _camera_tensors(self, camera: Camera) -> dict[str, torch.Tensor]:
         K = np.asarray(camera.K, dtype=np.float64)
         w2c = np.asarray(camera.w2c, dtype=np.float64)
         key = (K.tobytes(), w2c.tobytes(), int(camera.width), int(camera.height), str(self.device))
@@ -366,7 +366,7 @@ class STGModel:
             self._camera_cache.move_to_end(key)
         return cached
 
-    def _rays(self, camera: Any, cached: dict[str, torch.Tensor]) -> torch.Tensor:
+    def _rays(self, camera: Camera, cached: dict[str, torch.Tensor]) -> torch.Tensor:
         if "rays" not in cached:
             rays = camera_rays(camera.K, camera.w2c, int(camera.width), int(camera.height))
             cached["rays"] = rays.to(self.device)

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from stgc.model import STGModel
 from stgc.render.projection import quat_to_rotmat
 from stgc.train.config import DensifyConfig, FloaterConfig, Schedule
 
@@ -57,13 +58,13 @@ class DensificationStats:
         self.grad_sum, self.count = state["grad_sum"].clone(), state["count"].clone()
 
 
-def _rows(model: Any, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+def _rows(model: STGModel, mask: torch.Tensor) -> dict[str, torch.Tensor]:
     return {k: p.detach()[mask].clone() for k, p in model.params.items()}
 
 
 @torch.no_grad()
 def clone_and_split(
-    model: Any,
+    model: STGModel,
     stats: DensificationStats,
     grad_threshold: float,
     percent_dense: float,
@@ -130,13 +131,13 @@ def _within_budget(candidates: torch.Tensor, grads: torch.Tensor, is_split: torc
 
 
 @torch.no_grad()
-def prune_mask_low_opacity(model: Any, threshold: float) -> torch.Tensor:
+def prune_mask_low_opacity(model: STGModel, threshold: float) -> torch.Tensor:
     """Rows to REMOVE: opacity sigmoid(o) below `threshold`."""
     return torch.sigmoid(model.params["opacity"].detach()).squeeze(-1) < threshold
 
 
 @torch.no_grad()
-def prune_mask_nonfinite(model: Any) -> torch.Tensor:
+def prune_mask_nonfinite(model: STGModel) -> torch.Tensor:
     """Rows to REMOVE: any parameter is NaN or infinite (rare Adam blow-ups; harmless to drop)."""
     bad = torch.zeros(model.num_gaussians, dtype=torch.bool)
     for p in model.params.values():
@@ -146,7 +147,7 @@ def prune_mask_nonfinite(model: Any) -> torch.Tensor:
 
 @torch.no_grad()
 def prune_mask_floaters(
-    model: Any, camera_centers: np.ndarray, near_camera: float, max_world_scale: float
+    model: STGModel, camera_centers: np.ndarray, near_camera: float, max_world_scale: float
 ) -> torch.Tensor:
     """Rows to REMOVE by the CPU-scale floater rules (fractions of the scene extent E; 0 disables a rule).
 
@@ -166,7 +167,7 @@ def prune_mask_floaters(
     return remove
 
 
-def apply_prune(model: Any, stats: DensificationStats, remove: torch.Tensor) -> int:
+def apply_prune(model: STGModel, stats: DensificationStats, remove: torch.Tensor) -> int:
     """Remove rows from the model (and its Adam state) and from the trainer statistics; returns how many."""
     n = int(remove.sum())
     if n:
@@ -205,7 +206,7 @@ class DensityControl:
         grad_norm = render.raster.means2d_grad_ndc_norm() * batch
         self.stats.add(render.index, grad_norm, render.raster.visible)
 
-    def step(self, iteration: int, model: Any, generator: torch.Generator) -> dict[str, int]:
+    def step(self, iteration: int, model: STGModel, generator: torch.Generator) -> dict[str, int]:
         """After the optimizer step: what the schedule asks at `iteration`; returns what it did (counts)."""
         sched, d, fl = self.schedule, self.cfg, self.floaters
         report: dict[str, int] = {}

@@ -23,6 +23,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from stgc.data.cameras import Camera
+from stgc.model import STGModel
 from stgc.train.config import EMSConfig
 
 
@@ -50,7 +52,7 @@ def error_pixels(render: torch.Tensor, gt: torch.Tensor, cfg: EMSConfig) -> np.n
 
 
 def ray_points(
-    camera: Any, pixels: np.ndarray, depth: float, cfg: EMSConfig, generator: torch.Generator
+    camera: Camera, pixels: np.ndarray, depth: float, cfg: EMSConfig, generator: torch.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
     """World points on the rays through pixel centres (corner-convention K) at depths D·(1±5%)·{near, far}.
 
@@ -68,7 +70,7 @@ def ray_points(
 
 
 def new_gaussians(
-    model: Any, xyz: np.ndarray, rgb: np.ndarray, trbf_scale_init: float, generator: torch.Generator
+    model: STGModel, xyz: np.ndarray, rgb: np.ndarray, trbf_scale_init: float, generator: torch.Generator
 ) -> dict[str, torch.Tensor]:
     """Pre-activation parameters of fresh EMS Gaussians (see the module docstring)."""
     from stgc.model import initial_log_scales
@@ -101,7 +103,7 @@ class ErrorGuidedSampler:
         self.trbf_scale_init = trbf_scale_init
         self.state: dict[str, Any] = {"ssim": {}, "depth": {}, "candidates": None, "events": 0, "last": -10**9}
 
-    def observe(self, iteration: int, camera: Any, ssim_value: float) -> bool:
+    def observe(self, iteration: int, camera: Camera, ssim_value: float) -> bool:
         """Record a rendered training view; True when this view should trigger an insertion."""
         st, cfg = self.state, self.cfg
         if not cfg.enabled or iteration < self.start or st["events"] >= cfg.max_events:
@@ -120,7 +122,7 @@ class ErrorGuidedSampler:
             and iteration - st["last"] >= self.min_gap
         )
 
-    def camera_depth(self, model: Any, camera: Any) -> float:
+    def camera_depth(self, model: STGModel, camera: Camera) -> float:
         """The largest median depth the model shows in this camera (cached per camera name)."""
         name = str(camera.name)
         if name not in self.state["depth"]:
@@ -131,7 +133,7 @@ class ErrorGuidedSampler:
             self.state["depth"][name] = float(valid.max()) if valid.numel() else float("nan")
         return self.state["depth"][name]
 
-    def insert(self, iteration: int, model: Any, camera: Any, render: torch.Tensor, gt: torch.Tensor,
+    def insert(self, iteration: int, model: STGModel, camera: Camera, render: torch.Tensor, gt: torch.Tensor,
                generator: torch.Generator) -> int:
         """Add Gaussians for `camera`'s error patches; returns how many were added."""
         self.state["events"] += 1

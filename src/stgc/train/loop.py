@@ -24,11 +24,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from stgc.compaction import CompactionConfig
 from stgc.config import validate_config
 from stgc.data import DataConfig
+from stgc.data.cameras import Camera
+from stgc.data.dataset import Dataset
 from stgc.errors import DataError
 from stgc.fileio import write_json
-from stgc.model import ModelConfig
+from stgc.model import ModelConfig, STGModel
 from stgc.run import Run, prepare_new_run
 from stgc.train.checkpoint import (
     load_checkpoint,
@@ -92,7 +95,7 @@ def xyz_learning_rate(cfg: TrainConfig, extent: float, iteration: int, total: in
     return math.exp(math.log(a) * (1 - p) + math.log(b) * p)
 
 
-def build_initial_model(dataset: Any, data_cfg: Any, model_cfg: Any) -> Any:
+def build_initial_model(dataset: Dataset, data_cfg: DataConfig | None, model_cfg: ModelConfig | None) -> STGModel:
     """The STG model initialised from the dataset's point cloud as the data config asks."""
     from stgc.data.config import initial_points_from_config
     from stgc.model import ModelConfig, STGModel
@@ -104,11 +107,11 @@ def build_initial_model(dataset: Any, data_cfg: Any, model_cfg: Any) -> Any:
 class ImageCache:
     """Ground-truth images kept as uint8 tensors (4x smaller than float32), converted per use."""
 
-    def __init__(self, dataset: Any):
+    def __init__(self, dataset: Dataset):
         self.dataset = dataset
         self._images: dict[tuple[str, int], torch.Tensor] = {}
 
-    def get(self, camera: Any) -> torch.Tensor:
+    def get(self, camera: Camera) -> torch.Tensor:
         key = (camera.name, camera.frame)
         img = self._images.get(key)
         if img is None:
@@ -121,11 +124,11 @@ class ImageCache:
 class ForegroundMasks:
     """Training views' foreground masks as bool tensors, decoded once; None for a view without one."""
 
-    def __init__(self, dataset: Any):
+    def __init__(self, dataset: Dataset):
         self.dataset = dataset
         self._masks: dict[tuple[str, int], torch.Tensor | None] = {}
 
-    def get(self, camera: Any) -> torch.Tensor | None:
+    def get(self, camera: Camera) -> torch.Tensor | None:
         key = (camera.name, camera.frame)
         if key not in self._masks:
             mask = self.dataset.load_mask(camera)
@@ -138,14 +141,14 @@ class Trainer:
 
     def __init__(
         self,
-        dataset: Any,
-        data_cfg: Any,
-        model_cfg: Any,
+        dataset: Dataset,
+        data_cfg: DataConfig | None,
+        model_cfg: ModelConfig | None,
         train_cfg: TrainConfig,
-        compaction_cfg: Any,
+        compaction_cfg: CompactionConfig | None,
         out_dir: str | Path,
         *,
-        model: Any | None = None,
+        model: STGModel | None = None,
         resume: bool = False,
         overwrite: bool = False,
         callback: IterationCallback | None = None,
@@ -296,7 +299,7 @@ class Trainer:
                 group["lr"] = lr
         return lr
 
-    def view_loss(self, render_rgb: torch.Tensor, gt: torch.Tensor, camera: Any) -> tuple[torch.Tensor, float]:
+    def view_loss(self, render_rgb: torch.Tensor, gt: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, float]:
         """(loss, SSIM value) of one training view."""
         from stgc.eval import ssim
 
@@ -382,7 +385,7 @@ class Trainer:
         """All test cameras x frames, clamped renders (stgc.eval's driver); returns its EvalResult."""
         from stgc.eval.evaluate import evaluate
 
-        def render(cam: Any) -> torch.Tensor:
+        def render(cam: Camera) -> torch.Tensor:
             with torch.no_grad():
                 return self.model.render(cam, t=float(cam.time), background=self.background,
                                          backend=self.cfg.backend).rgb
@@ -513,16 +516,16 @@ def _jsonable(obj: Any) -> Any:
 
 
 def train(
-    dataset: Any,
-    data_cfg: Any,
-    model_cfg: Any,
+    dataset: Dataset,
+    data_cfg: DataConfig | None,
+    model_cfg: ModelConfig | None,
     train_cfg: TrainConfig,
-    compaction_cfg: Any,
+    compaction_cfg: CompactionConfig | None,
     out_dir: str | Path,
     resume: bool = False,
     *,
     overwrite: bool = False,
-    model: Any | None = None,
+    model: STGModel | None = None,
     callback: IterationCallback | None = None,
 ) -> dict[str, Any]:
     """Train an STG model on `dataset` into the run directory `out_dir`; returns the summary.
