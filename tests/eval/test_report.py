@@ -104,3 +104,15 @@ def test_report_from_runs(tmp_path: Path) -> None:
     md = report.markdown.read_text()
     assert "unfinished" in md and report.baseline == "STG"
     assert report.plot_png.is_file() and str(report).startswith("report written")
+
+
+def test_rate_axis_turns_logarithmic_when_the_rates_span_more_than_ten_times(tmp_path):
+    from stgc.eval.report import rate_axis_is_log
+
+    close = [ReportRow(name="a", family="f", mbps=10.0, psnr=30.0), ReportRow(name="b", family="f", mbps=60.0, psnr=31.0)]
+    wide = close + [ReportRow(name="c", family="codec", mbps=0.9, psnr=29.5)]
+    assert not rate_axis_is_log(close) and rate_axis_is_log(wide)
+    # Rows without a PSNR are not plotted, so they do not widen the axis.
+    assert not rate_axis_is_log(close + [ReportRow(name="d", family="codec", mbps=0.5, psnr=None)])
+    report = make_report(wide, tmp_path / "r")
+    assert report.plot_png is not None and report.plot_png.stat().st_size > 0

@@ -191,9 +191,21 @@ def markdown_table(rows: Sequence[ReportRow], baseline: str | None, bd: Sequence
     return "\n".join(lines) + "\n"
 
 
+LOG_RATE_SPAN = 10.0
+
+
+def rate_axis_is_log(rows: Sequence[ReportRow], metric: str = "psnr") -> bool:
+    """Whether the RD plot of `rows` uses a log rate axis: its plotted rates span more than LOG_RATE_SPAN."""
+    rates = [float(r.mbps) for family in _families(rows).values() for r in _curve(family)
+             if r.mbps is not None and getattr(r, metric) is not None]
+    return bool(rates) and max(rates) > LOG_RATE_SPAN * min(rates)
+
+
 def rd_plot(rows: Sequence[ReportRow], png: Path, svg: Path | None, title: str, baseline: str | None,
             metric: str = "psnr") -> None:
-    """Mbps vs PSNR, one line per family (points in rate order), each point labelled by its setting."""
+    """Mbps vs PSNR, one line per family (points in rate order), each point labelled by its setting. The rate
+    axis is logarithmic when the plotted rates span more than LOG_RATE_SPAN (codec points at a tenth of the
+    uncompressed rate would otherwise crowd its left edge)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -201,6 +213,8 @@ def rd_plot(rows: Sequence[ReportRow], png: Path, svg: Path | None, title: str, 
 
     markers = ["o", "s", "^", "D", "v", "P", "X", "*"]
     fig, ax = plt.subplots(figsize=(6.4, 4.6), dpi=100)
+    if rate_axis_is_log(rows, metric):
+        ax.set_xscale("log")
     for i, (family, members) in enumerate(_families(rows).items()):
         curve = [r for r in _curve(members) if getattr(r, metric) is not None]
         if not curve:
