@@ -193,6 +193,14 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from stgc.eval.export import export_ply_frames
+
+    written = export_ply_frames(args.source, args.out, frames=args.frames)
+    print(f"wrote {len(written)} static 3DGS PLY file(s) to {args.out} (what each holds: {Path(args.out) / 'export.json'})")
+    return 0
+
+
 def cmd_compress(args: argparse.Namespace) -> int:
     from stgc.codec import CodecConfig, compress_run
 
@@ -326,6 +334,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="FILE.png with one row per test camera (or --camera) and frame: ground truth | render | "
                         "|error| x4 (default frames: the first and the last)")
     p.set_defaults(func=cmd_render)
+
+    from stgc.eval.export import EXPORT_FORMATS
+
+    p = sub.add_parser("export", help="write a run or .stgc file for other tools (one static 3DGS PLY per frame)")
+    p.add_argument("source", help="run directory or .stgc file")
+    p.add_argument("--format", choices=EXPORT_FORMATS, default=EXPORT_FORMATS[0],
+                   help="ply-frames: one INRIA-layout 3DGS PLY per frame (SuperSplat, gsplat, nerfstudio)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--frames", help="frame range A:B or frames A,B,... (default: all)")
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("compress", help="write a trained run as a compact .stgc bitstream")
     p.add_argument("run", help="run directory, iteration directory or .ply")

@@ -186,7 +186,9 @@ def orbit_cameras(dataset: Dataset, num_frames: int) -> list[Camera]:
     return cams
 
 
-def _frame_selection(frames: Any, available: Sequence[int]) -> list[int]:
+def frame_selection(frames: Any, available: Sequence[int]) -> list[int]:
+    """The frames of `available` that `frames` picks: None (all), "A:B", "A,B,...", a slice or a list; a
+    DataError names a selection outside the dataset."""
     if frames is None:
         return list(available)
     if isinstance(frames, str):
@@ -268,7 +270,7 @@ def render_video(
         cameras = orbit_cameras(dataset, n)
     else:
         name = camera_name or str((dataset.test or dataset.train)[0].name)
-        cameras = [_camera_at(dataset, name, f) for f in _frame_selection(frames, list(dataset.frames))]
+        cameras = [_camera_at(dataset, name, f) for f in frame_selection(frames, list(dataset.frames))]
     bg = _background(dataset, background)
     images = (render_image(model, cam, None, bg) for cam in cameras)
     return write_video(out, images, rate)
@@ -289,7 +291,7 @@ def contact_sheet(
     names = list(cameras) if cameras else sorted({str(c.name) for c in dataset.test}) or [str(dataset.train[0].name)]
     rows = []
     background = _background(dataset, background)
-    for frame in _frame_selection(frames, list(dataset.frames)):
+    for frame in frame_selection(frames, list(dataset.frames)):
         for name in names:
             cam = _camera_at(dataset, name, frame)
             gt = np.asarray(dataset.load_image(cam))[..., :3]

@@ -1,0 +1,168 @@
+"""Exports to the tools people use: one static 3D Gaussian Splatting PLY per frame (`stgc export --format
+ply-frames`), in the INRIA layout that SuperSplat, gsplat, nerfstudio and the 3DGS viewers read.
+
+A Spacetime Gaussian at time t is a static 3D Gaussian: its polynomial motion gives the position, its angular
+velocity the rotation, and its temporal radial basis scales the opacity (`sigmoid(o) exp(-((t - mu_t) / s_t)^2)`).
+Those three are exact. Gaussians whose opacity at t is below 1/255 cannot touch a pixel and are left out.
+
+Colour is where a static splat loses something:
+- lite model: the splatted colour is the Gaussian's own RGB, written as the degree-0 SH coefficient
+  (f_dc = (rgb - 0.5) / C0); exact.
+- full model: STG splats 9 features and decodes them per *pixel* with a small MLP that also sees the viewing
+  direction. A static splat needs one colour per *Gaussian*: the decoder is applied to each Gaussian's own
+  features, with the ray from the training cameras' centroid to the Gaussian (the average training view).
+  What is lost: view dependence (the colour is frozen to that direction), and the decoder's nonlinearity acts on
+  each Gaussian instead of on the composited features, so where Gaussians overlap the colours differ.
+Higher SH bands are written as zeros (45 `f_rest_*` fields, degree 3) because readers of the INRIA layout expect
+them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from plyfile import PlyData, PlyElement
+
+from stgc.data.dataset import Dataset
+from stgc.errors import DataError
+from stgc.eval.video import ModelSource, frame_selection, load_model_and_dataset
+from stgc.fileio import atomic_path, write_json
+from stgc.model import MIN_VISIBLE_OPACITY, STGModel
+
+SH_C0 = 0.28209479177387814  # the degree-0 real spherical harmonic, 1 / (2 sqrt(pi))
+SH_REST = 45  # degree-3 bands 1-3, three colours
+INRIA_FIELDS = (
+    ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    + [f"f_rest_{i}" for i in range(SH_REST)]
+    + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+)
+EXPORT_FORMATS = ("ply-frames",)
+# Opacity logits of (almost) transparent or opaque Gaussians stay finite.
+_OPACITY_EPS = 1e-6
+
+
+@dataclass
+class StaticGaussians:
+    """Gaussians of one instant, activated: positions, unit quaternions (w, x, y, z), log-scales, opacity and RGB."""
+
+    means: np.ndarray  # [M, 3]
+    quats: np.ndarray  # [M, 4]
+    log_scales: np.ndarray  # [M, 3]
+    opacity: np.ndarray  # [M]
+    rgb: np.ndarray  # [M, 3], the colour a static splat shows (see the module docstring)
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+
+@torch.no_grad()
+def gaussians_at(model: STGModel, t: float, view_origin: np.ndarray) -> StaticGaussians:
+    """The model's Gaussians visible at time t as static 3D Gaussians; a full model's colour is decoded along the
+    ray from `view_origin` to each Gaussian."""
+    opacity = model.temporal_opacity(t)
+    keep = opacity >= MIN_VISIBLE_OPACITY
+    means = model.means_at(t)[keep]
+    features = model.features_at(t)[keep]
+    if model.decoder is None:
+        rgb = features
+    else:
+        origin = torch.as_tensor(np.asarray(view_origin, np.float32).reshape(1, 3)).expand_as(means)
+        directions = torch.nn.functional.normalize(means - origin, dim=1)
+        rgb = model.decoder(features, torch.cat([origin, directions], dim=1))
+    return StaticGaussians(
+        means=means.numpy().astype(np.float32),
+        quats=model.rotations_at(t)[keep].numpy().astype(np.float32),
+        log_scales=model.params["scaling"].detach()[keep].numpy().astype(np.float32),
+        opacity=opacity[keep].numpy().astype(np.float32),
+        rgb=rgb.numpy().astype(np.float32),
+    )
+
+
+def write_inria_ply(path: str | Path, gaussians: StaticGaussians) -> Path:
+    """Binary little-endian PLY in the INRIA 3DGS layout (pre-activation values, as its readers expect)."""
+    count = len(gaussians)
+    rows = np.zeros(count, dtype=[(name, "<f4") for name in INRIA_FIELDS])
+    for i, axis in enumerate("xyz"):
+        rows[axis] = gaussians.means[:, i]
+    dc = (gaussians.rgb.astype(np.float64) - 0.5) / SH_C0
+    for i in range(3):
+        rows[f"f_dc_{i}"] = dc[:, i]
+        rows[f"scale_{i}"] = gaussians.log_scales[:, i]
+    o = np.clip(gaussians.opacity.astype(np.float64), _OPACITY_EPS, 1.0 - _OPACITY_EPS)
+    rows["opacity"] = np.log(o / (1.0 - o))
+    for i in range(4):
+        rows[f"rot_{i}"] = gaussians.quats[:, i]
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(rows, "vertex")], text=False, byte_order="<").write(str(tmp))
+    return path
+
+
+def read_inria_ply(path: str | Path) -> StaticGaussians:
+    """The activated Gaussians of an INRIA-layout PLY (degree-0 colour: 0.5 + C0 f_dc; higher bands ignored)."""
+    try:
+        vertex = PlyData.read(str(path))["vertex"]
+        col = {name: np.asarray(vertex[name], np.float64) for name in INRIA_FIELDS if name not in ("nx", "ny", "nz")}
+    except (OSError, KeyError, ValueError) as exc:
+        raise DataError(Path(path), f"not an INRIA-layout 3DGS PLY ({type(exc).__name__}: {exc})") from None
+    quats = np.stack([col[f"rot_{i}"] for i in range(4)], axis=1)
+    return StaticGaussians(
+        means=np.stack([col[a] for a in "xyz"], axis=1),
+        quats=quats / np.linalg.norm(quats, axis=1, keepdims=True),
+        log_scales=np.stack([col[f"scale_{i}"] for i in range(3)], axis=1),
+        opacity=1.0 / (1.0 + np.exp(-col["opacity"])),
+        rgb=0.5 + SH_C0 * np.stack([col[f"f_dc_{i}"] for i in range(3)], axis=1),
+    )
+
+
+def training_view_origin(dataset: Dataset) -> np.ndarray:
+    """The centroid of the training cameras' centres (the viewpoint a full model's static colours are decoded for)."""
+    return np.mean([np.asarray(c.center, np.float64) for c in dataset.train], axis=0)
+
+
+def export_ply_frames(source: ModelSource, out_dir: str | Path, frames: Any = None,
+                      dataset: Dataset | None = None) -> list[Path]:
+    """Write OUT/frame_<NNNNNN>.ply (one static 3DGS per selected frame, at that frame's time) and OUT/export.json
+    (times, counts, the colour approximation); returns the PLY paths."""
+    model, dataset = load_model_and_dataset(source, dataset)
+    chosen = frame_selection(frames, list(dataset.frames))
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise DataError(out, "exists and is not a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    origin = training_view_origin(dataset)
+    written, entries = [], []
+    for frame in chosen:
+        t = float(dataset.time_of(frame))
+        gaussians = gaussians_at(model, t, origin)
+        path = write_inria_ply(out / f"frame_{frame:06d}.ply", gaussians)
+        written.append(path)
+        entries.append({"frame": frame, "time": t, "file": path.name, "gaussians": len(gaussians)})
+    colour = ("exact: the lite model's own RGB as degree-0 SH" if model.decoder is None else
+              "the full model's decoder applied per Gaussian along the ray from the training cameras' centroid "
+              f"{[round(float(v), 6) for v in origin]}: no view dependence, and decoded per Gaussian instead of "
+              "per pixel")
+    write_json(out / "export.json", {"format": "ply-frames", "layout": "INRIA 3DGS (SH degree 3, bands 1-3 zero)",
+                                     "source": str(source) if isinstance(source, (str, Path)) else "in-memory model",
+                                     "variant": model.variant, "colour": colour, "frames": entries,
+                                     "sh_c0": SH_C0, "min_opacity": float(MIN_VISIBLE_OPACITY)})
+    return written
+
+
+def static_render_inputs(gaussians: StaticGaussians) -> dict[str, torch.Tensor]:
+    """Tensors that `stgc.render.rasterize` takes for a static splat (means, quats, scales, opacities, features)."""
+    return {
+        "means": torch.as_tensor(gaussians.means, dtype=torch.float32),
+        "quats": torch.as_tensor(gaussians.quats, dtype=torch.float32),
+        "scales": torch.exp(torch.as_tensor(gaussians.log_scales, dtype=torch.float32)),
+        "opacities": torch.as_tensor(gaussians.opacity, dtype=torch.float32),
+        "features": torch.as_tensor(gaussians.rgb, dtype=torch.float32),
+    }
+
+
+__all__ = ["EXPORT_FORMATS", "INRIA_FIELDS", "SH_C0", "StaticGaussians", "export_ply_frames", "gaussians_at",
+           "read_inria_ply", "static_render_inputs", "training_view_origin", "write_inria_ply"]
