@@ -194,8 +194,13 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from stgc.eval.export import export_ply_frames
+    from stgc.eval.export import export_ply_frames, export_splatv
 
+    if args.format == "splatv":
+        if args.frames:
+            raise StgcError("--frames applies to ply-frames; a .splatv file holds the whole model over time")
+        print(f"wrote {export_splatv(args.source, args.out)}")
+        return 0
     written = export_ply_frames(args.source, args.out, frames=args.frames)
     print(f"wrote {len(written)} static 3DGS PLY file(s) to {args.out} (what each holds: {Path(args.out) / 'export.json'})")
     return 0
@@ -340,8 +345,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export", help="write a run or .stgc file for other tools (one static 3DGS PLY per frame)")
     p.add_argument("source", help="run directory or .stgc file")
     p.add_argument("--format", choices=EXPORT_FORMATS, default=EXPORT_FORMATS[0],
-                   help="ply-frames: one INRIA-layout 3DGS PLY per frame (SuperSplat, gsplat, nerfstudio)")
-    p.add_argument("--out", required=True, help="output folder")
+                   help="ply-frames: one INRIA-layout 3DGS PLY per frame (SuperSplat, gsplat, nerfstudio); splatv: the "
+                        "whole model as one file for the splaTV browser viewer")
+    p.add_argument("--out", required=True, help="output folder (ply-frames) or FILE.splatv")
     p.add_argument("--frames", help="frame range A:B or frames A,B,... (default: all)")
     p.set_defaults(func=cmd_export)
 

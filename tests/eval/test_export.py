@@ -110,3 +110,55 @@ def test_sh_dc_round_trip_and_the_cli(scene, tmp_path, capsys):
     # A selection outside the data is a clear error (exit status 2, the frames named), and nothing is written.
     assert main(["export", str(run), "--out", str(tmp_path / "bad"), "--frames", "7:9"]) == 2
     assert "frames 7:9" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
+def _read_splatv(path):
+    """An independent reader of splaTV's file, from the format's description (two uint32: magic 0x674B and the JSON
+    length; the JSON chunk list; then 16 uint32 per Gaussian: float32 x y z; half pairs (low 16 bits first) of the
+    quaternion, the scales, the 9 motion coefficients, the angular velocity and (mu_t, exp(s_t)); RGBA bytes)."""
+    import struct
+
+    data = path.read_bytes()
+    magic, length = struct.unpack_from("<II", data, 0)
+    assert magic == 0x674B
+    chunks = json.loads(data[8 : 8 + length].decode("utf-8"))
+    splat = chunks[0]
+    words = np.frombuffer(data[8 + length : 8 + length + splat["size"]], dtype="<u4")
+    assert words.size == splat["texwidth"] * splat["texheight"] * 4
+
+    def halves(column):
+        return np.stack([(column & 0xFFFF).astype(np.uint16).view(np.float16),
+                         (column >> 16).astype(np.uint16).view(np.float16)], axis=1).astype(np.float64)
+
+    return splat, words, halves
+
+
+def test_splatv_file_holds_the_model_as_an_independent_reader_sees_it(scene, tmp_path):
+    dataset = open_dataset(scene.root)
+    model = _moving(scene.model)
+    with torch.no_grad():
+        model.params["rotation"].mul_(1.7)  # unnormalised, as STG stores them
+    from stgc.eval.export import export_splatv
+
+    path = export_splatv(model, tmp_path / "m.splatv", dataset=dataset)
+    splat, words, halves = _read_splatv(path)
+    n = model.num_gaussians
+    rows = words[: 16 * n].reshape(n, 16)
+    assert not words[16 * n :].any()  # the texture's padding
+    p = {k: v.detach().double().numpy() for k, v in model.params.items()}
+    np.testing.assert_array_equal(rows[:, 0:3].view(np.float32), p["xyz"].astype(np.float32))
+    half = dict(rtol=2e-3, atol=1e-4)  # IEEE half precision
+    np.testing.assert_allclose(np.concatenate([halves(rows[:, 3]), halves(rows[:, 4])], 1), p["rotation"], **half)
+    np.testing.assert_allclose(np.concatenate([halves(rows[:, 5]), halves(rows[:, 6])[:, :1]], 1),
+                               np.exp(p["scaling"]), **half)
+    motion = np.concatenate([halves(rows[:, 8 + k]) for k in range(5)], 1)[:, :9]
+    np.testing.assert_allclose(motion, p["motion"], **half)
+    np.testing.assert_allclose(np.concatenate([halves(rows[:, 13]), halves(rows[:, 14])], 1), p["omega"], **half)
+    np.testing.assert_allclose(halves(rows[:, 15]), np.concatenate([p["trbf_center"], np.exp(p["trbf_scale"])], 1), **half)
+    rgba = rows[:, 7:8].view(np.uint8).reshape(n, 4).astype(np.float64)
+    np.testing.assert_allclose(rgba[:, :3], np.clip(p["features_dc"] * 255, 0, 255), atol=0.51)
+    np.testing.assert_allclose(rgba[:, 3], 255 / (1 + np.exp(-p["opacity"][:, 0])), atol=0.51)
+    names = [c["img_name"] for c in splat["cameras"]]
+    assert sorted(names) == sorted({str(c.name) for c in dataset.cameras})
+    first = next(c for c in dataset.cameras if str(c.name) == splat["cameras"][0]["img_name"])
+    np.testing.assert_allclose(splat["cameras"][0]["position"], first.center, atol=1e-9)

@@ -1,5 +1,6 @@
 """Exports to the tools people use: one static 3D Gaussian Splatting PLY per frame (`stgc export --format
-ply-frames`), in the INRIA layout that SuperSplat, gsplat, nerfstudio and the 3DGS viewers read.
+ply-frames`), in the INRIA layout that SuperSplat, gsplat, nerfstudio and the 3DGS viewers read; and the whole
+model as one `.splatv` file for splaTV, the browser viewer the official STG README points to (`--format splatv`).
 
 A Spacetime Gaussian at time t is a static 3D Gaussian: its polynomial motion gives the position, its angular
 velocity the rotation, and its temporal radial basis scales the opacity (`sigmoid(o) exp(-((t - mu_t) / s_t)^2)`).
@@ -19,6 +20,8 @@ them.
 
 from __future__ import annotations
 
+import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,7 +43,7 @@ INRIA_FIELDS = (
     + [f"f_rest_{i}" for i in range(SH_REST)]
     + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
 )
-EXPORT_FORMATS = ("ply-frames",)
+EXPORT_FORMATS = ("ply-frames", "splatv")
 # Opacity logits of (almost) transparent or opaque Gaussians stay finite.
 _OPACITY_EPS = 1e-6
 
@@ -164,5 +167,93 @@ def static_render_inputs(gaussians: StaticGaussians) -> dict[str, torch.Tensor]:
     }
 
 
+# splaTV's file (its viewer's description of the format, hybrid.js): two little-endian uint32, the magic 0x674B and
+# the length of a UTF-8 JSON list of chunks; then the chunk, an RGBA32UI texture 4096 texels wide holding 4 texels
+# (16 uint32) per Gaussian:
+#   0-2  position x, y, z (float32)            8-12 motion: (m0, m1) (m2, m3) (m4, m5) (m6, m7) (m8, 0), half floats
+#   3-4  quaternion (w, x) (y, z), half floats  13-14 angular velocity (w, x) (y, z), half floats
+#   5-6  scale (sx, sy) (sz, 0), half floats    15   (temporal centre mu_t, temporal scale exp(s_t)), half floats
+#   7    R, G, B, opacity as bytes
+# A pair (a, b) packs a into the low 16 bits (GLSL packHalf2x16). At time t the viewer places a Gaussian at
+# x + m(0:3) dt + m(3:6) dt^2 + m(6:9) dt^3 and rotates it by normalize(q + omega dt), dt = t - mu_t, and scales
+# its opacity by exp(-(dt / scale_t)^2): STG's formulas.
+SPLATV_MAGIC = 0x674B
+SPLATV_TEXWIDTH = 4096
+
+
+def _half_pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    low = np.asarray(a, np.float32).astype(np.float16).view(np.uint16).astype(np.uint32)
+    high = np.asarray(b, np.float32).astype(np.float16).view(np.uint16).astype(np.uint32)
+    return low | (high << np.uint32(16))
+
+
+@torch.no_grad()
+def splatv_colours(model: STGModel, view_origin: np.ndarray) -> np.ndarray:
+    """One RGB per Gaussian for the splatv viewer (which has no view dependence and no colour over time): the lite
+    model's own; the full model's decoded at the Gaussian's most visible time mu_t (where its time feature is zero),
+    along the ray from `view_origin`."""
+    p = model.params
+    if model.decoder is None:
+        return p["features_dc"].detach().numpy().astype(np.float32)
+    features = torch.cat([p["features_dc"], torch.zeros_like(p["features_t"])], dim=1).detach()
+    origin = torch.as_tensor(np.asarray(view_origin, np.float32).reshape(1, 3)).expand_as(p["xyz"])
+    directions = torch.nn.functional.normalize(p["xyz"].detach() - origin, dim=1)
+    return model.decoder(features, torch.cat([origin, directions], dim=1)).numpy().astype(np.float32)
+
+
+def splatv_cameras(dataset: Dataset) -> list[dict[str, Any]]:
+    """The dataset's cameras (one per view, first frame) as splaTV's viewer reads them (the 3DGS cameras.json
+    entries: centre `position`, camera-to-world `rotation` rows, focal lengths in pixels)."""
+    seen: dict[str, dict[str, Any]] = {}
+    for cam in [*dataset.test, *dataset.train]:
+        if str(cam.name) in seen:
+            continue
+        c2w = np.linalg.inv(np.asarray(cam.w2c, np.float64))
+        seen[str(cam.name)] = {"id": len(seen), "img_name": str(cam.name), "width": int(cam.width),
+                               "height": int(cam.height), "position": [float(v) for v in cam.center],
+                               "rotation": [[float(v) for v in row] for row in c2w[:3, :3]],
+                               "fx": float(cam.K[0, 0]), "fy": float(cam.K[1, 1])}
+    return list(seen.values())
+
+
+def write_splatv(path: str | Path, model: STGModel, dataset: Dataset) -> Path:
+    """The whole model as one splaTV file (layout above); atomically."""
+    p = {k: v.detach().numpy().astype(np.float32) for k, v in model.params.items()}
+    count = model.num_gaussians
+    height = max(1, math.ceil(4 * count / SPLATV_TEXWIDTH))
+    texels = np.zeros((SPLATV_TEXWIDTH * height * 4,), np.uint32)
+    rows = texels[: 16 * count].reshape(count, 16)
+    rows[:, 0:3] = p["xyz"].view(np.uint32)
+    # The stored quaternion as it is: the viewer normalises q + omega dt, as STG does (normalising q first would not).
+    quats = p["rotation"]
+    rows[:, 3], rows[:, 4] = _half_pairs(quats[:, 0], quats[:, 1]), _half_pairs(quats[:, 2], quats[:, 3])
+    scales = np.exp(p["scaling"])
+    rows[:, 5], rows[:, 6] = _half_pairs(scales[:, 0], scales[:, 1]), _half_pairs(scales[:, 2], np.zeros(count))
+    rgb = np.clip(np.rint(splatv_colours(model, training_view_origin(dataset)) * 255.0), 0, 255).astype(np.uint32)
+    alpha = np.clip(np.rint(1.0 / (1.0 + np.exp(-p["opacity"][:, 0])) * 255.0), 0, 255).astype(np.uint32)
+    rows[:, 7] = rgb[:, 0] | (rgb[:, 1] << 8) | (rgb[:, 2] << 16) | (alpha << 24)
+    motion = np.concatenate([p["motion"], np.zeros((count, 1), np.float32)], axis=1)
+    for k in range(5):
+        rows[:, 8 + k] = _half_pairs(motion[:, 2 * k], motion[:, 2 * k + 1])
+    rows[:, 13], rows[:, 14] = _half_pairs(p["omega"][:, 0], p["omega"][:, 1]), _half_pairs(p["omega"][:, 2], p["omega"][:, 3])
+    rows[:, 15] = _half_pairs(p["trbf_center"][:, 0], np.exp(p["trbf_scale"][:, 0]))
+    payload = texels.astype("<u4").tobytes()
+    header = json.dumps([{"type": "splat", "size": len(payload), "texwidth": SPLATV_TEXWIDTH, "texheight": height,
+                          "cameras": splatv_cameras(dataset)}]).encode("utf-8")
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(np.array([SPLATV_MAGIC, len(header)], "<u4").tobytes() + header + payload)
+    return path
+
+
+def export_splatv(source: ModelSource, out_path: str | Path, dataset: Dataset | None = None) -> Path:
+    """`stgc export --format splatv`: the model (a run or a .stgc file) as one splaTV file."""
+    model, dataset = load_model_and_dataset(source, dataset)
+    if Path(out_path).suffix.lower() != ".splatv":
+        raise DataError(Path(out_path), "a splaTV file is written as FILE.splatv")
+    return write_splatv(out_path, model, dataset)
+
+
 __all__ = ["EXPORT_FORMATS", "INRIA_FIELDS", "SH_C0", "StaticGaussians", "export_ply_frames", "gaussians_at",
-           "read_inria_ply", "static_render_inputs", "training_view_origin", "write_inria_ply"]
+           "export_splatv", "read_inria_ply", "splatv_cameras", "splatv_colours", "static_render_inputs",
+           "training_view_origin", "write_inria_ply", "write_splatv"]
