@@ -139,6 +139,15 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise StgcError("no DATA given and the run has no saved data path")
     if args.resume and args.overwrite:
         raise StgcError("--resume continues a run and --overwrite replaces it: give one of them")
+    if args.segment_frames is not None or (args.resume and Run(out).is_video()):
+        from stgc.eval.evaluate import format_eval_table, write_video_eval
+        from stgc.train.video import train_video
+
+        train_video(data_path, configs, out, args.segment_frames, resume=args.resume, overwrite=args.overwrite)
+        print(f"whole video written to {out} ({len(Run(out).segments())} segments)")
+        if configs["train"].eval_at_end:
+            print(format_eval_table(write_video_eval(out)))
+        return 0
     dataset = configs["data"].open(data_path)
     dataset.verify_images(dataset.train, progress=True)  # a corrupt image fails now, not at iteration 14
     # The trainer claims the run folder (stgc.run.prepare_new_run) before it triangulates anything.
@@ -294,6 +303,9 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--case", type=int, choices=sorted(CASE_WINDOWS), help="paper pruning window case (compaction.case)")
     p.add_argument("--criterion", choices=list(CRITERIA), help="which member of a pair is removed")
     p.add_argument("--resume", action="store_true", help="continue RUN from its last checkpoint")
+    p.add_argument("--segment-frames", type=int, metavar="N",
+                   help="train the video as consecutive N-frame segments (STG: 50), one run each in RUN/segment_<k>/; "
+                        "the last segment may be shorter (default: the whole data is one segment)")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in RUN (its files, bitstreams and evaluations are removed)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override any option, e.g. train.iterations=3000")
     try:

@@ -28,8 +28,11 @@ RUN_FILES = (
     "eval.json",
     "eval_per_view.csv",
     "compaction.png",
+    "video.json",
 )
 RUN_FOLDERS = ("point_cloud", "tensorboard")
+# A whole-video run (`stgc train --segment-frames N`) holds one complete run per segment in RUN/segment_<k>/.
+SEGMENT_PREFIX = "segment_"
 # What later verbs derive from the run's model and keep beside it: bitstreams and their evaluations, evaluations on
 # other data. They describe the old model, so replacing the run removes them too.
 DERIVED_PATTERNS = ("*.stgc", "eval_*.json", "eval_*_per_view.csv")
@@ -81,6 +84,8 @@ class Run:
         RUN/eval.json, eval_per_view.csv     the evaluation on the run's own test views
         RUN/eval_on_<data>.json              an evaluation on other data (never replaces the run's own)
         RUN/<name>.stgc, eval_<name>.json    bitstreams of the model and their evaluations
+    A whole video trained as segments (`stgc train --segment-frames N`) is a run whose `video.json` lists its
+    segments, each a complete run of its own in RUN/segment_<k>/; its eval.json is the whole video's.
     """
 
     CONFIG = "config.json"
@@ -89,6 +94,7 @@ class Run:
     CHECKPOINT = "checkpoint.pt"
     SUMMARY = "train_summary.json"
     EXPERIMENT = "experiment.json"
+    VIDEO = "video.json"
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -172,6 +178,35 @@ class Run:
     def read_eval(self, other_data: str | None = None, *, strict: bool = True) -> dict[str, Any] | None:
         return read_json_object(self.eval_paths(other_data)[0], strict=strict)
 
+    # ------------------------------------------------------------------ segments of a whole video
+    @property
+    def video_path(self) -> Path:
+        return self.path / self.VIDEO
+
+    def is_video(self) -> bool:
+        return self.video_path.is_file()
+
+    def read_video(self) -> dict[str, Any]:
+        """RUN/video.json: {"segment_frames": N, "data_path": ..., "segments": [{"name", "start", "duration"}]}."""
+        video = read_json_object(self.video_path)
+        segments = None if video is None else video.get("segments")
+        if video is None or not isinstance(segments, list) or not all(isinstance(s, dict) and {"name", "start", "duration"} <= set(s)
+                                                     for s in segments):
+            raise StgcError(f"{self.video_path}: not a whole-video description (segments with name, start, duration)")
+        return video
+
+    def write_video(self, video: dict[str, Any]) -> None:
+        write_json(self.video_path, video)
+
+    def segment(self, index: int) -> Run:
+        return Run(self.path / f"{SEGMENT_PREFIX}{index:03d}")
+
+    def segments(self) -> list[Run]:
+        """The segment runs of a whole-video run, in time order ([] for a single-segment run)."""
+        if not self.is_video():
+            return []
+        return [Run(self.path / str(s["name"])) for s in self.read_video()["segments"]]
+
     def saved_iterations(self) -> dict[int, Path]:
         return saved_iterations(self.path)
 
@@ -201,6 +236,8 @@ def prepare_new_run(path: str | Path, *, overwrite: bool = False, keep: Path | N
                 raise StgcError(f"{path}: its parent {parent} is a file, not a directory")
             break
     existing = run_contents(path) if path.is_dir() else []
+    if path.is_dir():
+        existing += sorted(p for p in path.glob(f"{SEGMENT_PREFIX}*") if p.is_dir() and run_contents(p))
     if existing and not overwrite:
         names = ", ".join(p.name for p in existing[:4]) + (", ..." if len(existing) > 4 else "")
         raise RunExistsError(f"{path}: already holds a run ({names}); use --resume to continue it or --overwrite to "

@@ -248,19 +248,23 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
     for col in ("camera (views)", "PSNR", "YUV-PSNR", "SSIM", "LPIPS", "#Gaussians", "size MiB", "Mbps", "FPS"):
         table.add_column(col, justify="right")
 
-    def row(name: str, agg: Mapping[str, Any], whole: bool) -> None:
+    def row(name: str, agg: Mapping[str, Any], sized: Mapping[str, Any] | None) -> None:
         table.add_row(
             f"{name} ({agg.get('views', agg.get('num_views', ''))})",
             _fmt(agg.get("psnr"), 2), _fmt(agg.get("psnr_yuv"), 2) or "-", _fmt(agg.get("ssim"), 4),
             _fmt(agg.get("lpips"), 4) or "-",
-            f"{record['num_gaussians']:,}" if whole and record.get("num_gaussians") is not None else "",
-            _fmt(record.get("size_mb"), 2) if whole else "", _fmt(record.get("mbps"), 2) if whole else "",
-            _fmt(record.get("fps"), 1) if whole else "",
+            f"{sized['num_gaussians']:,}" if sized and sized.get("num_gaussians") is not None else "",
+            _fmt(sized.get("size_mb"), 2) if sized else "", _fmt(sized.get("mbps"), 2) if sized else "",
+            _fmt(sized.get("fps"), 1) if sized else "",
         )
 
-    for name, agg in (record.get("per_camera") or {}).items():
-        row(name, agg, False)
-    row("all", {**record, "views": record.get("num_views")}, True)
+    # A whole video: a row per segment (each its own model); a single segment: a row per test camera.
+    for name, agg in (record.get("per_segment") or {}).items():
+        row(name, agg, agg)
+    if not record.get("per_segment"):
+        for name, agg in (record.get("per_camera") or {}).items():
+            row(name, agg, None)
+    row("all", {**record, "views": record.get("num_views")}, record)
     buf = io.StringIO()
     console = Console(file=buf, width=100, color_system=None, force_terminal=False)
     console.print(table)
@@ -319,6 +323,12 @@ def evaluate_run(
     run_dir = target.parent if target.suffix == ".stgc" else target
     if not target.exists():
         raise DataError(target, "no such run directory or bitstream")
+    if target.suffix != ".stgc" and Run(target).is_video():
+        if data_path is not None or load_model is not None or open_dataset is not None:
+            raise DataError(target, "a whole-video run is evaluated on its own data, segment by segment")
+        for segment in Run(target).segments():
+            evaluate_run(segment.path, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
+        return write_video_eval(target)
     dataset = open_dataset(run_dir) if open_dataset else open_run_dataset(
         run_dir, data_path, target if target.suffix == ".stgc" else None)
     if load_model is None:
@@ -346,6 +356,64 @@ def evaluate_run(
             other = Path(data_path).resolve().name
     return write_eval(run_dir, result, info, target=target, other_data=other,
                       extra={"data": str(getattr(dataset, "root", data_path))})
+
+
+# Per-view means that a whole video averages over all its views (each segment's weighted by its number of views).
+_VIEW_MEANS = ("psnr", "ssim", "lpips", *YUV_KEYS)
+
+
+def _weighted(records: Sequence[Mapping[str, Any]], key: str, weight: str = "num_views") -> float | None:
+    pairs = [(float(r[key]), float(r.get(weight) or r.get("views") or 0)) for r in records if r.get(key) is not None]
+    total = sum(w for _, w in pairs)
+    return sum(v * w for v, w in pairs) / total if total > 0 else None
+
+
+def video_record(run_dir: str | Path) -> dict[str, Any]:
+    """The whole video's evaluation from its segments' own records (RUN/segment_<k>/eval.json): PSNR, SSIM and
+    YUV-PSNR over all test views x all frames, total Gaussians and bytes, Mbps over the whole duration, and a row
+    per segment and per camera."""
+    run = Run(run_dir)
+    records = []
+    for segment in run.segments():
+        record = segment.read_eval()
+        if record is None:
+            raise DataError(segment.path, "segment has no evaluation yet (stgc eval the video run)")
+        records.append((segment.path.name, record))
+    if not records:
+        raise DataError(run.path, "whole-video run without segments")
+    rows = [r for _, r in records]
+    duration = sum(float(r.get("duration_s") or 0.0) for r in rows)
+    size_bytes = sum(int(r.get("size_bytes") or 0) for r in rows)
+    video: dict[str, Any] = {key: _finite(_weighted(rows, key)) for key in _VIEW_MEANS}
+    video.update({
+        "num_gaussians": sum(int(r.get("num_gaussians") or 0) for r in rows),
+        "size_bytes": size_bytes,
+        "size_mb": size_bytes / 2**20,
+        "duration_s": duration,
+        "mbps": size_bytes * 8 / duration / 1e6 if duration > 0 else None,
+        "fps": _weighted(rows, "fps"),
+        "num_views": sum(int(r.get("num_views") or 0) for r in rows),
+        "segments": len(rows),
+        "train_seconds": sum(float(r.get("train_seconds") or 0.0) for r in rows),
+        "per_segment": {name: {"frames": [min(r.get("frames") or [0]), max(r.get("frames") or [0])],
+                               "views": r.get("num_views"), "psnr": r.get("psnr"), "ssim": r.get("ssim"),
+                               "psnr_yuv": r.get("psnr_yuv"), "num_gaussians": r.get("num_gaussians"),
+                               "size_mb": r.get("size_mb"), "mbps": r.get("mbps")} for name, r in records},
+    })
+    cameras = sorted({c for r in rows for c in (r.get("per_camera") or {})})
+    video["per_camera"] = {c: {key: _finite(_weighted([r["per_camera"][c] for r in rows if c in (r.get("per_camera") or {})],
+                                                      key, "views")) for key in _VIEW_MEANS}
+                           | {"views": sum(int(r["per_camera"][c].get("views") or 0) for r in rows
+                                           if c in (r.get("per_camera") or {}))} for c in cameras}
+    video["units"] = rows[0].get("units")
+    return video
+
+
+def write_video_eval(run_dir: str | Path) -> dict[str, Any]:
+    """Write the whole video's record (`video_record`) as RUN/eval.json and return it."""
+    record = video_record(run_dir)
+    write_json(Run(run_dir).eval_paths()[0], record)
+    return record
 
 
 def _default_model_loader(target: Path) -> Any:

@@ -1,0 +1,87 @@
+"""Whole videos as consecutive segments: STG trains a 300-frame video as six 50-frame models, and so does
+`stgc train DATA --out RUN --segment-frames N`.
+
+The frames the data options select (all of them, or `data.start`/`data.duration`) are cut into consecutive
+segments of N frames; the last one is shorter when N does not divide the count (it is trained as it is, with its
+own initial points: STG would do the same, and merging it into its neighbour would give that segment a different
+length from the others). RUN holds `config.json` (the options shared by every segment), `video.json` (the segments)
+and one complete, resumable run per segment in RUN/segment_<k>/, whose own config.json differs only in
+`data.start`/`data.duration`. Segments are independent: they train one after another here, and `--resume` trains
+what is unfinished (a finished segment is never redone).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+from typing import Any
+
+from stgc.data import DataConfig
+from stgc.data.dataset import segments
+from stgc.errors import StgcError
+from stgc.run import Run
+from stgc.train.config import TrainConfig
+from stgc.train.loop import train
+
+log = logging.getLogger(__name__)
+
+
+def plan_segments(frames: list[int], segment_frames: int) -> list[dict[str, Any]]:
+    """[{"name": "segment_<k>", "start", "duration"}] covering `frames` (consecutive) in order."""
+    if segment_frames < 1:
+        raise StgcError(f"--segment-frames must be at least 1, not {segment_frames}")
+    if not frames:
+        raise StgcError("the data selects no frames to cut into segments")
+    return [{"name": f"segment_{k:03d}", "start": start, "duration": duration}
+            for k, (start, duration) in enumerate(segments(len(frames), segment_frames, first=frames[0]))]
+
+
+def _shared_config(configs: dict[str, Any], data_path: str | Path) -> dict[str, Any]:
+    def section(cfg: Any) -> Any:
+        return None if cfg is None else dataclasses.asdict(cfg)
+
+    data = section(configs["data"])
+    data["path"] = str(Path(data_path).resolve())
+    return {"data": data, "model": section(configs["model"]), "train": section(configs["train"]),
+            "compaction": section(configs["compaction"])}
+
+
+def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | Path, segment_frames: int | None = None,
+                *, resume: bool = False, overwrite: bool = False) -> list[dict[str, Any]]:
+    """Train every segment of the video into RUN/segment_<k>/ (see the module docstring); returns their training
+    summaries in time order. resume: continue the video in `out_dir` (its saved segments; `segment_frames` must be
+    None or the saved value)."""
+    run = Run(out_dir)
+    if resume and run.is_video():
+        video = run.read_video()
+        if segment_frames is not None and int(segment_frames) != int(video["segment_frames"]):
+            raise StgcError(f"{run.path}: the video was cut into {video['segment_frames']}-frame segments; a resumed "
+                            "run keeps them")
+        plan = video["segments"]
+    else:
+        if segment_frames is None:
+            raise StgcError(f"{run.path}: not a whole-video run; give --segment-frames to start one")
+        data_cfg: DataConfig = configs["data"]
+        whole = data_cfg.open(data_path)  # the frame window the data options select
+        plan = plan_segments(list(whole.frames), int(segment_frames))
+        run = Run.create(out_dir, overwrite=overwrite or resume)
+        run.write_config(_shared_config(configs, data_path))
+        run.write_video({"segment_frames": int(segment_frames), "data_path": str(Path(data_path).resolve()),
+                         "segments": plan})
+    summaries = []
+    for index, segment in enumerate(plan):
+        segment_run = Run(run.path / str(segment["name"]))
+        if segment_run.training_finished():
+            log.info("%s: finished already, kept", segment_run.path.name)
+            summaries.append(segment_run.read_summary() or {})
+            continue
+        log.info("segment %d of %d: frames %d-%d", index + 1, len(plan), segment["start"],
+                 segment["start"] + segment["duration"] - 1)
+        data_cfg = dataclasses.replace(configs["data"], start=int(segment["start"]), duration=int(segment["duration"]))
+        dataset = data_cfg.open(data_path)
+        train_cfg: TrainConfig = configs["train"]
+        # resume=True: a segment with a checkpoint continues from it; one without starts afresh in its folder.
+        summaries.append(train(dataset, data_cfg, configs["model"], train_cfg, configs["compaction"],
+                               segment_run.path, resume=True))
+    return summaries

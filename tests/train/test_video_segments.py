@@ -1,0 +1,77 @@
+"""Whole videos as segments (`stgc train --segment-frames N`): layout, resume, and the whole video's evaluation."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from scenes import write_panoptic_scene
+
+from stgc.cli import main
+from stgc.run import Run
+from stgc.train.video import plan_segments
+
+QUICK = ["--set", "train.iterations=4", "--set", "train.schedule_scale=1", "--set", "data.init_source=random",
+         "--set", "data.max_points_per_frame=200", "--set", "train.progress=false", "--set", "train.tensorboard=false",
+         "--set", "train.save_iterations=[4]", "--set", "train.checkpoint_every=2"]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return write_panoptic_scene(tmp_path_factory.mktemp("video"), views=5, frames=5, width=32, height=24)
+
+
+def test_segments_are_consecutive_and_a_short_tail_is_its_own_segment():
+    assert [(s["start"], s["duration"]) for s in plan_segments([0, 1, 2, 3, 4], 2)] == [(0, 2), (2, 2), (4, 1)]
+    assert [s["name"] for s in plan_segments(list(range(10, 16)), 3)] == ["segment_000", "segment_001"]
+    assert [(s["start"], s["duration"]) for s in plan_segments(list(range(10, 16)), 3)] == [(10, 3), (13, 3)]
+
+
+def test_a_video_trains_as_segment_runs_and_evaluates_as_one(scene, tmp_path, capsys):
+    out = tmp_path / "video"
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", *QUICK]) == 0
+    run = Run(out)
+    assert run.is_video() and [s.path.name for s in run.segments()] == ["segment_000", "segment_001", "segment_002"]
+    windows = []
+    for segment in run.segments():
+        config = segment.read_config()
+        windows.append((config["data"]["start"], config["data"]["duration"]))
+        assert segment.training_finished() and segment.latest_model_dir() is not None
+    assert windows == [(0, 2), (2, 2), (4, 1)]
+    record = json.loads((out / "eval.json").read_text())
+    segments = [s.read_eval() for s in run.segments()]
+    assert record["segments"] == 3 and record["num_views"] == sum(s["num_views"] for s in segments) == 5
+    assert record["num_gaussians"] == sum(s["num_gaussians"] for s in segments)
+    # Over all test views x frames: each segment's mean weighted by its views.
+    expected = sum(s["psnr"] * s["num_views"] for s in segments) / 5
+    assert record["psnr"] == pytest.approx(expected)
+    assert record["mbps"] == pytest.approx(record["size_bytes"] * 8 / record["duration_s"] / 1e6)
+    assert "segment_002" in capsys.readouterr().out
+    # `stgc eval` on the video re-evaluates every segment and writes the same whole-video record.
+    assert main(["eval", str(out), "--no-fps"]) == 0
+    again = json.loads((out / "eval.json").read_text())
+    assert again["psnr"] == pytest.approx(record["psnr"]) and again["num_gaussians"] == record["num_gaussians"]
+
+
+def test_resume_trains_only_what_is_unfinished(scene, tmp_path):
+    out = tmp_path / "video"
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "3", *QUICK]) == 0
+    run = Run(out)
+    first, second = run.segments()
+    kept = (first.summary_path.stat().st_mtime_ns, (first.latest_model_dir() / "point_cloud.ply").read_bytes())
+    # The second segment "was killed": its summary is gone, its checkpoint stays.
+    second.summary_path.unlink()
+    assert main(["train", "--out", str(out), "--resume"]) == 0
+    assert second.training_finished()
+    assert (first.summary_path.stat().st_mtime_ns, (first.latest_model_dir() / "point_cloud.ply").read_bytes()) == kept
+    # A resumed video keeps its segments.
+    assert main(["train", "--out", str(out), "--resume", "--segment-frames", "2"]) == 2
+
+
+def test_a_new_video_refuses_an_existing_run_unless_overwritten(scene, tmp_path, capsys):
+    out = tmp_path / "video"
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "5", *QUICK]) == 0
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "5", *QUICK]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", "--overwrite", *QUICK]) == 0
+    assert len(Run(out).segments()) == 3
