@@ -27,12 +27,13 @@ import torch
 from stgc.compaction import CompactionConfig
 from stgc.config import validate_config
 from stgc.data import DataConfig
+from stgc.data.config import initial_points_from_config
 from stgc.data.cameras import Camera
 from stgc.data.dataset import Dataset
 from stgc.errors import DataError
 from stgc.fileio import write_json
 from stgc.model import ModelConfig, STGModel
-from stgc.run import Run, prepare_new_run
+from stgc.run import Run
 from stgc.train.checkpoint import (
     load_checkpoint,
     restore_rng_states,
@@ -97,9 +98,6 @@ def xyz_learning_rate(cfg: TrainConfig, extent: float, iteration: int, total: in
 
 def build_initial_model(dataset: Dataset, data_cfg: DataConfig | None, model_cfg: ModelConfig | None) -> STGModel:
     """The STG model initialised from the dataset's point cloud as the data config asks."""
-    from stgc.data.config import initial_points_from_config
-    from stgc.model import ModelConfig, STGModel
-
     cloud = initial_points_from_config(dataset, data_cfg)
     return STGModel.from_config(cloud, model_cfg or ModelConfig(), scene_extent=dataset.scene_extent())
 
@@ -161,11 +159,11 @@ class Trainer:
         self.dataset, self.data_cfg, self.model_cfg = dataset, data_cfg, model_cfg
         self.cfg, self.compaction_cfg = train_cfg, compaction_cfg
         self.out_run = Run(out_dir)
-        self.out = self.out_run.path
         resuming = resume and self.out_run.checkpoint_path.exists()
         if not resuming:
             # A resume with nothing to resume restarts the same run, so its own partial files may go.
-            prepare_new_run(self.out, overwrite=overwrite or resume)
+            self.out_run = Run.create(out_dir, overwrite=overwrite or resume)
+        self.out = self.out_run.path
         self.callback = callback
         self.schedule: Schedule = resolve_schedule(train_cfg)
         if train_cfg.threads > 0:
@@ -242,15 +240,14 @@ class Trainer:
         if self.cfg.mask_loss <= 0:
             return None
         ds = self.dataset
-        name = getattr(ds, "name", "data")
         if not ds.has_masks:
             log.warning("%s: train.mask_loss=%g, but the data has no foreground masks: training without the mask term",
-                        name, self.cfg.mask_loss)
+                        ds.name, self.cfg.mask_loss)
             return None
         unmasked = sorted({str(c.name) for c in ds.train if ds.mask_path(c) is None})
         if unmasked:
             log.warning("%s: training views of cameras %s have no foreground mask and train without the mask term",
-                        name, ", ".join(unmasked))
+                        ds.name, ", ".join(unmasked))
         return ForegroundMasks(ds)
 
     def _make_colour_correction(self) -> ColourCorrection | None:
