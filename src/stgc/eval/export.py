@@ -69,13 +69,7 @@ def gaussians_at(model: STGModel, t: float, view_origin: np.ndarray) -> StaticGa
     opacity = model.temporal_opacity(t)
     keep = opacity >= MIN_VISIBLE_OPACITY
     means = model.means_at(t)[keep]
-    features = model.features_at(t)[keep]
-    if model.decoder is None:
-        rgb = features
-    else:
-        origin = torch.as_tensor(np.asarray(view_origin, np.float32).reshape(1, 3)).expand_as(means)
-        directions = torch.nn.functional.normalize(means - origin, dim=1)
-        rgb = model.decoder(features, torch.cat([origin, directions], dim=1))
+    rgb = _colour_per_gaussian(model, model.features_at(t)[keep], means, view_origin)
     return StaticGaussians(
         means=means.numpy().astype(np.float32),
         quats=model.rotations_at(t)[keep].numpy().astype(np.float32),
@@ -83,6 +77,17 @@ def gaussians_at(model: STGModel, t: float, view_origin: np.ndarray) -> StaticGa
         opacity=opacity[keep].numpy().astype(np.float32),
         rgb=rgb.numpy().astype(np.float32),
     )
+
+
+def _colour_per_gaussian(model: STGModel, features: torch.Tensor, means: torch.Tensor,
+                         view_origin: np.ndarray) -> torch.Tensor:
+    """[M, 3] RGB of Gaussians with these splatted features: a lite model's features are its colour; a full model's
+    decoder is applied to each Gaussian's own features along the ray from `view_origin` to its mean."""
+    if model.decoder is None:
+        return features
+    origin = torch.as_tensor(np.asarray(view_origin, np.float32).reshape(1, 3)).expand_as(means)
+    directions = torch.nn.functional.normalize(means - origin, dim=1)
+    return model.decoder(features, torch.cat([origin, directions], dim=1))
 
 
 def write_inria_ply(path: str | Path, gaussians: StaticGaussians) -> Path:
@@ -192,13 +197,10 @@ def splatv_colours(model: STGModel, view_origin: np.ndarray) -> np.ndarray:
     """One RGB per Gaussian for the splatv viewer (which has no view dependence and no colour over time): the lite
     model's own; the full model's decoded at the Gaussian's most visible time mu_t (where its time feature is zero),
     along the ray from `view_origin`."""
-    p = model.params
-    if model.decoder is None:
-        return p["features_dc"].detach().numpy().astype(np.float32)
-    features = torch.cat([p["features_dc"], torch.zeros_like(p["features_t"])], dim=1).detach()
-    origin = torch.as_tensor(np.asarray(view_origin, np.float32).reshape(1, 3)).expand_as(p["xyz"])
-    directions = torch.nn.functional.normalize(p["xyz"].detach() - origin, dim=1)
-    return model.decoder(features, torch.cat([origin, directions], dim=1)).numpy().astype(np.float32)
+    # At t = mu_t every Gaussian sits at its base position and its time feature (t - mu_t) features_t is zero.
+    p = {k: v.detach() for k, v in model.params.items()}
+    features = p["features_dc"] if "features_t" not in p else torch.cat([p["features_dc"], 0 * p["features_t"]], 1)
+    return _colour_per_gaussian(model, features, p["xyz"], view_origin).numpy().astype(np.float32)
 
 
 def splatv_cameras(dataset: Dataset) -> list[dict[str, Any]]:
