@@ -30,7 +30,6 @@ from stgc.data import DataConfig
 from stgc.data.config import initial_points_from_config
 from stgc.data.cameras import Camera
 from stgc.data.dataset import Dataset
-from stgc.errors import DataError
 from stgc.fileio import write_json
 from stgc.model import ModelConfig, STGModel
 from stgc.run import Run
@@ -163,13 +162,12 @@ class Trainer:
         if not resuming:
             # A resume with nothing to resume restarts the same run, so its own partial files may go.
             self.out_run = Run.create(out_dir, overwrite=overwrite or resume)
-        self.out = self.out_run.path
         self.callback = callback
         self.schedule: Schedule = resolve_schedule(train_cfg)
         if train_cfg.threads > 0:
             torch.set_num_threads(train_cfg.threads)
-        self.metrics_log = JsonLines(self.out / Run.METRICS)
-        self.compaction_log = JsonLines(self.out / Run.COMPACTION_LOG)
+        self.metrics_log = JsonLines(self.out_run.path / Run.METRICS)
+        self.compaction_log = JsonLines(self.out_run.path / Run.COMPACTION_LOG)
         self.images = ImageCache(dataset)
         self.masks = self._make_foreground_masks()
         self.frames = list(dataset.frames)
@@ -180,7 +178,7 @@ class Trainer:
 
         checkpoint = None
         if resuming:
-            checkpoint = load_checkpoint(self.out)
+            checkpoint = load_checkpoint(self.out_run.path)
             self.model = self._model_from_checkpoint(checkpoint)
         else:
             self.model = model if model is not None else build_initial_model(dataset, data_cfg, model_cfg)
@@ -390,20 +388,18 @@ class Trainer:
         return evaluate(render, self.dataset.test, self.dataset.load_image)
 
     def write_evaluation(self, result: Any) -> None:
-        from stgc.eval.accounting import latest_iteration_dir, model_size_of
+        from stgc.eval.accounting import model_size_of
         from stgc.eval.evaluate import dataset_duration_s, write_eval
 
-        try:  # the files just saved, so eval.json lists their real bytes as `stgc eval RUN` would
-            saved = latest_iteration_dir(self.out)
-            files = [saved / "point_cloud.ply", saved / "point_cloud.pt"]
-        except DataError:
-            files = []
+        # The files just saved, so eval.json lists their real bytes as `stgc eval RUN` would.
+        saved = self.out_run.latest_model_dir()
+        files = [] if saved is None else [saved / "point_cloud.ply", saved / "point_cloud.pt"]
         info: Any
         try:
             info = model_size_of(self.model, dataset_duration_s(self.dataset), files)
         except (ValueError, AttributeError, ZeroDivisionError):
             info = {"num_gaussians": self.model.num_gaussians}
-        write_eval(self.out, result, info)
+        write_eval(self.out_run.path, result, info)
 
     def run(self) -> dict[str, Any]:
         cfg, sched = self.cfg, self.schedule
@@ -412,7 +408,7 @@ class Trainer:
         if cfg.stop_after is not None:
             end = min(end, start + int(cfg.stop_after)) if start < end else end
         progress = Progress(sched.iterations, start, cfg.progress)
-        tb = TensorBoard(self.out / "tensorboard", cfg.tensorboard)
+        tb = TensorBoard(self.out_run.path / "tensorboard", cfg.tensorboard)
         t0 = time.perf_counter()
         elapsed = self.elapsed_before
         last_log_time, last_log_it = t0, start
@@ -463,7 +459,7 @@ class Trainer:
                 if iteration in sched.save_iterations:
                     self.save_model(iteration)
                 if iteration == end or (cfg.checkpoint_every and iteration % cfg.checkpoint_every == 0):
-                    save_checkpoint(self.out, self.checkpoint_payload(iteration, elapsed))
+                    save_checkpoint(self.out_run.path, self.checkpoint_payload(iteration, elapsed))
         finally:
             progress.close()
             tb.close()
