@@ -3,11 +3,11 @@
 Images are random float32 [H, W, 3] pairs at the sizes given (default: 256x256, quarter- and half-resolution
 N3DV 676x507 and 1352x1014). Timed: SSIM forward, and forward + backward with respect to the image (what the
 trainer does every iteration). Implementations:
-- stgc: `stgc.eval.ssim`, the five local moments stacked and blurred by a separable numba kernel that is its own
+- stgc: `stgc.metrics.ssim`, the five local moments stacked and blurred by a separable numba kernel that is its own
   backward (CPU);
 - 3DGS: the `loss_utils.ssim` structure, five grouped 11x11 convolutions (one per moment);
 - separable: two torch 1-D convolutions (11x1 then 1x11) over the stacked moments, 22 instead of 121 taps per pixel.
-All compute the same numbers (tests/eval/test_metrics.py); |Δssim| is the largest difference to stgc's value. Wall seconds are the median of --repeats after
+All compute the same numbers (tests/metrics/test_metrics.py); |Δssim| is the largest difference to stgc's value. Wall seconds are the median of --repeats after
 one warm-up call; process CPU seconds are also reported, since the machine may be shared.
 
     .venv/bin/python benchmarks/eval_metrics.py [--sizes 256x256 676x507 1352x1014] [--repeats 5] [--json]
@@ -25,7 +25,7 @@ from collections.abc import Callable
 import torch
 import torch.nn.functional as F
 
-from stgc.eval import psnr, ssim
+from stgc.metrics import psnr, ssim
 
 
 def ssim_2d_window(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:

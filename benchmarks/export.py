@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from stgc.eval.export import export_ply_frames, read_inria_ply, static_render_inputs
-from stgc.eval.metrics import psnr
+from stgc.metrics import psnr
 from stgc.eval.video import load_model_and_dataset
 from stgc.render import rasterize
 

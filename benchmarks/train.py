@@ -21,6 +21,7 @@ import torch
 from stgc.cli import PRESET_DATA_OVERRIDES
 from stgc.config import apply_overrides, parse_set_arguments
 from stgc.data import DataConfig
+from stgc.eval import RunEvaluator
 from stgc.model import ModelConfig
 from stgc.train import Trainer, train_preset
 
@@ -60,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = apply_overrides(cfg, overrides)
     out = Path(args.out or f"runs/bench_train_{int(time.time())}")
     t0 = time.perf_counter()
-    trainer = Trainer(dataset, data_cfg, model_cfg, cfg, None, out)
+    trainer = Trainer(dataset, data_cfg, model_cfg, cfg, None, out, evaluator=RunEvaluator())
     setup_s = time.perf_counter() - t0
     n0 = trainer.model.num_gaussians
     summary = trainer.run()

@@ -112,6 +112,7 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
 
 # --------------------------------------------------------------------------------------------- verbs
 def cmd_train(args: argparse.Namespace) -> int:
+    from stgc.eval import RunEvaluator
     from stgc.train import train
 
     out = Path(args.out)
@@ -143,7 +144,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         from stgc.eval.evaluate import format_eval_table, write_video_eval
         from stgc.train.video import train_video
 
-        train_video(data_path, configs, out, args.segment_frames, resume=args.resume, overwrite=args.overwrite)
+        train_video(data_path, configs, out, args.segment_frames, resume=args.resume, overwrite=args.overwrite,
+                    evaluator=RunEvaluator())
         print(f"whole video written to {out} ({len(Run(out).segments())} segments)")
         if configs["train"].eval_at_end:
             print(format_eval_table(write_video_eval(out)))
@@ -153,7 +155,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     # The trainer claims the run folder (stgc.run.prepare_new_run) before it triangulates anything.
     train(
         dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=args.resume,
-        overwrite=args.overwrite,
+        overwrite=args.overwrite, evaluator=RunEvaluator(),
     )
     print(f"run written to {out}")
     record = Run(out).read_eval()

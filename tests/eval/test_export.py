@@ -22,7 +22,7 @@ from stgc.eval.export import (
     static_render_inputs,
     training_view_origin,
 )
-from stgc.eval.metrics import psnr
+from stgc.metrics import psnr
 from stgc.model import STGModel
 from stgc.render import rasterize
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from stgc.compaction import CompactionConfig
-from stgc.eval.evaluate import evaluate
+from stgc.eval.evaluate import RunEvaluator, evaluate
 from stgc.train import TrainConfig, train
 from stgc.train.config import DensifyConfig, EMSConfig
 from stgc.train.loop import Trainer
@@ -49,7 +49,8 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tiny_toys, make_model, t
     cfg = _short_config(ems=EMSConfig(enabled=True, start=2, min_gap=3, select_ssim=0.99, trigger_ssim=0.99))
     # Compaction prunes every 2 iterations from 22 to 34, so the kill at 27 interrupts its window.
     compaction = CompactionConfig(case=0, window_start=0.55, window_end=0.875, interval=2)
-    straight = Trainer(tiny_toys, None, None, cfg, compaction, tmp_path / "a", model=make_model(tiny_toys, 200))
+    straight = Trainer(tiny_toys, None, None, cfg, compaction, tmp_path / "a", model=make_model(tiny_toys, 200),
+                       evaluator=RunEvaluator())
     summary_a = straight.run()
 
     def kill_at_27(iteration, numbers):
@@ -61,7 +62,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tiny_toys, make_model, t
               callback=kill_at_27)
     assert json.loads((tmp_path / "b" / "config.json").read_text())["train"]["iterations"] == 40
     assert not (tmp_path / "b" / "train_summary.json").exists()
-    resumed = Trainer(tiny_toys, None, None, cfg, compaction, tmp_path / "b", resume=True)
+    resumed = Trainer(tiny_toys, None, None, cfg, compaction, tmp_path / "b", resume=True, evaluator=RunEvaluator())
     assert resumed.start_iteration == 20  # the last checkpoint before the kill
     summary_b = resumed.run()
 
@@ -90,6 +91,15 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tiny_toys, make_model, t
                  "point_cloud/iteration_20/point_cloud.ply", "point_cloud/iteration_40/point_cloud.pt"):
         assert (run / name).exists(), name
     assert json.loads((run / "eval.json").read_text())["num_views"] == len(tiny_toys.test)
+    assert summary_b["test_psnr"] == pytest.approx(_test_psnr(resumed.model, tiny_toys), abs=1e-4)
+
+
+def test_without_an_evaluator_training_scores_no_test_view(tiny_toys, make_model, tmp_path):
+    cfg = _short_config(iterations=3, save_iterations=(3,), checkpoint_every=0, eval_every=1)
+    summary = train(tiny_toys, None, None, cfg, None, tmp_path / "run", model=make_model(tiny_toys, 100))
+    assert summary["finished"] and "test_psnr" not in summary
+    assert not (tmp_path / "run" / "eval.json").exists()
+    assert (tmp_path / "run" / "point_cloud" / "iteration_3" / "point_cloud.ply").exists()
 
 
 def test_training_improves_test_psnr(tiny_toys, make_model, tmp_path):
@@ -102,7 +112,7 @@ def test_training_improves_test_psnr(tiny_toys, make_model, tmp_path):
         checkpoint_every=0,
         log_every=50,
     )
-    summary = train(tiny_toys, None, None, cfg, None, tmp_path / "run", model=model)
+    summary = train(tiny_toys, None, None, cfg, None, tmp_path / "run", model=model, evaluator=RunEvaluator())
     after = summary["test_psnr"]
     print(f"test PSNR {before:.2f} -> {after:.2f} dB, {summary['num_gaussians']} Gaussians, "
           f"{summary['it_per_s']:.1f} it/s")

@@ -1,5 +1,5 @@
-"""Evaluation: image metrics, model size / bitrate / speed accounting, the evaluation driver, Bjøntegaard
-deltas and paper-style reports."""
+"""Evaluation: model size / bitrate / speed accounting, the evaluation driver, Bjøntegaard deltas and paper-style
+reports. The image metrics it scores with are `stgc.metrics`, shared with the training loss."""
 
 from stgc.eval.accounting import (
     ModelSize,
@@ -18,6 +18,7 @@ from stgc.eval.accounting import (
 from stgc.eval.bjontegaard import BDError, bd_psnr, bd_rate
 from stgc.eval.evaluate import (
     EvalResult,
+    RunEvaluator,
     ViewScore,
     eval_record,
     evaluate,
@@ -26,21 +27,9 @@ from stgc.eval.evaluate import (
     open_run_dataset,
     write_eval,
 )
-from stgc.eval.metrics import (
-    LPIPS,
-    gaussian_window,
-    lpips_status,
-    mse,
-    psnr,
-    psnr_per_image,
-    ssim,
-    ssim_map,
-    ssim_per_image,
-)
 from stgc.eval.report import BDResult, Report, ReportRow, make_report, report_from_runs
 
 __all__ = [
-    "LPIPS",
     "BDError",
     "BDResult",
     "EvalResult",
@@ -48,6 +37,7 @@ __all__ = [
     "RenderSpeed",
     "Report",
     "ReportRow",
+    "RunEvaluator",
     "ViewScore",
     "bd_psnr",
     "bd_rate",
@@ -57,24 +47,16 @@ __all__ = [
     "evaluate",
     "evaluate_run",
     "format_eval_table",
-    "gaussian_window",
-    "lpips_status",
     "make_report",
     "mbps",
     "measure_render_speed",
     "mib",
     "model_size",
     "model_size_of",
-    "mse",
     "open_run_dataset",
     "paper_model_bytes",
-    "psnr",
-    "psnr_per_image",
     "report_from_runs",
     "size_of_saved_model",
-    "ssim",
-    "ssim_map",
-    "ssim_per_image",
     "training_seconds",
     "write_eval",
 ]

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from stgc.data.cameras import Camera
 from stgc.data.dataset import Dataset
 from stgc.errors import DataError
 from stgc.eval.accounting import (
@@ -25,17 +26,19 @@ from stgc.eval.accounting import (
     RenderSpeed,
     bitstream_size,
     duration_seconds,
+    model_size_of,
     size_of_saved_model,
     speed_from_times,
     training_seconds,
 )
-from stgc.eval.metrics import LPIPS, psnr, ssim, yuv_psnr
 from stgc.fileio import atomic_open, write_json
+from stgc.metrics import LPIPS, psnr, ssim, yuv_psnr
+from stgc.model import STGModel
 from stgc.run import Run
 
 PER_VIEW_COLUMNS = ("camera", "frame", "time", "psnr", "ssim", "lpips", "render_ms", "psnr_yuv", "psnr_y", "psnr_u",
                     "psnr_v")
-# MPEG's YUV-PSNR (`metrics.yuv_psnr`): the 6:1:1 combination, then per plane.
+# MPEG's YUV-PSNR (`stgc.metrics.yuv_psnr`): the 6:1:1 combination, then per plane.
 YUV_KEYS = ("psnr_yuv", "psnr_y", "psnr_u", "psnr_v")
 
 
@@ -275,6 +278,27 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
 
 
 # ------------------------------------------------------------------------------------- whole runs
+
+
+class RunEvaluator:
+    """The trainer's test evaluation (`stgc.train.TestEvaluator`): every test camera x frame, and at the end of
+    training the run's eval.json with the sizes of the files just saved, as `stgc eval RUN` would write it."""
+
+    def score(self, render: Callable[[Camera], torch.Tensor], dataset: Dataset) -> EvalResult:
+        return evaluate(render, dataset.test, dataset.load_image)
+
+    def score_and_record(self, render: Callable[[Camera], torch.Tensor], dataset: Dataset, run: Run,
+                         model: STGModel) -> EvalResult:
+        result = self.score(render, dataset)
+        saved = run.latest_model_dir()
+        files = [] if saved is None else [saved / "point_cloud.ply", saved / "point_cloud.pt"]
+        info: ModelSize | dict[str, Any]
+        try:
+            info = model_size_of(model, dataset_duration_s(dataset), files)
+        except (ValueError, AttributeError, ZeroDivisionError):
+            info = {"num_gaussians": model.num_gaussians}
+        write_eval(run.path, result, info)
+        return result
 
 
 def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstream: Path | None = None) -> Any:

@@ -13,7 +13,7 @@ from stgc.train.config import (
     resolve_schedule,
     train_preset,
 )
-from stgc.train.loop import Trainer, build_initial_model, train
+from stgc.train.loop import TestEvaluator, TestScore, Trainer, build_initial_model, train
 
 __all__ = [
     "CPU_SCHEDULE_SCALE",
@@ -23,6 +23,8 @@ __all__ = [
     "FloaterConfig",
     "LearningRates",
     "Schedule",
+    "TestEvaluator",
+    "TestScore",
     "TrainConfig",
     "Trainer",
     "build_initial_model",

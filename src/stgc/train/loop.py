@@ -19,7 +19,7 @@ import random
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -31,6 +31,7 @@ from stgc.data.config import initial_points_from_config
 from stgc.data.cameras import Camera
 from stgc.data.dataset import Dataset
 from stgc.fileio import write_json
+from stgc.metrics import ssim
 from stgc.model import ModelConfig, STGModel
 from stgc.run import Run
 from stgc.train.checkpoint import (
@@ -45,6 +46,27 @@ from stgc.train.ems import ErrorGuidedSampler
 from stgc.train.monitor import JsonLines, Progress, TensorBoard
 
 IterationCallback = Callable[[int, dict[str, Any]], None]
+ViewRenderer = Callable[[Camera], torch.Tensor]
+
+
+class TestScore(Protocol):
+    """What the trainer reads back from scoring the test views: their mean PSNR and SSIM."""
+
+    @property
+    def psnr(self) -> float: ...
+
+    @property
+    def ssim(self) -> float: ...
+
+
+class TestEvaluator(Protocol):
+    """Scores the dataset's test views during training (`train.eval_every`) and at its end (`train.eval_at_end`,
+    recorded in the run). The evaluation layer provides one (`stgc.eval.RunEvaluator`) and the caller hands it in,
+    so that the trainer stays below the evaluation: without one, training scores no test view."""
+
+    def score(self, render: ViewRenderer, dataset: Dataset) -> TestScore: ...
+
+    def score_and_record(self, render: ViewRenderer, dataset: Dataset, run: Run, model: STGModel) -> TestScore: ...
 
 log = logging.getLogger(__name__)
 
@@ -149,6 +171,7 @@ class Trainer:
         resume: bool = False,
         overwrite: bool = False,
         callback: IterationCallback | None = None,
+        evaluator: TestEvaluator | None = None,
     ):
         validate_config(train_cfg, "train")
         # Densification options left unset follow the initial cloud's kind (DensifyConfig.SPARSE_CLOUD); the
@@ -163,6 +186,9 @@ class Trainer:
             # A resume with nothing to resume restarts the same run, so its own partial files may go.
             self.out_run = Run.create(out_dir, overwrite=overwrite or resume)
         self.callback = callback
+        self.evaluator = evaluator
+        if evaluator is None and (train_cfg.eval_every or train_cfg.eval_at_end):
+            log.info("no test evaluator handed to the trainer: the test views are not scored during or after training")
         self.schedule: Schedule = resolve_schedule(train_cfg)
         if train_cfg.threads > 0:
             torch.set_num_threads(train_cfg.threads)
@@ -296,8 +322,6 @@ class Trainer:
 
     def view_loss(self, render_rgb: torch.Tensor, gt: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, float]:
         """(loss, SSIM value) of one training view."""
-        from stgc.eval import ssim
-
         lam = self.cfg.lambda_dssim
         error = (render_rgb - gt).abs()
         loss = error.mean()
@@ -376,30 +400,11 @@ class Trainer:
             write_json(iteration_dir / COLOUR_CORRECTION_NAME, self.colour.to_json())
         return iteration_dir
 
-    def evaluate(self) -> Any:
-        """All test cameras x frames, clamped renders (stgc.eval's driver); returns its EvalResult."""
-        from stgc.eval.evaluate import evaluate
-
-        def render(cam: Camera) -> torch.Tensor:
-            with torch.no_grad():
-                return self.model.render(cam, t=float(cam.time), background=self.background,
-                                         backend=self.cfg.backend).rgb
-
-        return evaluate(render, self.dataset.test, self.dataset.load_image)
-
-    def write_evaluation(self, result: Any) -> None:
-        from stgc.eval.accounting import model_size_of
-        from stgc.eval.evaluate import dataset_duration_s, write_eval
-
-        # The files just saved, so eval.json lists their real bytes as `stgc eval RUN` would.
-        saved = self.out_run.latest_model_dir()
-        files = [] if saved is None else [saved / "point_cloud.ply", saved / "point_cloud.pt"]
-        info: Any
-        try:
-            info = model_size_of(self.model, dataset_duration_s(self.dataset), files)
-        except (ValueError, AttributeError, ZeroDivisionError):
-            info = {"num_gaussians": self.model.num_gaussians}
-        write_eval(self.out_run.path, result, info)
+    def render_view(self, camera: Camera) -> torch.Tensor:
+        """The model's render of one view at its own time, for scoring."""
+        with torch.no_grad():
+            return self.model.render(camera, t=float(camera.time), background=self.background,
+                                     backend=self.cfg.backend).rgb
 
     def run(self) -> dict[str, Any]:
         cfg, sched = self.cfg, self.schedule
@@ -446,9 +451,10 @@ class Trainer:
                         **control,
                     }
                     last_log_time, last_log_it = now, iteration
-                    if cfg.eval_every and iteration % cfg.eval_every == 0 and iteration != sched.iterations:
+                    if (self.evaluator is not None and cfg.eval_every and iteration % cfg.eval_every == 0
+                            and iteration != sched.iterations):
                         e0 = time.perf_counter()
-                        ev = self.evaluate()
+                        ev = self.evaluator.score(self.render_view, self.dataset)
                         row["test_psnr"], row["test_ssim"] = ev.psnr, ev.ssim
                         # Training time excludes evaluation: shift the clock by the evaluation's duration.
                         spent = time.perf_counter() - e0
@@ -479,10 +485,9 @@ class Trainer:
         if finished:
             # The summary goes first: the evaluation record reads the training time from it.
             self.out_run.write_summary(summary)
-        if finished and cfg.eval_at_end:
+        if finished and cfg.eval_at_end and self.evaluator is not None:
             e0 = time.perf_counter()
-            result = self.evaluate()
-            self.write_evaluation(result)
+            result = self.evaluator.score_and_record(self.render_view, self.dataset, self.out_run, self.model)
             summary["test_psnr"], summary["test_ssim"] = result.psnr, result.ssim
             summary["eval_seconds"] = round(time.perf_counter() - e0, 3)
             self.out_run.write_summary(summary)
@@ -520,14 +525,16 @@ def train(
     overwrite: bool = False,
     model: STGModel | None = None,
     callback: IterationCallback | None = None,
+    evaluator: TestEvaluator | None = None,
 ) -> dict[str, Any]:
     """Train an STG model on `dataset` into the run directory `out_dir`; returns the summary.
 
     resume: continue from out_dir/checkpoint.pt when it exists (else start afresh). A fresh start refuses a
     directory that already holds a run unless overwrite (or resume) is given (`stgc.run`). model: start from this model
     instead of building one from the data config's initial points. callback(iteration, numbers) runs after every
-    iteration. Writes config.json, metrics.jsonl, compaction.jsonl, checkpoint.pt, point_cloud/iteration_<N>/,
-    eval.json, eval_per_view.csv and train_summary.json (see docs/training.md)."""
+    iteration. evaluator scores the test views (`train.eval_every`, `train.eval_at_end`; `stgc.eval.RunEvaluator`).
+    Writes config.json, metrics.jsonl, compaction.jsonl, checkpoint.pt, point_cloud/iteration_<N>/,
+    train_summary.json and, with an evaluator, eval.json and eval_per_view.csv (see docs/training.md)."""
     trainer = Trainer(dataset, data_cfg, model_cfg, train_cfg, compaction_cfg, out_dir,
-                      model=model, resume=resume, overwrite=overwrite, callback=callback)
+                      model=model, resume=resume, overwrite=overwrite, callback=callback, evaluator=evaluator)
     return trainer.run()

@@ -22,7 +22,7 @@ from stgc.data.dataset import segments
 from stgc.errors import StgcError
 from stgc.run import Run
 from stgc.train.config import TrainConfig
-from stgc.train.loop import train
+from stgc.train.loop import TestEvaluator, train
 
 log = logging.getLogger(__name__)
 
@@ -48,10 +48,11 @@ def _shared_config(configs: dict[str, Any], data_path: str | Path) -> dict[str, 
 
 
 def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | Path, segment_frames: int | None = None,
-                *, resume: bool = False, overwrite: bool = False) -> list[dict[str, Any]]:
+                *, resume: bool = False, overwrite: bool = False,
+                evaluator: TestEvaluator | None = None) -> list[dict[str, Any]]:
     """Train every segment of the video into RUN/segment_<k>/ (see the module docstring); returns their training
     summaries in time order. resume: continue the video in `out_dir` (its saved segments; `segment_frames` must be
-    None or the saved value)."""
+    None or the saved value). evaluator: as `train`'s, for every segment."""
     run = Run(out_dir)
     if resume and run.is_video():
         video = run.read_video()
@@ -83,5 +84,5 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
         train_cfg: TrainConfig = configs["train"]
         # resume=True: a segment with a checkpoint continues from it; one without starts afresh in its folder.
         summaries.append(train(dataset, data_cfg, configs["model"], train_cfg, configs["compaction"],
-                               segment_run.path, resume=True))
+                               segment_run.path, resume=True, evaluator=evaluator))
     return summaries

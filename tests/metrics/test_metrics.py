@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from stgc.eval import lpips_status, psnr, psnr_per_image, ssim, ssim_map, ssim_per_image
+from stgc.metrics import lpips_status, psnr, psnr_per_image, ssim, ssim_map, ssim_per_image
 
 
 def _pair(seed: int, h: int = 37, w: int = 45, c: int = 3) -> tuple[np.ndarray, np.ndarray]:
@@ -113,7 +113,7 @@ def test_lpips_reports_why_it_is_unavailable_at_each_missing_piece(monkeypatch, 
     import importlib.util
     from types import SimpleNamespace
 
-    from stgc.eval import metrics
+    from stgc.metrics import image as metrics
 
     bad, why = lpips_status("squeezenet-nope")
     assert not bad and "unknown LPIPS network" in why
@@ -151,7 +151,7 @@ def _bt709_yuv420_10bit(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def test_yuv_psnr_matches_bt709_written_out_and_weights_6_1_1():
-    from stgc.eval.metrics import yuv_psnr
+    from stgc.metrics import yuv_psnr
 
     rng = np.random.default_rng(3)
     ref = rng.uniform(0.05, 0.95, size=(24, 32, 3))

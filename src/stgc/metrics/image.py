@@ -162,7 +162,7 @@ class _SeparableBlur(torch.autograd.Function):
 
 
 def _run_blur(stack: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
-    from stgc.eval._blur_kernel import blur_planes
+    from stgc.metrics._blur_kernel import blur_planes
 
     src = stack.detach().contiguous().numpy()
     out = np.empty_like(src)
