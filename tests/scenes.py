@@ -147,3 +147,15 @@ def add_blender_transforms(scene: SyntheticScene) -> Path:
                 "h": cam.height, "frames": entries}
         (scene.root / f"transforms_{split}.json").write_text(json.dumps(meta))
     return scene.root
+
+
+def moving_model(model: STGModel) -> STGModel:
+    """The scene's model with motion, rotation speed and a short temporal life, so time matters."""
+    moving = STGModel.from_state_dict(model.state_dict())
+    rng = np.random.default_rng(0)
+    with torch.no_grad():
+        moving.params["motion"][:, 0:3] = torch.from_numpy(rng.normal(0, 0.3, (moving.num_gaussians, 3))).float()
+        moving.params["omega"].normal_(0, 0.5, generator=torch.Generator().manual_seed(1))
+        moving.params["trbf_scale"].fill_(float(np.log(0.15)))
+        moving.params["trbf_center"].uniform_(0, 1, generator=torch.Generator().manual_seed(2))
+    return moving

@@ -16,7 +16,7 @@ LAYERS = [
     {"model"},
     {"train", "compaction", "codec"},
     {"eval"},
-    {"experiment", "demo", "cli", "__init__", "__main__"},
+    {"experiment", "demo", "cli", "viewer", "__init__", "__main__"},
 ]
 LEVEL = {name: i for i, names in enumerate(LAYERS) for name in names}
 

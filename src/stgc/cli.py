@@ -217,6 +217,17 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    from stgc.viewer import serve
+
+    if not 0 < args.port < 65536:
+        raise StgcError(f"--port {args.port}: a TCP port is 1..65535")
+    if args.max_side is not None and args.max_side < 16:
+        raise StgcError(f"--max-side {args.max_side}: at least 16 pixels")
+    serve(args.source, host=args.host, port=args.port, max_side=args.max_side)
+    return 0
+
+
 def cmd_compress(args: argparse.Namespace) -> int:
     from stgc.codec import CodecConfig, compress_run
 
@@ -364,6 +375,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (ply-frames) or FILE.splatv")
     p.add_argument("--frames", help="frame range A:B or frames A,B,... (default: all)")
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("view", help="an interactive viewer in the browser for a run or a .stgc file (viser)")
+    p.add_argument("source", help="run directory (single or whole-video) or .stgc file")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (0.0.0.0: reachable from other machines)")
+    p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080)")
+    p.add_argument("--max-side", type=int, help="longest side in pixels of a free view's full-resolution render "
+                   "(default: the dataset's); a dataset camera always renders at its own size")
+    p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("compress", help="write a trained run as a compact .stgc bitstream")
     p.add_argument("run", help="run directory, iteration directory or .ply")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 from plyfile import PlyData
-from scenes import write_panoptic_scene
+from scenes import moving_model, write_panoptic_scene
 
 from stgc.cli import main
 from stgc.data import open_dataset
@@ -32,21 +32,9 @@ def scene(tmp_path_factory):
     return write_panoptic_scene(tmp_path_factory.mktemp("export"), views=5, frames=3, width=40, height=30)
 
 
-def _moving(model: STGModel) -> STGModel:
-    """The scene's model with motion, rotation speed and a short temporal life, so time matters."""
-    moving = STGModel.from_state_dict(model.state_dict())
-    rng = np.random.default_rng(0)
-    with torch.no_grad():
-        moving.params["motion"][:, 0:3] = torch.from_numpy(rng.normal(0, 0.3, (moving.num_gaussians, 3))).float()
-        moving.params["omega"].normal_(0, 0.5, generator=torch.Generator().manual_seed(1))
-        moving.params["trbf_scale"].fill_(float(np.log(0.15)))
-        moving.params["trbf_center"].uniform_(0, 1, generator=torch.Generator().manual_seed(2))
-    return moving
-
-
 def test_exported_frames_render_as_the_model_does_at_that_time(scene, tmp_path):
     dataset = open_dataset(scene.root)
-    model = _moving(scene.model)  # lite: its colour is exact as degree-0 SH
+    model = moving_model(scene.model)  # lite: its colour is exact as degree-0 SH
     written = export_ply_frames(model, tmp_path / "frames", frames="0:3", dataset=dataset)
     assert [p.name for p in written] == ["frame_000000.ply", "frame_000001.ply", "frame_000002.ply"]
     for frame, path in zip(range(3), written):
@@ -135,7 +123,7 @@ def _read_splatv(path):
 
 def test_splatv_file_holds_the_model_as_an_independent_reader_sees_it(scene, tmp_path):
     dataset = open_dataset(scene.root)
-    model = _moving(scene.model)
+    model = moving_model(scene.model)
     with torch.no_grad():
         model.params["rotation"].mul_(1.7)  # unnormalised, as STG stores them
     from stgc.eval.export import export_splatv

@@ -1,0 +1,260 @@
+"""`stgc view`: the scene behind the viewer, and the viewer itself in a real browser (headless Chromium)."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from scenes import moving_model, write_panoptic_scene
+
+from stgc.cli import main
+from stgc.errors import StgcError
+from stgc.metrics import psnr
+
+viser = pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+
+from stgc.viewer import (  # noqa: E402  (after the skip: the module needs viser)
+    ViewerScene,
+    camera_from_view,
+    check_port,
+    free_port,
+    letterbox,
+    view_of_camera,
+)
+
+
+def _write_run(root, model, data_root, iteration: int = 1):
+    model.save(root / "point_cloud" / f"iteration_{iteration}")
+    (root / "config.json").write_text(json.dumps({"data": {"path": str(data_root)}}))
+    return root
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return write_panoptic_scene(tmp_path_factory.mktemp("viewer"), views=5, frames=3, width=64, height=48)
+
+
+@pytest.fixture(scope="module")
+def run(scene, tmp_path_factory):
+    """A run whose model moves (so the frame matters) and is not the one that drew the images (so PSNR is finite)."""
+    return _write_run(tmp_path_factory.mktemp("viewer_run") / "run", moving_model(scene.model), scene.root)
+
+
+def test_a_dataset_camera_renders_what_stgc_render_writes(run, tmp_path):
+    viewed = ViewerScene.open(run)
+    assert viewed.frames == [0, 1, 2] and viewed.test_names == {"0"}
+    for frame in (0.0, 1.0, 2.0):
+        t = frame / 3  # (frame - start) / duration
+        assert main(["render", str(run), "--camera", "0", "--time", repr(t), "--out", str(tmp_path / "r.png")]) == 0
+        expected = np.asarray(Image.open(tmp_path / "r.png").convert("RGB"))
+        got = viewed.render(viewed.dataset_camera("0", frame), frame)
+        assert np.array_equal(got, expected), frame
+    numbers = viewed.stats(1.0, "0", got)
+    assert numbers["gaussians"] == 750 and 0 < numbers["gaussians_alive"] < 750  # short temporal lives
+    assert numbers["psnr"] is not None and math.isfinite(numbers["psnr"])
+    assert viewed.stats(1.5, "0", got)["psnr"] is None  # between frames there is no ground truth
+
+
+def test_a_bitstream_shows_what_it_decodes_to(run, tmp_path):
+    from stgc.codec import compress_run, load_model
+
+    stgc_file = run / "model_q3.stgc"
+    if not stgc_file.exists():
+        compress_run(run, stgc_file)
+    viewed = ViewerScene.open(stgc_file)
+    decoded = load_model(stgc_file)
+    camera = viewed.dataset_camera("0", 1.0)
+    expected = decoded.render(camera, t=camera.time, background=torch.zeros(3)).rgb
+    assert np.array_equal(viewed.render(camera, 1.0), (expected.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy())
+    numbers = viewed.stats(1.0, None)
+    assert numbers["size_kind"] == "file" and numbers["size_mb"] * 2**20 == stgc_file.stat().st_size
+
+
+def test_a_whole_video_plays_as_one_timeline(scene, tmp_path):
+    """Two segments of 2 and 1 frames: a frame is drawn by the segment that holds it, at the segment's own time."""
+    other = moving_model(scene.model)
+    with torch.no_grad():
+        other.params["trbf_center"].fill_(0.5)
+    video = tmp_path / "video"
+    first = _write_run(video / "segment_000", scene.model, scene.root)
+    second = _write_run(video / "segment_001", other, scene.root)
+    for part, start, duration in ((first, 0, 2), (second, 2, 1)):
+        config = json.loads((part / "config.json").read_text())
+        config["data"].update(start=start, duration=duration)
+        (part / "config.json").write_text(json.dumps(config))
+    (video / "config.json").write_text(json.dumps({"data": {"path": str(scene.root)}}))
+    (video / "video.json").write_text(json.dumps({"segment_frames": 2, "data_path": str(scene.root), "segments": [
+        {"name": "segment_000", "start": 0, "duration": 2}, {"name": "segment_001", "start": 2, "duration": 1}]}))
+    viewed = ViewerScene.open(video)
+    assert viewed.frames == [0, 1, 2] and len(viewed.segments) == 2
+    assert viewed.segment_at(1.9) is viewed.segments[0] and viewed.segment_at(2.0) is viewed.segments[1]
+    camera = viewed.dataset_camera("0", 2.0)
+    assert camera.time == 0.0  # the first frame of the second segment
+    expected = other.render(camera, t=0.0, background=torch.zeros(3)).rgb
+    got = viewed.render(camera, 2.0)
+    assert np.array_equal(got, (expected.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy())
+    assert viewed.stats(2.0, None)["segment"] == 1
+
+
+def test_a_browser_camera_put_on_a_dataset_camera_is_that_camera(scene):
+    viewed = ViewerScene.open(_write_run(scene.root.parent / "pose_run", scene.model, scene.root))
+    dataset_camera = viewed.cameras["2"]
+    position, wxyz, fov = view_of_camera(dataset_camera)
+    browser = camera_from_view(position, wxyz, fov, dataset_camera.width, dataset_camera.height, dataset_camera.near)
+    np.testing.assert_allclose(browser.w2c, dataset_camera.w2c, atol=1e-9)
+    assert browser.K[1, 1] == pytest.approx(dataset_camera.K[1, 1], rel=1e-12)
+    # The scene's cameras have their principal point in the middle: the two renders agree exactly.
+    got = viewed.render(browser, 0.0)
+    assert psnr(torch.from_numpy(got), torch.from_numpy(viewed.render(dataset_camera, 0.0))) > 40
+
+
+def test_letterbox_keeps_every_pixel_at_whole_scale():
+    image = np.random.default_rng(0).integers(0, 256, (6, 8, 3), dtype=np.uint8)
+    canvas = letterbox(image, 30, 20, (0.0, 0.0, 1.0))
+    assert canvas.shape == (20, 30, 3)
+    # scale min(30 // 8, 20 // 6) = 3: 24 x 18 in the middle, offsets (3, 1)
+    assert np.array_equal(canvas[1:19, 3:27][::3, ::3], image)
+    assert np.array_equal(canvas[0, 0], [0, 0, 255]) and np.array_equal(canvas[19, 29], [0, 0, 255])
+    assert letterbox(image, 7, 5, (0, 0, 0)) is image  # smaller canvas: the image itself
+
+
+def test_a_port_in_use_gives_a_clear_error_with_a_free_port():
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(StgcError, match=rf"port {port} on 127.0.0.1 is in use.*try --port \d+"):
+            check_port("127.0.0.1", port)
+
+
+def test_a_missing_source_gives_the_usual_clear_error(tmp_path, capsys):
+    assert main(["view", str(tmp_path / "nothing")]) != 0
+    assert "nothing" in capsys.readouterr().err
+
+
+def test_ctrl_c_stops_the_server_cleanly(run):
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "stgc.cli", "view", str(run), "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        line = ""
+        deadline = time.monotonic() + 120
+        while "Ctrl-C stops" not in line and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            assert line or proc.poll() is None, "the viewer exited before serving"
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=10) as page:
+            assert page.status == 200
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and "Traceback" not in out
+
+
+# --------------------------------------------------------------------------------------------- real browser
+def _chromium():
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    driver = shutil.which("chromedriver")
+    if browser is None or driver is None:
+        pytest.skip("Chromium and its driver are not installed (apt-get install chromium chromium-driver)")
+    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed")
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = browser
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--window-size=1000,700", "--force-device-scale-factor=1"):
+        options.add_argument(arg)
+    return webdriver.Chrome(service=Service(driver), options=options)
+
+
+def _until(condition, seconds=30.0):
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError("timed out waiting for the page")
+
+
+@pytest.mark.slow
+def test_in_a_browser_a_dataset_camera_and_frame_show_what_stgc_render_writes(run, tmp_path):
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+
+    from stgc.viewer import Viewer
+
+    viewer = Viewer(ViewerScene.open(run), port=free_port())
+    driver = _chromium()
+    try:
+        driver.get(viewer.url)
+        _until(lambda: viewer.clients)
+
+        def control(label):
+            return driver.find_element(By.ID, driver.find_element(
+                By.XPATH, f"//label[normalize-space()='{label}']").get_attribute("for"))
+
+        # Through the page: the camera menu, then the frame's number box.
+        _until(lambda: control("camera")).click()
+        option = _until(lambda: [o for o in driver.find_elements(By.XPATH, "//*[@role='option']") if o.text == "0"])
+        option[0].click()
+        frame_box = driver.find_elements(By.XPATH, "//label[normalize-space()='frame']/ancestor::div[1]"
+                                                   "/following-sibling::*//input[not(@type='hidden')]")[-1]
+        frame_box.send_keys(Keys.CONTROL, "a")  # a chord: CONTROL is released after this call
+        frame_box.send_keys(Keys.BACKSPACE, "1", Keys.ENTER)
+        view = next(iter(viewer.clients.values()))
+        _until(lambda: viewer.frame == 1.0)
+        _until(lambda: view.snapped_name() == "0")
+        _until(lambda: view.full_done)
+        _until(lambda: "PSNR" in viewer.numbers.content)
+        # Notices (headless Chromium draws WebGL in software, which viser points out) float over the canvas.
+        for close in driver.find_elements(By.XPATH, "//button[contains(@class, 'Notification-close')]"):
+            close.click()
+        _until(lambda: not driver.find_elements(By.XPATH, "//*[@role='alert']"))
+        time.sleep(1.0)  # the browser decodes and draws the last image
+        shot = np.asarray(Image.open(_screenshot(driver, tmp_path / "view.png")).convert("RGB"))
+
+        assert main(["render", str(run), "--camera", "0", "--time", repr(1 / 3), "--out", str(tmp_path / "r.png")]) == 0
+        expected = np.asarray(Image.open(tmp_path / "r.png").convert("RGB"))
+        canvas = driver.find_element(By.TAG_NAME, "canvas").rect
+        panel_left = min(e.rect["x"] for e in driver.find_elements(By.XPATH, "//label[normalize-space()='camera']"))
+        h, w = expected.shape[:2]
+        width, height = int(canvas["width"]), int(canvas["height"])
+        scale = min(width // w, height // h)
+        top, left = int(canvas["y"]) + (height - h * scale) // 2, int(canvas["x"]) + (width - w * scale) // 2
+        # The centre of each screen block is one image pixel; the control panel floats over the right side.
+        visible = [j for j in range(w) if left + j * scale + scale - 1 < panel_left - 20]
+        rows = top + np.arange(h) * scale + scale // 2
+        cols = left + np.asarray(visible) * scale + scale // 2
+        on_screen = shot[rows][:, cols]
+        assert len(visible) >= w // 3
+        score = float(psnr(torch.from_numpy(on_screen), torch.from_numpy(expected[:, visible])))
+        print(f"viewer vs stgc render: {score:.2f} dB over {h} x {len(visible)} pixels at scale {scale}")
+        assert score >= 40.0
+
+        # A reload reconnects and comes back to the same camera; a closed browser leaves the server serving.
+        driver.refresh()
+        _until(lambda: any(v.snapped_name() == "0" for v in viewer.clients.values()))
+    finally:
+        driver.quit()
+    with urllib.request.urlopen(viewer.url, timeout=10) as page:
+        assert page.status == 200
+    viewer.stop()
+
+
+def _screenshot(driver, path):
+    driver.save_screenshot(str(path))
+    return path
