@@ -190,14 +190,18 @@ def rasterize(
             return out
         chosen = "torch"
 
-    proj = project_gaussians(
-        means, quats, scales, opacities, K, viewmat, width, height, eps2d=eps2d, near_plane=near_plane
-    )
-    if proj.means2d.requires_grad:
-        proj.means2d.retain_grad()
     if chosen == "numba":
         from . import numba_backend as nb
 
+        proj = nb.project_numba(means, quats, scales, opacities, K, viewmat, width, height, eps2d=eps2d,
+                                near_plane=near_plane)  # fmt: skip
+    else:
+        proj = project_gaussians(
+            means, quats, scales, opacities, K, viewmat, width, height, eps2d=eps2d, near_plane=near_plane
+        )
+    if proj.means2d.requires_grad:
+        proj.means2d.retain_grad()
+    if chosen == "numba":
         color, trans, depth, weights, n_isects = nb.composite_numba(
             proj.means2d, proj.conics, opacities, features, sigma_cutoff(opacities), proj.depths, proj.radii,
             width, height, float(alpha_max), ALPHA_MIN, T_MIN, return_depth, return_weights,

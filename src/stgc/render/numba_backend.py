@@ -10,7 +10,8 @@ import torch
 from torch import Tensor
 
 from . import _numba_kernels as kernels
-from .projection import tile_grid
+from . import _numba_projection as projection_kernels
+from .projection import Projected, tile_grid
 
 # Tile edge in pixels. 8 beats 16 on CPU: per-tile lists are shorter relative to the pixels that walk them
 # (measured in benchmarks/rasterizer.py --tile-size; docs/rasterizer.md has the numbers).
@@ -31,6 +32,54 @@ def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, sigma_cut: Tensor,
     gdata[:, 6] = sigma_cut.numpy()
     gdata[:, 7] = depths.numpy()
     return gdata
+
+
+class _NumbaProjection(torch.autograd.Function):
+    """(means, quats, scales) -> (means2d, conics); depths, radii and the camera are side outputs without
+    gradient (`out` receives them)."""
+
+    @staticmethod
+    def forward(ctx: Any, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: np.ndarray,
+                width: int, height: int, out: dict[str, Tensor]) -> tuple[Tensor, Tensor]:  # fmt: skip
+        m, q, s = (np.ascontiguousarray(t.detach().numpy()) for t in (means, quats, scales))
+        n = m.shape[0]
+        dtype = m.dtype
+        means2d = np.empty((n, 2), dtype=dtype)
+        conics = np.empty((n, 3), dtype=dtype)
+        depths = np.empty(n, dtype=dtype)
+        radii = np.empty((n, 2), dtype=np.int32)
+        projection_kernels.project_forward(m, q, s, np.ascontiguousarray(opacities.detach().numpy()), camera,
+                                           width, height, means2d, conics, depths, radii)  # fmt: skip
+        ctx.arrays = (m, q, s, camera)
+        out["depths"] = torch.from_numpy(depths)
+        out["radii"] = torch.from_numpy(radii)
+        return torch.from_numpy(means2d), torch.from_numpy(conics)
+
+    @staticmethod
+    def backward(ctx: Any, grad_means2d: Tensor | None, grad_conics: Tensor | None) -> tuple[Tensor | None, ...]:
+        m, q, s, camera = ctx.arrays
+        n, dtype = m.shape[0], m.dtype
+        gm2 = np.zeros((n, 2), dtype) if grad_means2d is None else np.ascontiguousarray(grad_means2d.numpy(), dtype)
+        gco = np.zeros((n, 3), dtype) if grad_conics is None else np.ascontiguousarray(grad_conics.numpy(), dtype)
+        grad_means = np.empty((n, 3), dtype=dtype)
+        grad_quats = np.empty((n, 4), dtype=dtype)
+        grad_scales = np.empty((n, 3), dtype=dtype)
+        projection_kernels.project_backward(m, q, s, camera, gm2, gco, grad_means, grad_quats, grad_scales)
+        return (torch.from_numpy(grad_means), torch.from_numpy(grad_quats), torch.from_numpy(grad_scales),
+                None, None, None, None, None)
+
+
+def project_numba(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, K: Tensor, viewmat: Tensor,
+                  width: int, height: int, *, eps2d: float, near_plane: float, far_plane: float = 1e10) -> Projected:
+    """projection.project_gaussians on CPU in one numba pass per direction (same math, same outputs)."""
+    camera = projection_kernels.camera_array(
+        K.detach().to(torch.float64).numpy(), viewmat.detach().to(torch.float64).numpy(), width, height,
+        float(eps2d), float(near_plane), float(far_plane),
+    )  # fmt: skip
+    side: dict[str, Tensor] = {}
+    means2d, conics = _NumbaProjection.apply(means, quats, scales, opacities, camera, width, height, side)
+    radii = side["radii"]
+    return Projected(means2d=means2d, conics=conics, depths=side["depths"], radii=radii, visible=(radii > 0).any(-1))
 
 
 class _NumbaComposite(torch.autograd.Function):
