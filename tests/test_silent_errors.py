@@ -280,3 +280,76 @@ def test_decompressing_into_an_existing_run_is_refused_unless_overwrite(trained_
     (target / "eval_model_q3.json").write_text("{}")
     assert main(["decompress", str(inside), "--out", str(target), "--overwrite"]) == 0
     assert inside.is_file() and not (target / "eval_model_q3.json").exists()
+
+
+def test_resuming_with_segment_frames_keeps_the_single_run(scene, trained_run, tmp_path, capsys):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    before = sorted(p.relative_to(run) for p in run.rglob("*"))
+    assert main(["train", "--out", str(run), "--resume", "--segment-frames", "1"]) == 2
+    assert "single-segment run" in capsys.readouterr().err
+    assert sorted(p.relative_to(run) for p in run.rglob("*")) == before  # nothing deleted
+
+
+def test_resuming_on_other_data_is_refused(scene, trained_run, tmp_path, capsys):
+    import shutil
+
+    run, other = tmp_path / "run", tmp_path / "other_scene"
+    shutil.copytree(trained_run, run)
+    shutil.copytree(scene.root, other)
+    assert main(["train", str(other), "--out", str(run), "--resume"]) == 2
+    assert "not " + str(other) in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("verb", [
+    ["compress", "{run}", "--out", "{out}/m.stgc", "--set", "codec.allocation=ladder"],
+    ["export", "{run}", "--format", "ply-frames", "--out", "{out}/frames"],
+    ["render", "{run}", "--camera", "0", "--time", "0.5", "--out", "{out}/still.png"],
+    ["report", "{run}", "--out", "{out}/report"],
+    ["decompress", "{bitstream}", "--out", "{out}/restored"],
+])
+def test_an_output_that_cannot_be_written_is_a_clear_error_and_leaves_nothing(verb, trained_run, tmp_path, capsys):
+    """A real limit, not a stand-in: RLIMIT_FSIZE makes every write past 512 bytes fail (EFBIG; Python ignores the
+    SIGXFSZ it sends), as a full disk fails writes with ENOSPC; both are reported as the output's problem."""
+    import resource
+
+    bitstream = tmp_path / "in.stgc"
+    assert main(["compress", str(trained_run), "--out", str(bitstream), "--set", "codec.allocation=ladder"]) == 0
+    out = tmp_path / "out"
+    out.mkdir()
+    args = [a.format(run=trained_run, out=out, bitstream=bitstream) for a in verb]
+    capsys.readouterr()
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (512, hard))
+    try:
+        code = main(args)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "cannot write" in err and "Traceback" not in err
+    leftovers = [p for p in out.rglob("*") if p.is_file() and (p.name.endswith(".tmp") or p.stat().st_size > 512)]
+    assert leftovers == []
+
+
+@pytest.mark.parametrize("code, words", [(28, "no space left"), (30, "read-only"), (13, "permission denied")])
+def test_output_errors_name_the_file_and_the_cause(tmp_path, monkeypatch, code, words):
+    import errno
+    import os
+
+    from stgc.errors import OutputError
+    from stgc.fileio import write_json
+
+    assert code in (errno.ENOSPC, errno.EROFS, errno.EACCES)
+
+    def failing_replace(src, dst):
+        raise OSError(code, os.strerror(code), str(dst))
+
+    monkeypatch.setattr("stgc.fileio.os.replace", failing_replace)
+    target = tmp_path / "eval.json"
+    with pytest.raises(OutputError, match=words) as info:
+        write_json(target, {"a": 1})
+    assert str(target) in str(info.value)
+    assert list(tmp_path.iterdir()) == []  # the temporary file is gone too

@@ -110,6 +110,17 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
     return out
 
 
+def _resumed_data_path(run: Path, given: str | None, saved: str | None) -> str | None:
+    """The data a resumed run continues on: the saved path; DATA may only name it again, or replace it when the
+    saved path is gone (the data moved). Continuing on other data would mix two trainings in one model."""
+    if given is None or saved is None:
+        return given or saved
+    if Path(given).resolve() != Path(saved).resolve() and Path(saved).exists():
+        raise StgcError(f"{run}: the run trains on {saved}, not {given}; resume it without DATA, or train the other "
+                        "data into a new --out")
+    return given
+
+
 # --------------------------------------------------------------------------------------------- verbs
 def cmd_train(args: argparse.Namespace) -> int:
     from stgc.eval import RunEvaluator
@@ -122,7 +133,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         if given:
             raise StgcError(f"{out}: a resumed run keeps its saved config.json; drop {', '.join(given)}")
         saved = configs_from_run(out)
-        data_path = args.data or saved["data_path"]
+        data_path = _resumed_data_path(out, args.data, saved["data_path"])
         configs = {k: saved[k] for k in ("data", "model", "train", "compaction")}
     else:
         shortcuts: dict[str, dict[str, Any]] = {}
@@ -480,7 +491,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("\nstgc: interrupted; run the same command again to continue (for stgc train, add --resume)", file=sys.stderr)
         return 130
-    except (FileNotFoundError, PermissionError, IsADirectoryError) as exc:
+    except OSError as exc:
+        # What the verbs' own checks did not foresee (a folder that vanished, a device error): the system's words,
+        # which name the file, rather than a traceback.
+        if os.environ.get("STGC_DEBUG"):
+            raise
         print(f"stgc: error: {exc}", file=sys.stderr)
         return 2
 

@@ -18,5 +18,14 @@ class DataError(StgcError, ValueError):
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
 
 
+class OutputError(StgcError):
+    """An output cannot be written (full disk, read-only or missing folder, permissions): names the file."""
+
+    def __init__(self, path: str | Path, problem: str):
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
 class FormatError(DataError):
     """A file in one of our own formats (.stgc, checkpoint, PLY) is invalid."""

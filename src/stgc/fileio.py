@@ -3,12 +3,38 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
+
+from stgc.errors import FormatError, OutputError
+
+# Errors that writing the temporary file itself can raise: the device is full, or the file outgrows a limit.
+_WRITE_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+
+
+def output_error(path: str | Path, exc: OSError) -> OutputError:
+    """An OutputError for `exc`, raised while writing `path`, in words a user can act on."""
+    path = Path(path)
+    code = exc.errno
+    if code in (errno.ENOSPC, errno.EDQUOT):
+        problem = "no space left on the device (free some and run the same command again)"
+    elif code == errno.EFBIG:
+        problem = "the file grew beyond what this system allows (file size limit)"
+    elif code == errno.EROFS:
+        problem = "the file system is read-only"
+    elif code in (errno.EACCES, errno.EPERM):
+        problem = "permission denied"
+    elif code in (errno.ENOTDIR, errno.EEXIST) and not path.parent.is_dir():
+        blocker = next((p for p in [path.parent, *path.parent.parents] if p.exists() and not p.is_dir()), None)
+        problem = f"{blocker or path.parent} is a file, not a folder"
+    else:
+        problem = exc.strerror or str(exc)
+    return OutputError(path, f"cannot write: {problem}")
 
 
 @contextlib.contextmanager
@@ -17,17 +43,29 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
     Use it for writers that want a filename (torch.save, imageio, plyfile)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.close(fd)
+    except OSError as exc:
+        raise output_error(path, exc) from None
     tmp_path = Path(tmp)
     try:
-        yield tmp_path
-        # mkstemp creates the file 0600; give the result the permissions a plain open() would have.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp_path, 0o666 & ~umask)
-        os.replace(tmp_path, path)
+        try:
+            yield tmp_path
+        except OSError as exc:
+            # Only what writing can cause is the output's fault; any other OSError of the block is its own.
+            if exc.errno in _WRITE_ERRORS:
+                raise output_error(path, exc) from None
+            raise
+        try:
+            # mkstemp creates the file 0600; give the result the permissions a plain open() would have.
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp_path, 0o666 & ~umask)
+            os.replace(tmp_path, path)
+        except OSError as exc:
+            raise output_error(path, exc) from None
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
@@ -39,7 +77,7 @@ def atomic_open(path: str | Path, mode: str = "w", **kwargs: Any) -> Iterator[IO
     with atomic_path(path) as tmp, open(tmp, mode, **kwargs) as f:
         yield f
         f.flush()
-        os.fsync(f.fileno())
+        os.fsync(f.fileno())  # a full disk shows here at the latest, before the rename
 
 
 def write_json(path: str | Path, obj: Any) -> None:
@@ -53,8 +91,6 @@ def read_json_object(path: str | Path, *, strict: bool = True) -> dict[str, Any]
 
     An unreadable or non-object file raises FormatError naming it (strict), or reads as None (not strict: for
     callers that treat a damaged marker file as "not done yet")."""
-    from stgc.errors import FormatError
-
     path = Path(path)
     if not path.is_file():
         return None

@@ -13,7 +13,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from stgc.errors import FormatError
-from stgc.fileio import atomic_path
+from stgc.fileio import atomic_open, atomic_path
 from stgc.model.layout import NORMAL_FIELDS, ply_fields
 from stgc.run import SAVED_MODEL, latest_iteration_dir
 
@@ -96,8 +96,10 @@ def read_ply(path: str | Path) -> tuple[dict[str, np.ndarray], str]:
 
 
 def write_decoder(path: str | Path, state: dict[str, torch.Tensor]) -> None:
-    with atomic_path(path) as tmp:
-        torch.save({key: value.detach().cpu().contiguous() for key, value in state.items()}, tmp)
+    # Through a Python file, so that a failed write raises OSError with its cause (torch's own file writer only
+    # says "iostream error").
+    with atomic_open(path, "wb") as f:
+        torch.save({key: value.detach().cpu().contiguous() for key, value in state.items()}, f)
 
 
 def read_decoder(path: str | Path) -> dict[str, np.ndarray]:

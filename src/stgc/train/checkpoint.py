@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from stgc.errors import FormatError
-from stgc.fileio import atomic_path
+from stgc.fileio import atomic_open
 from stgc.run import Run
 
 CHECKPOINT_FORMAT = "stgc-train-checkpoint"
@@ -37,8 +37,8 @@ def save_checkpoint(run_dir: str | Path, payload: dict[str, Any]) -> Path:
     """Write RUN/checkpoint.pt atomically (a kill during the write leaves the previous checkpoint intact)."""
     path = Run(run_dir).checkpoint_path
     data = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "rng": rng_states(), **payload}
-    with atomic_path(path) as tmp:
-        torch.save(data, tmp)
+    with atomic_open(path, "wb") as f:  # a Python file: a failed write raises OSError with its cause
+        torch.save(data, f)
     return path
 
 

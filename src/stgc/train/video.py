@@ -63,10 +63,14 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
     else:
         if segment_frames is None:
             raise StgcError(f"{run.path}: not a whole-video run; give --segment-frames to start one")
+        if resume and run.has_config():
+            # Cutting it into segments would replace the single-segment run that --resume was asked to continue.
+            raise StgcError(f"{run.path}: holds a single-segment run; --resume continues it as it was trained (drop "
+                            "--segment-frames), or give a new --out for the whole video")
         data_cfg: DataConfig = configs["data"]
         whole = data_cfg.open(data_path)  # the frame window the data options select
         plan = plan_segments(list(whole.frames), int(segment_frames))
-        run = Run.create(out_dir, overwrite=overwrite or resume)
+        run = Run.create(out_dir, overwrite=overwrite)
         run.write_config(_shared_config(configs, data_path))
         run.write_video({"segment_frames": int(segment_frames), "data_path": str(Path(data_path).resolve()),
                          "segments": plan})
