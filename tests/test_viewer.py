@@ -143,6 +143,36 @@ def test_a_missing_source_gives_the_usual_clear_error(tmp_path, capsys):
     assert "nothing" in capsys.readouterr().err
 
 
+def test_a_corrupt_bitstream_gives_the_usual_clear_error(tmp_path, capsys):
+    bad = tmp_path / "broken.stgc"
+    bad.write_bytes(b"STGC" + bytes(40))
+    assert main(["view", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "broken.stgc" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("fps, seconds, expected", [(0.5, 1.0, 0.5), (1.5, 1.0, 1.5), (10.0, 0.5, 1.0)])
+def test_playback_moves_the_frame_at_the_chosen_speed(run, fps, seconds, expected):
+    """30 ticks a second, as the player thread gives them: slow speeds advance too (each tick moves by less than the
+    slider's 0.1 step), and the frame rate is the one chosen, wrapping at the end (3 frames: 0, 1, 2)."""
+    from stgc.viewer import Viewer
+
+    viewer = Viewer(ViewerScene.open(run), port=free_port())
+    viewer.closed.set()  # the test gives the ticks: stop the real-time player thread first
+    viewer.player.join()
+    try:
+        viewer.speed.value = fps
+        viewer.play.value = True
+        for _ in range(round(seconds * 30)):
+            viewer.advance(1.0 / 30.0)
+        assert viewer.frame == pytest.approx(expected % 2.0 if expected > 2.0 else expected, abs=0.051)
+        viewer.play.value = False
+        viewer.advance(1.0)
+        assert viewer.playhead is None
+    finally:
+        viewer.stop()
+
+
 def test_ctrl_c_stops_the_server_cleanly(run):
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "stgc.cli", "view", str(run), "--port", str(port)],
@@ -218,18 +248,20 @@ def test_in_a_browser_a_dataset_camera_and_frame_show_what_stgc_render_writes(ru
         view = next(iter(viewer.clients.values()))
         _until(lambda: viewer.frame == 1.0)
         _until(lambda: view.snapped_name() == "0")
-        _until(lambda: view.full_done)
         _until(lambda: "PSNR" in viewer.numbers.content)
         # Notices (headless Chromium draws WebGL in software, which viser points out) float over the canvas.
         for close in driver.find_elements(By.XPATH, "//button[contains(@class, 'Notification-close')]"):
             close.click()
         _until(lambda: not driver.find_elements(By.XPATH, "//*[@role='alert']"))
+        # The last full image must be drawn for the canvas as it is now: one drawn for a size the page reported
+        # before a resize is stretched to the canvas, and no longer one screen block per image pixel.
+        canvas = driver.find_element(By.TAG_NAME, "canvas").rect
+        _until(lambda: view.full_done and view.drawn_size == (int(canvas["width"]), int(canvas["height"])))
         time.sleep(1.0)  # the browser decodes and draws the last image
         shot = np.asarray(Image.open(_screenshot(driver, tmp_path / "view.png")).convert("RGB"))
 
         assert main(["render", str(run), "--camera", "0", "--time", repr(1 / 3), "--out", str(tmp_path / "r.png")]) == 0
         expected = np.asarray(Image.open(tmp_path / "r.png").convert("RGB"))
-        canvas = driver.find_element(By.TAG_NAME, "canvas").rect
         panel_left = min(e.rect["x"] for e in driver.find_elements(By.XPATH, "//label[normalize-space()='camera']"))
         h, w = expected.shape[:2]
         width, height = int(canvas["width"]), int(canvas["height"])

@@ -240,6 +240,7 @@ class _ClientView:
         self.closed = False
         self.last_render_s: float | None = None
         self.drawn: tuple[float, bool] | None = None  # (frame, full resolution) of the last image sent
+        self.drawn_size: tuple[int, int] | None = None  # the (width, height) the browser reported for it
         client.camera.on_update(lambda _camera: self.touch(camera_moved=True))
         self.thread = threading.Thread(target=self._loop, name=f"stgc-view-{client.client_id}", daemon=True)
         self.thread.start()
@@ -317,6 +318,7 @@ class _ClientView:
         self.client.scene.set_background_image(image, format="png")
         viewer.show_stats(numbers, name, self.last_render_s, still)
         self.drawn = (frame, still)
+        self.drawn_size = (width, height)
         self.full_done = still and changes == self.changes
 
 
@@ -333,6 +335,7 @@ class Viewer:
         self.near = float(any_camera.near)
         self.max_side = int(max_side or max(any_camera.width, any_camera.height))
         self.frame: float = float(scene.frames[0])
+        self.playhead: float | None = None  # the exact playback position while playing
         self.show_ground_truth = False
         self.clients: dict[int, _ClientView] = {}
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
@@ -368,10 +371,20 @@ class Viewer:
             threading.Thread(target=self._snap_when_ready, args=(view, self.camera_menu.value), daemon=True).start()
 
     def _snap_when_ready(self, view: _ClientView, name: str) -> None:
+        """Snap a new page to `name` once its camera exists; snap again while its own first camera messages, which
+        may arrive after the snap, move it away (for up to 10 s, until it has held still for a second)."""
         deadline = time.perf_counter() + 10.0
         while view.client.camera.update_timestamp == 0.0 and time.perf_counter() < deadline:
             time.sleep(0.02)
         view.snap(name)
+        held_since = time.perf_counter()
+        while time.perf_counter() < deadline and time.perf_counter() - held_since < 1.0 and not view.closed:
+            time.sleep(0.05)
+            if self.camera_menu.value != name:
+                return  # the user chose another view meanwhile
+            if view.snapped_name() != name:
+                view.snap(name)
+                held_since = time.perf_counter()
 
     def _disconnect(self, client: Any) -> None:
         view = self.clients.pop(client.client_id, None)
@@ -390,6 +403,8 @@ class Viewer:
 
     def _on_frame(self) -> None:
         self.frame = float(self.frame_slider.value)
+        if self.playhead is not None and round(self.playhead, 1) != self.frame:
+            self.playhead = self.frame  # moved by hand while playing: play on from there
         for view in list(self.clients.values()):
             view.touch()
 
@@ -402,12 +417,22 @@ class Viewer:
         last = time.perf_counter()
         while not self.closed.wait(1.0 / 30.0):
             now = time.perf_counter()
-            if self.play.value:
-                first, end = self.scene.frames[0], self.scene.frames[-1]
-                frame = self.frame + (now - last) * float(self.speed.value)
-                # viser's setter takes what its getter gives; mypy does not model such properties yet.
-                self.frame_slider.value = round(first + (frame - first) % (end - first + 1e-9), 1)  # type: ignore[misc]
+            self.advance(now - last)
             last = now
+
+    def advance(self, seconds: float) -> None:
+        """Move the timeline on by `seconds` of playback when playing. The playhead keeps its exact position; only
+        the slider shows it rounded to its 0.1 step (rounding each tick would stall slow speeds and skew others)."""
+        if not self.play.value:
+            self.playhead = None
+            return
+        first, end = self.scene.frames[0], self.scene.frames[-1]
+        start = self.frame if self.playhead is None else self.playhead
+        self.playhead = first + (start + seconds * float(self.speed.value) - first) % (end - first + 1e-9)
+        shown = round(self.playhead, 1)
+        if shown != self.frame_slider.value:
+            # viser's setter takes what its getter gives; mypy does not model such properties yet.
+            self.frame_slider.value = shown  # type: ignore[misc]
 
     def show_stats(self, numbers: dict[str, Any], camera: str | None, seconds: float, still: bool) -> None:
         lines = [
