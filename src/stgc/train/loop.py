@@ -24,7 +24,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from stgc.compaction import CompactionConfig
+from stgc.compaction import CompactionConfig, STKNNCompactor
 from stgc.config import validate_config
 from stgc.data import DataConfig
 from stgc.data.config import initial_points_from_config
@@ -43,6 +43,13 @@ from stgc.train.colour import COLOUR_CORRECTION_NAME, ColourCorrection
 from stgc.train.config import Schedule, TrainConfig, resolve_schedule
 from stgc.train.densify import DensityControl
 from stgc.train.ems import ErrorGuidedSampler
+from stgc.train.strategy import (
+    CompactionStrategy,
+    DensityStrategy,
+    ErrorGuidedStrategy,
+    StepContext,
+    Strategy,
+)
 from stgc.train.monitor import JsonLines, Progress, TensorBoard
 
 IterationCallback = Callable[[int, dict[str, Any]], None]
@@ -221,42 +228,30 @@ class Trainer:
         self.density = DensityControl(train_cfg.densify, train_cfg.floaters, self.schedule, self.model.num_gaussians,
                                       self.train_centers)
         self.colour = self._make_colour_correction()
-        self.compactor = self._make_compactor()
         self.ems = ErrorGuidedSampler(
             train_cfg.ems, self.schedule.ems_start, self.schedule.ems_min_gap,
-            [str(c.name) for c in dataset.train], float(getattr(model_cfg, "trbf_scale_init", 0.0)),
+            [str(c.name) for c in dataset.train], (model_cfg or ModelConfig()).trbf_scale_init,
         )
+        # After the optimizer step, in this order: density control, error-guided points, compaction.
+        self.strategies: list[Strategy] = [DensityStrategy(self.density), ErrorGuidedStrategy(self.ems, self.density)]
+        self.compactor = self._make_compactor()
+        if self.compactor is not None:
+            self.strategies.append(CompactionStrategy(
+                self.compactor, lambda event: self.compaction_log.append(_jsonable(event)), self.density,
+                self.importance,
+            ))  # fmt: skip
         if checkpoint is not None:
             self._restore(checkpoint)
 
     # ------------------------------------------------------------------------------------------- setup
     def _write_config(self) -> None:
-        # What reopens the same frames later (video, eval): the dataset's own description, then the data config.
-        ds = self.dataset
-        data = {k: getattr(ds, k) for k in ("format", "downscale", "start", "duration") if hasattr(ds, k)}
-        data.update(_config_dict(self.data_cfg) or {})
-        data["near_plane"] = ds.near_plane  # resolved: what every later verb must render with
-        root = getattr(ds, "root", None) or getattr(ds, "path", None)
-        if "path" not in data and root is not None:
-            data["path"] = str(root)
-        data = _jsonable(data)
-        train = _config_dict(self.cfg)
-        train["resolved_schedule"] = self.schedule.to_dict()
-        self.out_run.write_config(
-            {
-                "data": data,
-                "model": _config_dict(self.model_cfg),
-                "train": train,
-                "compaction": _config_dict(self.compaction_cfg),
-            },
-        )
+        configs = {"data": self.data_cfg, "model": self.model_cfg, "train": self.cfg, "compaction": self.compaction_cfg}
+        self.out_run.write_config(run_config(self.dataset, configs, self.schedule))
 
-    def _make_compactor(self) -> Any | None:
+    def _make_compactor(self) -> STKNNCompactor | None:
         cfg = self.compaction_cfg
-        if cfg is None or getattr(cfg, "method", "st-knn") == "none" or not getattr(cfg, "enabled", True):
+        if cfg is None or cfg.method == "none":
             return None
-        from stgc.compaction import STKNNCompactor
-
         return STKNNCompactor(cfg, total_iterations=self.schedule.iterations)
 
     def _make_foreground_masks(self) -> ForegroundMasks | None:
@@ -279,20 +274,15 @@ class Trainer:
             return None
         return ColourCorrection(self.dataset.train_views, self.cfg.lr.colour_correction)
 
-    def _model_from_checkpoint(self, ckpt: dict[str, Any]) -> Any:
-        from stgc.model import STGModel
-
+    def _model_from_checkpoint(self, ckpt: dict[str, Any]) -> STGModel:
         return STGModel.from_state_dict(ckpt["model"])
 
     def _restore(self, ckpt: dict[str, Any]) -> None:
         self.optimizer.load_state_dict(ckpt["optimizer"])
-        self.density.load_state_dict(ckpt)
+        for strategy in self.strategies:
+            strategy.load_state_dict(ckpt)
         self.start_iteration = int(ckpt["iteration"])
         self.elapsed_before = float(ckpt["elapsed_s"])
-        if ckpt.get("ems"):
-            self.ems.state = ckpt["ems"]
-        if self.compactor is not None and ckpt.get("compactor") is not None:
-            self.compactor.load_state_dict(ckpt["compactor"])
         if self.colour is not None and ckpt.get("colour_correction") is not None:
             self.colour.load_state_dict(ckpt["colour_correction"])
         restore_rng_states(ckpt["rng"])
@@ -306,9 +296,8 @@ class Trainer:
             "elapsed_s": elapsed,
             "model": model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
-            **self.density.state_dict(),
-            "compactor": None if self.compactor is None else self.compactor.state_dict(),
-            "ems": self.ems.state,
+            "compactor": None,  # replaced by the compaction strategy's state when there is one
+            **{key: value for strategy in self.strategies for key, value in strategy.state_dict().items()},
             "colour_correction": None if self.colour is None else self.colour.state_dict(),
         }
 
@@ -422,18 +411,10 @@ class Trainer:
                 _seed_globals(_derive_seed(cfg.seed, iteration, 1))
                 generator = torch.Generator().manual_seed(_derive_seed(cfg.seed, iteration, 2))
                 step = self.train_step(iteration)
-                control = self.density.step(iteration, self.model, generator)
-                ems_view = step.pop("ems_view")
-                if ems_view is not None:
-                    camera, render, gt = ems_view
-                    added = self.ems.insert(iteration, self.model, camera, render, gt, generator)
-                    self.density.rows_added(added)
-                    control["ems_added"] = added
-                if self.compactor is not None:
-                    event = self.compactor.step(iteration, step["t"], self.model, step["loss"],
-                                                importance_fn=self.importance, on_prune=self.density.rows_kept)
-                    if event:
-                        self.compaction_log.append(_jsonable(event))  # the event carries its iteration
+                context = StepContext(iteration, step["t"], step["loss"], self.model, generator, step.pop("ems_view"))
+                control: dict[str, Any] = {}
+                for strategy in self.strategies:
+                    control.update(strategy.after_step(context))
                 elapsed = self.elapsed_before + (time.perf_counter() - t0)
                 progress.update(step["loss"], step["psnr"], self.model.num_gaussians)
                 if self.callback is not None:
@@ -492,6 +473,23 @@ class Trainer:
             summary["eval_seconds"] = round(time.perf_counter() - e0, 3)
             self.out_run.write_summary(summary)
         return summary
+
+
+def run_config(dataset: Dataset, configs: dict[str, Any], schedule: Schedule | None = None) -> dict[str, Any]:
+    """A run's config.json: the data options as the dataset resolved them (what reopens the same frames later:
+    format, downscale, frame window, near plane, the data's absolute path), then each config section as given, and
+    the training schedule in real iterations when there is one (a whole video's shared config has none: each
+    segment resolves its own)."""
+    data = {"format": dataset.format, "downscale": dataset.downscale, "start": dataset.start,
+            "duration": dataset.duration}
+    data.update(_config_dict(configs["data"]) or {})
+    data["near_plane"] = dataset.near_plane  # resolved: what every later verb must render with
+    data["path"] = str(Path(dataset.root).resolve())
+    train = _config_dict(configs["train"])
+    if schedule is not None:
+        train["resolved_schedule"] = schedule.to_dict()
+    return {"data": _jsonable(data), "model": _config_dict(configs["model"]), "train": train,
+            "compaction": _config_dict(configs["compaction"])}
 
 
 def _chosen(mode: str, auto: bool) -> bool:

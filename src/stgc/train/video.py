@@ -22,7 +22,7 @@ from stgc.data.dataset import segments
 from stgc.errors import StgcError
 from stgc.run import Run
 from stgc.train.config import TrainConfig
-from stgc.train.loop import TestEvaluator, train
+from stgc.train.loop import TestEvaluator, run_config, train
 
 log = logging.getLogger(__name__)
 
@@ -35,16 +35,6 @@ def plan_segments(frames: list[int], segment_frames: int) -> list[dict[str, Any]
         raise StgcError("the data selects no frames to cut into segments")
     return [{"name": f"segment_{k:03d}", "start": start, "duration": duration}
             for k, (start, duration) in enumerate(segments(len(frames), segment_frames, first=frames[0]))]
-
-
-def _shared_config(configs: dict[str, Any], data_path: str | Path) -> dict[str, Any]:
-    def section(cfg: Any) -> Any:
-        return None if cfg is None else dataclasses.asdict(cfg)
-
-    data = section(configs["data"])
-    data["path"] = str(Path(data_path).resolve())
-    return {"data": data, "model": section(configs["model"]), "train": section(configs["train"]),
-            "compaction": section(configs["compaction"])}
 
 
 def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | Path, segment_frames: int | None = None,
@@ -71,7 +61,7 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
         whole = data_cfg.open(data_path)  # the frame window the data options select
         plan = plan_segments(list(whole.frames), int(segment_frames))
         run = Run.create(out_dir, overwrite=overwrite)
-        run.write_config(_shared_config(configs, data_path))
+        run.write_config(run_config(whole, configs))
         run.write_video({"segment_frames": int(segment_frames), "data_path": str(Path(data_path).resolve()),
                          "segments": plan})
     summaries = []

@@ -1,0 +1,105 @@
+"""Strategies around the training step, in the manner of gsplat's `Strategy`: what changes the model's rows
+(density control, error-guided sampling, ST-KNN compaction) is one object each, stepped by the trainer after the
+optimizer step in a fixed order. Each keeps its own state in the training checkpoint under the keys it names, so
+`Trainer.run` reads as the loop it is, and a new strategy is one class here plus a line in `Trainer.__init__`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from stgc.compaction import STKNNCompactor
+from stgc.data import Camera
+from stgc.model import STGModel
+from stgc.train.densify import DensityControl
+from stgc.train.ems import ErrorGuidedSampler
+
+
+@dataclass
+class StepContext:
+    """What a strategy sees after the optimizer step of `iteration`."""
+
+    iteration: int
+    t: float  # the timestamp the step trained
+    loss: float  # the step's training loss (mean over its views)
+    model: STGModel
+    generator: torch.Generator  # this iteration's random stream for row changes
+    ems_view: tuple[Camera, torch.Tensor, torch.Tensor] | None = None  # a view that asked for error-guided points
+
+
+class Strategy(Protocol):
+    def after_step(self, ctx: StepContext) -> dict[str, Any]:
+        """Act on the model after the optimizer step; returns numbers for the metrics log."""
+        ...
+
+    def state_dict(self) -> dict[str, Any]:
+        """Checkpoint entries (top-level keys of the training checkpoint)."""
+        ...
+
+    def load_state_dict(self, checkpoint: dict[str, Any]) -> None:
+        """Restore from a whole training checkpoint (read only the keys `state_dict` writes)."""
+        ...
+
+
+class DensityStrategy:
+    """The official clone/split, prune and opacity-reset schedule (`DensityControl`)."""
+
+    def __init__(self, density: DensityControl):
+        self.density = density
+
+    def after_step(self, ctx: StepContext) -> dict[str, Any]:
+        return dict(self.density.step(ctx.iteration, ctx.model, ctx.generator))
+
+    def state_dict(self) -> dict[str, Any]:
+        return self.density.state_dict()
+
+    def load_state_dict(self, checkpoint: dict[str, Any]) -> None:
+        self.density.load_state_dict(checkpoint)
+
+
+class ErrorGuidedStrategy:
+    """Error-guided sampling: new Gaussians along the rays of a badly reconstructed view the step flagged."""
+
+    def __init__(self, sampler: ErrorGuidedSampler, density: DensityControl):
+        self.sampler, self.density = sampler, density
+
+    def after_step(self, ctx: StepContext) -> dict[str, Any]:
+        if ctx.ems_view is None:
+            return {}
+        camera, render, gt = ctx.ems_view
+        added = self.sampler.insert(ctx.iteration, ctx.model, camera, render, gt, ctx.generator)
+        self.density.rows_added(added)
+        return {"ems_added": added}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"ems": self.sampler.state}
+
+    def load_state_dict(self, checkpoint: dict[str, Any]) -> None:
+        if checkpoint.get("ems"):
+            self.sampler.state = checkpoint["ems"]
+
+
+class CompactionStrategy:
+    """ST-KNN compaction with its adaptive ratio; every pruning step is a line of RUN/compaction.jsonl."""
+
+    def __init__(self, compactor: STKNNCompactor, record: Callable[[dict[str, Any]], None], density: DensityControl,
+                 importance: Callable[[], torch.Tensor | np.ndarray]):
+        self.compactor, self.record, self.density, self.importance = compactor, record, density, importance
+
+    def after_step(self, ctx: StepContext) -> dict[str, Any]:
+        event = self.compactor.step(ctx.iteration, ctx.t, ctx.model, ctx.loss, importance_fn=self.importance,
+                                    on_prune=self.density.rows_kept)  # fmt: skip
+        if event:
+            self.record(event)  # the event carries its iteration
+        return {}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"compactor": self.compactor.state_dict()}
+
+    def load_state_dict(self, checkpoint: dict[str, Any]) -> None:
+        if checkpoint.get("compactor") is not None:
+            self.compactor.load_state_dict(checkpoint["compactor"])
