@@ -435,10 +435,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="training preset of every run")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override applied to every run")
     p.add_argument("--codec-quality", type=int, action="append", help="also add .stgc rate points at this quality")
-    p.add_argument("--preprocess", choices=["stg-isolated", "closest-pairs"],
+    from stgc.data.preprocess import MODES as PREPROCESS_MODES
+    from stgc.eval.bjontegaard import METHODS as BD_METHODS
+
+    p.add_argument("--preprocess", choices=[m for m in PREPROCESS_MODES if m != "none"],
                    help="point preprocessing of the built-in plans' preprocessed runs (default stg-isolated, what "
                    "the official code does; closest-pairs is the paper's wording)")
-    p.add_argument("--bd-method", choices=["pchip", "cubic"], default="pchip",
+    p.add_argument("--bd-method", choices=list(BD_METHODS), default="pchip",
                    help="Bjontegaard interpolation: pchip (piecewise cubic, robust) or cubic (the classic VCEG fit)")
     p.set_defaults(func=cmd_experiment)
 

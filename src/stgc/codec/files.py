@@ -5,8 +5,9 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args
 
+from stgc.config import check
 from stgc.errors import DataError, FormatError
 from stgc.fileio import atomic_path
 from stgc.data.cameras import Camera
@@ -34,7 +35,8 @@ from .format import (
 _MAX_FILE_BYTES = MAX_GAUSSIANS * ply_bytes_per_gaussian("full")
 
 
-ALLOCATION_MODES = ("auto", "optimised", "ladder")
+AllocationMode = Literal["auto", "optimised", "ladder"]
+ALLOCATION_MODES = get_args(AllocationMode)
 RESTORED_CONFIG_SECTIONS = ("data", "model")
 
 
@@ -46,7 +48,7 @@ class CodecConfig:
         "help": "rate point 1 (smallest) .. 5 (most precise). With the rd-optimised allocation it is a PSNR budget "
                 "on training views (1.0, 0.3, 0.1, 0.03, 0.01 dB); with the ladder it picks fixed bit depths "
                 "(docs/stgc-format.md section 7). Default 3"})
-    allocation: str = field(default="auto", metadata={
+    allocation: AllocationMode = field(default="auto", metadata={
         "help": "how bit depths are chosen: 'optimised' (render training views of the run's dataset and take the "
                 "cheapest depths within the quality's PSNR budget), 'ladder' (fixed depths per quality, needs no "
                 "data), 'auto' (optimised when the run's dataset can be opened, else ladder)"})
@@ -69,16 +71,14 @@ class CodecConfig:
                 "`decompress` restores a run that can be evaluated"})
 
     def validate(self, prefix: str = "") -> None:
-        if self.quality not in QUALITY_LEVELS:
-            raise ValueError(f"quality must be one of {QUALITY_LEVELS}, got {self.quality}")
-        if not 1 <= self.zstd_level <= 22:
-            raise ValueError(f"zstd_level must be in 1..22, got {self.zstd_level}")
-        if self.position_bits and not 2 <= self.position_bits <= 24:
-            raise ValueError(f"position_bits must be 0 or in 2..24, got {self.position_bits}")
-        if self.allocation not in ALLOCATION_MODES:
-            raise ValueError(f"allocation must be one of {ALLOCATION_MODES}, got {self.allocation!r}")
-        if self.allocation_views < 1:
-            raise ValueError(f"allocation_views must be >= 1, got {self.allocation_views}")
+        check(self.quality in QUALITY_LEVELS, f"{prefix}quality", self.quality,
+              f"one of {', '.join(map(str, QUALITY_LEVELS))}")
+        check(1 <= self.zstd_level <= 22, f"{prefix}zstd_level", self.zstd_level, "in 1..22")
+        check(self.position_bits == 0 or 2 <= self.position_bits <= 24, f"{prefix}position_bits", self.position_bits,
+              "0 or in 2..24")
+        check(self.allocation in ALLOCATION_MODES, f"{prefix}allocation", self.allocation,
+              f"one of {', '.join(ALLOCATION_MODES)}")
+        check(self.allocation_views >= 1, f"{prefix}allocation_views", self.allocation_views, ">= 1")
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ steps (60, 100, 140, 180) and the adaptive ratio controller sees the same number
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, get_args
 
 from .criteria import CRITERIA, criteria_help
 
@@ -24,7 +24,8 @@ CASE_WINDOWS: dict[int, tuple[float, float]] = {
     4: (6_000 / PAPER_ITERATIONS, 24_000 / PAPER_ITERATIONS),
 }
 
-METHODS = ("none", "st-knn")
+Method = Literal["none", "st-knn"]
+METHODS = get_args(Method)
 SMOOTHINGS = ("window_mean", "ema")
 
 
@@ -32,7 +33,7 @@ SMOOTHINGS = ("window_mean", "ema")
 class CompactionConfig:
     """Spatiotemporal KNN pruning during training with a rendering-loss-adaptive pruning ratio."""
 
-    method: Literal["none", "st-knn"] = field(
+    method: Method = field(
         default="st-knn", metadata={"help": "'none' trains without compaction; 'st-knn' prunes matched pairs"}
     )
     case: int = field(

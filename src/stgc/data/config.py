@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, ClassVar, Literal, get_args
 
 from stgc.run import Run
 
@@ -13,6 +13,13 @@ if TYPE_CHECKING:
     from .dataset import Dataset
     from .points import PointCloud
     from .preprocess import PreprocessReport
+
+
+# Enumerated options: each set is written once, as the field's type (the CLI's choices and validation follow it).
+InitSource = Literal["auto", "data", "triangulate", "random"]
+PreprocessMode = Literal["none", "stg-isolated", "closest-pairs"]
+Background = Literal["black", "white"]
+YuvRange = Literal["limited", "full"]
 
 
 @dataclass
@@ -30,7 +37,7 @@ class DataConfig:
                 "Technicolor, 0,10,15,30 Panoptic, v06,v08 MIV, transforms_test views Blender)"})
     fps: float | None = field(default=None, metadata={
         "help": "frame rate of the video; default: what the format states, else 30"})
-    init_source: str = field(default="auto", metadata={
+    init_source: InitSource = field(default="auto", metadata={
         "help": "initial points: auto (data points, else triangulation, else random), data, triangulate, random"})
     init_frames_every: int = field(default=1, metadata={
         "help": "take initial points from every k-th frame of the segment (1 = all frames, as STG)"})
@@ -46,18 +53,18 @@ class DataConfig:
     triangulation_cache: bool = field(default=True, metadata={
         "help": "keep triangulated points on disk ($STGC_CACHE_DIR or ~/.cache/stgc) keyed by cameras, images and "
                 "options, so a segment is triangulated once"})
-    preprocess: str = field(default="none", metadata={
+    preprocess: PreprocessMode = field(default="none", metadata={
         "help": "point reduction before training: none, stg-isolated (official STG code: keep the ~25 percent most "
                 "isolated points of every frame but the first), closest-pairs (paper: drop one point of each "
                 "of the closest fraction of nearest-neighbour pairs)"})
     preprocess_fraction: float = field(default=0.25, metadata={
         "help": "fraction used by the preprocess rule (0.25 in STG and the paper)"})
-    background: str = field(default="black", metadata={
+    background: Background = field(default="black", metadata={
         "help": "colour that transparent pixels of RGBA images are composited on: black or white"})
     near_plane: float | None = field(default=None, metadata={
         "help": "view depth at or below which Gaussians are culled, in scene units; default: the format's (1.0 "
                 "Panoptic, as Dynamic 3D Gaussians; 0.2 otherwise, as the official STG rasterizers)"})
-    yuv_range: str = field(default="limited", metadata={
+    yuv_range: YuvRange = field(default="limited", metadata={
         "help": "MIV YUV sample range: limited (video, 16-235 at 8 bits) or full"})
     image_cache_mb: int = field(default=2048, metadata={
         "help": "memory bound of the decoded-image cache in MiB (least recently used images are dropped)"})
@@ -70,8 +77,6 @@ class DataConfig:
     def validate(self, prefix: str = "") -> None:
         from stgc.config import check
 
-        from .points import SOURCES
-        from .preprocess import MODES
         from .readers import format_names, resolve_format
 
         check(self.format == "auto" or resolve_format(self.format) is not None, f"{prefix}format", self.format,
@@ -80,19 +85,21 @@ class DataConfig:
         check(self.start is None or self.start >= 0, f"{prefix}start", self.start, ">= 0")
         check(self.duration is None or self.duration >= 1, f"{prefix}duration", self.duration, ">= 1")
         check(self.fps is None or (math.isfinite(self.fps) and self.fps > 0), f"{prefix}fps", self.fps, "> 0")
-        check(self.init_source in SOURCES, f"{prefix}init_source", self.init_source, f"one of {', '.join(SOURCES)}")
+        sources = get_args(InitSource)
+        check(self.init_source in sources, f"{prefix}init_source", self.init_source, f"one of {', '.join(sources)}")
         check(self.init_frames_every >= 1, f"{prefix}init_frames_every", self.init_frames_every, ">= 1")
         check(self.max_points_per_frame is None or self.max_points_per_frame >= 1, f"{prefix}max_points_per_frame",
               self.max_points_per_frame, ">= 1, or none")
         check(self.mask_points_per_frame >= 0, f"{prefix}mask_points_per_frame", self.mask_points_per_frame, ">= 0")
         check(self.triangulation_upsample > 0, f"{prefix}triangulation_upsample", self.triangulation_upsample, "> 0")
         check(self.min_track_length >= 2, f"{prefix}min_track_length", self.min_track_length, ">= 2")
-        check(self.preprocess in MODES, f"{prefix}preprocess", self.preprocess, f"one of {', '.join(MODES)}")
+        modes = get_args(PreprocessMode)
+        check(self.preprocess in modes, f"{prefix}preprocess", self.preprocess, f"one of {', '.join(modes)}")
         check(0 < self.preprocess_fraction < 1, f"{prefix}preprocess_fraction", self.preprocess_fraction, "in (0, 1)")
         check(self.near_plane is None or (math.isfinite(self.near_plane) and self.near_plane > 0),
               f"{prefix}near_plane", self.near_plane, "a depth > 0, or none for the format's")
-        check(self.background in ("black", "white"), f"{prefix}background", self.background, "black or white")
-        check(self.yuv_range in ("limited", "full"), f"{prefix}yuv_range", self.yuv_range, "limited or full")
+        check(self.background in get_args(Background), f"{prefix}background", self.background, "black or white")
+        check(self.yuv_range in get_args(YuvRange), f"{prefix}yuv_range", self.yuv_range, "limited or full")
         check(self.image_cache_mb >= 0, f"{prefix}image_cache_mb", self.image_cache_mb, ">= 0")
 
     def open(self, path: str | Path) -> Dataset:

@@ -5,15 +5,17 @@ from __future__ import annotations
 import logging
 import warnings
 from dataclasses import dataclass
+from typing import get_args
 
 import numpy as np
 
 from ..errors import DataError
+from .config import InitSource
 from .dataset import Dataset
 
 log = logging.getLogger(__name__)
 
-SOURCES = ("auto", "data", "triangulate", "random")
+SOURCES = get_args(InitSource)
 
 
 @dataclass

@@ -22,13 +22,15 @@ later drops. So no selected pair ever loses both points, and at most one point p
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import get_args
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .config import PreprocessMode
 from .points import PointCloud
 
-MODES = ("none", "stg-isolated", "closest-pairs")
+MODES = get_args(PreprocessMode)
 
 
 @dataclass

@@ -18,13 +18,13 @@ The log base cancels out, so natural logs are used throughout.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 Method = Literal["pchip", "cubic"]
-METHODS: tuple[str, ...] = ("pchip", "cubic")
+METHODS: tuple[str, ...] = get_args(Method)
 
 
 class BDError(ValueError):

@@ -3,23 +3,24 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar, Literal
+from typing import ClassVar, Literal, get_args
 
-from stgc.model.layout import VARIANTS
+from stgc.model.layout import VARIANTS, Variant
 
-DECODER_ACTIVATIONS = ("sigmoid", "clamp", "none")
+DecoderActivation = Literal["sigmoid", "clamp", "none"]
+DECODER_ACTIVATIONS = get_args(DecoderActivation)
 
 
 @dataclass
 class ModelConfig:
-    variant: str = field(
+    variant: Variant = field(
         default="full",
         metadata={
             "help": "STG variant: 'full' (35 floats/Gaussian, 9-channel features + MLP decoder, the paper's model) "
             "or 'lite' (29 floats/Gaussian, RGB splatted directly)."
         },
     )
-    decoder_activation: str = field(
+    decoder_activation: DecoderActivation = field(
         default="sigmoid",
         metadata={
             "help": "Output activation of the full model's decoder: 'sigmoid' (official 'sandwich', N3DV), "

@@ -6,7 +6,10 @@ as zeros by the official code and never read; the paper's 152 bytes per Gaussian
 
 from __future__ import annotations
 
-VARIANTS = ("full", "lite")
+from typing import Literal, get_args
+
+Variant = Literal["full", "lite"]
+VARIANTS = get_args(Variant)
 
 
 def ply_fields(variant: str) -> list[str]:

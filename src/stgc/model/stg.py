@@ -27,9 +27,9 @@ from stgc import render as _render
 from stgc.data.cameras import DEFAULT_NEAR_PLANE, Camera
 from stgc.errors import DataError, FormatError
 from stgc.model import ply as _ply
-from stgc.model.config import ModelConfig
+from stgc.model.config import DecoderActivation, ModelConfig
 from stgc.model.decoder import SandwichDecoder, camera_rays
-from stgc.model.layout import NORMAL_FIELDS, VARIANTS, ply_fields
+from stgc.model.layout import NORMAL_FIELDS, VARIANTS, Variant, ply_fields
 from stgc.model.optim import replace_group_param
 from stgc.run import Run
 
@@ -187,11 +187,11 @@ class STGModel:
     def from_points(
         cls,
         cloud: Any,
-        variant: str = "full",
+        variant: Variant = "full",
         scene_extent: float = 1.0,
         trbf_scale_init: float = 0.0,
         *,
-        decoder_activation: str = "sigmoid",
+        decoder_activation: DecoderActivation = "sigmoid",
         opacity_init: float = 0.1,
         init_neighbours: int = 3,
         decoder_seed: int = 0,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import numbers
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 import torch
@@ -12,7 +13,8 @@ from torch import Tensor
 
 from .projection import ALPHA_MIN, project_gaussians, sigma_cutoff, tile_rects
 
-BACKENDS = ("auto", "numba", "torch", "gsplat")
+Backend = Literal["auto", "numba", "torch", "gsplat"]
+BACKENDS = get_args(Backend)
 # Front-to-back compositing stops before a Gaussian that would take the transmittance to <= T_MIN (exclusive).
 T_MIN = 1e-4
 

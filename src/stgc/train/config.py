@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
 from stgc.config import check
-from stgc.render.api import BACKENDS
+from stgc.render.api import BACKENDS, Backend
 
 
 @dataclass(frozen=True)
@@ -196,7 +196,7 @@ class TrainConfig:
                           "seg/), normalised by their number, so that small moving subjects count as much as their "
                           "share of the error and not only of the image; 0 = off"},
     )
-    backend: str = field(default="auto", metadata={"help": "rasterizer backend passed to stgc.render"})
+    backend: Backend = field(default="auto", metadata={"help": "rasterizer backend passed to stgc.render"})
     threads: int = field(default=0, metadata={"help": "torch threads (0 = leave as is)"})
     lr: LearningRates = field(default_factory=LearningRates)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
