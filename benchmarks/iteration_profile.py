@@ -26,7 +26,7 @@ from torch.profiler import ProfilerActivity, profile, record_function
 
 import stgc.render.api as render_api
 import stgc.render.numba_backend as numba_backend
-from stgc.cli import default_configs
+from stgc.options import default_configs
 from stgc.config import apply_overrides, parse_set_arguments
 from stgc.model import STGModel
 from stgc.model.decoder import SandwichDecoder

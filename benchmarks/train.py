@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from stgc.cli import PRESET_DATA_OVERRIDES
+from stgc.options import PRESET_DATA_OVERRIDES
 from stgc.config import apply_overrides, parse_set_arguments
 from stgc.data import DataConfig
 from stgc.eval import RunEvaluator

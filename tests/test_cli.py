@@ -6,7 +6,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from stgc.cli import build_parser, default_configs, main, resolve_configs
+from stgc.cli import build_parser, main
+from stgc.options import default_configs, resolve_configs
 from stgc.config import iter_fields
 
 VERBS = ["train", "eval", "render", "compress", "decompress", "plot", "experiment", "report", "demo"]
@@ -64,7 +65,7 @@ def test_resume_refuses_options_that_would_be_ignored(tmp_path, capsys):
 
 
 def test_experiment_passes_preprocess_and_bd_method_to_run_plan(monkeypatch, tmp_path):
-    import stgc.experiment
+    import stgc.cli
 
     seen = {}
 
@@ -72,7 +73,7 @@ def test_experiment_passes_preprocess_and_bd_method_to_run_plan(monkeypatch, tmp
         seen.update(kwargs, data=data, plan=plan)
         return SimpleNamespace(failed=[], outcomes=["r"])
 
-    monkeypatch.setattr(stgc.experiment, "run_plan", fake_run_plan)
+    monkeypatch.setattr(stgc.cli, "run_plan", fake_run_plan)
     assert main(["experiment", "scene", "--plan", "table2", "--out", str(tmp_path), "--preprocess", "closest-pairs",
                  "--bd-method", "cubic", "--codec-quality", "3"]) == 0
     assert seen["preprocess"] == "closest-pairs" and seen["bd_method"] == "cubic"

@@ -16,7 +16,7 @@ LAYERS = [
     {"model"},
     {"train", "compaction", "codec"},
     {"eval"},
-    {"experiment", "demo", "cli", "viewer", "__init__", "__main__"},
+    {"experiment", "demo", "cli", "viewer", "options", "__init__", "__main__"},
 ]
 LEVEL = {name: i for i, names in enumerate(LAYERS) for name in names}
 
@@ -64,3 +64,30 @@ def test_no_module_imports_from_a_higher_layer():
             if LEVEL[package] > own:
                 upward.add((str(path.relative_to(SRC)), package))
     assert upward == KNOWN_UPWARD, f"new: {sorted(upward - KNOWN_UPWARD)}, gone: {sorted(KNOWN_UPWARD - upward)}"
+
+
+# Imported inside functions on purpose: optional extras (gsplat, viser, lpips, tensorboard, pycolmap) that may be
+# missing, and matplotlib, whose backend must be chosen before pyplot loads.
+OPTIONAL_DEPENDENCIES = {"gsplat", "viser", "lpips", "tensorboard", "torch.utils.tensorboard", "pycolmap", "matplotlib"}
+
+
+def test_function_level_imports_are_only_for_optional_dependencies():
+    """Everything else is imported at the top of its module, where a cycle fails at import time instead of hiding
+    in a function until some verb happens to call it."""
+    found = []
+    for path in sorted(SRC.rglob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for function in ast.walk(tree):
+            if not isinstance(function, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(function):
+                if isinstance(node, ast.Import):
+                    names = [a.name for a in node.names]
+                elif isinstance(node, ast.ImportFrom):
+                    names = ["." * node.level + (node.module or "")]
+                else:
+                    continue
+                for name in names:
+                    if not any(name == dep or name.startswith(dep + ".") for dep in OPTIONAL_DEPENDENCIES):
+                        found.append(f"{path.relative_to(SRC)}:{node.lineno}: {name}")
+    assert found == [], found

@@ -105,9 +105,9 @@ def test_compress_takes_the_readmes_set_option(trained_run, tmp_path):
 
 
 def test_experiment_exits_non_zero_when_a_run_failed(monkeypatch, tmp_path, capsys):
-    import stgc.experiment
+    import stgc.cli
 
-    monkeypatch.setattr(stgc.experiment, "run_plan",
+    monkeypatch.setattr(stgc.cli, "run_plan",
                         lambda *a, **k: SimpleNamespace(failed=["a", "b"], outcomes=["a", "b"]))
     assert main(["experiment", "scene", "--plan", "table2", "--out", str(tmp_path)]) == 1
     assert "2 of 2 runs failed" in capsys.readouterr().err
@@ -121,7 +121,7 @@ def test_out_whose_parent_is_a_file_is_a_clear_error(scene, tmp_path, capsys):
 
 
 def test_iterations_are_real_iterations_and_the_help_shows_the_presets(capsys):
-    from stgc.cli import resolve_configs
+    from stgc.options import resolve_configs
     from stgc.train.config import resolve_schedule
 
     configs = resolve_configs("cpu", {}, {"train": {"iterations": "300"}}, {})
@@ -138,7 +138,7 @@ def test_iterations_are_real_iterations_and_the_help_shows_the_presets(capsys):
 def test_a_run_saved_with_iterations_in_schedule_units_resumes_with_its_real_count(trained_run, tmp_path):
     import shutil
 
-    from stgc.cli import configs_from_run
+    from stgc.options import configs_from_run
 
     run = tmp_path / "old"
     shutil.copytree(trained_run, run)
@@ -198,7 +198,7 @@ def test_a_run_config_with_an_unknown_data_key_is_an_error_naming_the_file(train
 def test_a_run_saved_before_the_real_capture_options_resumes_as_it_trained(trained_run, tmp_path):
     import shutil
 
-    from stgc.cli import configs_from_run
+    from stgc.options import configs_from_run
 
     run = tmp_path / "old"
     shutil.copytree(trained_run, run)

@@ -8,106 +8,51 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import sys
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from stgc import __version__
+from stgc.codec import CodecConfig, compress_run, decompress
+from stgc.compaction import plot_compaction
+from stgc.compaction.config import CASE_WINDOWS, METHODS
+from stgc.compaction.criteria import CRITERIA
 from stgc.config import (
     add_config_arguments,
     apply_overrides,
     collect_overrides,
-    from_saved,
     parse_set_arguments,
     split_sections,
     validate_config,
 )
+from stgc.data import inspect_text
+from stgc.data.preprocess import MODES as PREPROCESS_MODES
+from stgc.demo import run_demo
 from stgc.errors import StgcError
+from stgc.eval import RunEvaluator, evaluate_run, format_eval_table
+from stgc.eval.bjontegaard import METHODS as BD_METHODS
+from stgc.eval.evaluate import write_video_eval
+from stgc.eval.export import EXPORT_FORMATS, export_ply_frames, export_splatv
+from stgc.eval.report import report_from_runs
+from stgc.eval.video import contact_sheet, load_model_and_dataset, render_still, render_video
+from stgc.experiment import run_plan
+from stgc.model.layout import VARIANTS
+from stgc.options import configs_from_run, default_configs, resolve_configs
 from stgc.run import Run
-
+from stgc.train import train
+from stgc.train.config import PRESETS
+from stgc.train.video import train_video
+from stgc.viewer import serve
 
 # --------------------------------------------------------------------------------------------- config sections
-def _section_classes() -> dict[str, type]:
-    """The config dataclass of each section, imported lazily so `stgc --help` stays fast."""
-    from stgc.compaction import CompactionConfig
-    from stgc.data import DataConfig
-    from stgc.model import ModelConfig
-    from stgc.train.config import TrainConfig
-
-    return {"data": DataConfig, "model": ModelConfig, "train": TrainConfig, "compaction": CompactionConfig}
-
-
 SECTION_TITLES = {
     "data": "data options (stgc.data.DataConfig)",
     "model": "model options (stgc.model.ModelConfig)",
     "train": "training options (stgc.train.TrainConfig; defaults shown are the preset's)",
     "compaction": "compaction options (stgc.compaction.CompactionConfig)",
 }
-
-
-# What a preset sets outside the training schedule. The cpu preset bounds the initial cloud (points from every
-# 3rd frame, at most 3,000 per frame: 30k for a 30-frame segment, 51k for a 50-frame one), because dense
-# per-frame clouds (e.g. 14k points x 30 frames) would start a 2-core run with hundreds of thousands of Gaussians.
-PRESET_DATA_OVERRIDES: dict[str, dict[str, str]] = {
-    "cpu": {"init_frames_every": "3", "max_points_per_frame": "3000"},
-    "paper": {},
-}
-
-
-def default_configs(preset: str = "cpu") -> dict[str, Any]:
-    """Config objects of a `stgc train` run before any option: the preset, and no compaction."""
-    from stgc.train.config import train_preset
-
-    classes = _section_classes()
-    configs = {name: cls() for name, cls in classes.items()}
-    configs["train"] = train_preset(preset)
-    configs["data"] = apply_overrides(configs["data"], PRESET_DATA_OVERRIDES.get(preset, {}), "data")
-    configs["compaction"] = replace(configs["compaction"], method="none")
-    return configs
-
-
-def resolve_configs(
-    preset: str,
-    shortcuts: dict[str, dict[str, Any]],
-    options: dict[str, dict[str, str]],
-    sets: dict[str, str],
-) -> dict[str, Any]:
-    """preset < shortcut flags < --section.field options < --set overrides."""
-    configs = default_configs(preset)
-    for layer in (shortcuts, options, split_sections(sets, set(configs))):
-        for section, overrides in layer.items():
-            configs[section] = apply_overrides(configs[section], overrides, section)
-    for section, cfg in configs.items():
-        validate_config(cfg, section)
-    return configs
-
-
-def configs_from_run(run_dir: Path) -> dict[str, Any]:
-    """The configs a run was started with (RUN/config.json)."""
-    run = Run(run_dir)
-    path = run.config_path
-    saved = run.read_config()
-    if saved is None:
-        raise StgcError(f"{path}: not found; is {run_dir} a stgc run directory?")
-    from stgc.data.config import data_config_from_saved
-
-    classes = _section_classes()
-    out: dict[str, Any] = {}
-    for name, cls in classes.items():
-        section = dict(saved.get(name) or {})
-        if name == "data":
-            out[name], _ = data_config_from_saved(section, path)
-            continue
-        section.pop("path", None)
-        resolved = section.pop("resolved_schedule", None)
-        if name == "train" and isinstance(resolved, dict) and "iterations" in resolved:
-            # Runs saved before `iterations` meant real iterations stored it in schedule units; the resolved
-            # schedule always held the real number.
-            section["iterations"] = resolved["iterations"]
-        out[name] = validate_config(from_saved(cls, section), name)
-    out["data_path"] = (saved.get("data") or {}).get("path")
-    return out
 
 
 def _resumed_data_path(run: Path, given: str | None, saved: str | None) -> str | None:
@@ -123,8 +68,6 @@ def _resumed_data_path(run: Path, given: str | None, saved: str | None) -> str |
 
 # --------------------------------------------------------------------------------------------- verbs
 def cmd_train(args: argparse.Namespace) -> int:
-    from stgc.eval import RunEvaluator
-    from stgc.train import train
 
     out = Path(args.out)
     if args.resume and Run(out).has_config():
@@ -152,8 +95,6 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.resume and args.overwrite:
         raise StgcError("--resume continues a run and --overwrite replaces it: give one of them")
     if args.segment_frames is not None or (args.resume and Run(out).is_video()):
-        from stgc.eval.evaluate import format_eval_table, write_video_eval
-        from stgc.train.video import train_video
 
         train_video(data_path, configs, out, args.segment_frames, resume=args.resume, overwrite=args.overwrite,
                     evaluator=RunEvaluator())
@@ -171,13 +112,11 @@ def cmd_train(args: argparse.Namespace) -> int:
     print(f"run written to {out}")
     record = Run(out).read_eval()
     if record is not None:
-        from stgc.eval import format_eval_table
         print(format_eval_table(record))
     return 0
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from stgc.eval import evaluate_run, format_eval_table
 
     record = evaluate_run(args.target, data_path=args.data, measure_fps=not args.no_fps)
     if args.json:
@@ -188,13 +127,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from stgc.eval.video import render_still, render_video
 
     out = Path(args.out)
     if args.contact_sheet:
         if out.suffix.lower() != ".png" or args.orbit or args.time is not None:
             raise StgcError(f"{out}: a contact sheet is a .png of test cameras at --frames (not --orbit/--time)")
-        from stgc.eval.video import contact_sheet, load_model_and_dataset
 
         model, dataset = load_model_and_dataset(args.run)
         frames = args.frames or f"{min(dataset.frames)},{max(dataset.frames)}"
@@ -202,7 +139,6 @@ def cmd_render(args: argparse.Namespace) -> int:
     elif out.suffix.lower() == ".png":
         if args.orbit or args.frames:
             raise StgcError(f"{out}: a .png is one still; use .mp4 for --orbit or --frames")
-        from stgc.eval.video import load_model_and_dataset
 
         model, dataset = load_model_and_dataset(args.run)
         camera = args.camera or dataset.test[0].name
@@ -216,7 +152,6 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from stgc.eval.export import export_ply_frames, export_splatv
 
     if args.format == "splatv":
         if args.frames:
@@ -229,7 +164,6 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from stgc.viewer import serve
 
     if not 0 < args.port < 65536:
         raise StgcError(f"--port {args.port}: a TCP port is 1..65535")
@@ -240,7 +174,6 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 def cmd_compress(args: argparse.Namespace) -> int:
-    from stgc.codec import CodecConfig, compress_run
 
     overrides = collect_overrides(args).get("codec", {})
     if args.quality is not None:
@@ -253,7 +186,6 @@ def cmd_compress(args: argparse.Namespace) -> int:
 
 
 def cmd_decompress(args: argparse.Namespace) -> int:
-    from stgc.codec import decompress
 
     path = decompress(args.file, args.out, overwrite=args.overwrite)
     print(f"decoded model written to {path}")
@@ -261,14 +193,12 @@ def cmd_decompress(args: argparse.Namespace) -> int:
 
 
 def cmd_data_inspect(args: argparse.Namespace) -> int:
-    from stgc.data import inspect_text
 
     print(inspect_text(args.path, format=args.format, decode=args.decode))
     return 0
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from stgc.compaction import plot_compaction
 
     run = Path(args.run)
     out = Path(args.out) if args.out else run / "compaction.png"
@@ -278,7 +208,6 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-    from stgc.experiment import run_plan
 
     result = run_plan(
         args.data, args.plan, args.out, preset=args.preset, extra_overrides=args.set or [],
@@ -292,7 +221,6 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from stgc.eval.report import report_from_runs
 
     result = report_from_runs(args.runs, args.out, baseline=args.baseline)
     print(result)
@@ -300,7 +228,6 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from stgc.demo import run_demo
 
     return run_demo(Path(args.out), Path(args.data) if args.data else None)
 
@@ -316,10 +243,6 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("data", nargs="?", help="dataset directory (any supported layout; see `stgc data inspect`)")
     p.add_argument("--out", required=True, help="run directory to write (or to resume)")
-    from stgc.compaction.config import CASE_WINDOWS, METHODS
-    from stgc.compaction.criteria import CRITERIA
-    from stgc.model.layout import VARIANTS
-    from stgc.train.config import PRESETS
 
     p.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="training schedule preset")
     p.add_argument("--variant", choices=list(VARIANTS), help="STG variant (shortcut for --model.variant)")
@@ -347,7 +270,6 @@ def build_parser() -> argparse.ArgumentParser:
         prog="stgc",
         description="Spacetime Gaussians with spatiotemporal KNN compaction: train, compact, evaluate, compress, report.",
     )
-    from stgc import __version__
 
     parser.add_argument("--version", action="version", version=f"stgc {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more detail (DEBUG messages)")
@@ -376,7 +298,6 @@ def build_parser() -> argparse.ArgumentParser:
                         "|error| x4 (default frames: the first and the last)")
     p.set_defaults(func=cmd_render)
 
-    from stgc.eval.export import EXPORT_FORMATS
 
     p = sub.add_parser("export", help="write a run or .stgc file for other tools (one static 3DGS PLY per frame)")
     p.add_argument("source", help="run directory or .stgc file")
@@ -401,7 +322,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quality", type=int, help="quality level 1..5 (shortcut for --codec.quality)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a codec option, e.g. "
                    "codec.allocation=ladder")
-    from stgc.codec import CodecConfig
 
     add_config_arguments(p, "codec", CodecConfig, "codec options (stgc.codec.CodecConfig)")
     p.set_defaults(func=cmd_compress)
@@ -430,13 +350,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", help="dataset directory")
     p.add_argument("--plan", required=True, help="table2 | table3 | PLAN.toml")
     p.add_argument("--out", required=True, help="experiment directory (resumable)")
-    from stgc.train.config import PRESETS
 
     p.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="training preset of every run")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override applied to every run")
     p.add_argument("--codec-quality", type=int, action="append", help="also add .stgc rate points at this quality")
-    from stgc.data.preprocess import MODES as PREPROCESS_MODES
-    from stgc.eval.bjontegaard import METHODS as BD_METHODS
 
     p.add_argument("--preprocess", choices=[m for m in PREPROCESS_MODES if m != "none"],
                    help="point preprocessing of the built-in plans' preprocessed runs (default stg-isolated, what "
@@ -461,7 +378,6 @@ def build_parser() -> argparse.ArgumentParser:
 def configure_logging(verbosity: int) -> None:
     """stgc's messages go to stderr through `logging` ("stgc: message"): warnings always, what each stage did
     (INFO) by default, its details with -v; -q leaves only errors. Python warnings are routed to the same place."""
-    import logging
 
     level = {-1: logging.ERROR, 0: logging.INFO}.get(max(-1, min(verbosity, 1)), logging.DEBUG)
     handler = logging.StreamHandler(sys.stderr)

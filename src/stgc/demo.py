@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING
 
 from stgc.codec import DEFAULT_QUALITY
 from stgc.errors import StgcError
+from stgc.eval.video import render_video
+from stgc.experiment import Plan, RunSpec, run_plan
 
 if TYPE_CHECKING:
     from stgc.experiment import Plan
@@ -38,7 +40,6 @@ DEMO_OVERRIDES = {
 
 
 def demo_plan() -> Plan:
-    from stgc.experiment import Plan, RunSpec
 
     return Plan(
         name="demo",
@@ -89,8 +90,6 @@ def _fmt(record: dict | None, key: str, spec: str) -> str:
 
 
 def run_demo(out_dir: Path, data: Path | None = None) -> int:
-    from stgc.eval.video import render_video
-    from stgc.experiment import run_plan
 
     data = Path(data) if data is not None else DEMO_SCENE
     if not data.is_dir():

@@ -95,8 +95,8 @@ def test_train_command_layout() -> None:
 
 def test_the_resume_command_is_accepted_by_the_cli(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The runner's resume command must pass the CLI's own checks (a resumed run refuses overrides)."""
+    import stgc.cli
     import stgc.data
-    import stgc.train
     from stgc.cli import main
 
     run = tmp_path / "r"
@@ -105,7 +105,7 @@ def test_the_resume_command_is_accepted_by_the_cli(tmp_path: Path, monkeypatch: 
     calls = []
     monkeypatch.setattr(stgc.data.DataConfig, "open", lambda self, path: SimpleNamespace(
         path=path, train=[], verify_images=lambda cameras, progress=False: 0))
-    monkeypatch.setattr(stgc.train, "train", lambda *a, **k: calls.append((a, k)))
+    monkeypatch.setattr(stgc.cli, "train", lambda *a, **k: calls.append((a, k)))
     cmd = build_train_command("DATA", run, "cpu", {"compaction.case": "3"}, resume=True, python="py")
     assert main(cmd[3:]) == 0
     (args, kwargs), = calls
@@ -197,7 +197,7 @@ def test_dry_run_launches_nothing(tmp_path: Path) -> None:
 @pytest.mark.parametrize("plan_name", ["table2", "table3", "demo"])
 def test_plan_overrides_are_real_config_keys(plan_name: str) -> None:
     """Every override of the built-in plans names a field the trainer's configs have, with a valid value."""
-    from stgc.cli import resolve_configs
+    from stgc.options import resolve_configs
     from stgc.data.preprocess import MODES
     from stgc.demo import DEMO_SCENE, demo_plan
 

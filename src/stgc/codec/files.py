@@ -7,33 +7,34 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, get_args
 
+import numpy as np
+import torch
+from tqdm import tqdm
+
 from stgc.config import check
-from stgc.errors import DataError, FormatError
-from stgc.fileio import atomic_path
 from stgc.data.cameras import Camera
 from stgc.data.config import open_run_dataset
 from stgc.data.dataset import Dataset
+from stgc.errors import DataError, FormatError
+from stgc.fileio import atomic_path
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel
 from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
+from stgc.model.ply import resolve_ply_path
 from stgc.run import Run, iteration_of
+from stgc.train.colour import COLOUR_CORRECTION_NAME, saved_corrections
 
 from .allocation import Allocation, budget_db, optimise_allocation
 from .format import (
     DEFAULT_QUALITY,
     DEFAULT_ZSTD_LEVEL,
-    MAX_GAUSSIANS,
     QUALITY_LEVELS,
     DecodedModel,
     StgcHeader,
     decode,
     encode,
+    read_capped,
     read_header,
 )
-
-# A generous ceiling on what we read from disk before parsing: a valid file never approaches it
-# (MAX_GAUSSIANS float32 PLY rows of the full variant, before compression).
-_MAX_FILE_BYTES = MAX_GAUSSIANS * ply_bytes_per_gaussian("full")
-
 
 AllocationMode = Literal["auto", "optimised", "ladder"]
 ALLOCATION_MODES = get_args(AllocationMode)
@@ -146,25 +147,14 @@ def write_stgc(path: str | Path, data: bytes) -> Path:
     return path
 
 
-def _read_bytes(path: str | os.PathLike) -> bytes:
-    path = Path(path)
-    try:
-        size = path.stat().st_size
-    except OSError as exc:
-        raise DataError(path, f"cannot read .stgc file ({exc.strerror})") from None
-    if size > _MAX_FILE_BYTES:
-        raise FormatError(path, f"{size} bytes is larger than any valid .stgc file")
-    return path.read_bytes()
-
-
 def read_stgc(path: str | os.PathLike) -> DecodedModel:
     """Decode a .stgc file; any defect raises FormatError naming the file."""
-    return decode(_read_bytes(path), source=str(path))
+    return decode(read_capped(path), source=str(path))
 
 
 def read_stgc_header(path: str | Path) -> StgcHeader:
     """Header and section table only (sizes per section, counts); payloads are not decompressed."""
-    return read_header(_read_bytes(path), source=str(path))
+    return read_header(read_capped(path), source=str(path))
 
 
 def stgc_file_bytes(path: str | Path) -> int:
@@ -236,8 +226,6 @@ def _training_dataset(run_dir: Path | None, source: Path, required: bool) -> Any
 
 def _corrections_of(source: Path) -> dict:
     """The training cameras' colour correction saved beside the model (empty when it was trained without)."""
-    from stgc.model.ply import resolve_ply_path
-    from stgc.train.colour import COLOUR_CORRECTION_NAME, saved_corrections
 
     return saved_corrections(resolve_ply_path(source).parent / COLOUR_CORRECTION_NAME)
 
@@ -246,9 +234,6 @@ def _optimise(model: STGModel, arrays: dict, dataset: Dataset, config: CodecConf
     """The rd-optimised allocation measured on training views, each rendered as training saw it: with its camera's
     colour correction (on a real rig a raw render of a training camera is off by that camera's tint, which would
     hide part of the quantization error and loosen the budget)."""
-    import numpy as np
-    import torch
-    from tqdm import tqdm
 
 
     train = list(dataset.train)

@@ -17,6 +17,7 @@ import struct
 import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,7 @@ import zstandard
 
 from stgc.errors import DataError, FormatError
 from stgc.model.layout import NORMAL_FIELDS, VARIANTS, ply_fields
+from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
 
 from .quantize import (
     MAX_BITS,
@@ -58,6 +60,21 @@ _PROBE_LEVEL = 3  # zstd level used only to rank candidate layouts
 _GUARD_RATIO = 4.0  # full range / central 99.8 % range above which the outlier guard adds bits
 # Decoder-side caps: a file may not make us allocate more than this, whatever it claims.
 MAX_GAUSSIANS = 1 << 27
+# No valid file is larger than its model uncompressed (MAX_GAUSSIANS float32 PLY rows of the full variant): a larger
+# one is refused before it is read into memory.
+MAX_FILE_BYTES = MAX_GAUSSIANS * ply_bytes_per_gaussian("full")
+
+
+def read_capped(path: str | os.PathLike) -> bytes:
+    """The bytes of a .stgc file, refused unread when it is larger than any valid one."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise DataError(path, f"cannot read .stgc file ({exc.strerror})") from None
+    if size > MAX_FILE_BYTES:
+        raise FormatError(path, f"{size} bytes is larger than any valid .stgc file")
+    return path.read_bytes()
 MAX_SECTIONS = 64
 MAX_DECODER_BYTES = 64 << 20
 MAX_META_BYTES = 1 << 20
@@ -703,10 +720,7 @@ def decode(data: bytes | str | os.PathLike, source: str | None = None) -> Decode
 
     To get a renderable `stgc.model.STGModel`, use `stgc.codec.load_model(path)`."""
     if isinstance(data, (str, os.PathLike)):
-        # The file reader applies the on-disk size cap, then comes back here.
-        from .files import read_stgc
-
-        return read_stgc(data)
+        return decode(read_capped(data), source=str(data))
     data = bytes(data)
     header = read_header(data, source)
     n, variant = header.num_gaussians, header.variant

@@ -2,22 +2,22 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, ClassVar, Literal, get_args
+from typing import ClassVar, Literal, get_args
 
+from stgc.config import ConfigError, check, from_saved, validate_config
+from stgc.errors import DataError, FormatError
 from stgc.run import Run
 
-if TYPE_CHECKING:
-    from .dataset import Dataset
-    from .points import PointCloud
-    from .preprocess import PreprocessReport
-
+from .dataset import Dataset
+from .points import InitSource, PointCloud, initial_points, thin_like
+from .preprocess import PreprocessMode, PreprocessReport, preprocess_points
+from .readers import format_names, open_dataset, resolve_format
 
 # Enumerated options: each set is written once, as the field's type (the CLI's choices and validation follow it).
-InitSource = Literal["auto", "data", "triangulate", "random"]
-PreprocessMode = Literal["none", "stg-isolated", "closest-pairs"]
 Background = Literal["black", "white"]
 YuvRange = Literal["limited", "full"]
 
@@ -75,9 +75,7 @@ class DataConfig:
     SAVED_BEFORE: ClassVar[dict] = {"near_plane": 0.2, "mask_points_per_frame": 0}
 
     def validate(self, prefix: str = "") -> None:
-        from stgc.config import check
 
-        from .readers import format_names, resolve_format
 
         check(self.format == "auto" or resolve_format(self.format) is not None, f"{prefix}format", self.format,
               f"auto or one of {', '.join(format_names())}")
@@ -104,7 +102,6 @@ class DataConfig:
 
     def open(self, path: str | Path) -> Dataset:
         """Open `path` with these options."""
-        from .readers import open_dataset
 
         return open_dataset(path, format=self.format, downscale=self.downscale, start=self.start,
                             duration=self.duration, test_cameras=self.test_cameras, fps=self.fps,
@@ -124,8 +121,6 @@ class DataConfig:
         the rule kept by the factor the cap would have applied to the raw frame, min(1, cap / raw count). So a
         capped run keeps the rule's selection and its reduction ratio, at the capped scale. (Capping first would make
         the rule pick points isolated by the sampling, not by the scene.)"""
-        from .points import initial_points, thin_like
-        from .preprocess import preprocess_points
 
         frames = dataset.frames[:: max(1, self.init_frames_every)]
         kwargs = {} if self.max_points_per_frame is None else {"random_points_per_frame": self.max_points_per_frame}
@@ -142,8 +137,6 @@ class DataConfig:
 def data_config_from_saved(section: dict, source: str | Path | None) -> tuple[DataConfig, str | None]:
     """(DataConfig, dataset path) from the `data` section a run saved (RUN/config.json, or the copy a .stgc file
     embeds), read strictly: an unknown or ill-typed key is a FormatError naming `source`, never dropped."""
-    from stgc.config import ConfigError, from_saved, validate_config
-    from stgc.errors import FormatError
 
     if not isinstance(section, dict):
         raise FormatError(source, "the run config's 'data' section is not an object")
@@ -165,7 +158,6 @@ def saved_run_data(run_dir: str | Path) -> tuple[DataConfig, str | None] | None:
 def open_run_dataset(run_dir: str | Path, data_path: str | Path | None = None) -> Dataset:
     """The dataset the run in `run_dir` trained on, opened with its own saved data options (RUN/config.json);
     `data_path` replaces the saved location (the same data moved, or other data)."""
-    from stgc.errors import DataError
 
     config_path = Run(run_dir).config_path
     saved = saved_run_data(run_dir)
@@ -184,7 +176,6 @@ def initial_points_from_config(dataset: Dataset, cfg: DataConfig | None = None) 
     """The trainer's entry point: initial points of `dataset` as `cfg` asks, after preprocessing (PointCloud).
 
     The per-frame counts before/after preprocessing are logged at INFO level."""
-    import logging
 
     cloud, report = (cfg or DataConfig()).initial_points(dataset)
     logging.getLogger(__name__).info("initial points: %d -> %d after preprocess %r -> %d after the per-frame cap",

@@ -12,12 +12,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import imageio_ffmpeg
 import numpy as np
+from tqdm import tqdm
 
 from ..errors import DataError
 from .cameras import DEFAULT_NEAR_PLANE, Camera, ImageSource
 from .images import ImageCache, image_size, read_image, resize_image
 from .masks import read_mask
+from .yuv import read_frame
 
 DEFAULT_FPS = 30.0
 DEFAULT_CACHE_BYTES = 2 << 30
@@ -46,15 +49,12 @@ class YuvFrame:
     color_range: str = "limited"
 
     def __call__(self) -> np.ndarray:
-        from .yuv import read_frame
 
         return read_frame(self.path, self.width, self.height, self.index, self.bit_depth, self.color_range)
 
 
 def decode_video(path: Path, indices: list[int]) -> dict[int, np.ndarray]:
     """Decode the frames `indices` of a video in one sequential pass (uint8 RGB)."""
-    import imageio_ffmpeg
-
     wanted = set(indices)
     last = max(wanted)
     out: dict[int, np.ndarray] = {}
@@ -213,7 +213,6 @@ class Dataset:
         their decoder. Returns how many files were decoded."""
         cams = [c for c in (self.cameras if cameras is None else cameras) if isinstance(c.image, (str, Path))]
         if progress:
-            from tqdm import tqdm
 
             cams = tqdm(cams, desc="checking images", unit="image", leave=False)
         count = 0

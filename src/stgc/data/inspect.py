@@ -6,6 +6,9 @@ import io
 from pathlib import Path
 from typing import Any
 
+from rich.console import Console
+from rich.table import Table
+
 from .readers import open_dataset
 
 
@@ -39,8 +42,6 @@ def _bytes(n: int) -> str:
 
 def inspect_text(path: str | Path, **kwargs: Any) -> str:
     """The `inspect` summary rendered as a plain-text table (no terminal colours)."""
-    from rich.console import Console
-    from rich.table import Table
 
     info = inspect(path, **kwargs)
     table = Table(title=f"{info['name']} ({info['format']})", show_header=False)

@@ -5,16 +5,18 @@ from __future__ import annotations
 import logging
 import warnings
 from dataclasses import dataclass
-from typing import get_args
+from typing import Literal, get_args
 
 import numpy as np
 
 from ..errors import DataError
-from .config import InitSource
 from .dataset import Dataset
+from .masks import hull_colours, visual_hull
+from .triangulate import triangulate_frame
 
 log = logging.getLogger(__name__)
 
+InitSource = Literal["auto", "data", "triangulate", "random"]
 SOURCES = get_args(InitSource)
 
 
@@ -131,7 +133,6 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
                 continue  # e.g. a static cloud given for the first frame only
             xyz, rgb = got
         elif source == "triangulate":
-            from .triangulate import triangulate_frame
 
             result = triangulate_frame(dataset, frame, upsample=triangulation_upsample,
                                        min_track_length=min_track_length, use_cache=triangulation_cache)
@@ -158,7 +159,6 @@ def mask_hull_points(dataset: Dataset, frame: int, count: int, rng: np.random.Ge
     """Up to `count` voxel centres of the visual hull of the training views' masks at `frame` (a cube of side twice
     the viewing radius around the viewing region, `resolution` voxels a side), coloured from the foreground pixels
     they project to; each jittered uniformly within its voxel. Views without a mask are left out."""
-    from .masks import hull_colours, visual_hull
 
     cameras, masks = [], []
     for cam in dataset.train_at(frame):

@@ -22,14 +22,14 @@ later drops. So no selected pair ever loses both points, and at most one point p
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import get_args
+from typing import Literal, get_args
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .config import PreprocessMode
 from .points import PointCloud
 
+PreprocessMode = Literal["none", "stg-isolated", "closest-pairs"]
 MODES = get_args(PreprocessMode)
 
 

@@ -9,14 +9,15 @@ mismatches on repetitive texture). pycolmap is optional: importing this module d
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import os
 import tempfile
 import time
-from typing import Any
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image
@@ -25,6 +26,7 @@ from ..errors import DataError
 from ..fileio import atomic_path
 from .cameras import Camera
 from .dataset import Dataset
+from .readers import open_dataset
 
 
 @dataclass
@@ -213,9 +215,7 @@ def _safe(name: str) -> str:
 def main(argv: list[str] | None = None) -> int:
     """`python -m stgc.data.triangulate DATA`: triangulate every frame of a segment, print a per-frame table
     (or JSON rows with --json). Measures what source='triangulate' gives before a training run."""
-    import argparse
 
-    from .readers import open_dataset
 
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument("data", help="dataset path (any supported layout)")

@@ -22,9 +22,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
-from stgc.errors import DataError, FormatError
 from stgc import run as run_layout
+from stgc.errors import DataError, FormatError
 from stgc.model import STGModel
 from stgc.model.layout import bytes_per_gaussian, ply_fields
 
@@ -242,7 +243,6 @@ def size_of_saved_model(path: str | Path, duration_s: float) -> ModelSize:
     floats = 0
     files = [ply]
     if decoder_file.is_file():
-        import torch  # only needed for full models
 
         try:
             state = torch.load(decoder_file, map_location="cpu", weights_only=True)

@@ -17,8 +17,13 @@ from typing import Any
 
 import numpy as np
 import torch
+from rich.console import Console
+from rich.table import Table
 
+from stgc.codec import load_model, read_stgc
 from stgc.data.cameras import Camera
+from stgc.data.config import data_config_from_saved, saved_run_data
+from stgc.data.config import open_run_dataset as open_saved_run_dataset
 from stgc.data.dataset import Dataset
 from stgc.errors import DataError
 from stgc.eval.accounting import (
@@ -244,8 +249,6 @@ def _fmt(x: float | None, digits: int) -> str:
 
 def format_eval_table(record: Mapping[str, Any]) -> str:
     """A compact rich table of an eval.json record, as plain text."""
-    from rich.console import Console
-    from rich.table import Table
 
     table = Table(title="evaluation", show_header=True, header_style="bold")
     for col in ("camera (views)", "PSNR", "YUV-PSNR", "SSIM", "LPIPS", "#Gaussians", "size MiB", "Mbps", "FPS"):
@@ -304,12 +307,9 @@ class RunEvaluator:
 def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstream: Path | None = None) -> Any:
     """The dataset a run was trained on, opened with the run's own data options: RUN/config.json, or for a
     `.stgc` file away from its run, the run config the encoder embedded in it."""
-    from stgc.data.config import data_config_from_saved
-    from stgc.data.config import open_run_dataset as open_saved_run_dataset
 
     if Run(run_dir).has_config() or bitstream is None:
         return open_saved_run_dataset(run_dir, data_path)
-    from stgc.codec import read_stgc
 
     embedded = read_stgc(bitstream).metadata.get("run_config")
     section = embedded.get("data") if isinstance(embedded, dict) else None
@@ -372,7 +372,6 @@ def evaluate_run(
         result.speed = None
     other = None
     if data_path is not None:  # given data: another dataset unless it is where the run's config points
-        from stgc.data.config import saved_run_data
 
         saved = saved_run_data(run_dir)
         saved_path = saved[1] if saved is not None else None
@@ -442,9 +441,7 @@ def write_video_eval(run_dir: str | Path) -> dict[str, Any]:
 
 def _default_model_loader(target: Path) -> Any:
     if target.suffix == ".stgc":
-        from stgc.codec import load_model
 
         return load_model(target)
-    from stgc.model import STGModel
 
     return STGModel.load(target)

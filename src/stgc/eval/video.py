@@ -16,12 +16,18 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+import imageio.v2 as imageio
 import numpy as np
 import torch
+from PIL import Image
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation, Slerp
 
+from stgc.codec import load_model
 from stgc.data.cameras import Camera
 from stgc.data.dataset import Dataset
 from stgc.errors import DataError
+from stgc.eval.evaluate import open_run_dataset
 from stgc.fileio import atomic_path
 from stgc.model import STGModel
 from stgc.run import Run
@@ -35,12 +41,9 @@ def load_model_and_dataset(run_or_model: ModelSource, dataset: Dataset | None = 
     """(model, dataset) from a run directory / iteration dir / PLY path / `.stgc` bitstream, or an in-memory model.
     A bitstream renders what it decodes to, with the dataset of the run beside it or of the config it embeds."""
     if isinstance(run_or_model, (str, Path)):
-        from stgc.eval.evaluate import open_run_dataset
-        from stgc.model import STGModel
 
         path = Path(run_or_model)
         if path.suffix == ".stgc":
-            from stgc.codec import load_model
 
             model = load_model(path)
             if dataset is None:
@@ -83,7 +86,6 @@ def render_image(model: STGModel, camera: Camera, time: float | None = None, bac
 
 # ------------------------------------------------------------------------------------------------ writers
 def write_png(path: str | Path, image: np.ndarray) -> Path:
-    from PIL import Image
 
     path = Path(path)
     with atomic_path(path) as tmp:
@@ -99,7 +101,6 @@ def _even(image: np.ndarray) -> np.ndarray:
 
 def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> Path:
     """MP4 (H.264, yuv420p) or GIF by the suffix of `path`; atomic."""
-    import imageio.v2 as imageio
 
     path = Path(path)
     suffix = path.suffix.lower()
@@ -150,8 +151,6 @@ def orbit_cameras(dataset: Dataset, num_frames: int) -> list[Camera]:
     Centres follow a cubic spline parameterised by chord length, orientations are slerped between neighbouring
     cameras at the same parameter, intrinsics and size are those of the first training camera; time sweeps
     [0, 1] along the path."""
-    from scipy.interpolate import CubicSpline
-    from scipy.spatial.transform import Rotation, Slerp
 
     if num_frames < 1:
         raise ValueError("an orbit needs at least one frame")

@@ -28,10 +28,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from stgc.config import ConfigError
 from stgc.errors import FormatError
 from stgc.eval.report import Report, ReportRow, make_report, record_fields
 from stgc.experiment.plans import Plan, RunSpec, load_plan
 from stgc.fileio import atomic_open, read_json_object, write_json
+from stgc.options import resolve_configs
 from stgc.run import Run
 
 RESULT_COLUMNS = ("plan", "name", "family", "label", "status", "num_gaussians", "size_mb", "mbps", "psnr", "ssim",
@@ -70,8 +72,6 @@ def build_train_command(
 def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str]) -> None:
     """Resolve and validate every run's options before the first training starts: a typo in the plan's last run
     must not surface hours later. Raises ConfigError naming the run."""
-    from stgc.cli import resolve_configs
-    from stgc.config import ConfigError
 
     for spec in plan.runs:
         try:

@@ -25,6 +25,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from stgc.data.yuv import rgb_to_yuv420
+from stgc.metrics._blur_kernel import blur_planes
+
 SSIM_WINDOW_SIZE = 11
 SSIM_SIGMA = 1.5
 SSIM_C1 = 0.01**2
@@ -94,7 +97,6 @@ YUV_WEIGHTS = {"y": 6.0, "u": 1.0, "v": 1.0}
 def yuv_psnr(img: Any, ref: Any, bit_depth: int = YUV_BIT_DEPTH, color_range: str = "limited") -> dict[str, float]:
     """{"y", "u", "v": PSNR dB of each plane, "yuv": their 6:1:1 weighted mean} of two [H, W, 3] RGB images
     (floats in [0, 1] or uint8). Identical planes give +inf."""
-    from stgc.data.yuv import rgb_to_yuv420
 
     def planes(x: Any) -> tuple[np.ndarray, ...]:
         array = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
@@ -162,7 +164,6 @@ class _SeparableBlur(torch.autograd.Function):
 
 
 def _run_blur(stack: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
-    from stgc.metrics._blur_kernel import blur_planes
 
     src = stack.detach().contiguous().numpy()
     out = np.empty_like(src)

@@ -4,52 +4,20 @@ from __future__ import annotations
 
 import importlib.util
 import numbers
-from dataclasses import dataclass
 from typing import Literal, get_args
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from .projection import ALPHA_MIN, project_gaussians, sigma_cutoff, tile_rects
+from . import numba_backend as nb
+from . import torch_backend as tb
+from .gsplat_backend import gsplat_failure, load_gsplat, rasterize_gsplat
+from .output import T_MIN, RenderOutput
+from .projection import ALPHA_MIN, bin_tiles_torch, project_gaussians, sigma_cutoff, tile_rects
 
 Backend = Literal["auto", "numba", "torch", "gsplat"]
 BACKENDS = get_args(Backend)
-# Front-to-back compositing stops before a Gaussian that would take the transmittance to <= T_MIN (exclusive).
-T_MIN = 1e-4
-
-
-@dataclass
-class RenderOutput:
-    """Result of rasterizing one camera. Images are [H, W, ...]; per-Gaussian arrays have the input's N."""
-
-    image: Tensor  # [H, W, C] features composited over the background; differentiable
-    alpha: Tensor  # [H, W] accumulated opacity 1 - T_final; differentiable
-    depth: Tensor | None  # [H, W] median depth (0 where T never drops below 0.5), no gradient; if requested
-    radii: Tensor  # [N, 2] int32 screen radii in pixels, 0 = culled
-    visible: Tensor  # [N] bool, radii > 0
-    means2d: Tensor  # [N, 2] pixel-space means; .grad is dL/dmeans2d after backward (when inputs require grad)
-    weights: Tensor | None  # [N] sum over pixels of alpha * T (blending weight), no gradient; if requested
-    backend: str  # the backend that actually ran
-    num_intersections: int  # (Gaussian, tile) pairs composited
-
-    @property
-    def width(self) -> int:
-        return int(self.alpha.shape[1])
-
-    @property
-    def height(self) -> int:
-        return int(self.alpha.shape[0])
-
-    def means2d_grad_ndc_norm(self) -> Tensor:
-        """[N] ||dL/dmean2d|| in NDC units, as 3DGS/STG accumulate it for densification: the pixel gradient scaled
-        by (W/2, H/2) (d pixel / d ndc), 0 for invisible Gaussians or before any backward."""
-        grad = self.means2d.grad
-        if grad is None:
-            return torch.zeros(self.means2d.shape[0], dtype=self.means2d.dtype, device=self.means2d.device)
-        scale = torch.tensor([0.5 * self.width, 0.5 * self.height], dtype=grad.dtype, device=grad.device)
-        norm = (grad * scale).norm(dim=-1)
-        return torch.where(self.visible, norm, torch.zeros_like(norm))
 
 
 def _numba_installed() -> bool:
@@ -63,8 +31,6 @@ def available_backends() -> list[str]:
         names.append("numba")
     names.append("torch")
     if torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None:
-        from .gsplat_backend import gsplat_failure
-
         if gsplat_failure() is None:
             names.append("gsplat")
     return names
@@ -178,11 +144,9 @@ def rasterize(
 
     chosen = select_backend(backend, device)
     if chosen == "gsplat":
-        from . import gsplat_backend
-
-        module = gsplat_backend.load_gsplat()
+        module = load_gsplat()
         if module is not None and dtype == torch.float32:
-            out = gsplat_backend.rasterize_gsplat(
+            out = rasterize_gsplat(
                 module, means, quats, scales, opacities, features, K, viewmat, width, height, background,
                 alpha_max=alpha_max, near_plane=near_plane, eps2d=eps2d,
                 want_depth=return_depth, want_weights=return_weights,
@@ -193,8 +157,6 @@ def rasterize(
         chosen = "torch"
 
     if chosen == "numba":
-        from . import numba_backend as nb
-
         proj = nb.project_numba(means, quats, scales, opacities, K, viewmat, width, height, eps2d=eps2d,
                                 near_plane=near_plane)  # fmt: skip
     else:
@@ -209,9 +171,6 @@ def rasterize(
             width, height, float(alpha_max), ALPHA_MIN, T_MIN, return_depth, return_weights,
         )  # fmt: skip
     else:
-        from . import torch_backend as tb
-        from .projection import bin_tiles_torch
-
         rect = tile_rects(proj.radii, proj.means2d, width, height, tb.TILE_SIZE)
         offsets, flat = bin_tiles_torch(rect, proj.depths, proj.visible, width, height, tb.TILE_SIZE)
         color, trans, depth, weights = tb.composite_torch(

@@ -14,13 +14,15 @@ Differences from the CPU backends, all documented in docs/rasterizer.md:
 from __future__ import annotations
 
 import warnings
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import Tensor
 
-if TYPE_CHECKING:
-    from .api import RenderOutput
+from .output import T_MIN, RenderOutput
+from .projection import ALPHA_MIN, bin_tiles_torch, tile_grid, tile_rects
+from .torch_backend import TILE_SIZE as TORCH_TILE
+from .torch_backend import composite_torch
 
 TILE_SIZE = 16
 
@@ -88,11 +90,6 @@ def rasterize_gsplat(
     want_weights: bool,
 ) -> RenderOutput:
     """One camera through gsplat's CUDA kernels (no background composited separately: gsplat adds it itself)."""
-    from .api import T_MIN, RenderOutput
-    from .projection import ALPHA_MIN, bin_tiles_torch, tile_grid, tile_rects
-    from .torch_backend import TILE_SIZE as TORCH_TILE
-    from .torch_backend import composite_torch
-
     kernel_alpha_max = gsplat_alpha_max(gsplat)
     if abs(alpha_max - kernel_alpha_max) > 1e-9 and not _state["alpha_warned"]:
         _state["alpha_warned"] = True

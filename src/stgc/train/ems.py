@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from stgc.data.cameras import Camera
-from stgc.model import STGModel
+from stgc.model import STGModel, initial_log_scales
 from stgc.train.config import EMSConfig
 
 
@@ -73,7 +73,6 @@ def new_gaussians(
     model: STGModel, xyz: np.ndarray, rgb: np.ndarray, trbf_scale_init: float, generator: torch.Generator
 ) -> dict[str, torch.Tensor]:
     """Pre-activation parameters of fresh EMS Gaussians (see the module docstring)."""
-    from stgc.model import initial_log_scales
 
     n = len(xyz)
     log_scale = torch.as_tensor(initial_log_scales(xyz.astype(np.float32), 3), dtype=torch.float32)

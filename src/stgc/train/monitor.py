@@ -7,6 +7,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+from tqdm import tqdm
+
 from stgc.fileio import atomic_open
 
 
@@ -61,7 +63,6 @@ class Progress:
     def __init__(self, total: int, initial: int, enabled: bool):
         self.bar = None
         if enabled:
-            from tqdm import tqdm
 
             self.bar = tqdm(total=total, initial=initial, unit="it", dynamic_ncols=True, smoothing=0.05)
 

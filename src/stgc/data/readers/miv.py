@@ -10,9 +10,9 @@ import numpy as np
 from ...errors import DataError
 from ..cameras import Camera, intrinsics, omaf_to_w2c
 from ..dataset import SourceScene, YuvFrame
+from ..yuv import count_frames, detect_bit_depth
 from ._common import _checked, _load_json
 from .registry import ReaderOptions, register_reader
-
 
 _MIV_TEST_VIEWS = ("v06", "v08")  # the paper's held-out views of the MIV Mirror sequence
 
@@ -38,7 +38,6 @@ def read_miv(path: Path, options: ReaderOptions) -> SourceScene:
     """MPEG immersive video sequence: a JSON with `cameras` (Name, Position, Rotation [yaw, pitch, roll]
     degrees in OMAF axes, Projection "Perspective", Focal, Principle_point, Resolution) and one planar
     YUV 4:2:0 texture file per view, named '<Name>_texture_<W>x<H>_yuv420p10le.yuv' or '<Name>.yuv'."""
-    from ..yuv import count_frames, detect_bit_depth
 
     yuv_range = options.yuv_range
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import imageio_ffmpeg
 import numpy as np
 
 from ...errors import DataError
@@ -97,8 +98,6 @@ def _frame_files(view_dir: Path) -> dict[int, Path]:
 
 
 def _video_frames(path: Path) -> tuple[int, float]:
-    import imageio_ffmpeg
-
     try:
         count, _ = imageio_ffmpeg.count_frames_and_secs(str(path))
         reader = imageio_ffmpeg.read_frames(str(path))
@@ -110,8 +109,6 @@ def _video_frames(path: Path) -> tuple[int, float]:
 
 
 def _video_size(path: Path) -> tuple[int, int]:
-    import imageio_ffmpeg
-
     try:
         reader = imageio_ffmpeg.read_frames(str(path))
         meta = next(reader)

@@ -9,6 +9,7 @@ import numpy as np
 
 from ...errors import DataError
 from ..cameras import Camera, colmap_intrinsics, colmap_to_w2c
+from ..colmap_io import find_model_files, read_model, read_points
 from ..dataset import SourceScene
 from ._common import IMAGE_EXTS, _checked
 from .registry import ReaderOptions, register_reader
@@ -35,7 +36,6 @@ def read_stg_colmap(path: Path, options: ReaderOptions) -> SourceScene:
     """Official STG preprocessed layout: colmap_<t>/images/camXX.png + colmap_<t>/sparse/0 per frame.
     Cameras come from the first frame's model (STG reads them from colmap_<start> the same way);
     each frame's points3D is that frame's initial cloud. `path` may be the scene or one colmap_<t>."""
-    from ..colmap_io import find_model_files, read_model
 
     default_start = None
     root = path
@@ -86,7 +86,6 @@ def read_stg_colmap(path: Path, options: ReaderOptions) -> SourceScene:
 
 
 def _colmap_points(frame_dir: Path | None) -> tuple[np.ndarray, np.ndarray] | None:
-    from ..colmap_io import find_model_files, read_points
 
     if frame_dir is None:
         return None

@@ -1,0 +1,86 @@
+"""A run's options: the config sections, presets, and how command-line layers and a saved config.json become
+config objects. Shared by the command line and the experiment runner (which checks every run's options before its
+first training)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from stgc.compaction import CompactionConfig
+from stgc.config import apply_overrides, from_saved, split_sections, validate_config
+from stgc.data import DataConfig
+from stgc.data.config import data_config_from_saved
+from stgc.errors import StgcError
+from stgc.model import ModelConfig
+from stgc.run import Run
+from stgc.train.config import TrainConfig, train_preset
+
+
+def section_classes() -> dict[str, type]:
+    """The config dataclass of each section."""
+    return {"data": DataConfig, "model": ModelConfig, "train": TrainConfig, "compaction": CompactionConfig}
+
+
+
+
+# What a preset sets outside the training schedule. The cpu preset bounds the initial cloud (points from every
+# 3rd frame, at most 3,000 per frame: 30k for a 30-frame segment, 51k for a 50-frame one), because dense
+# per-frame clouds (e.g. 14k points x 30 frames) would start a 2-core run with hundreds of thousands of Gaussians.
+PRESET_DATA_OVERRIDES: dict[str, dict[str, str]] = {
+    "cpu": {"init_frames_every": "3", "max_points_per_frame": "3000"},
+    "paper": {},
+}
+
+
+def default_configs(preset: str = "cpu") -> dict[str, Any]:
+    """Config objects of a `stgc train` run before any option: the preset, and no compaction."""
+    classes = section_classes()
+    configs = {name: cls() for name, cls in classes.items()}
+    configs["train"] = train_preset(preset)
+    configs["data"] = apply_overrides(configs["data"], PRESET_DATA_OVERRIDES.get(preset, {}), "data")
+    configs["compaction"] = replace(configs["compaction"], method="none")
+    return configs
+
+
+def resolve_configs(
+    preset: str,
+    shortcuts: dict[str, dict[str, Any]],
+    options: dict[str, dict[str, str]],
+    sets: dict[str, str],
+) -> dict[str, Any]:
+    """preset < shortcut flags < --section.field options < --set overrides."""
+    configs = default_configs(preset)
+    for layer in (shortcuts, options, split_sections(sets, set(configs))):
+        for section, overrides in layer.items():
+            configs[section] = apply_overrides(configs[section], overrides, section)
+    for section, cfg in configs.items():
+        validate_config(cfg, section)
+    return configs
+
+
+def configs_from_run(run_dir: Path) -> dict[str, Any]:
+    """The configs a run was started with (RUN/config.json)."""
+    run = Run(run_dir)
+    path = run.config_path
+    saved = run.read_config()
+    if saved is None:
+        raise StgcError(f"{path}: not found; is {run_dir} a stgc run directory?")
+
+    classes = section_classes()
+    out: dict[str, Any] = {}
+    for name, cls in classes.items():
+        section = dict(saved.get(name) or {})
+        if name == "data":
+            out[name], _ = data_config_from_saved(section, path)
+            continue
+        section.pop("path", None)
+        resolved = section.pop("resolved_schedule", None)
+        if name == "train" and isinstance(resolved, dict) and "iterations" in resolved:
+            # Runs saved before `iterations` meant real iterations stored it in schedule units; the resolved
+            # schedule always held the real number.
+            section["iterations"] = resolved["iterations"]
+        out[name] = validate_config(from_saved(cls, section), name)
+    out["data_path"] = (saved.get("data") or {}).get("path")
+    return out
