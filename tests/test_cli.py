@@ -78,3 +78,24 @@ def test_experiment_passes_preprocess_and_bd_method_to_run_plan(monkeypatch, tmp
                  "--bd-method", "cubic", "--codec-quality", "3"]) == 0
     assert seen["preprocess"] == "closest-pairs" and seen["bd_method"] == "cubic"
     assert seen["codec_qualities"] == [3] and seen["plan"] == "table2"
+
+
+def test_version_and_verbosity_flags(capsys):
+    import logging
+
+    from stgc import __version__
+    from stgc.cli import configure_logging
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and __version__ in capsys.readouterr().out
+    runner_log = logging.getLogger("stgc.experiment.runner")  # a module that reports progress, as every one does
+    try:
+        for verbosity, shown in [(0, ["info", "warning"]), (-1, []), (1, ["debug", "info", "warning"])]:
+            configure_logging(verbosity)
+            for level in ("debug", "info", "warning"):
+                getattr(runner_log, level)(level)
+            err = capsys.readouterr().err
+            assert [line.removeprefix("stgc: ") for line in err.splitlines()] == shown, (verbosity, err)
+    finally:
+        configure_logging(0)

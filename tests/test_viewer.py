@@ -290,3 +290,29 @@ def test_in_a_browser_a_dataset_camera_and_frame_show_what_stgc_render_writes(ru
 def _screenshot(driver, path):
     driver.save_screenshot(str(path))
     return path
+
+
+def test_a_whole_videos_bitstreams_play_as_one_timeline(scene, tmp_path, capsys):
+    """`--bitstream NAME`: each segment's .stgc of that name, decoded, one timeline; a segment without it is named."""
+    from stgc.codec import CodecConfig, compress_run, load_model
+
+    ladder = CodecConfig(allocation="ladder")  # fixed bit depths: no allocation renders (what is viewed is the point)
+    other = moving_model(scene.model)
+    video = tmp_path / "video"
+    for k, (model, start, duration) in enumerate(((scene.model, 0, 2), (other, 2, 1))):
+        part = _write_run(video / f"segment_{k:03d}", model, scene.root)
+        (part / "config.json").write_text(json.dumps({"data": {"path": str(scene.root), "start": start,
+                                                              "duration": duration}}))
+    (video / "config.json").write_text(json.dumps({"data": {"path": str(scene.root)}}))
+    (video / "video.json").write_text(json.dumps({"segment_frames": 2, "data_path": str(scene.root), "segments": [
+        {"name": "segment_000", "start": 0, "duration": 2}, {"name": "segment_001", "start": 2, "duration": 1}]}))
+    compress_run(video / "segment_000", video / "segment_000" / "m.stgc", config=ladder)
+    assert main(["view", str(video), "--bitstream", "m.stgc", "--port", str(free_port())]) == 2
+    assert "segment_001/m.stgc" in capsys.readouterr().err  # the segment that lacks it, before anything serves
+    compress_run(video / "segment_001", video / "segment_001" / "m.stgc", config=ladder)
+    viewed = ViewerScene.open(video, bitstream="m.stgc")
+    assert viewed.frames == [0, 1, 2] and all(s.size.convention == "file" for s in viewed.segments)
+    camera = viewed.dataset_camera("0", 2.0)
+    decoded = load_model(video / "segment_001" / "m.stgc")
+    expected = decoded.render(camera, t=camera.time, background=torch.zeros(3)).rgb
+    assert np.array_equal(viewed.render(camera, 2.0), (expected.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy())

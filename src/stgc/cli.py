@@ -68,7 +68,6 @@ def _resumed_data_path(run: Path, given: str | None, saved: str | None) -> str |
 
 # --------------------------------------------------------------------------------------------- verbs
 def cmd_train(args: argparse.Namespace) -> int:
-
     out = Path(args.out)
     if args.resume and Run(out).has_config():
         given = [k for k in ("variant", "compaction", "case", "criterion", "set") if getattr(args, k)]
@@ -117,7 +116,6 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-
     record = evaluate_run(args.target, data_path=args.data, measure_fps=not args.no_fps)
     if args.json:
         print(json.dumps(record))
@@ -127,7 +125,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-
     out = Path(args.out)
     if args.contact_sheet:
         if out.suffix.lower() != ".png" or args.orbit or args.time is not None:
@@ -152,7 +149,6 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-
     if args.format == "splatv":
         if args.frames:
             raise StgcError("--frames applies to ply-frames; a .splatv file holds the whole model over time")
@@ -164,17 +160,15 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-
     if not 0 < args.port < 65536:
         raise StgcError(f"--port {args.port}: a TCP port is 1..65535")
     if args.max_side is not None and args.max_side < 16:
         raise StgcError(f"--max-side {args.max_side}: at least 16 pixels")
-    serve(args.source, host=args.host, port=args.port, max_side=args.max_side)
+    serve(args.source, host=args.host, port=args.port, max_side=args.max_side, bitstream=args.bitstream)
     return 0
 
 
 def cmd_compress(args: argparse.Namespace) -> int:
-
     overrides = collect_overrides(args).get("codec", {})
     if args.quality is not None:
         overrides["quality"] = str(args.quality)
@@ -186,20 +180,17 @@ def cmd_compress(args: argparse.Namespace) -> int:
 
 
 def cmd_decompress(args: argparse.Namespace) -> int:
-
     path = decompress(args.file, args.out, overwrite=args.overwrite)
     print(f"decoded model written to {path}")
     return 0
 
 
 def cmd_data_inspect(args: argparse.Namespace) -> int:
-
     print(inspect_text(args.path, format=args.format, decode=args.decode))
     return 0
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-
     run = Path(args.run)
     out = Path(args.out) if args.out else run / "compaction.png"
     plot_compaction(run, out)
@@ -208,7 +199,6 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-
     result = run_plan(
         args.data, args.plan, args.out, preset=args.preset, extra_overrides=args.set or [],
         codec_qualities=args.codec_quality or [], preprocess=args.preprocess, bd_method=args.bd_method,
@@ -221,14 +211,12 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-
     result = report_from_runs(args.runs, args.out, baseline=args.baseline)
     print(result)
     return 0
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-
     return run_demo(Path(args.out), Path(args.data) if args.data else None)
 
 
@@ -314,6 +302,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080)")
     p.add_argument("--max-side", type=int, help="longest side in pixels of a free view's full-resolution render "
                    "(default: the dataset's); a dataset camera always renders at its own size")
+    p.add_argument("--bitstream", metavar="NAME.stgc", help="show the run's bitstream of this name (for a whole "
+                   "video, each segment's, played as one timeline) instead of its trained model")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("compress", help="write a trained run as a compact .stgc bitstream")

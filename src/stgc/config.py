@@ -56,8 +56,8 @@ def iter_fields(obj_or_cls: Any, prefix: str = "") -> Iterator[FieldSpec]:
         if isinstance(obj_or_cls, type):
             if f.default is not dataclasses.MISSING:
                 default = f.default
-            elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
-                default = f.default_factory()  # type: ignore[misc]
+            elif f.default_factory is not dataclasses.MISSING:
+                default = f.default_factory()
             else:
                 default = None
         else:

@@ -10,6 +10,7 @@ stopped (finished runs are skipped, an unfinished training resumes from its chec
 from __future__ import annotations
 
 import io
+import logging
 import signal
 import subprocess
 import sys
@@ -24,6 +25,7 @@ from stgc.experiment import Plan, RunSpec, run_plan
 if TYPE_CHECKING:
     from stgc.experiment import Plan
 
+_log = logging.getLogger(__name__)
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEMO_SCENE = REPO_ROOT / "demo" / "toys_small"
 
@@ -40,7 +42,6 @@ DEMO_OVERRIDES = {
 
 
 def demo_plan() -> Plan:
-
     return Plan(
         name="demo",
         runs=(
@@ -90,7 +91,6 @@ def _fmt(record: dict | None, key: str, spec: str) -> str:
 
 
 def run_demo(out_dir: Path, data: Path | None = None) -> int:
-
     data = Path(data) if data is not None else DEMO_SCENE
     if not data.is_dir():
         raise StgcError(f"{data}: demo scene not found (it ships in the repository under demo/toys_small)")
@@ -102,7 +102,7 @@ def run_demo(out_dir: Path, data: Path | None = None) -> int:
     )
     if result.failed:
         for o in result.failed:
-            print(f"stgc demo: {o.name} failed: {o.message}", file=sys.stderr)
+            _log.error("demo: %s failed: %s", o.name, o.message)
         return 1
     by_name = {o.name: o for o in result.outcomes}
     compacted_run = out_dir / "st-knn"

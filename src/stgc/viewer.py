@@ -88,16 +88,25 @@ class ViewerScene:
         self._lock = threading.Lock()  # torch renders from several browser threads, one at a time
 
     @classmethod
-    def open(cls, source: str | Path) -> ViewerScene:
-        """A run directory (single or whole-video), an iteration directory or PLY, or a `.stgc` bitstream."""
+    def open(cls, source: str | Path, bitstream: str | None = None) -> ViewerScene:
+        """A run directory (single or whole-video), an iteration directory or PLY, or a `.stgc` bitstream.
+        bitstream: show the run's (each segment's, for a whole video) file of this name instead of its model, so a
+        whole video's bitstreams play as one timeline."""
         path = Path(source)
         if not path.exists():
             raise DataError(path, "not found: give a run directory or a .stgc file")
         run = Run(path)
-        parts = run.segments() if path.is_dir() and run.is_video() else [path]
+        folders = [s.path for s in run.segments()] if path.is_dir() and run.is_video() else [path]
+        if bitstream is not None:
+            if not path.is_dir():
+                raise StgcError(f"--bitstream {bitstream}: names a file inside a run directory, and {path} is not one")
+            missing = [f / bitstream for f in folders if not (f / bitstream).is_file()]
+            if missing:
+                raise DataError(missing[0], "not found (write it with `stgc compress` on that run"
+                                + (" or segment" if len(folders) > 1 else "") + ")")
+            folders = [f / bitstream for f in folders]
         segments = []
-        for part in parts:
-            target = part.path if isinstance(part, Run) else part
+        for target in folders:
             model, dataset = load_model_and_dataset(target)
             duration = dataset_duration_s(dataset)
             if target.suffix == ".stgc":
@@ -466,13 +475,13 @@ class Viewer:
 
 
 def serve(source: str | Path, host: str = "127.0.0.1", port: int = 8080, max_side: int | None = None,
-          on_ready: Callable[[Viewer], None] | None = None) -> None:
+          on_ready: Callable[[Viewer], None] | None = None, bitstream: str | None = None) -> None:
     """`stgc view`: open `source`, serve it at host:port until Ctrl-C."""
     try:
         import viser  # noqa: F401
     except ImportError:
         raise StgcError("the viewer needs viser: pip install 'stgc[viewer]'") from None
-    scene = ViewerScene.open(source)
+    scene = ViewerScene.open(source, bitstream)
     viewer = Viewer(scene, host=host, port=port, max_side=max_side)
     print(f"stgc view: {source} at {viewer.url} (Ctrl-C stops)", flush=True)
     if on_ready is not None:

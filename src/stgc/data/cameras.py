@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -58,7 +59,7 @@ class Camera:
     def center(self) -> np.ndarray:
         """Camera centre in world coordinates."""
         R, t = self.w2c[:3, :3], self.w2c[:3, 3]
-        return -R.T @ t
+        return cast(np.ndarray, -R.T @ t)
 
     def scaled(self, factor: float) -> Camera:
         """The same camera for an image resized by `factor` (pixel-centre preserving).
@@ -108,7 +109,7 @@ def opencv_to_corner_K(K: np.ndarray) -> np.ndarray:
 
 def fov_to_focal(fov: float, size: float) -> float:
     """Focal length in pixels for a full field of view `fov` (radians) spanning `size` pixels."""
-    return 0.5 * size / np.tan(0.5 * fov)
+    return cast(float, 0.5 * size / np.tan(0.5 * fov))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -244,7 +245,7 @@ def euler_zyx_deg(yaw: float, pitch: float, roll: float) -> np.ndarray:
     Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
     Ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
     Rx = np.array([[1, 0, 0], [0, np.cos(c), -np.sin(c)], [0, np.sin(c), np.cos(c)]])
-    return Rz @ Ry @ Rx
+    return cast(np.ndarray, Rz @ Ry @ Rx)
 
 
 def omaf_to_w2c(position: np.ndarray, yaw_pitch_roll_deg: np.ndarray) -> np.ndarray:

@@ -6,7 +6,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar, Literal, get_args
+from typing import Any, ClassVar, Literal, get_args
 
 from stgc.config import ConfigError, check, from_saved, validate_config
 from stgc.errors import DataError, FormatError
@@ -72,7 +72,7 @@ class DataConfig:
 
     # How a run saved before these options existed was trained (stgc.config.from_saved): the official near plane
     # whatever the format, and no visual-hull points.
-    SAVED_BEFORE: ClassVar[dict] = {"near_plane": 0.2, "mask_points_per_frame": 0}
+    SAVED_BEFORE: ClassVar[dict[str, Any]] = {"near_plane": 0.2, "mask_points_per_frame": 0}
 
     def validate(self, prefix: str = "") -> None:
 
@@ -134,7 +134,7 @@ class DataConfig:
 
 
 
-def data_config_from_saved(section: dict, source: str | Path | None) -> tuple[DataConfig, str | None]:
+def data_config_from_saved(section: dict[str, Any], source: str | Path | None) -> tuple[DataConfig, str | None]:
     """(DataConfig, dataset path) from the `data` section a run saved (RUN/config.json, or the copy a .stgc file
     embeds), read strictly: an unknown or ill-typed key is a FormatError naming `source`, never dropped."""
 

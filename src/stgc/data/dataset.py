@@ -11,6 +11,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import imageio_ffmpeg
 import numpy as np
@@ -49,7 +50,6 @@ class YuvFrame:
     color_range: str = "limited"
 
     def __call__(self) -> np.ndarray:
-
         return read_frame(self.path, self.width, self.height, self.index, self.bit_depth, self.color_range)
 
 
@@ -291,7 +291,7 @@ class Dataset:
         """Memory for all images of the segment (train + test) at `dtype_bytes` per channel."""
         return sum(c.width * c.height * 3 * dtype_bytes for c in self.cameras)
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         sizes = sorted({(c.width, c.height) for c in self.cameras})
         native = sorted(set(self._native_size.values()))
         return {
@@ -323,7 +323,7 @@ class Dataset:
                 f"train={len(self.train_views)} views, test={len(self.test_views)} views)")
 
 
-def _cache_key(camera: Camera) -> tuple:
+def _cache_key(camera: Camera) -> tuple[str, int, int, int]:
     return (camera.name, camera.frame, camera.width, camera.height)
 
 

@@ -6,6 +6,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
@@ -57,7 +58,7 @@ def resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
     if w % width == 0 and h % height == 0 and w // width == h // height:
         f = w // width
         out = image.reshape(height, f, width, f, 3).astype(np.float32).mean(axis=(1, 3))
-        return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+        return cast(np.ndarray, np.clip(np.rint(out), 0, 255).astype(np.uint8))
     pil = Image.fromarray(image).resize((width, height), Image.Resampling.LANCZOS)
     return np.asarray(pil, dtype=np.uint8).copy()
 

@@ -12,7 +12,7 @@ from rich.table import Table
 from .readers import open_dataset
 
 
-def inspect(path: str | Path, format: str = "auto", decode: bool = False, **kwargs: Any) -> dict:
+def inspect(path: str | Path, format: str = "auto", decode: bool = False, **kwargs: Any) -> dict[str, Any]:
     """Summary of the dataset at `path` (all frames unless start/duration are given) plus point availability.
     decode: also decode every image and mask file (a truncated or corrupt one is a DataError naming it)."""
     dataset = open_dataset(path, format=format, **kwargs)

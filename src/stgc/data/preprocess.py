@@ -22,7 +22,7 @@ later drops. So no selected pair ever loses both points, and at most one point p
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal, get_args
+from typing import Any, Literal, cast, get_args
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -37,7 +37,7 @@ MODES = get_args(PreprocessMode)
 class PreprocessReport:
     mode: str
     fraction: float
-    per_frame: list[dict] = field(default_factory=list)  # {"time", "before", "after"}
+    per_frame: list[dict[str, Any]] = field(default_factory=list)  # {"time", "before", "after"}
 
     @property
     def before(self) -> int:
@@ -47,7 +47,7 @@ class PreprocessReport:
     def after(self) -> int:
         return sum(r["after"] for r in self.per_frame)
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return {"mode": self.mode, "fraction": self.fraction, "before": self.before, "after": self.after,
                 "per_frame": self.per_frame}
 
@@ -91,7 +91,7 @@ def _stg_isolated(xyz: np.ndarray, fraction: float) -> np.ndarray:
     d, _ = nearest_neighbours(xyz)
     num_take = int(fraction * m)
     threshold = np.sort(d)[-num_take]  # num_take == 0 -> s[0], as the official indexing does
-    return d > threshold
+    return cast(np.ndarray, d > threshold)
 
 
 def _closest_pairs(xyz: np.ndarray, fraction: float) -> np.ndarray:

@@ -35,7 +35,7 @@ class TriangulationResult:
     rgb: np.ndarray  # float32 [M, 3] in [0, 1]
     track_length: np.ndarray  # int [M]
     errors: np.ndarray  # reprojection error of every kept observation, original-resolution pixels
-    stats: dict = field(default_factory=dict)
+    stats: dict[str, Any] = field(default_factory=dict)
 
     @property
     def median_error(self) -> float:

@@ -86,7 +86,6 @@ def render_image(model: STGModel, camera: Camera, time: float | None = None, bac
 
 # ------------------------------------------------------------------------------------------------ writers
 def write_png(path: str | Path, image: np.ndarray) -> Path:
-
     path = Path(path)
     with atomic_path(path) as tmp:
         Image.fromarray(np.ascontiguousarray(image)).save(tmp, format="PNG")

@@ -19,6 +19,7 @@ others still run.
 from __future__ import annotations
 
 import csv
+import logging
 import os
 import subprocess
 import sys
@@ -35,6 +36,8 @@ from stgc.experiment.plans import Plan, RunSpec, load_plan
 from stgc.fileio import atomic_open, read_json_object, write_json
 from stgc.options import resolve_configs
 from stgc.run import Run
+
+_log = logging.getLogger(__name__)
 
 RESULT_COLUMNS = ("plan", "name", "family", "label", "status", "num_gaussians", "size_mb", "mbps", "psnr", "ssim",
                   "lpips", "fps", "train_seconds", "overrides", "run_dir")
@@ -227,7 +230,7 @@ def run_plan(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     extra = parse_overrides(extra_overrides)
-    say = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
+    say = log or _log.info  # stgc's one channel for messages: stderr, silenced by -q
     results_csv = out_dir / f"results-{plan.name}.csv"
     result = PlanResult(plan, out_dir, results_csv=results_csv)
     qualities = [int(q) for q in codec_qualities]

@@ -164,7 +164,6 @@ class _SeparableBlur(torch.autograd.Function):
 
 
 def _run_blur(stack: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
-
     src = stack.detach().contiguous().numpy()
     out = np.empty_like(src)
     blur_planes(src, taps.numpy(), out)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar, Literal, get_args
+from typing import Any, ClassVar, Literal, get_args
 
 from stgc.model.layout import VARIANTS, Variant
 
@@ -57,7 +57,7 @@ class ModelConfig:
     )
 
     # How a run saved before these options existed was trained (stgc.config.from_saved).
-    SAVED_BEFORE: ClassVar[dict] = {"decoder_ray_origin": "on"}
+    SAVED_BEFORE: ClassVar[dict[str, Any]] = {"decoder_ray_origin": "on"}
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:

@@ -50,7 +50,7 @@ class SandwichDecoder(nn.Module):
         if self._origin_hook is None:
             mask = torch.ones_like(self.mlp1.weight)
             mask[:, RAY_ORIGIN_INPUTS] = 0.0
-            self._origin_hook = self.mlp1.weight.register_hook(lambda grad: grad * mask)
+            self._origin_hook = self.mlp1.weight.register_hook(lambda grad: grad * mask)  # type: ignore[no-untyped-call]
 
     @property
     def uses_ray_origin(self) -> bool:

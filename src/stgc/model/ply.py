@@ -7,6 +7,7 @@ Arrays are exchanged as {official field name: float32 [N]} in `layout.ply_fields
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -116,7 +117,7 @@ def read_decoder(path: str | Path) -> dict[str, np.ndarray]:
     return validate_decoder_state(state, path)
 
 
-def validate_decoder_state(state: dict, path: Path | None = None) -> dict[str, np.ndarray]:
+def validate_decoder_state(state: dict[str, Any], path: Path | None = None) -> dict[str, np.ndarray]:
     out = {}
     for key, shape in DECODER_SHAPES.items():
         if key not in state:

@@ -16,7 +16,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -119,7 +119,7 @@ def initial_log_scales(xyz: np.ndarray, neighbours: int = 3) -> np.ndarray:
     distances, _ = cKDTree(xyz).query(xyz, k=k + 1)  # column 0 is the point itself (distance 0)
     mean_sq = np.mean(np.square(distances[:, 1:]), axis=1)
     log_scale = np.log(np.sqrt(np.maximum(mean_sq, INIT_MIN_SQUARED_DISTANCE)))
-    return np.clip(log_scale, *INIT_LOG_SCALE_RANGE).astype(np.float32)
+    return cast(np.ndarray, np.clip(log_scale, *INIT_LOG_SCALE_RANGE).astype(np.float32))
 
 
 def _logit(p: float) -> float:
@@ -180,7 +180,7 @@ class STGModel:
         }
         self.decoder = decoder.to(device) if decoder is not None else None
         self.optimizer: torch.optim.Adam | None = None
-        self._camera_cache: OrderedDict[tuple, dict[str, torch.Tensor]] = OrderedDict()
+        self._camera_cache: OrderedDict[tuple[bytes, bytes, int, int, str], dict[str, torch.Tensor]] = OrderedDict()
 
     # ------------------------------------------------------------------ construction
     @classmethod

@@ -56,7 +56,7 @@ def select_backend(requested: str, device: torch.device) -> str:
     return requested
 
 
-def _to_tensor(name: str, value: object, shape: tuple, dtype: torch.dtype, device: torch.device) -> Tensor:
+def _to_tensor(name: str, value: object, shape: tuple[int | None, ...], dtype: torch.dtype, device: torch.device) -> Tensor:
     """Tensor of `shape` (None = any size, checked by the caller) on `device`/`dtype`; ValueError otherwise."""
     if isinstance(value, np.ndarray):
         value = torch.from_numpy(value)

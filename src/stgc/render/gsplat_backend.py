@@ -67,7 +67,8 @@ def load_gsplat() -> Any | None:
 
 def gsplat_failure() -> str | None:
     """Why gsplat could not be loaded in this process, or None if it was not tried or worked."""
-    return _state["failure"]
+    failure: str | None = _state["failure"]
+    return failure
 
 
 def rasterize_gsplat(

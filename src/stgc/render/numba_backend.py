@@ -77,7 +77,7 @@ def project_numba(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
         float(eps2d), float(near_plane), float(far_plane),
     )  # fmt: skip
     side: dict[str, Tensor] = {}
-    means2d, conics = _NumbaProjection.apply(means, quats, scales, opacities, camera, width, height, side)
+    means2d, conics = _NumbaProjection.apply(means, quats, scales, opacities, camera, width, height, side)  # type: ignore[no-untyped-call]
     radii = side["radii"]
     return Projected(means2d=means2d, conics=conics, depths=side["depths"], radii=radii, visible=(radii > 0).any(-1))
 
@@ -173,7 +173,7 @@ def composite_numba(
     order = torch.argsort(depths, stable=True).numpy()
     offsets, flat = kernels.bin_tiles(gdata, radii.numpy(), order, width, height, tile_size)
     consts = _consts(np_dtype, alpha_max, alpha_min, t_min)
-    color, trans, depth, weights = _NumbaComposite.apply(
+    color, trans, depth, weights = _NumbaComposite.apply(  # type: ignore[no-untyped-call]
         means2d, conics, opacities, colors, gdata, offsets, flat, width, height, tile_size, consts,
         want_depth, want_weights,
     )  # fmt: skip

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -53,7 +54,10 @@ def read_blender(path: Path, options: ReaderOptions) -> SourceScene:
         image = _find_image(file_path)
         if image is None:
             raise DataError(file_path, "image file is missing (no file with this name or a known extension)")
-        get = lambda key: fr.get(key, meta.get(key))
+
+        def get(key: str) -> Any:
+            return fr.get(key, meta.get(key))
+
         width, height = get("w"), get("h")
         if width is None or height is None:
             width, height = image_size(image)

@@ -79,7 +79,7 @@ def read_n3dv(path: Path, options: ReaderOptions) -> SourceScene:
                        meta_file=meta_file, fps=fps, points=points, points_description=description, notes=notes)
 
 
-def _first_source(sources: dict) -> Path:
+def _first_source(sources: dict[int, Path | VideoFrame]) -> Path:
     first = sources[min(sources)]
     return first.path if isinstance(first, VideoFrame) else first
 

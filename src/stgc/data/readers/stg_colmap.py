@@ -86,7 +86,6 @@ def read_stg_colmap(path: Path, options: ReaderOptions) -> SourceScene:
 
 
 def _colmap_points(frame_dir: Path | None) -> tuple[np.ndarray, np.ndarray] | None:
-
     if frame_dir is None:
         return None
     model_dir = frame_dir / "sparse" / "0"
