@@ -33,3 +33,15 @@ def test_reference_file_decodes_bit_exactly(path: Path):
     assert set(model.decoder_state or {}) == set(weights)
     for name, values in weights.items():
         np.testing.assert_array_equal(np.asarray(model.decoder_state[name]), values, err_msg=name)
+
+
+@pytest.mark.parametrize("version", [1, 5])
+def test_a_version_this_reader_does_not_know_is_refused_by_name(version: int):
+    """Version 1 (before motion was stored scaled by each Gaussian's time span) would decode to wrong motion, and a
+    future version may mean anything: both are refused with the version named, never decoded."""
+    from stgc.errors import FormatError
+
+    data = bytearray(FILES[-1].read_bytes())
+    data[8:10] = version.to_bytes(2, "little")  # the header's version field, after the 8-byte magic
+    with pytest.raises(FormatError, match=f"unsupported .stgc version {version}"):
+        decode(bytes(data), source="old.stgc")

@@ -29,6 +29,7 @@ class FakeCam:
     name: str
     frame: int
     time: float
+    image: str | None = None
 
 
 def _gt(cam: FakeCam) -> np.ndarray:
@@ -120,6 +121,7 @@ def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
 
     class FakeDataset:
         test, frames, fps, background = CAMS, list(range(4)), 2.0, (0.0, 0.0, 0.0)
+        root = "fake_data"
 
         def load_image(self, cam: FakeCam) -> np.ndarray:
             return _gt(cam)

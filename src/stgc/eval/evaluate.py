@@ -107,9 +107,9 @@ def _as_image(rendered: Any) -> torch.Tensor:
 
 @torch.no_grad()
 def evaluate(
-    render_fn: Callable[[Any], Any],
-    cameras: Sequence[Any],
-    load_image: Callable[[Any], np.ndarray],
+    render_fn: Callable[[Camera], Any],
+    cameras: Sequence[Camera],
+    load_image: Callable[[Camera], np.ndarray],
     *,
     lpips_net: str | None = None,
     warmup: int = 2,
@@ -138,15 +138,15 @@ def evaluate(
         gt = gt[..., :3]
         if rendered.shape != gt.shape:
             raise DataError(
-                getattr(cam, "image", None) if isinstance(getattr(cam, "image", None), (str, Path)) else None,
-                f"camera {getattr(cam, 'name', i)} frame {getattr(cam, 'frame', '?')}: render is "
-                f"{tuple(rendered.shape)} but the ground-truth image is {tuple(gt.shape)}",
+                cam.image if isinstance(cam.image, (str, Path)) else None,
+                f"camera {cam.name} frame {cam.frame}: render is {tuple(rendered.shape)} but the ground-truth image "
+                f"is {tuple(gt.shape)}",
             )
         views.append(
             ViewScore(
-                camera=str(getattr(cam, "name", i)),
-                frame=int(getattr(cam, "frame", 0)),
-                time=float(getattr(cam, "time", 0.0)),
+                camera=str(cam.name),
+                frame=int(cam.frame),
+                time=float(cam.time),
                 psnr=float(psnr(rendered.double(), gt.double())),
                 ssim=float(ssim(rendered, gt)),
                 lpips=lpips_model(rendered, gt) if lpips_model is not None else None,
@@ -378,7 +378,7 @@ def evaluate_run(
         if saved_path is None or Path(data_path).resolve() != Path(saved_path).resolve():
             other = Path(data_path).resolve().name
     return write_eval(run_dir, result, info, target=target, other_data=other,
-                      extra={"data": str(getattr(dataset, "root", data_path))})
+                      extra={"data": str(dataset.root)})
 
 
 # Per-view means that a whole video averages over all its views (each segment's weighted by its number of views).
