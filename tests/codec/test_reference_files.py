@@ -39,9 +39,13 @@ def test_reference_file_decodes_bit_exactly(path: Path):
 def test_a_version_this_reader_does_not_know_is_refused_by_name(version: int):
     """Version 1 (before motion was stored scaled by each Gaussian's time span) would decode to wrong motion, and a
     future version may mean anything: both are refused with the version named, never decoded."""
+    import zlib
+
+    from stgc.codec.format import _HEADER, _HEADER_CRC
     from stgc.errors import FormatError
 
     data = bytearray(FILES[-1].read_bytes())
     data[8:10] = version.to_bytes(2, "little")  # the header's version field, after the 8-byte magic
+    _HEADER_CRC.pack_into(data, _HEADER.size, zlib.crc32(bytes(data[: _HEADER.size])))  # a well-formed header
     with pytest.raises(FormatError, match=f"unsupported .stgc version {version}"):
         decode(bytes(data), source="old.stgc")
