@@ -7,8 +7,8 @@ from types import SimpleNamespace
 import pytest
 
 from stgc.cli import build_parser, main
-from stgc.options import default_configs, resolve_configs
 from stgc.config import iter_fields
+from stgc.options import default_configs, resolve_configs
 
 VERBS = ["train", "eval", "render", "compress", "decompress", "plot", "experiment", "report", "demo"]
 

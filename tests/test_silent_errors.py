@@ -293,6 +293,31 @@ def test_resuming_with_segment_frames_keeps_the_single_run(scene, trained_run, t
     assert sorted(p.relative_to(run) for p in run.rglob("*")) == before  # nothing deleted
 
 
+def test_resuming_names_the_same_data_however_spelled(scene, trained_run, tmp_path, monkeypatch):
+    """The saved path, a relative path, a symlink, the metadata file in the folder, or a new place once the saved
+    one is gone: each continues the run (the trainer is a stand-in that records the data it was handed)."""
+    import shutil
+
+    import stgc.cli
+
+    calls = []
+    monkeypatch.setattr(stgc.cli, "train", lambda dataset, *a, **k: calls.append(dataset.root))
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    link = tmp_path / "link"
+    link.symlink_to(scene.root)
+    monkeypatch.chdir(scene.root.parent)
+    for data in (str(scene.root), scene.root.name, str(link), str(scene.root / "train_meta.json")):
+        assert main(["train", data, "--out", str(run), "--resume"]) == 0, data
+    moved = tmp_path / "moved"
+    shutil.copytree(scene.root, moved)
+    config = json.loads((run / "config.json").read_text())
+    config["data"]["path"] = str(tmp_path / "gone")
+    (run / "config.json").write_text(json.dumps(config))
+    assert main(["train", str(moved), "--out", str(run), "--resume"]) == 0
+    assert len(calls) == 5
+
+
 def test_resuming_on_other_data_is_refused(scene, trained_run, tmp_path, capsys):
     import shutil
 
@@ -334,15 +359,13 @@ def test_an_output_that_cannot_be_written_is_a_clear_error_and_leaves_nothing(ve
     assert leftovers == []
 
 
-@pytest.mark.parametrize("code, words", [(28, "no space left"), (30, "read-only"), (13, "permission denied")])
+@pytest.mark.parametrize("code, words", [(28, "no space left"), (30, "read-only"), (13, "permission denied"),
+                                         (32, "encoder writing it stopped")])  # ENOSPC, EROFS, EACCES, EPIPE
 def test_output_errors_name_the_file_and_the_cause(tmp_path, monkeypatch, code, words):
-    import errno
     import os
 
     from stgc.errors import OutputError
     from stgc.fileio import write_json
-
-    assert code in (errno.ENOSPC, errno.EROFS, errno.EACCES)
 
     def failing_replace(src, dst):
         raise OSError(code, os.strerror(code), str(dst))

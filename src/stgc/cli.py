@@ -60,7 +60,12 @@ def _resumed_data_path(run: Path, given: str | None, saved: str | None) -> str |
     saved path is gone (the data moved). Continuing on other data would mix two trainings in one model."""
     if given is None or saved is None:
         return given or saved
-    if Path(given).resolve() != Path(saved).resolve() and Path(saved).exists():
+
+    def folder(path: str) -> Path:  # DATA may name a dataset's folder or its metadata file (saved: the folder)
+        resolved = Path(path).resolve()
+        return resolved.parent if resolved.is_file() else resolved
+
+    if folder(given) != folder(saved) and Path(saved).exists():
         raise StgcError(f"{run}: the run trains on {saved}, not {given}; resume it without DATA, or train the other "
                         "data into a new --out")
     return given
@@ -286,7 +291,6 @@ def build_parser() -> argparse.ArgumentParser:
                         "|error| x4 (default frames: the first and the last)")
     p.set_defaults(func=cmd_render)
 
-
     p = sub.add_parser("export", help="write a run or .stgc file for other tools (one static 3DGS PLY per frame)")
     p.add_argument("source", help="run directory or .stgc file")
     p.add_argument("--format", choices=EXPORT_FORMATS, default=EXPORT_FORMATS[0],
@@ -368,7 +372,6 @@ def build_parser() -> argparse.ArgumentParser:
 def configure_logging(verbosity: int) -> None:
     """stgc's messages go to stderr through `logging` ("stgc: message"): warnings always, what each stage did
     (INFO) by default, its details with -v; -q leaves only errors. Python warnings are routed to the same place."""
-
     level = {-1: logging.ERROR, 0: logging.INFO}.get(max(-1, min(verbosity, 1)), logging.DEBUG)
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("stgc: %(message)s"))

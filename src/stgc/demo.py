@@ -15,15 +15,11 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from stgc.codec import DEFAULT_QUALITY
 from stgc.errors import StgcError
 from stgc.eval.video import render_video
 from stgc.experiment import Plan, RunSpec, run_plan
-
-if TYPE_CHECKING:
-    from stgc.experiment import Plan
 
 _log = logging.getLogger(__name__)
 REPO_ROOT = Path(__file__).resolve().parents[2]

@@ -14,7 +14,8 @@ from typing import IO, Any
 from stgc.errors import FormatError, OutputError
 
 # Errors that writing the temporary file itself can raise: the device is full, or the file outgrows a limit.
-_WRITE_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+# A broken pipe: the encoder process writing it (ffmpeg for a video) stopped, most often for the same reasons.
+_WRITE_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EPIPE}
 
 
 def output_error(path: str | Path, exc: OSError) -> OutputError:
@@ -25,6 +26,8 @@ def output_error(path: str | Path, exc: OSError) -> OutputError:
         problem = "no space left on the device (free some and run the same command again)"
     elif code == errno.EFBIG:
         problem = "the file grew beyond what this system allows (file size limit)"
+    elif code == errno.EPIPE:
+        problem = "the encoder writing it stopped (a full disk, or the encoder failed)"
     elif code == errno.EROFS:
         problem = "the file system is read-only"
     elif code in (errno.EACCES, errno.EPERM):

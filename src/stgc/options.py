@@ -23,8 +23,6 @@ def section_classes() -> dict[str, type]:
     return {"data": DataConfig, "model": ModelConfig, "train": TrainConfig, "compaction": CompactionConfig}
 
 
-
-
 # What a preset sets outside the training schedule. The cpu preset bounds the initial cloud (points from every
 # 3rd frame, at most 3,000 per frame: 30k for a 30-frame segment, 51k for a 50-frame one), because dense
 # per-frame clouds (e.g. 14k points x 30 frames) would start a 2-core run with hundreds of thousands of Gaussians.

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import csv
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -197,9 +196,9 @@ def test_dry_run_launches_nothing(tmp_path: Path) -> None:
 @pytest.mark.parametrize("plan_name", ["table2", "table3", "demo"])
 def test_plan_overrides_are_real_config_keys(plan_name: str) -> None:
     """Every override of the built-in plans names a field the trainer's configs have, with a valid value."""
-    from stgc.options import resolve_configs
     from stgc.data.preprocess import MODES
     from stgc.demo import DEMO_SCENE, demo_plan
+    from stgc.options import resolve_configs
 
     plan = demo_plan() if plan_name == "demo" else load_plan(plan_name)
     assert DEMO_SCENE.is_dir()

@@ -75,4 +75,17 @@ def test_float32_projection_agrees_with_float64():
                         eps2d=0.3, near_plane=0.2)  # fmt: skip
     assert p32.means2d.dtype == torch.float32
     visible = p64.visible
+    assert torch.equal(p32.visible, visible)
     assert torch.allclose(p32.means2d[visible].double(), p64.means2d[visible], rtol=1e-5, atol=1e-3)
+    # The conics carry the quaternions and scales; near-degenerate footprints are ill-conditioned, so relative to
+    # the largest entry of each Gaussian's conic.
+    scale = p64.conics[visible].abs().amax(-1, keepdim=True)
+    assert ((p32.conics[visible].double() - p64.conics[visible]).abs() / scale).max() < 1e-4
+
+
+def test_camera_gradients_are_refused_not_dropped():
+    scene = make_scene(5, seed=1)
+    K = scene.K.clone().requires_grad_(True)
+    with pytest.raises(ValueError, match="no gradient for K or viewmat"):
+        project_numba(scene.means, scene.quats, scene.scales, scene.opacities, K, scene.viewmat, scene.width,
+                      scene.height, eps2d=0.3, near_plane=0.2)  # fmt: skip

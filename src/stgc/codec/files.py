@@ -226,7 +226,6 @@ def _training_dataset(run_dir: Path | None, source: Path, required: bool) -> Any
 
 def _corrections_of(source: Path) -> dict:
     """The training cameras' colour correction saved beside the model (empty when it was trained without)."""
-
     return saved_corrections(resolve_ply_path(source).parent / COLOUR_CORRECTION_NAME)
 
 
@@ -234,7 +233,6 @@ def _optimise(model: STGModel, arrays: dict, dataset: Dataset, config: CodecConf
     """The rd-optimised allocation measured on training views, each rendered as training saw it: with its camera's
     colour correction (on a real rig a raw render of a training camera is off by that camera's tint, which would
     hide part of the quantization error and loosen the budget)."""
-
 
     train = list(dataset.train)
     picked = np.random.default_rng(0).choice(len(train), size=min(config.allocation_views, len(train)),

@@ -64,6 +64,14 @@ MAX_GAUSSIANS = 1 << 27
 # one is refused before it is read into memory.
 MAX_FILE_BYTES = MAX_GAUSSIANS * ply_bytes_per_gaussian("full")
 
+MAX_SECTIONS = 64
+MAX_DECODER_BYTES = 64 << 20
+MAX_META_BYTES = 1 << 20
+# A zstd block holds at most 128 KiB of content and costs at least 4 bytes (3-byte header + 1 RLE byte), so a
+# frame cannot expand by more than 32768x; a claimed raw size beyond that is a lie and is rejected unread.
+ZSTD_MAX_EXPANSION = 1 << 15
+ZSTD_SLACK = 1 << 17
+
 
 def read_capped(path: str | os.PathLike) -> bytes:
     """The bytes of a .stgc file, refused unread when it is larger than any valid one."""
@@ -75,13 +83,7 @@ def read_capped(path: str | os.PathLike) -> bytes:
     if size > MAX_FILE_BYTES:
         raise FormatError(path, f"{size} bytes is larger than any valid .stgc file")
     return path.read_bytes()
-MAX_SECTIONS = 64
-MAX_DECODER_BYTES = 64 << 20
-MAX_META_BYTES = 1 << 20
-# A zstd block holds at most 128 KiB of content and costs at least 4 bytes (3-byte header + 1 RLE byte), so a
-# frame cannot expand by more than 32768x; a claimed raw size beyond that is a lie and is rejected unread.
-ZSTD_MAX_EXPANSION = 1 << 15
-ZSTD_SLACK = 1 << 17
+
 
 _HEADER = struct.Struct("<8sHBBIHHII")  # magic version variant quality N sections flags table_size table_crc
 _HEADER_CRC = struct.Struct("<I")

@@ -76,7 +76,6 @@ class DataConfig:
 
     def validate(self, prefix: str = "") -> None:
 
-
         check(self.format == "auto" or resolve_format(self.format) is not None, f"{prefix}format", self.format,
               f"auto or one of {', '.join(format_names())}")
         check(math.isfinite(self.downscale) and self.downscale > 0, f"{prefix}downscale", self.downscale, "> 0")
@@ -96,13 +95,13 @@ class DataConfig:
         check(0 < self.preprocess_fraction < 1, f"{prefix}preprocess_fraction", self.preprocess_fraction, "in (0, 1)")
         check(self.near_plane is None or (math.isfinite(self.near_plane) and self.near_plane > 0),
               f"{prefix}near_plane", self.near_plane, "a depth > 0, or none for the format's")
-        check(self.background in get_args(Background), f"{prefix}background", self.background, "black or white")
-        check(self.yuv_range in get_args(YuvRange), f"{prefix}yuv_range", self.yuv_range, "limited or full")
+        for name, kind in (("background", Background), ("yuv_range", YuvRange)):
+            allowed = get_args(kind)
+            check(getattr(self, name) in allowed, f"{prefix}{name}", getattr(self, name), " or ".join(allowed))
         check(self.image_cache_mb >= 0, f"{prefix}image_cache_mb", self.image_cache_mb, ">= 0")
 
     def open(self, path: str | Path) -> Dataset:
         """Open `path` with these options."""
-
         return open_dataset(path, format=self.format, downscale=self.downscale, start=self.start,
                             duration=self.duration, test_cameras=self.test_cameras, fps=self.fps,
                             image_cache_mb=self.image_cache_mb, background=self.background,
@@ -121,7 +120,6 @@ class DataConfig:
         the rule kept by the factor the cap would have applied to the raw frame, min(1, cap / raw count). So a
         capped run keeps the rule's selection and its reduction ratio, at the capped scale. (Capping first would make
         the rule pick points isolated by the sampling, not by the scene.)"""
-
         frames = dataset.frames[:: max(1, self.init_frames_every)]
         kwargs = {} if self.max_points_per_frame is None else {"random_points_per_frame": self.max_points_per_frame}
         raw = initial_points(dataset, source=self.init_source, frames=frames, seed=self.seed,
@@ -133,11 +131,9 @@ class DataConfig:
         return thin_like(kept, raw, self.max_points_per_frame, self.seed), report
 
 
-
 def data_config_from_saved(section: dict[str, Any], source: str | Path | None) -> tuple[DataConfig, str | None]:
     """(DataConfig, dataset path) from the `data` section a run saved (RUN/config.json, or the copy a .stgc file
     embeds), read strictly: an unknown or ill-typed key is a FormatError naming `source`, never dropped."""
-
     if not isinstance(section, dict):
         raise FormatError(source, "the run config's 'data' section is not an object")
     section = dict(section)
@@ -158,7 +154,6 @@ def saved_run_data(run_dir: str | Path) -> tuple[DataConfig, str | None] | None:
 def open_run_dataset(run_dir: str | Path, data_path: str | Path | None = None) -> Dataset:
     """The dataset the run in `run_dir` trained on, opened with its own saved data options (RUN/config.json);
     `data_path` replaces the saved location (the same data moved, or other data)."""
-
     config_path = Run(run_dir).config_path
     saved = saved_run_data(run_dir)
     if saved is None:
@@ -176,7 +171,6 @@ def initial_points_from_config(dataset: Dataset, cfg: DataConfig | None = None) 
     """The trainer's entry point: initial points of `dataset` as `cfg` asks, after preprocessing (PointCloud).
 
     The per-frame counts before/after preprocessing are logged at INFO level."""
-
     cloud, report = (cfg or DataConfig()).initial_points(dataset)
     logging.getLogger(__name__).info("initial points: %d -> %d after preprocess %r -> %d after the per-frame cap",
                                      report.before, report.after, report.mode, len(cloud))

@@ -42,7 +42,6 @@ def _bytes(n: int) -> str:
 
 def inspect_text(path: str | Path, **kwargs: Any) -> str:
     """The `inspect` summary rendered as a plain-text table (no terminal colours)."""
-
     info = inspect(path, **kwargs)
     table = Table(title=f"{info['name']} ({info['format']})", show_header=False)
     table.add_column("field", style="bold")

@@ -159,7 +159,6 @@ def mask_hull_points(dataset: Dataset, frame: int, count: int, rng: np.random.Ge
     """Up to `count` voxel centres of the visual hull of the training views' masks at `frame` (a cube of side twice
     the viewing radius around the viewing region, `resolution` voxels a side), coloured from the foreground pixels
     they project to; each jittered uniformly within its voxel. Views without a mask are left out."""
-
     cameras, masks = [], []
     for cam in dataset.train_at(frame):
         mask = dataset.load_mask(cam)

@@ -216,7 +216,6 @@ def main(argv: list[str] | None = None) -> int:
     """`python -m stgc.data.triangulate DATA`: triangulate every frame of a segment, print a per-frame table
     (or JSON rows with --json). Measures what source='triangulate' gives before a training run."""
 
-
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument("data", help="dataset path (any supported layout)")
     parser.add_argument("--format", default="auto")

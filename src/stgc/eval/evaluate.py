@@ -249,7 +249,6 @@ def _fmt(x: float | None, digits: int) -> str:
 
 def format_eval_table(record: Mapping[str, Any]) -> str:
     """A compact rich table of an eval.json record, as plain text."""
-
     table = Table(title="evaluation", show_header=True, header_style="bold")
     for col in ("camera (views)", "PSNR", "YUV-PSNR", "SSIM", "LPIPS", "#Gaussians", "size MiB", "Mbps", "FPS"):
         table.add_column(col, justify="right")
@@ -307,7 +306,6 @@ class RunEvaluator:
 def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstream: Path | None = None) -> Any:
     """The dataset a run was trained on, opened with the run's own data options: RUN/config.json, or for a
     `.stgc` file away from its run, the run config the encoder embedded in it."""
-
     if Run(run_dir).has_config() or bitstream is None:
         return open_saved_run_dataset(run_dir, data_path)
 

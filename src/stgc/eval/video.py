@@ -100,7 +100,6 @@ def _even(image: np.ndarray) -> np.ndarray:
 
 def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> Path:
     """MP4 (H.264, yuv420p) or GIF by the suffix of `path`; atomic."""
-
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".gif", ".mp4", ".mov", ".mkv"):
@@ -150,7 +149,6 @@ def orbit_cameras(dataset: Dataset, num_frames: int) -> list[Camera]:
     Centres follow a cubic spline parameterised by chord length, orientations are slerped between neighbouring
     cameras at the same parameter, intrinsics and size are those of the first training camera; time sweeps
     [0, 1] along the path."""
-
     if num_frames < 1:
         raise ValueError("an orbit needs at least one frame")
     by_name: dict[str, Any] = {}

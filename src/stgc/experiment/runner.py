@@ -75,7 +75,6 @@ def build_train_command(
 def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str]) -> None:
     """Resolve and validate every run's options before the first training starts: a typo in the plan's last run
     must not surface hours later. Raises ConfigError naming the run."""
-
     for spec in plan.runs:
         try:
             resolve_configs(preset or "cpu", {}, {}, {**spec.overrides, **extra})

@@ -97,7 +97,6 @@ YUV_WEIGHTS = {"y": 6.0, "u": 1.0, "v": 1.0}
 def yuv_psnr(img: Any, ref: Any, bit_depth: int = YUV_BIT_DEPTH, color_range: str = "limited") -> dict[str, float]:
     """{"y", "u", "v": PSNR dB of each plane, "yuv": their 6:1:1 weighted mean} of two [H, W, 3] RGB images
     (floats in [0, 1] or uint8). Identical planes give +inf."""
-
     def planes(x: Any) -> tuple[np.ndarray, ...]:
         array = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
         if array.ndim != 3 or array.shape[-1] < 3:

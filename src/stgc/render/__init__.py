@@ -3,8 +3,9 @@
     out = rasterize(means, quats, scales, opacities, features, K, viewmat, width, height, background=None,
                     backend="auto")
 
-Backends share the torch EWA projection (gsplat semantics) and differ only in compositing: "numba" (CPU default,
-hand-written backward), "torch" (pure PyTorch, any device), "gsplat" (CUDA kernels, optional). See
+Backends share the EWA projection's math (gsplat semantics; `projection.py`): "numba" (CPU default, projection and
+compositing in numba kernels with hand-written backwards), "torch" (pure PyTorch, any device), "gsplat" (CUDA
+kernels, optional). See
 docs/rasterizer.md for conventions and measured speed.
 """
 

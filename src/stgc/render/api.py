@@ -20,16 +20,9 @@ Backend = Literal["auto", "numba", "torch", "gsplat"]
 BACKENDS = get_args(Backend)
 
 
-def _numba_installed() -> bool:
-    return importlib.util.find_spec("numba") is not None
-
-
 def available_backends() -> list[str]:
     """Backends that can run in this process (without importing gsplat: it is only probed on first use)."""
-    names = []
-    if _numba_installed():
-        names.append("numba")
-    names.append("torch")
+    names = ["numba", "torch"]  # numba is a required dependency
     if torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None:
         if gsplat_failure() is None:
             names.append("gsplat")
@@ -42,15 +35,13 @@ def select_backend(requested: str, device: torch.device) -> str:
         raise ValueError(f"backend must be one of {BACKENDS}, got {requested!r}")
     if requested == "auto":
         if device.type == "cpu":
-            return "numba" if _numba_installed() else "torch"
+            return "numba"
         if device.type == "cuda" and "gsplat" in available_backends():
             return "gsplat"
         return "torch"
     if requested == "numba":
         if device.type != "cpu":
             raise ValueError(f"backend 'numba' needs CPU tensors, got device {device}")
-        if not _numba_installed():
-            raise ValueError("backend 'numba' requested but numba is not installed")
     if requested == "gsplat" and device.type != "cuda":
         raise ValueError(f"backend 'gsplat' needs CUDA tensors, got device {device}")
     return requested

@@ -1,4 +1,5 @@
-"""CPU compositing with numba kernels, wrapped as a torch.autograd.Function (hand-written backward)."""
+"""CPU projection and compositing with numba kernels, each wrapped as a torch.autograd.Function (hand-written
+backwards)."""
 
 from __future__ import annotations
 
@@ -50,14 +51,17 @@ class _NumbaProjection(torch.autograd.Function):
         radii = np.empty((n, 2), dtype=np.int32)
         projection_kernels.project_forward(m, q, s, np.ascontiguousarray(opacities.detach().numpy()), camera,
                                            width, height, means2d, conics, depths, radii)  # fmt: skip
-        ctx.arrays = (m, q, s, camera)
+        # Saved as tensors, so that autograd refuses a backward after they were changed in place.
+        ctx.save_for_backward(means, quats, scales)
+        ctx.camera = camera
         out["depths"] = torch.from_numpy(depths)
         out["radii"] = torch.from_numpy(radii)
         return torch.from_numpy(means2d), torch.from_numpy(conics)
 
     @staticmethod
     def backward(ctx: Any, grad_means2d: Tensor | None, grad_conics: Tensor | None) -> tuple[Tensor | None, ...]:
-        m, q, s, camera = ctx.arrays
+        m, q, s = (np.ascontiguousarray(t.detach().numpy()) for t in ctx.saved_tensors)
+        camera = ctx.camera
         n, dtype = m.shape[0], m.dtype
         gm2 = np.zeros((n, 2), dtype) if grad_means2d is None else np.ascontiguousarray(grad_means2d.numpy(), dtype)
         gco = np.zeros((n, 3), dtype) if grad_conics is None else np.ascontiguousarray(grad_conics.numpy(), dtype)
@@ -71,7 +75,11 @@ class _NumbaProjection(torch.autograd.Function):
 
 def project_numba(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, K: Tensor, viewmat: Tensor,
                   width: int, height: int, *, eps2d: float, near_plane: float, far_plane: float = 1e10) -> Projected:
-    """projection.project_gaussians on CPU in one numba pass per direction (same math, same outputs)."""
+    """projection.project_gaussians on CPU in one numba pass per direction (same math, same outputs; each
+    Gaussian in float64, so float32 results differ from the torch projection's in the last bits). The camera is a
+    constant here: K and viewmat get no gradient (the torch backend differentiates them)."""
+    if K.requires_grad or viewmat.requires_grad:
+        raise ValueError("the numba backend has no gradient for K or viewmat; use backend='torch' to optimise cameras")
     camera = projection_kernels.camera_array(
         K.detach().to(torch.float64).numpy(), viewmat.detach().to(torch.float64).numpy(), width, height,
         float(eps2d), float(near_plane), float(far_plane),

@@ -14,7 +14,9 @@ The math is gsplat 1.5.3's pinhole projection (`_fully_fused_projection` / Proje
   opacity-aware box of gsplat's CUDA projection. Outside it o * exp(-sigma) < 1/255, so the compositor would skip the
   pixel anyway; the bound is exact and only removes tile intersections. Gaussians with o < 1/255 are culled.
 
-Everything runs in torch (autograd), so it works unchanged on any device; the backends only differ in compositing.
+This module runs in torch (autograd), so it works unchanged on any device: the torch backend uses it, and it is the
+oracle of the numba backend's own projection kernel (`_numba_projection.py`, the same math in one pass per
+Gaussian, tested against this to 1e-9 in float64).
 """
 
 from __future__ import annotations

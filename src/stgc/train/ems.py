@@ -73,7 +73,6 @@ def new_gaussians(
     model: STGModel, xyz: np.ndarray, rgb: np.ndarray, trbf_scale_init: float, generator: torch.Generator
 ) -> dict[str, torch.Tensor]:
     """Pre-activation parameters of fresh EMS Gaussians (see the module docstring)."""
-
     n = len(xyz)
     log_scale = torch.as_tensor(initial_log_scales(xyz.astype(np.float32), 3), dtype=torch.float32)
     rgb_t = torch.as_tensor(rgb, dtype=torch.float32)

@@ -27,8 +27,8 @@ import torch
 from stgc.compaction import CompactionConfig, STKNNCompactor
 from stgc.config import validate_config
 from stgc.data import DataConfig
-from stgc.data.config import initial_points_from_config
 from stgc.data.cameras import Camera
+from stgc.data.config import initial_points_from_config
 from stgc.data.dataset import Dataset
 from stgc.fileio import write_json
 from stgc.metrics import ssim
@@ -43,6 +43,7 @@ from stgc.train.colour import COLOUR_CORRECTION_NAME, ColourCorrection
 from stgc.train.config import Schedule, TrainConfig, resolve_schedule
 from stgc.train.densify import DensityControl
 from stgc.train.ems import ErrorGuidedSampler
+from stgc.train.monitor import JsonLines, Progress, TensorBoard
 from stgc.train.strategy import (
     CompactionStrategy,
     DensityStrategy,
@@ -50,7 +51,6 @@ from stgc.train.strategy import (
     StepContext,
     Strategy,
 )
-from stgc.train.monitor import JsonLines, Progress, TensorBoard
 
 IterationCallback = Callable[[int, dict[str, Any]], None]
 ViewRenderer = Callable[[Camera], torch.Tensor]
@@ -475,16 +475,18 @@ class Trainer:
         return summary
 
 
-def run_config(dataset: Dataset, configs: dict[str, Any], schedule: Schedule | None = None) -> dict[str, Any]:
-    """A run's config.json: the data options as the dataset resolved them (what reopens the same frames later:
-    format, downscale, frame window, near plane, the data's absolute path), then each config section as given, and
-    the training schedule in real iterations when there is one (a whole video's shared config has none: each
-    segment resolves its own)."""
+def run_config(dataset: Dataset, configs: dict[str, Any], schedule: Schedule | None = None,
+               data_path: str | Path | None = None) -> dict[str, Any]:
+    """A run's config.json: the data section (the dataset's format, downscale and frame window where the data
+    options leave them unset, then the data options as given, the near plane as resolved, and the data's absolute
+    path: `data_path` as the user gave it, else the dataset's folder), each other config section as given, and the
+    training schedule in real iterations when there is one (a whole video's shared config has none: each segment
+    resolves its own)."""
     data = {"format": dataset.format, "downscale": dataset.downscale, "start": dataset.start,
             "duration": dataset.duration}
     data.update(_config_dict(configs["data"]) or {})
     data["near_plane"] = dataset.near_plane  # resolved: what every later verb must render with
-    data["path"] = str(Path(dataset.root).resolve())
+    data["path"] = str(Path(dataset.root if data_path is None else data_path).resolve())
     train = _config_dict(configs["train"])
     if schedule is not None:
         train["resolved_schedule"] = schedule.to_dict()

@@ -9,7 +9,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from stgc.fileio import atomic_open
+from stgc.fileio import atomic_open, output_error
 
 
 class JsonLines:
@@ -38,12 +38,15 @@ class JsonLines:
             self.path.unlink()
 
     def append(self, row: dict[str, Any]) -> None:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         # One write of a whole line per call: a kill leaves at most one partial last line, which readers skip.
-        with open(self.path, "a") as f:
-            f.write(json.dumps(row) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.path, "a") as f:
+                f.write(json.dumps(row) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError as exc:
+            raise output_error(self.path, exc) from None
 
     def read(self) -> list[dict[str, Any]]:
         if not self.path.exists():

@@ -61,9 +61,10 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
         whole = data_cfg.open(data_path)  # the frame window the data options select
         plan = plan_segments(list(whole.frames), int(segment_frames))
         run = Run.create(out_dir, overwrite=overwrite)
-        run.write_config(run_config(whole, configs))
+        # video.json first: a start killed before config.json is still a video that --resume recognises.
         run.write_video({"segment_frames": int(segment_frames), "data_path": str(Path(data_path).resolve()),
                          "segments": plan})
+        run.write_config(run_config(whole, configs, data_path=data_path))
     summaries = []
     for index, segment in enumerate(plan):
         segment_run = Run(run.path / str(segment["name"]))

@@ -38,7 +38,6 @@ def read_miv(path: Path, options: ReaderOptions) -> SourceScene:
     """MPEG immersive video sequence: a JSON with `cameras` (Name, Position, Rotation [yaw, pitch, roll]
     degrees in OMAF axes, Projection "Perspective", Focal, Principle_point, Resolution) and one planar
     YUV 4:2:0 texture file per view, named '<Name>_texture_<W>x<H>_yuv420p10le.yuv' or '<Name>.yuv'."""
-
     yuv_range = options.yuv_range
 
     if path.is_file():

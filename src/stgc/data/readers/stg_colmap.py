@@ -36,7 +36,6 @@ def read_stg_colmap(path: Path, options: ReaderOptions) -> SourceScene:
     """Official STG preprocessed layout: colmap_<t>/images/camXX.png + colmap_<t>/sparse/0 per frame.
     Cameras come from the first frame's model (STG reads them from colmap_<start> the same way);
     each frame's points3D is that frame's initial cloud. `path` may be the scene or one colmap_<t>."""
-
     default_start = None
     root = path
     m = re.fullmatch(r"colmap_(\d+)", path.name)
