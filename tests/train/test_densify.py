@@ -228,3 +228,24 @@ def test_trainer_records_the_densification_its_initial_cloud_called_for(tmp_path
         recorded[name] = json.loads((tmp_path / name / "config.json").read_text())["train"]["densify"]
     assert (recorded["auto"]["interval"], recorded["auto"]["rounds"], recorded["auto"]["max_growth"]) == (500, 20, 2.0)
     assert (recorded["shipped"]["interval"], recorded["shipped"]["rounds"]) == (100, 6)
+
+
+@pytest.mark.parametrize("prune_in_rounds", [False, True])
+def test_pruning_in_clone_split_rounds_is_an_option(prune_in_rounds):
+    """Off (official STG): a faint Gaussian outlives a clone/split round; on (3DGS): the round removes it, and the
+    statistics stay row-aligned with the model."""
+    from stgc.train.config import FloaterConfig
+    from stgc.train.densify import DensityControl
+
+    model = _model(40)
+    with torch.no_grad():
+        model.params["opacity"][:5] = -8.0  # sigmoid ~ 3e-4, below the 0.005 threshold
+    cfg = replace(DensifyConfig(), prune_in_rounds=prune_in_rounds).resolved(sparse_cloud=True)
+    schedule = resolve_schedule(replace(TrainConfig(), densify=cfg, schedule_scale=0.2, iterations=6000))
+    control = DensityControl(cfg, FloaterConfig(), schedule, model.num_gaussians, np.zeros((0, 3)))
+    first_round = schedule.densify_start + schedule.densify_interval
+    report = control.step(first_round, model, torch.Generator().manual_seed(0))
+    assert control.rounds_done == 1
+    assert model.num_gaussians == (35 if prune_in_rounds else 40)
+    assert report.get("pruned_opacity", 0) == (5 if prune_in_rounds else 0)
+    assert control.stats.count.shape[0] == model.num_gaussians

@@ -78,6 +78,12 @@ class DensifyConfig:
     prune_until: int = field(
         default=7000, metadata={"help": "opacity pruning stops at this iteration (schedule units; official 7000)"}
     )
+    prune_in_rounds: bool = field(
+        default=False,
+        metadata={"help": "also prune Gaussians with opacity below prune_opacity at every clone/split round, as 3DGS "
+                          "does (the official STG code computes that mask but never applies it, and prunes only after "
+                          "the rounds, until prune_until: with 20 rounds to 35 percent of the run, never)"},
+    )
     opacity_reset_interval: int = field(
         default=3000, metadata={"help": "reset opacities every this many iterations (schedule units; 0 = never)"}
     )

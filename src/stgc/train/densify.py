@@ -215,6 +215,9 @@ class DensityControl:
                 report.update(clone_and_split(model, self.stats, d.grad_threshold, d.percent_dense, d.split_count,
                                               generator, max_gaussians=d.cap(self.initial_gaussians)))
                 self.rounds_done += 1
+                if d.prune_in_rounds:
+                    report["pruned_opacity"] = apply_prune(model, self.stats,
+                                                           prune_mask_low_opacity(model, d.prune_opacity))
             elif iteration < sched.prune_until:
                 report["pruned_opacity"] = apply_prune(model, self.stats, prune_mask_low_opacity(model, d.prune_opacity))
             if iteration <= sched.floaters_until and (fl.near_camera > 0 or fl.max_world_scale > 0):
