@@ -21,14 +21,12 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from .projection import ALPHA_MIN, DET_MIN, MAX_RADIUS, RADIUS_SIGMAS, jacobian_limits
+
 # Layout of `camera` (float64): viewmat rotation (row-major 9), translation (3), K rows 0 and 1 (6),
 # clamp limits (lim_x-, lim_x+, lim_y-, lim_y+), eps2d, near, far.
 CAM_R, CAM_T, CAM_K, CAM_LIM, CAM_EPS, CAM_NEAR, CAM_FAR = 0, 9, 12, 18, 22, 23, 24
 CAMERA_SIZE = 25
-DET_MIN = 1e-10
-ALPHA_MIN = 1.0 / 255.0
-RADIUS_SIGMAS = 3.33
-MAX_RADIUS = float(2**30)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -260,10 +258,8 @@ def camera_array(K: np.ndarray, viewmat: np.ndarray, width: int, height: int, ep
     cam[CAM_R:CAM_R + 9] = viewmat[:3, :3].reshape(-1)
     cam[CAM_T:CAM_T + 3] = viewmat[:3, 3]
     cam[CAM_K:CAM_K + 6] = K[:2, :3].reshape(-1)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-    cam[CAM_LIM:CAM_LIM + 4] = (cx / fx + 0.3 * tan_fovx, (width - cx) / fx + 0.3 * tan_fovx,
-                                cy / fy + 0.3 * tan_fovy, (height - cy) / fy + 0.3 * tan_fovy)
+    cam[CAM_LIM:CAM_LIM + 4] = jacobian_limits(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                                               width, height)
     cam[CAM_EPS] = eps2d
     cam[CAM_NEAR] = near
     cam[CAM_FAR] = far

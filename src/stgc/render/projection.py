@@ -22,10 +22,13 @@ Gaussian, tested against this to 1e-9 in float64).
 from __future__ import annotations
 
 import math
+from typing import TypeVar
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+T = TypeVar("T", float, Tensor)
 
 # 1/255: below this alpha a Gaussian is skipped (3DGS / gsplat ALPHA_THRESHOLD).
 ALPHA_MIN = 1.0 / 255.0
@@ -33,7 +36,9 @@ ALPHA_MIN = 1.0 / 255.0
 # already below it, so for o <= 1 the cap never binds).
 RADIUS_SIGMAS = 3.33
 # Largest radius we report; keeps the int32 cast of astronomically large footprints defined.
-_MAX_RADIUS = float(2**30)
+MAX_RADIUS = float(2**30)
+# Floor of the 2D covariance determinant before the conic divides by it.
+DET_MIN = 1e-10
 # Margin (in sigma units) for the per-Gaussian "skip before exp" bound: float32 exp/log rounding is ~1e-7 relative,
 # so a 1e-3 margin keeps the cut strictly conservative (the exact alpha test still decides inside the margin).
 SIGMA_CUT_MARGIN = 1e-3
@@ -87,11 +92,7 @@ def project_gaussians(
     z = torch.where(in_depth, tz, torch.ones_like(tz))
 
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-    lim_x_pos = (width - cx) / fx + 0.3 * tan_fovx
-    lim_x_neg = cx / fx + 0.3 * tan_fovx
-    lim_y_pos = (height - cy) / fy + 0.3 * tan_fovy
-    lim_y_neg = cy / fy + 0.3 * tan_fovy
+    lim_x_neg, lim_x_pos, lim_y_neg, lim_y_pos = jacobian_limits(fx, fy, cx, cy, width, height)
     tx_c = z * torch.clamp(tx / z, min=-lim_x_neg, max=lim_x_pos)
     ty_c = z * torch.clamp(ty / z, min=-lim_y_neg, max=lim_y_pos)
 
@@ -107,7 +108,7 @@ def project_gaussians(
     c11 = (a1 * a1).sum(-1) + eps2d
     c01 = (a0 * a1).sum(-1)
     det_raw = c00 * c11 - c01 * c01
-    det = det_raw.clamp(min=1e-10)
+    det = det_raw.clamp(min=DET_MIN)
     conics = torch.stack([c11 / det, -c01 / det, c00 / det], dim=-1)
 
     means2d = (means_cam @ K[:2, :3].T) / z[:, None]
@@ -117,6 +118,14 @@ def project_gaussians(
             means2d, c00, c11, det_raw, opacities, in_depth, width, height
         )
     return Projected(means2d=means2d, conics=conics, depths=tz.detach(), radii=radii, visible=visible)
+
+
+def jacobian_limits(fx: T, fy: T, cx: T, cy: T, width: int, height: int) -> tuple[T, T, T, T]:
+    """(x-, x+, y-, y+): how far x/z and y/z may reach before the Jacobian is evaluated at the clamped point
+    (0.3 tan(fov/2) beyond each image border). Plain arithmetic: floats or tensors alike."""
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    return (cx / fx + 0.3 * tan_fovx, (width - cx) / fx + 0.3 * tan_fovx,
+            cy / fy + 0.3 * tan_fovy, (height - cy) / fy + 0.3 * tan_fovy)
 
 
 def _screen_radii(
@@ -133,8 +142,8 @@ def _screen_radii(
     keep = in_depth & (det > 0) & (opac >= ALPHA_MIN)
     # sqrt(2 ln(255 o)) is where o * exp(-sigma) reaches 1/255 on the ellipse's principal axes.
     extent = torch.sqrt(2.0 * torch.log(torch.clamp(opac, min=ALPHA_MIN) * 255.0)).clamp(max=RADIUS_SIGMAS)
-    rx = torch.ceil(extent * torch.sqrt(var_x.detach().clamp(min=0))).clamp(max=_MAX_RADIUS)
-    ry = torch.ceil(extent * torch.sqrt(var_y.detach().clamp(min=0))).clamp(max=_MAX_RADIUS)
+    rx = torch.ceil(extent * torch.sqrt(var_x.detach().clamp(min=0))).clamp(max=MAX_RADIUS)
+    ry = torch.ceil(extent * torch.sqrt(var_y.detach().clamp(min=0))).clamp(max=MAX_RADIUS)
     m = means2d.detach()
     inside = (m[:, 0] + rx > 0) & (m[:, 0] - rx < width) & (m[:, 1] + ry > 0) & (m[:, 1] - ry < height)
     visible = keep & inside & ((rx > 0) | (ry > 0)) & torch.isfinite(m).all(-1)
