@@ -11,7 +11,7 @@ from pathlib import Path
 SRC = Path(__file__).resolve().parents[1] / "src" / "stgc"
 
 LAYERS = [
-    {"errors", "fileio", "config", "run"},  # foundations: no stgc imports but these
+    {"errors", "fileio", "config", "run", "distributed"},  # foundations: no stgc imports but these
     {"data", "render", "metrics"},
     {"model"},
     {"train", "compaction", "codec"},
@@ -66,9 +66,9 @@ def test_no_module_imports_from_a_higher_layer():
     assert upward == KNOWN_UPWARD, f"new: {sorted(upward - KNOWN_UPWARD)}, gone: {sorted(KNOWN_UPWARD - upward)}"
 
 
-# Imported inside functions on purpose: optional extras (gsplat, viser, lpips, tensorboard, pycolmap) that may be
+# Imported inside functions on purpose: optional extras (gsplat, viser, lpips, tensorboard, pycolmap, ray) that may be
 # missing, and matplotlib, whose backend must be chosen before pyplot loads.
-OPTIONAL_DEPENDENCIES = {"gsplat", "viser", "lpips", "tensorboard", "torch.utils.tensorboard", "pycolmap", "matplotlib"}
+OPTIONAL_DEPENDENCIES = {"gsplat", "viser", "lpips", "tensorboard", "torch.utils.tensorboard", "pycolmap", "ray", "matplotlib"}
 
 
 def test_function_level_imports_are_only_for_optional_dependencies():

@@ -30,6 +30,7 @@ from stgc.config import (
 from stgc.data import inspect_text
 from stgc.data.preprocess import MODES as PREPROCESS_MODES
 from stgc.demo import run_demo
+from stgc.distributed import check_reachable
 from stgc.errors import StgcError
 from stgc.eval import RunEvaluator, evaluate_run, format_eval_table
 from stgc.eval.bjontegaard import METHODS as BD_METHODS
@@ -71,6 +72,14 @@ def _resumed_data_path(run: Path, given: str | None, saved: str | None) -> str |
     return given
 
 
+def add_ray_arguments(p: argparse.ArgumentParser, unit: str) -> None:
+    p.add_argument("--ray-address", metavar="HOST:PORT",
+                   help=f"run each {unit} as a task on this Ray cluster ('auto': the one this machine belongs to); "
+                        "every node must see the data and --out at the same paths (default: a local Ray with this "
+                        f"machine's cores; without Ray installed, the {unit}s run one after another)")
+    p.add_argument("--no-ray", action="store_true", help=f"run the {unit}s one after another in this process")
+
+
 # --------------------------------------------------------------------------------------------- verbs
 def cmd_train(args: argparse.Namespace) -> int:
     out = Path(args.out)
@@ -99,13 +108,17 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.resume and args.overwrite:
         raise StgcError("--resume continues a run and --overwrite replaces it: give one of them")
     if args.segment_frames is not None or (args.resume and Run(out).is_video()):
+        if args.ray_address is not None:  # before anything is written
+            check_reachable(args.ray_address)
 
         train_video(data_path, configs, out, args.segment_frames, resume=args.resume, overwrite=args.overwrite,
-                    evaluator=RunEvaluator())
+                    evaluator=RunEvaluator(), use_ray=not args.no_ray, ray_address=args.ray_address)
         print(f"whole video written to {out} ({len(Run(out).segments())} segments)")
         if configs["train"].eval_at_end:
             print(format_eval_table(write_video_eval(out)))
         return 0
+    if args.ray_address is not None:
+        raise StgcError("--ray-address spreads a whole video's segments over a cluster; give --segment-frames")
     dataset = configs["data"].open(data_path)
     dataset.verify_images(dataset.train, progress=True)  # a corrupt image fails now, not at iteration 14
     # The trainer claims the run folder (stgc.run.prepare_new_run) before it triangulates anything.
@@ -204,9 +217,12 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
+    if args.ray_address is not None:
+        check_reachable(args.ray_address)
     result = run_plan(
         args.data, args.plan, args.out, preset=args.preset, extra_overrides=args.set or [],
         codec_qualities=args.codec_quality or [], preprocess=args.preprocess, bd_method=args.bd_method,
+        use_ray=not args.no_ray, ray_address=args.ray_address,
     )
     print(result)
     if result.failed:
@@ -247,6 +263,7 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
                    help="train the video as consecutive N-frame segments (STG: 50), one run each in RUN/segment_<k>/; "
                         "the last segment may be shorter (default: the whole data is one segment)")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in RUN (its files, bitstreams and evaluations are removed)")
+    add_ray_arguments(p, "segment")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override any option, e.g. train.iterations=3000")
     try:
         configs = default_configs("cpu")
@@ -348,6 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="training preset of every run")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override applied to every run")
     p.add_argument("--codec-quality", type=int, action="append", help="also add .stgc rate points at this quality")
+    add_ray_arguments(p, "run")
 
     p.add_argument("--preprocess", choices=[m for m in PREPROCESS_MODES if m != "none"],
                    help="point preprocessing of the built-in plans' preprocessed runs (default stg-isolated, what "

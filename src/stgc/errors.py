@@ -17,6 +17,9 @@ class DataError(StgcError, ValueError):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
 
+    def __reduce__(self) -> tuple[type, tuple[Path | None, str]]:  # pickled whole: a Ray task's error reaches the driver
+        return type(self), (self.path, self.problem)
+
 
 class OutputError(StgcError):
     """An output cannot be written (full disk, read-only or missing folder, permissions): names the file."""
@@ -25,6 +28,9 @@ class OutputError(StgcError):
         self.path = Path(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
+
+    def __reduce__(self) -> tuple[type, tuple[Path, str]]:
+        return type(self), (self.path, self.problem)
 
 
 class FormatError(DataError):

@@ -9,6 +9,7 @@ run's files, and only those: other files in the folder, such as an experiment's 
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from pathlib import Path
@@ -177,6 +178,27 @@ class Run:
 
     def read_eval(self, other_data: str | None = None, *, strict: bool = True) -> dict[str, Any] | None:
         return read_json_object(self.eval_paths(other_data)[0], strict=strict)
+
+    def progress(self) -> tuple[int, int]:
+        """(iterations done, iterations in all) as the files say while the run trains elsewhere: the last row of
+        the metrics log against config.json's train.iterations; (0, 0) before either exists."""
+        config = self.read_config(strict=False) or {}
+        train = config.get("train")
+        total = int(train.get("iterations") or 0) if isinstance(train, dict) else 0
+        if self.training_finished():
+            return total, total
+        path = self.path / self.METRICS
+        if not path.is_file():
+            return 0, total
+        with path.open("rb") as f:  # the tail only: a long run's log is long
+            f.seek(max(0, path.stat().st_size - 4096))
+            lines = f.read().splitlines()
+        for line in reversed(lines):
+            try:
+                return int(json.loads(line)["iteration"]), total
+            except (ValueError, KeyError, TypeError):  # a partial line being written
+                continue
+        return 0, total
 
     # ------------------------------------------------------------------ segments of a whole video
     @property

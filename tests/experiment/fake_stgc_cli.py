@@ -1,13 +1,16 @@
 """A stand-in for `python -m stgc.cli` that trains nothing: it writes plausible run files in milliseconds.
 
 train: config.json, checkpoint.pt, train_summary.json (finished) and eval.json whose PSNR/rate depend on
-compaction.case. `--set fake.fail=1` exits 3; `--set fake.no_eval=1` leaves eval.json to the eval verb.
+compaction.case. `--set fake.fail=1` exits 3; `--set fake.no_eval=1` leaves eval.json to the eval verb;
+`--set fake.sleep=S` trains for S seconds after its first checkpoint (a kill can land mid-run). `--resume` continues
+with the options of the run's config.json.
 Every call is appended to <run parent>/invocations.txt so tests can count launches."""
 
 from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 
 
@@ -33,6 +36,8 @@ def main(argv: list[str]) -> int:
                 sets[k] = v
         out.mkdir(parents=True, exist_ok=True)
         _record(out, argv)
+        if "--resume" in argv:
+            sets = json.loads((out / "config.json").read_text()).get("sets", {})
         if sets.get("fake.fail") == "1":
             print("fake failure", file=sys.stderr)
             return 3
@@ -41,8 +46,10 @@ def main(argv: list[str]) -> int:
         (out / "config.json").write_text(json.dumps({
             "data": {"path": argv[1], "preprocess": preprocess},
             "compaction": {"method": sets.get("compaction.method", "none"), "case": case,
-                           "criterion": sets.get("compaction.criterion", "timestamp")}}))
+                           "criterion": sets.get("compaction.criterion", "timestamp")}, "sets": sets}))
         (out / "checkpoint.pt").write_bytes(b"fake")
+        if "--resume" not in argv:
+            time.sleep(float(sets.get("fake.sleep", 0)))
         (out / "train_summary.json").write_text(json.dumps({"finished": True, "wall_seconds": 1.5,
                                                             "iterations": 10}))
         if sets.get("fake.no_eval") != "1":

@@ -13,7 +13,8 @@ from stgc.train.video import plan_segments
 
 QUICK = ["--set", "train.iterations=4", "--set", "train.schedule_scale=1", "--set", "data.init_source=random",
          "--set", "data.max_points_per_frame=200", "--set", "train.progress=false", "--set", "train.tensorboard=false",
-         "--set", "train.save_iterations=[4]", "--set", "train.checkpoint_every=2"]
+         "--set", "train.save_iterations=[4]", "--set", "train.checkpoint_every=2",
+         "--no-ray"]  # segments as tasks on Ray: tests/test_distributed.py
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +62,7 @@ def test_resume_trains_only_what_is_unfinished(scene, tmp_path):
     kept = (first.summary_path.stat().st_mtime_ns, (first.latest_model_dir() / "point_cloud.ply").read_bytes())
     # The second segment "was killed": its summary is gone, its checkpoint stays.
     second.summary_path.unlink()
-    assert main(["train", "--out", str(out), "--resume"]) == 0
+    assert main(["train", "--out", str(out), "--resume", "--no-ray"]) == 0
     assert second.training_finished()
     assert (first.summary_path.stat().st_mtime_ns, (first.latest_model_dir() / "point_cloud.ply").read_bytes()) == kept
     # A resumed video keeps its segments.
@@ -75,3 +76,17 @@ def test_a_new_video_refuses_an_existing_run_unless_overwritten(scene, tmp_path,
     assert "--overwrite" in capsys.readouterr().err
     assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", "--overwrite", *QUICK]) == 0
     assert len(Run(out).segments()) == 3
+
+
+def test_a_segment_on_bad_data_fails_the_command_by_name_and_the_others_are_kept(tmp_path, capsys):
+    scene = write_panoptic_scene(tmp_path / "scene", views=5, frames=4, width=32, height=24)
+    # A training view of frame 3, cut short: its header reads (opening the data checks every header), its pixels do
+    # not, so the failure comes from the segment that trains on it.
+    image = scene.root / "ims" / "1" / "000003.png"
+    image.write_bytes(image.read_bytes()[:200])
+    out = tmp_path / "video"
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", *QUICK]) == 2
+    err = capsys.readouterr().err
+    assert "segment_001" in err and "000003.png" in err and "segment_000" not in err.split("failed")[-1]
+    first, second = Run(out).segments()
+    assert first.training_finished() and not second.training_finished()

@@ -1,4 +1,5 @@
-"""Run a plan: one independent `stgc train` subprocess per run, resumable, then results.csv and the report.
+"""Run a plan: one independent `stgc train` subprocess per run, each run a task (in parallel on Ray, or in order),
+resumable, then results.csv and the report.
 
 Layout of an experiment folder OUT:
 
@@ -19,8 +20,10 @@ others still run.
 from __future__ import annotations
 
 import csv
+import ctypes
 import logging
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -30,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from stgc.config import ConfigError
+from stgc.distributed import Task, cpus_for_threads, run_tasks
 from stgc.errors import FormatError
 from stgc.eval.report import Report, ReportRow, make_report, record_fields
 from stgc.experiment.plans import Plan, RunSpec, load_plan
@@ -42,6 +46,7 @@ _log = logging.getLogger(__name__)
 RESULT_COLUMNS = ("plan", "name", "family", "label", "status", "num_gaussians", "size_mb", "mbps", "psnr", "ssim",
                   "lpips", "fps", "train_seconds", "overrides", "run_dir")
 CLI_MODULE = "stgc.cli"
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
 # ------------------------------------------------------------------------------------------ commands
@@ -170,7 +175,15 @@ def subprocess_runner(cmd: list[str], log_path: Path) -> int:
     with open(log_path, "a") as log:
         log.write(f"\n$ {' '.join(cmd)}\n")
         log.flush()
-        return subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy()).returncode
+        return subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy(),
+                              preexec_fn=_die_with_parent).returncode
+
+
+def _die_with_parent() -> None:
+    """In the child, before exec: Linux kills it when the runner dies. A Ray worker killed mid-run must not leave
+    its `stgc train` behind, training on beside the retry that resumes the same run."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
 def _result_row(plan: Plan, o: RunOutcome, out_dir: Path) -> dict[str, Any]:
@@ -219,12 +232,16 @@ def run_plan(
     dry_run: bool = False,
     log: Callable[[str], None] | None = None,
     check_options: bool = True,
+    use_ray: bool = False,
+    ray_address: str | None = None,
 ) -> PlanResult:
     """Train, evaluate (and optionally compress + evaluate at each codec quality) every run of `plan` under
     OUT, skipping what is already done; write OUT/results-<plan>.csv and the report in OUT/report-<plan>.
 
-    `extra_overrides` apply to every run and win over the plan's own. `runner(cmd, log_path) -> exit status`
-    and `command_builder` are injectable (tests use a fake trainer)."""
+    `extra_overrides` apply to every run and win over the plan's own. Each run (training, evaluation, its codec
+    points) is a task (`stgc.distributed.run_tasks`): with use_ray on a local Ray or the cluster at
+    `ray_address`, else one after another here. `runner(cmd, log_path) -> exit status` and `command_builder` are
+    injectable (tests use a fake trainer)."""
     plan = load_plan(plan, preprocess)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -236,27 +253,32 @@ def run_plan(
     if check_options:  # off only for a stand-in trainer with options of its own (tests)
         check_plan_options(plan, preset, extra)
 
-    for spec in plan.runs:
+    per_spec: list[list[RunOutcome]] = [[] for _ in plan.runs]
+    tasks = []
+    for index, spec in enumerate(plan.runs):
         run_dir = out_dir / spec.name
         overrides = {**spec.overrides, **extra}
-        outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
-        result.outcomes.append(outcome)
-        log_path = out_dir / "logs" / f"{spec.name}.log"
-        start = time.perf_counter()
-        if run_is_finished(run_dir):
-            say(f"[{spec.name}] finished earlier: skipped")
-        elif dry_run:
-            outcome.status = "dry-run"
-            outcome.message = " ".join(command_builder(data_path, run_dir, preset, overrides, python=python))
-        else:
-            outcome.status = _train_and_eval(spec, run_dir, data_path, preset, overrides, runner, command_builder,
-                                             python, log_path, say, outcome)
-        outcome.seconds = time.perf_counter() - start
-        outcome.record = Run(run_dir).read_eval(strict=False)
-        if outcome.status != "failed" and not dry_run:
-            for q in qualities:
-                result.outcomes.append(_codec_point(spec, run_dir, q, runner, python, log_path, say, overrides))
-        write_results(results_csv, plan, result.outcomes, out_dir)
+        if dry_run:
+            outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
+            if not run_is_finished(run_dir):
+                outcome.status = "dry-run"
+                outcome.message = " ".join(command_builder(data_path, run_dir, preset, overrides, python=python))
+            per_spec[index] = [outcome]
+            continue
+        tasks.append(Task(name=spec.name, function=run_spec,
+                          args=(spec, run_dir, data_path, preset, overrides, qualities, runner, command_builder,
+                                python, out_dir / "logs" / f"{spec.name}.log", say),
+                          num_cpus=_run_cpus(preset, overrides), progress=Run(run_dir).progress))
+    spec_of_task = [i for i, _ in enumerate(plan.runs) if not dry_run]
+
+    def finished(task_index: int, outcomes: list[RunOutcome]) -> None:
+        per_spec[spec_of_task[task_index]] = outcomes
+        result.outcomes = [o for group in per_spec for o in group]
+        write_results(results_csv, plan, result.outcomes, out_dir)  # after every run: a kill keeps what is done
+
+    run_tasks(tasks, use_ray=use_ray, address=ray_address, on_done=finished)
+    result.outcomes = [o for group in per_spec for o in group]
+    write_results(results_csv, plan, result.outcomes, out_dir)
 
     if make_report_files and not dry_run:
         rows = _report_rows(result.outcomes)
@@ -265,6 +287,33 @@ def run_plan(
                                         title=plan.title or f"Plan {plan.name}",
                                         bd_method=bd_method)  # type: ignore[arg-type]
     return result
+
+
+def run_spec(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | None, overrides: dict[str, str],
+             qualities: Sequence[int], runner: Runner, command_builder: Callable[..., list[str]], python: str,
+             log_path: Path, say: Callable[[str], None]) -> list[RunOutcome]:
+    """One run of a plan, as a task: train (or resume, or skip when finished), evaluate, and each codec point."""
+    outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
+    start = time.perf_counter()
+    if run_is_finished(run_dir):
+        say(f"[{spec.name}] finished earlier: skipped")
+    else:
+        outcome.status = _train_and_eval(spec, run_dir, data_path, preset, overrides, runner, command_builder,
+                                         python, log_path, say, outcome)
+    outcome.seconds = time.perf_counter() - start
+    outcome.record = Run(run_dir).read_eval(strict=False)
+    outcomes = [outcome]
+    if outcome.status != "failed":
+        outcomes += [_codec_point(spec, run_dir, q, runner, python, log_path, say, overrides) for q in qualities]
+    return outcomes
+
+
+def _run_cpus(preset: str | None, overrides: Mapping[str, str]) -> int:
+    """The CPUs a run's task asks for: its train.threads (0: the whole machine)."""
+    try:
+        return cpus_for_threads(resolve_configs(preset or "cpu", {}, {}, dict(overrides))["train"].threads)
+    except ConfigError:  # a stand-in trainer's own options (tests); check_plan_options reports real ones
+        return 1
 
 
 def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | None,

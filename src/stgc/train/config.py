@@ -203,7 +203,9 @@ class TrainConfig:
                           "share of the error and not only of the image; 0 = off"},
     )
     backend: Backend = field(default="auto", metadata={"help": "rasterizer backend passed to stgc.render"})
-    threads: int = field(default=0, metadata={"help": "torch threads (0 = leave as is)"})
+    threads: int = field(default=0, metadata={
+        "help": "threads of torch and the numba rasterizer, and the CPUs a segment's task asks Ray for (0 = leave "
+                "as is: every core; a segment then takes a whole machine)"})
     lr: LearningRates = field(default_factory=LearningRates)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     floaters: FloaterConfig = field(default_factory=FloaterConfig)

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
+import numba
 import numpy as np
 import torch
 
@@ -197,8 +198,9 @@ class Trainer:
         if evaluator is None and (train_cfg.eval_every or train_cfg.eval_at_end):
             log.info("no test evaluator handed to the trainer: the test views are not scored during or after training")
         self.schedule: Schedule = resolve_schedule(train_cfg)
-        if train_cfg.threads > 0:
+        if train_cfg.threads > 0:  # torch's and the numba rasterizer's threads: a task asking for k CPUs uses k
             torch.set_num_threads(train_cfg.threads)
+            numba.set_num_threads(min(train_cfg.threads, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
         self.metrics_log = JsonLines(self.out_run.path / Run.METRICS)
         self.compaction_log = JsonLines(self.out_run.path / Run.COMPACTION_LOG)
         self.images = ImageCache(dataset)
@@ -460,6 +462,7 @@ class Trainer:
             "num_gaussians": self.model.num_gaussians,
             "variant": self.model.variant,
             "finished": finished,
+            "started_from_iteration": start,  # > 0: this session resumed from a checkpoint
         }
         if self.colour is not None:
             summary["colour_correction"] = self.colour.summary()

@@ -6,8 +6,10 @@ segments of N frames; the last one is shorter when N does not divide the count (
 own initial points: STG would do the same, and merging it into its neighbour would give that segment a different
 length from the others). RUN holds `config.json` (the options shared by every segment), `video.json` (the segments)
 and one complete, resumable run per segment in RUN/segment_<k>/, whose own config.json differs only in
-`data.start`/`data.duration`. Segments are independent: they train one after another here, and `--resume` trains
-what is unfinished (a finished segment is never redone).
+`data.start`/`data.duration`. Segments are independent: each is a task (`stgc.distributed`), trained in parallel on
+Ray (local or a cluster) or one after another in this process; a task that is retried after its worker died, and
+`--resume` after the driver died, continue each unfinished segment from its last checkpoint (a finished segment is
+never redone).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import Any
 
 from stgc.data import DataConfig
 from stgc.data.dataset import segments
+from stgc.distributed import Task, cpus_for_threads, run_tasks
 from stgc.errors import StgcError
 from stgc.run import Run
 from stgc.train.config import TrainConfig
@@ -39,10 +42,13 @@ def plan_segments(frames: list[int], segment_frames: int) -> list[dict[str, Any]
 
 def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | Path, segment_frames: int | None = None,
                 *, resume: bool = False, overwrite: bool = False,
-                evaluator: TestEvaluator | None = None) -> list[dict[str, Any]]:
-    """Train every segment of the video into RUN/segment_<k>/ (see the module docstring); returns their training
-    summaries in time order. resume: continue the video in `out_dir` (its saved segments; `segment_frames` must be
-    None or the saved value). evaluator: as `train`'s, for every segment."""
+                evaluator: TestEvaluator | None = None, use_ray: bool = False,
+                ray_address: str | None = None) -> list[dict[str, Any]]:
+    """Train every segment of the video into RUN/segment_<k>/ (see the module docstring) as tasks
+    (`stgc.distributed.run_tasks`: with use_ray, on a local Ray or the cluster at `ray_address`; else in order here);
+    returns their training summaries in time order. resume: continue the video in `out_dir` (its saved segments;
+    `segment_frames` must be None or the saved value); a finished segment is never trained again. evaluator: as
+    `train`'s, for every segment."""
     run = Run(out_dir)
     if resume and run.is_video():
         video = run.read_video()
@@ -65,19 +71,31 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
         run.write_video({"segment_frames": int(segment_frames), "data_path": str(Path(data_path).resolve()),
                          "segments": plan})
         run.write_config(run_config(whole, configs, data_path=data_path))
-    summaries = []
+    tasks = []
     for index, segment in enumerate(plan):
         segment_run = Run(run.path / str(segment["name"]))
         if segment_run.training_finished():
             log.info("%s: finished already, kept", segment_run.path.name)
-            summaries.append(segment_run.read_summary() or {})
             continue
         log.info("segment %d of %d: frames %d-%d", index + 1, len(plan), segment["start"],
                  segment["start"] + segment["duration"] - 1)
-        data_cfg = dataclasses.replace(configs["data"], start=int(segment["start"]), duration=int(segment["duration"]))
-        dataset = data_cfg.open(data_path)
+        segment_configs = {**configs, "data": dataclasses.replace(
+            configs["data"], start=int(segment["start"]), duration=int(segment["duration"]))}
         train_cfg: TrainConfig = configs["train"]
-        # resume=True: a segment with a checkpoint continues from it; one without starts afresh in its folder.
-        summaries.append(train(dataset, data_cfg, configs["model"], train_cfg, configs["compaction"],
-                               segment_run.path, resume=True, evaluator=evaluator))
-    return summaries
+        tasks.append(Task(name=segment_run.path.name, function=train_segment,
+                          args=(str(data_path), segment_configs, str(segment_run.path), evaluator),
+                          num_cpus=cpus_for_threads(train_cfg.threads), progress=segment_run.progress))
+    run_tasks(tasks, use_ray=use_ray, address=ray_address)
+    return [segment_run.read_summary() or {} for segment_run in run.segments()]
+
+
+def train_segment(data_path: str, configs: dict[str, Any], segment_dir: str,
+                  evaluator: TestEvaluator | None) -> dict[str, Any]:
+    """One segment's training, as a task (in this process or on a Ray worker): continues from the segment's last
+    checkpoint when it has one, so a retried task redoes only the iterations since then."""
+    data_cfg: DataConfig = configs["data"]
+    dataset = data_cfg.open(data_path)
+    dataset.verify_images(dataset.train)  # a corrupt image fails this segment now, named
+    return train(dataset, data_cfg, configs["model"], configs["train"], configs["compaction"], segment_dir,
+                 resume=True, evaluator=evaluator)
+

@@ -1,0 +1,226 @@
+"""Independent pieces of work (a whole video's segments, an experiment plan's runs) as tasks on Ray.
+
+Each `Task` names a module-level function and its arguments, and the CPUs it needs. `run_tasks` runs them:
+
+- on a local Ray started with this machine's cores (the default), or on an existing cluster (`address`:
+  HOST:PORT or "auto"); every node must see the data and the output folder at the same paths, and have stgc
+  installed;
+- in order, in this process, when Ray is not installed (said once) or not wanted (`use_ray=False`).
+
+Fault tolerance is Ray's task retry: a task whose worker process or node dies is run again (up to `max_retries`
+times), and the task functions here are written to continue from what their folder holds (a segment resumes from
+its last checkpoint), so a retry redoes at most the work since that checkpoint. An exception raised by the task
+itself (bad data) is not retried: it fails that task only; the others run to their end and keep their results, and
+`run_tasks` then raises a `TasksFailed` naming each failed task.
+
+Progress: one bar per task in this process, fed by each task's `progress` callable, which reads the task's output
+folder (a shared file system), so workers need no channel back to the driver.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import logging
+import os
+import socket
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from tqdm import tqdm
+
+from stgc.errors import StgcError
+
+log = logging.getLogger(__name__)
+
+# Seconds between two looks at the tasks' progress (and at finished tasks).
+POLL_SECONDS = 1.0
+# Seconds to wait for a TCP connection to a cluster given as HOST:PORT before calling it unreachable.
+CONNECT_TIMEOUT_S = 5.0
+# Local clusters pass only small arguments and results through Ray's object store.
+LOCAL_OBJECT_STORE_BYTES = 128 * 2**20
+_said_no_ray = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Task:
+    """One independent piece of work: `function(*args)` needing `num_cpus` CPUs. `function` must be importable
+    by name on the workers (a module-level function). `progress() -> (done, total)`, run in the driver, feeds its
+    progress bar."""
+
+    name: str
+    function: Callable[..., Any]
+    args: tuple[Any, ...] = ()
+    num_cpus: int = 1
+    progress: Callable[[], tuple[int, int]] | None = None
+    unit: str = "it"
+
+
+class TasksFailed(StgcError):
+    """Some tasks failed; the others finished and kept their results. `failures`: {task name: message}."""
+
+    def __init__(self, failures: dict[str, str]):
+        self.failures = failures
+        lines = "\n".join(f"  {name}: {message}" for name, message in failures.items())
+        super().__init__(f"{len(failures)} task(s) failed (the others finished):\n{lines}")
+
+    def __reduce__(self) -> tuple[type, tuple[dict[str, str]]]:
+        return type(self), (self.failures,)
+
+
+def cpus_for_threads(threads: int) -> int:
+    """CPUs a training task asks for: its `train.threads`, or with 0 (leave as is: every core) the whole machine."""
+    return threads if threads > 0 else (os.cpu_count() or 1)
+
+
+def ray_available() -> bool:
+    return importlib.util.find_spec("ray") is not None
+
+
+def run_tasks(tasks: Sequence[Task], *, use_ray: bool = True, address: str | None = None, max_retries: int = 3,
+              on_done: Callable[[int, Any], None] | None = None, show_progress: bool = True) -> list[Any]:
+    """Run every task and return their results in the order given. on_done(index, result) is called in this
+    process as each one finishes (in finishing order). Raises TasksFailed after all have run if any failed."""
+    if not tasks:
+        return []
+    if address is not None and not use_ray:
+        raise StgcError("--ray-address names a Ray cluster, and --no-ray asks for none: give one of them")
+    if use_ray and not ray_available():
+        if address is not None:
+            raise StgcError(f"--ray-address {address}: Ray is not installed (pip install 'stgc[distributed]')")
+        global _said_no_ray
+        if not _said_no_ray:
+            log.warning("Ray is not installed: the %d tasks run one after another in this process "
+                        "(pip install 'stgc[distributed]' to run them in parallel)", len(tasks))
+            _said_no_ray = True
+        use_ray = False
+    if not use_ray:
+        return _run_in_process(tasks, on_done)
+    return _run_on_ray(tasks, address, max_retries, on_done, show_progress)
+
+
+def _run_in_process(tasks: Sequence[Task], on_done: Callable[[int, Any], None] | None) -> list[Any]:
+    results: list[Any] = [None] * len(tasks)
+    failures: dict[str, str] = {}
+    for index, task in enumerate(tasks):
+        try:
+            results[index] = task.function(*task.args)
+        except StgcError as error:  # the task's own failure (bad data): the others still run
+            log.error("%s failed: %s", task.name, error)
+            failures[task.name] = str(error)
+            continue
+        if on_done is not None:
+            on_done(index, results[index])
+    if failures:
+        raise TasksFailed(failures)
+    return results
+
+
+def check_reachable(address: str) -> None:
+    """A clear error within seconds when HOST:PORT does not answer (ray.init would wait much longer)."""
+    if address == "auto":
+        return
+    host, sep, port = address.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise StgcError(f"--ray-address {address!r}: expected HOST:PORT (the head node's GCS port, 6379 by "
+                        "default) or 'auto'")
+    try:
+        with socket.create_connection((host, int(port)), timeout=CONNECT_TIMEOUT_S):
+            pass
+    except OSError as error:
+        reason = "timed out" if isinstance(error, TimeoutError) else (error.strerror or str(error))
+        raise StgcError(f"--ray-address {address}: cannot reach a Ray cluster there ({reason}); start one with "
+                        "`ray start --head` or check the address") from None
+
+
+def _start_ray(address: str | None) -> bool:
+    """Connect to (or start) Ray; True when this call started it (and so must stop it)."""
+    import ray  # optional extra
+
+    if ray.is_initialized():
+        return False
+    quiet: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.WARNING, "log_to_driver": False}
+    if address is None:
+        ray.init(num_cpus=os.cpu_count() or 1, object_store_memory=LOCAL_OBJECT_STORE_BYTES, **quiet)
+        return True
+    check_reachable(address)
+    try:
+        ray.init(address=address, **quiet)
+    except (ConnectionError, RuntimeError, TimeoutError) as error:
+        raise StgcError(f"--ray-address {address}: cannot connect ({error})") from None
+    return True
+
+
+def _failure_message(error: Exception) -> str:
+    import ray.exceptions  # optional extra
+
+    if isinstance(error, ray.exceptions.RayTaskError):
+        cause = error.cause
+        if isinstance(cause, StgcError):
+            return str(cause)
+        return f"{type(cause).__name__}: {cause}"
+    return f"{type(error).__name__}: {error}"
+
+
+def _run_on_ray(tasks: Sequence[Task], address: str | None, max_retries: int,
+                on_done: Callable[[int, Any], None] | None, show_progress: bool) -> list[Any]:
+    import ray  # optional extra
+
+    started = _start_ray(address)
+    bars: list[Any] = []
+    try:
+        pending: dict[Any, int] = {}
+        # A task asking for more CPUs than any node has would wait forever: it gets the largest node instead.
+        largest_node = max((int(node["Resources"].get("CPU", 0)) for node in ray.nodes() if node.get("Alive")),
+                           default=1)
+        for index, task in enumerate(tasks):
+            cpus = min(task.num_cpus, max(largest_node, 1))
+            if cpus < task.num_cpus:
+                log.warning("%s asks for %d CPUs; the largest node has %d: it runs there with %d",
+                            task.name, task.num_cpus, largest_node, cpus)
+            remote = ray.remote(task.function).options(num_cpus=cpus, max_retries=max_retries,
+                                                       retry_exceptions=False, name=task.name)
+            pending[remote.remote(*task.args)] = index
+        log.info("%d tasks on Ray (%s)", len(tasks), address or f"local, {os.cpu_count()} CPUs")
+        if show_progress:
+            bars = [tqdm(total=1, desc=task.name, unit=task.unit, position=i, dynamic_ncols=True, leave=True)
+                    for i, task in enumerate(tasks)]
+        results: list[Any] = [None] * len(tasks)
+        failures: dict[str, str] = {}
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=POLL_SECONDS)
+            for ref in ready:
+                index = pending.pop(ref)
+                try:
+                    results[index] = ray.get(ref)
+                except ray.exceptions.RayError as error:
+                    failures[tasks[index].name] = _failure_message(error)
+                    log.error("%s failed: %s", tasks[index].name, failures[tasks[index].name])
+                    continue
+                if on_done is not None:
+                    on_done(index, results[index])
+            for bar, task in zip(bars, tasks):
+                _update_bar(bar, task)
+        if failures:
+            raise TasksFailed(failures)
+        return results
+    finally:
+        for bar in bars:
+            bar.close()
+        if started:
+            ray.shutdown()
+
+
+def _update_bar(bar: Any, task: Task) -> None:
+    if task.progress is None:
+        return
+    try:
+        done, total = task.progress()
+    except (OSError, ValueError):  # a file being written: next time
+        return
+    if total != bar.total:
+        bar.total = total
+    if done != bar.n:
+        bar.n = done
+        bar.refresh()
+

@@ -1,0 +1,346 @@
+"""Independent tasks (a video's segments, a plan's runs) on a real local Ray cluster, and without Ray.
+
+The cluster tests start Ray on 127.0.0.1 themselves (two nodes of one CPU: `ray.cluster_utils.Cluster`) and stop
+every process they started. A worker killed with SIGKILL mid-segment is retried by Ray and resumes from the
+segment's last checkpoint: the models equal, bit for bit, those of a sequential in-process run."""
+
+from __future__ import annotations
+
+import csv
+import os
+import pickle
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numba
+import pytest
+import torch
+from scenes import write_panoptic_scene
+
+from stgc.distributed import Task, TasksFailed, check_reachable, run_tasks
+from stgc.errors import DataError, OutputError, StgcError
+from stgc.experiment import run_plan
+from stgc.experiment.runner import build_train_command, subprocess_runner
+from stgc.model import STGModel
+from stgc.options import resolve_configs
+from stgc.run import Run
+from stgc.train.video import train_video
+
+REPO = Path(__file__).resolve().parents[1]
+# A tiny video: 2 segments of 2 frames, long enough (in iterations) for a kill to land between checkpoints.
+SEGMENT_OVERRIDES = {
+    "train.iterations": "300", "train.schedule_scale": "1", "train.checkpoint_every": "50",
+    "train.save_iterations": "[300]", "train.threads": "1", "train.progress": "false",
+    "train.tensorboard": "false", "train.eval_at_end": "false", "train.eval_every": "0",
+    "data.init_source": "random", "data.max_points_per_frame": "200",
+}
+
+
+# ----------------------------------------------------------------------------------- without Ray
+def _double(x: int) -> int:
+    return 2 * x
+
+
+def _fail_on_bad_data(path: str) -> None:
+    raise DataError(path, "unreadable image")
+
+
+def test_a_failing_task_is_named_and_the_others_finish_in_process():
+    done = []
+    tasks = [Task("a", _double, (1,)), Task("b", _fail_on_bad_data, ("frame_7.png",)), Task("c", _double, (3,))]
+    with pytest.raises(TasksFailed) as failed:
+        run_tasks(tasks, use_ray=False, on_done=lambda i, r: done.append((i, r)))
+    assert done == [(0, 2), (2, 6)]
+    assert failed.value.failures == {"b": "frame_7.png: unreadable image"}
+    assert "b: frame_7.png: unreadable image" in str(failed.value)
+    assert run_tasks([Task("a", _double, (4,))], use_ray=False) == [8]
+
+
+def test_errors_cross_process_boundaries_whole():
+    for error in (DataError("x.png", "too small"), OutputError("out.stgc", "disk full"), TasksFailed({"s": "m"})):
+        again = pickle.loads(pickle.dumps(error))
+        assert type(again) is type(error) and str(again) == str(error)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_an_unreachable_or_malformed_ray_address_is_a_clear_error():
+    port = _free_port()
+    start = time.monotonic()
+    with pytest.raises(StgcError, match=f"127.0.0.1:{port}: cannot reach a Ray cluster there"):
+        check_reachable(f"127.0.0.1:{port}")
+    assert time.monotonic() - start < 10  # "within seconds", not ray.init's long wait
+    for bad in ("127.0.0.1", "host:port", ":6379"):
+        with pytest.raises(StgcError, match="expected HOST:PORT"):
+            check_reachable(bad)
+    with pytest.raises(StgcError, match="--no-ray"):
+        run_tasks([Task("a", _double, (1,))], use_ray=False, address="127.0.0.1:6379")
+
+
+# ----------------------------------------------------------------------------------- on Ray
+ray = pytest.importorskip("ray", reason="Ray is a dev dependency (the `distributed` extra)")
+
+
+def _ray_processes(marker: str) -> list[int]:
+    """PIDs of live processes whose command line contains `marker` (Ray names its workers ray::<task>)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if marker in cmdline:
+            found.append(int(entry.name))
+    return found
+
+
+def _kill_all(marker: str) -> None:
+    for pid in _ray_processes(marker):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+@pytest.fixture(scope="module")
+def video_scene(tmp_path_factory):
+    return write_panoptic_scene(tmp_path_factory.mktemp("rayvideo"), views=5, frames=4, width=32, height=24)
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "stgc.cli", *args]
+
+
+# First in the module: it starts its own local Ray (in the driver it kills), before the two-node cluster below.
+def test_a_killed_driver_leaves_a_video_that_resume_finishes(video_scene, tmp_path):
+    temp = tempfile.mkdtemp(prefix="stgcray", dir="/tmp")
+    env = {**os.environ, "RAY_TMPDIR": temp}
+    out = tmp_path / "video"
+    sets = [arg for key, value in SEGMENT_OVERRIDES.items() for arg in ("--set", f"{key}={value}")]
+    driver = subprocess.Popen(_cli("train", str(video_scene.root), "--out", str(out), "--segment-frames", "2", *sets),
+                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        segments = [Run(out / "segment_000"), Run(out / "segment_001")]
+        deadline = time.monotonic() + 180
+        while not any(s.checkpoint_path.is_file() for s in segments) and driver.poll() is None:
+            assert time.monotonic() < deadline, "no segment reached its first checkpoint"
+            time.sleep(0.02)
+        driver.kill()
+        driver.wait()
+        assert not all(s.training_finished() for s in segments)
+        # Ray's own processes share the driver's fate: none is left training beside the resumed run.
+        deadline = time.monotonic() + 60
+        while _ray_processes(temp) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert _ray_processes(temp) == []
+
+        resumed = subprocess.run(_cli("train", "--out", str(out), "--resume"), env=env, capture_output=True,
+                                 text=True, timeout=300)
+        assert resumed.returncode == 0, resumed.stderr[-2000:]
+        assert all(s.training_finished() for s in segments)
+        starts = [s.read_summary()["started_from_iteration"] for s in segments]
+        assert max(starts) >= 50  # a checkpointed segment continued, it did not start over
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+        _kill_all(temp)
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+def test_the_cli_names_an_unreachable_cluster(video_scene, tmp_path, capsys):
+    from stgc.cli import main
+
+    port = _free_port()
+    code = main(["train", str(video_scene.root), "--out", str(tmp_path / "v"), "--segment-frames", "2",
+                 "--ray-address", f"127.0.0.1:{port}"])
+    assert code != 0 and f"127.0.0.1:{port}: cannot reach a Ray cluster" in capsys.readouterr().err
+    assert not (tmp_path / "v").exists()  # refused before anything was written
+    assert main(["train", str(video_scene.root), "--out", str(tmp_path / "w"), "--ray-address", "auto"]) != 0
+    assert "give --segment-frames" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """Two one-CPU Ray nodes on 127.0.0.1 with this test's own temp folder (short: Ray's sockets live there)."""
+    from ray.cluster_utils import Cluster
+
+    temp = tempfile.mkdtemp(prefix="stgcray", dir="/tmp")
+    env_before = os.environ.get("RAY_TMPDIR")
+    os.environ["RAY_TMPDIR"] = temp
+    nodes = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False,
+                                                          "object_store_memory": 100 * 2**20})
+    nodes.add_node(num_cpus=1, object_store_memory=100 * 2**20)
+    ray.init(address=nodes.address, logging_level="WARNING", log_to_driver=False)
+    # The workers need this module's task functions by value: they cannot import a test module.
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    try:
+        yield nodes
+    finally:
+        ray.shutdown()
+        nodes.shutdown()
+        _kill_all(temp)
+        if env_before is None:
+            os.environ.pop("RAY_TMPDIR", None)
+        else:
+            os.environ["RAY_TMPDIR"] = env_before
+        shutil.rmtree(temp, ignore_errors=True)
+        assert _ray_processes(temp) == []
+
+
+@pytest.fixture
+def restore_threads():
+    """train.threads=1 sets this process's torch and numba threads: give the next tests theirs back."""
+    torch_threads, numba_threads = torch.get_num_threads(), numba.get_num_threads()
+    yield
+    torch.set_num_threads(torch_threads)
+    numba.set_num_threads(numba_threads)
+
+
+def _final_params(run_dir: Path) -> dict[str, torch.Tensor]:
+    model = STGModel.load(Run(run_dir).latest_model_dir())
+    tensors = {key: p.detach() for key, p in model.params.items()}
+    if model.decoder is not None:
+        tensors.update({f"decoder.{k}": v for k, v in model.decoder.state_dict().items()})
+    return tensors
+
+
+def test_a_worker_killed_mid_segment_is_retried_and_the_video_is_bit_identical(cluster, video_scene, tmp_path,
+                                                                              restore_threads):
+    configs = resolve_configs("cpu", {}, {}, SEGMENT_OVERRIDES)
+    killed: list[str] = []
+
+    def kill_a_worker_after_its_first_checkpoint() -> None:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not killed:
+            for name in ("segment_000", "segment_001"):
+                segment = Run(tmp_path / "ray" / name)
+                workers = _ray_processes(f"ray::{name}")
+                if segment.checkpoint_path.is_file() and not segment.training_finished() and workers:
+                    for pid in workers:
+                        os.kill(pid, signal.SIGKILL)
+                    killed.append(name)
+                    return
+            time.sleep(0.02)
+
+    killer = threading.Thread(target=kill_a_worker_after_its_first_checkpoint, daemon=True)
+    killer.start()
+    train_video(video_scene.root, configs, tmp_path / "ray", 2, use_ray=True)
+    killer.join()
+    assert killed, "no worker was caught mid-segment"
+    victim = Run(tmp_path / "ray" / killed[0])
+    summary = victim.read_summary()
+    assert summary["finished"] and summary["started_from_iteration"] >= 50  # resumed, not restarted
+
+    train_video(video_scene.root, configs, tmp_path / "inline", 2, use_ray=False)
+    for name in ("segment_000", "segment_001"):
+        on_ray, inline = _final_params(tmp_path / "ray" / name), _final_params(tmp_path / "inline" / name)
+        assert on_ray.keys() == inline.keys()
+        for key in inline:
+            assert torch.equal(on_ray[key], inline[key]), (name, key)
+
+
+def _bad_frame_then_fine(index: int) -> int:
+    if index == 1:
+        raise DataError(f"frame_{index}.png", "truncated PNG")
+    return index
+
+
+def test_a_task_failing_on_bad_data_fails_alone_on_ray(cluster):
+    done = []
+    tasks = [Task(f"segment_{i:03d}", _bad_frame_then_fine, (i,)) for i in range(3)]
+    with pytest.raises(TasksFailed) as failed:
+        run_tasks(tasks, on_done=lambda i, r: done.append(r), show_progress=False)
+    assert sorted(done) == [0, 2]
+    assert failed.value.failures == {"segment_001": "frame_1.png: truncated PNG"}
+
+
+FAKE_CLI = REPO / "tests" / "experiment" / "fake_stgc_cli.py"
+PLAN = """
+name = "mini"
+baseline = "STG"
+[[runs]]
+name = "stg"
+family = "STG"
+overrides = { "compaction.method" = "none" }
+[[runs]]
+name = "c1"
+family = "ST-KNN"
+overrides = { "compaction.method" = "st-knn", "compaction.case" = 1, "fake.sleep" = 4 }
+[[runs]]
+name = "c3"
+family = "ST-KNN"
+overrides = { "compaction.method" = "st-knn", "compaction.case" = 3 }
+"""
+
+
+def _fake_train_command(data_path, run_dir, preset, overrides, *, resume=False, python=sys.executable):
+    """The runner's own command line with the fake trainer of tests/experiment in place of `-m stgc.cli`."""
+    return [python, str(FAKE_CLI), *build_train_command(data_path, run_dir, preset, overrides, resume=resume,
+                                                       python=python)[3:]]
+
+
+def _fake_runner(cmd: list[str], log_path: Path) -> int:
+    if cmd[1:3] == ["-m", "stgc.cli"]:  # eval and compress commands
+        cmd = [cmd[0], str(FAKE_CLI), *cmd[3:]]
+    return subprocess_runner(cmd, log_path)
+
+
+def test_a_plan_on_ray_gives_the_in_process_table_and_survives_a_killed_worker(cluster, tmp_path):
+    plan = tmp_path / "mini.toml"
+    plan.write_text(PLAN)
+    options = dict(codec_qualities=[2], runner=_fake_runner, command_builder=_fake_train_command,
+                   check_options=False, log=lambda message: None)
+    run_plan("DATA", plan, tmp_path / "inline", use_ray=False, **options)
+
+    killed = []
+
+    def kill_c1_mid_run() -> None:
+        c1 = Run(tmp_path / "ray" / "c1")
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            workers = _ray_processes("ray::c1")
+            if c1.checkpoint_path.is_file() and not c1.training_finished() and workers:
+                for pid in workers:
+                    os.kill(pid, signal.SIGKILL)
+                killed.extend(workers)
+                return
+            time.sleep(0.02)
+
+    killer = threading.Thread(target=kill_c1_mid_run, daemon=True)
+    killer.start()
+    result = run_plan("DATA", plan, tmp_path / "ray", use_ray=True, **options)
+    killer.join()
+    assert killed and not result.failed
+    inline_table = (tmp_path / "inline" / "results-mini.csv").read_text()
+    assert (tmp_path / "ray" / "results-mini.csv").read_text() == inline_table
+    # The retry resumed c1; the killed worker's trainer died with it (it would have written a second summary).
+    c1_trains = [c for c in (tmp_path / "ray" / "invocations.txt").read_text().splitlines() if "--out" in c
+                 and c.split("--out ")[1].split()[0].endswith("/c1")]
+    assert len(c1_trains) == 2 and "--resume" in c1_trains[1]
+    time.sleep(4.5)  # longer than the killed trainer would have slept
+    assert len((tmp_path / "ray" / "invocations.txt").read_text().splitlines()) == len(
+        (tmp_path / "inline" / "invocations.txt").read_text().splitlines()) + 1
+    # Run again: nothing left to do (every row skipped), the same numbers.
+    run_plan("DATA", plan, tmp_path / "ray", use_ray=True, **options)
+    again = _rows(tmp_path / "ray" / "results-mini.csv")
+    assert {row.pop("status") for row in again} == {"skipped"}
+    assert again == [{k: v for k, v in row.items() if k != "status"} for row in _rows(tmp_path / "inline" /
+                                                                                       "results-mini.csv")]
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
