@@ -248,4 +248,7 @@ def test_pruning_in_clone_split_rounds_is_an_option(prune_in_rounds):
     assert control.rounds_done == 1
     assert model.num_gaussians == (35 if prune_in_rounds else 40)
     assert report.get("pruned_opacity", 0) == (5 if prune_in_rounds else 0)
+    # Unset, it follows the initial cloud: on with the sparse-cloud schedule, off with the official one.
+    assert DensifyConfig().resolved(sparse_cloud=True).prune_in_rounds is True
+    assert DensifyConfig().resolved(sparse_cloud=False).prune_in_rounds is False
     assert control.stats.count.shape[0] == model.num_gaussians
