@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
+import torch
 from scenes import write_panoptic_scene
 
 from stgc.cli import main
@@ -90,3 +91,24 @@ def test_a_segment_on_bad_data_fails_the_command_by_name_and_the_others_are_kept
     assert "segment_001" in err and "000003.png" in err and "segment_000" not in err.split("failed")[-1]
     first, second = Run(out).segments()
     assert first.training_finished() and not second.training_finished()
+
+
+def test_a_video_renders_across_its_segments(scene, tmp_path):
+    import imageio.v2 as imageio
+    import numpy as np
+
+    from stgc.eval.video import _camera_at as camera_at
+    from stgc.eval.video import load_model_and_dataset, render_image
+
+    out = tmp_path / "video"
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", *QUICK]) == 0
+    assert main(["render", str(out), "--camera", "0", "--out", str(tmp_path / "all.mp4")]) == 0
+    frames = imageio.mimread(tmp_path / "all.mp4")
+    assert len(frames) == 5  # frames 0-4 from segments 0, 0, 1, 1, 2
+    # Frame 4 is segment_002's, frame 1 segment_000's: each as its own segment renders it (up to the video coding).
+    for frame, segment in ((4, "segment_002"), (1, "segment_000")):
+        model, dataset = load_model_and_dataset(out / segment)
+        still = render_image(model, camera_at(dataset, "0", frame), None, torch.zeros(3)).astype(float)
+        mse = np.mean((frames[frame][..., :3].astype(float) - still) ** 2)
+        assert 10 * np.log10(255**2 / max(mse, 1e-9)) > 30, (frame, mse)
+    assert main(["render", str(out), "--orbit", "--out", str(tmp_path / "orbit.mp4")]) == 2

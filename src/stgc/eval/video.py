@@ -258,7 +258,15 @@ def render_video(
     Fixed view (default): `camera_name` (default the first test camera) at every frame in `frames` ("A:B",
     "0,5,9", a slice or a list of frame indices; default all), one video frame per dataset frame.
     orbit=True: `num_frames` (default 2 x dataset frames) views on a smooth path through the training cameras
-    while time sweeps [0, 1]. fps defaults to the dataset's."""
+    while time sweeps [0, 1]. fps defaults to the dataset's.
+
+    A whole-video run (`stgc train --segment-frames`) plays across its segments: each frame is drawn by the
+    segment that holds it (fixed view only)."""
+    if isinstance(run_or_model, (str, Path)) and Run(run_or_model).is_video():
+        if orbit or dataset is not None:
+            raise DataError(run_or_model, "a whole video renders from a fixed camera, each frame by its own "
+                                          "segment (render one segment's run for an orbit)")
+        return _render_across_segments(Run(run_or_model), out, camera_name, frames, fps, background)
     model, dataset = load_model_and_dataset(run_or_model, dataset)
     rate = float(fps or getattr(dataset, "fps", 30) or 30)
     if orbit:
@@ -269,6 +277,20 @@ def render_video(
         cameras = [_camera_at(dataset, name, f) for f in frame_selection(frames, list(dataset.frames))]
     bg = _background(dataset, background)
     images = (render_image(model, cam, None, bg) for cam in cameras)
+    return write_video(out, images, rate)
+
+
+def _render_across_segments(run: Run, out: str | Path, camera_name: str | None, frames: Any, fps: float | None,
+                            background: Sequence[float] | None) -> Path:
+    segments = [load_model_and_dataset(segment.path) for segment in run.segments()]
+    if not segments:
+        raise DataError(run.path, "whole-video run without segments")
+    chosen = set(frame_selection(frames, [f for _, d in segments for f in d.frames]))
+    first = segments[0][1]
+    name = camera_name or str((first.test or first.train)[0].name)
+    rate = float(fps or getattr(first, "fps", 30) or 30)
+    images = (render_image(model, _camera_at(dataset, name, f), None, _background(dataset, background))
+              for model, dataset in segments for f in dataset.frames if f in chosen)
     return write_video(out, images, rate)
 
 
