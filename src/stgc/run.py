@@ -29,6 +29,7 @@ RUN_FILES = (
     "eval.json",
     "eval_per_view.csv",
     "compaction.png",
+    "seams.png",
     "video.json",
 )
 RUN_FOLDERS = ("point_cloud", "tensorboard")

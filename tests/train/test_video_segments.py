@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 
 import pytest
@@ -49,6 +50,16 @@ def test_a_video_trains_as_segment_runs_and_evaluates_as_one(scene, tmp_path, ca
     assert record["psnr"] == pytest.approx(expected)
     assert record["mbps"] == pytest.approx(record["size_bytes"] * 8 / record["duration_s"] / 1e6)
     assert "segment_002" in capsys.readouterr().out
+    # The seams: each segment's first / middle / last frame PSNR (mean over test cameras), and the figure.
+    assert [(s["segment"], s["first_frame"], s["last_frame"]) for s in record["seams"]] == [
+        ("segment_000", 0, 1), ("segment_001", 2, 3), ("segment_002", 4, 4)]
+    with open(out / "segment_001" / "eval_per_view.csv") as f:
+        rows = [r for r in csv.DictReader(f)]
+    at_3 = [float(r["psnr"]) for r in rows if r["frame"] == "3"]
+    seam = record["seams"][1]
+    assert seam["psnr_last"] == pytest.approx(sum(at_3) / len(at_3))
+    assert seam["seam_loss_db"] == pytest.approx(seam["psnr_middle"] - (seam["psnr_first"] + seam["psnr_last"]) / 2)
+    assert (out / "seams.png").stat().st_size > 1000
     # `stgc eval` on the video re-evaluates every segment and writes the same whole-video record.
     assert main(["eval", str(out), "--no-fps"]) == 0
     again = json.loads((out / "eval.json").read_text())

@@ -36,7 +36,7 @@ from stgc.eval.accounting import (
     speed_from_times,
     training_seconds,
 )
-from stgc.fileio import atomic_open, write_json
+from stgc.fileio import atomic_open, atomic_path, write_json
 from stgc.metrics import LPIPS, psnr, ssim, yuv_psnr
 from stgc.model import STGModel
 from stgc.run import Run
@@ -430,9 +430,65 @@ def video_record(run_dir: str | Path) -> dict[str, Any]:
     return video
 
 
+SEAMS_PNG = "seams.png"
+
+
+def segment_seams(run_dir: str | Path) -> list[dict[str, Any]]:
+    """Per segment: test PSNR (mean over the test cameras) at its first, middle and last frames, and the seam
+    loss: the middle's PSNR minus the mean of the two ends (what a viewer sees as a jump at every boundary); with
+    `frames`: [(frame, PSNR)] for every frame. From the segments' RUN/segment_<k>/eval_per_view.csv."""
+    seams = []
+    for segment in Run(run_dir).segments():
+        per_view = segment.eval_paths()[1]
+        if not per_view.is_file():
+            raise DataError(segment.path, "segment has no per-view evaluation yet (stgc eval the video run)")
+        by_frame: dict[int, list[float]] = {}
+        with per_view.open(newline="") as f:
+            for row in csv.DictReader(f):
+                if row.get("psnr") not in (None, ""):
+                    by_frame.setdefault(int(row["frame"]), []).append(float(row["psnr"]))
+        if not by_frame:
+            continue
+        frames = sorted(by_frame)
+        curve = [(frame, float(np.mean(by_frame[frame]))) for frame in frames]
+        first, middle, last = curve[0][1], curve[len(curve) // 2][1], curve[-1][1]
+        seams.append({"segment": segment.path.name, "first_frame": frames[0], "last_frame": frames[-1],
+                      "psnr_first": first, "psnr_middle": middle, "psnr_last": last,
+                      "seam_loss_db": middle - (first + last) / 2, "frames": curve})
+    return seams
+
+
+def seam_plot(seams: Sequence[Mapping[str, Any]], png: Path) -> None:
+    """Test PSNR over the whole video's frames, one line per segment, boundaries marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.0, 3.6), dpi=100)
+    for seam in seams:
+        frames, values = zip(*seam["frames"])
+        ax.plot(frames, values, marker="o", markersize=3, linewidth=1.4, label=seam["segment"])
+        ax.axvline(seam["first_frame"] - 0.5, color="grey", linewidth=0.8, linestyle=":")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("test PSNR (dB), mean over cameras")
+    ax.set_title("PSNR across segment boundaries (dotted)", fontsize=11)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    with atomic_path(png) as tmp:
+        fig.savefig(tmp, format="png", dpi=150)
+    plt.close(fig)
+
+
 def write_video_eval(run_dir: str | Path) -> dict[str, Any]:
-    """Write the whole video's record (`video_record`) as RUN/eval.json and return it."""
+    """Write the whole video's record (`video_record`, with its `seams`) as RUN/eval.json and the seam figure as
+    RUN/seams.png, and return the record."""
     record = video_record(run_dir)
+    seams = segment_seams(run_dir)
+    record["seams"] = [{k: v for k, v in seam.items() if k != "frames"} for seam in seams]
+    if seams:
+        seam_plot(seams, Path(run_dir) / SEAMS_PNG)
     write_json(Run(run_dir).eval_paths()[0], record)
     return record
 
