@@ -276,6 +276,10 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
     note = record.get("lpips_note")
     if note and record.get("lpips") is None:
         console.print(f"LPIPS {note}")
+    for seam in record.get("seams") or []:
+        console.print(f"{seam['segment']}: frames {seam['first_frame']}-{seam['last_frame']}, PSNR first / middle / "
+                      f"last {seam['psnr_first']:.2f} / {seam['psnr_middle']:.2f} / {seam['psnr_last']:.2f} dB "
+                      f"(seam loss {seam['seam_loss_db']:+.2f} dB)")
     return buf.getvalue()
 
 
