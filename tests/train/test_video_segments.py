@@ -6,7 +6,6 @@ import csv
 import json
 
 import pytest
-import torch
 from scenes import write_panoptic_scene
 
 from stgc.cli import main
@@ -119,7 +118,7 @@ def test_a_video_renders_across_its_segments(scene, tmp_path):
     # Frame 4 is segment_002's, frame 1 segment_000's: each as its own segment renders it (up to the video coding).
     for frame, segment in ((4, "segment_002"), (1, "segment_000")):
         model, dataset = load_model_and_dataset(out / segment)
-        still = render_image(model, camera_at(dataset, "0", frame), None, torch.zeros(3)).astype(float)
+        still = render_image(model, camera_at(dataset, "0", frame), None, (0.0, 0.0, 0.0)).astype(float)
         mse = np.mean((frames[frame][..., :3].astype(float) - still) ** 2)
         assert 10 * np.log10(255**2 / max(mse, 1e-9)) > 30, (frame, mse)
     assert main(["render", str(out), "--orbit", "--out", str(tmp_path / "orbit.mp4")]) == 2
