@@ -92,14 +92,17 @@ def test_an_unreachable_or_malformed_ray_address_is_a_clear_error():
 ray = pytest.importorskip("ray", reason="Ray is a dev dependency (the `distributed` extra)")
 
 
-def _ray_processes(marker: str) -> list[int]:
-    """PIDs of live processes whose command line contains `marker` (Ray names its workers ray::<task>)."""
+def _ray_processes(marker: str, ray_tmpdir: str | None = None) -> list[int]:
+    """PIDs of live processes whose command line contains `marker` (Ray names its workers ray::<task>), and with
+    ray_tmpdir, only those of the Ray started with that RAY_TMPDIR (not another Ray on the machine)."""
     found = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit() or int(entry.name) == os.getpid():
             continue
         try:
             cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            if ray_tmpdir is not None and f"RAY_TMPDIR={ray_tmpdir}".encode() not in (entry / "environ").read_bytes():
+                continue
         except OSError:
             continue
         if marker in cmdline:
@@ -107,8 +110,13 @@ def _ray_processes(marker: str) -> list[int]:
     return found
 
 
-def _kill_all(marker: str) -> None:
-    for pid in _ray_processes(marker):
+def _processes_of(ray_tmpdir: str) -> list[int]:
+    """Every live process of the Ray started with this RAY_TMPDIR: its environment or its command line says so."""
+    return sorted(set(_ray_processes("", ray_tmpdir)) | set(_ray_processes(ray_tmpdir)))
+
+
+def _kill_all(ray_tmpdir: str) -> None:
+    for pid in _processes_of(ray_tmpdir):
         try:
             os.kill(pid, signal.SIGKILL)
         except ProcessLookupError:
@@ -143,9 +151,9 @@ def test_a_killed_driver_leaves_a_video_that_resume_finishes(video_scene, tmp_pa
         assert not all(s.training_finished() for s in segments)
         # Ray's own processes share the driver's fate: none is left training beside the resumed run.
         deadline = time.monotonic() + 60
-        while _ray_processes(temp) and time.monotonic() < deadline:
+        while _processes_of(temp) and time.monotonic() < deadline:
             time.sleep(0.2)
-        assert _ray_processes(temp) == []
+        assert _processes_of(temp) == []
 
         resumed = subprocess.run(_cli("train", "--out", str(out), "--resume"), env=env, capture_output=True,
                                  text=True, timeout=300)
@@ -187,7 +195,7 @@ def cluster():
     # The workers need this module's task functions by value: they cannot import a test module.
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
     try:
-        yield nodes
+        yield temp  # what tells this cluster's processes from another Ray's
     finally:
         ray.shutdown()
         nodes.shutdown()
@@ -197,7 +205,7 @@ def cluster():
         else:
             os.environ["RAY_TMPDIR"] = env_before
         shutil.rmtree(temp, ignore_errors=True)
-        assert _ray_processes(temp) == []
+        assert _processes_of(temp) == []
 
 
 @pytest.fixture
@@ -217,26 +225,34 @@ def _final_params(run_dir: Path) -> dict[str, torch.Tensor]:
     return tensors
 
 
-def test_a_worker_killed_mid_segment_is_retried_and_the_video_is_bit_identical(cluster, video_scene, tmp_path,
-                                                                              restore_threads):
-    configs = resolve_configs("cpu", {}, {}, SEGMENT_OVERRIDES)
+def _kill_a_worker_mid_run(ray_tmpdir: str, runs: dict[str, Path],
+                           timeout_s: float = 120) -> tuple[threading.Thread, list[str]]:
+    """A started thread that SIGKILLs the Ray worker (named ray::<task>, of the cluster with `ray_tmpdir`) of the
+    first of `runs` (task name -> its run folder) caught between its first checkpoint and its end; the list
+    receives that task's name."""
     killed: list[str] = []
 
-    def kill_a_worker_after_its_first_checkpoint() -> None:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not killed:
-            for name in ("segment_000", "segment_001"):
-                segment = Run(tmp_path / "ray" / name)
-                workers = _ray_processes(f"ray::{name}")
-                if segment.checkpoint_path.is_file() and not segment.training_finished() and workers:
+    def watch() -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for name, folder in runs.items():
+                run, workers = Run(folder), _ray_processes(f"ray::{name}", ray_tmpdir)
+                if run.checkpoint_path.is_file() and not run.training_finished() and workers:
                     for pid in workers:
                         os.kill(pid, signal.SIGKILL)
                     killed.append(name)
                     return
             time.sleep(0.02)
 
-    killer = threading.Thread(target=kill_a_worker_after_its_first_checkpoint, daemon=True)
-    killer.start()
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+    return thread, killed
+
+
+def test_a_worker_killed_mid_segment_is_retried_and_the_video_is_bit_identical(cluster, video_scene, tmp_path,
+                                                                              restore_threads):
+    configs = resolve_configs("cpu", {}, {}, SEGMENT_OVERRIDES)
+    killer, killed = _kill_a_worker_mid_run(cluster, {name: tmp_path / "ray" / name for name in ("segment_000", "segment_001")})
     train_video(video_scene.root, configs, tmp_path / "ray", 2, use_ray=True)
     killer.join()
     assert killed, "no worker was caught mid-segment"
@@ -305,22 +321,7 @@ def test_a_plan_on_ray_gives_the_in_process_table_and_survives_a_killed_worker(c
                    check_options=False, log=lambda message: None)
     run_plan("DATA", plan, tmp_path / "inline", use_ray=False, **options)
 
-    killed = []
-
-    def kill_c1_mid_run() -> None:
-        c1 = Run(tmp_path / "ray" / "c1")
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            workers = _ray_processes("ray::c1")
-            if c1.checkpoint_path.is_file() and not c1.training_finished() and workers:
-                for pid in workers:
-                    os.kill(pid, signal.SIGKILL)
-                killed.extend(workers)
-                return
-            time.sleep(0.02)
-
-    killer = threading.Thread(target=kill_c1_mid_run, daemon=True)
-    killer.start()
+    killer, killed = _kill_a_worker_mid_run(cluster, {"c1": tmp_path / "ray" / "c1"})
     result = run_plan("DATA", plan, tmp_path / "ray", use_ray=True, **options)
     killer.join()
     assert killed and not result.failed
