@@ -269,10 +269,9 @@ def run_plan(
                           args=(spec, run_dir, data_path, preset, overrides, qualities, runner, command_builder,
                                 python, out_dir / "logs" / f"{spec.name}.log", say),
                           num_cpus=_run_cpus(preset, overrides), progress=Run(run_dir).progress))
-    spec_of_task = [i for i, _ in enumerate(plan.runs) if not dry_run]
 
-    def finished(task_index: int, outcomes: list[RunOutcome]) -> None:
-        per_spec[spec_of_task[task_index]] = outcomes
+    def finished(task_index: int, outcomes: list[RunOutcome]) -> None:  # tasks are the plan's runs, in order
+        per_spec[task_index] = outcomes
         result.outcomes = [o for group in per_spec for o in group]
         write_results(results_csv, plan, result.outcomes, out_dir)  # after every run: a kill keeps what is done
 
