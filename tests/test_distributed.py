@@ -59,12 +59,13 @@ def test_a_failing_task_is_named_and_the_others_finish_in_process():
         run_tasks(tasks, use_ray=False, on_done=lambda i, r: done.append((i, r)))
     assert done == [(0, 2), (2, 6)]
     assert failed.value.failures == {"b": "frame_7.png: unreadable image"}
+    assert "1 of 3 tasks failed; the others finished and are kept" in str(failed.value)
     assert "b: frame_7.png: unreadable image" in str(failed.value)
     assert run_tasks([Task("a", _double, (4,))], use_ray=False) == [8]
 
 
 def test_errors_cross_process_boundaries_whole():
-    for error in (DataError("x.png", "too small"), OutputError("out.stgc", "disk full"), TasksFailed({"s": "m"})):
+    for error in (DataError("x.png", "too small"), OutputError("out.stgc", "disk full"), TasksFailed({"s": "m"}, 2)):
         again = pickle.loads(pickle.dumps(error))
         assert type(again) is type(error) and str(again) == str(error)
 

@@ -59,13 +59,15 @@ class Task:
 class TasksFailed(StgcError):
     """Some tasks failed; the others finished and kept their results. `failures`: {task name: message}."""
 
-    def __init__(self, failures: dict[str, str]):
+    def __init__(self, failures: dict[str, str], total: int):
         self.failures = failures
+        self.total = total
         lines = "\n".join(f"  {name}: {message}" for name, message in failures.items())
-        super().__init__(f"{len(failures)} task(s) failed (the others finished):\n{lines}")
+        kept = "; the others finished and are kept" if total > len(failures) else ""
+        super().__init__(f"{len(failures)} of {total} tasks failed{kept}:\n{lines}")
 
-    def __reduce__(self) -> tuple[type, tuple[dict[str, str]]]:
-        return type(self), (self.failures,)
+    def __reduce__(self) -> tuple[type, tuple[dict[str, str], int]]:
+        return type(self), (self.failures, self.total)
 
 
 def cpus_for_threads(threads: int) -> int:
@@ -112,7 +114,7 @@ def _run_in_process(tasks: Sequence[Task], on_done: Callable[[int, Any], None] |
         if on_done is not None:
             on_done(index, results[index])
     if failures:
-        raise TasksFailed(failures)
+        raise TasksFailed(failures, len(tasks))
     return results
 
 
@@ -202,7 +204,7 @@ def _run_on_ray(tasks: Sequence[Task], address: str | None, max_retries: int,
             for bar, task in zip(bars, tasks):
                 _update_bar(bar, task)
         if failures:
-            raise TasksFailed(failures)
+            raise TasksFailed(failures, len(tasks))
         return results
     finally:
         for bar in bars:
