@@ -14,6 +14,7 @@ iteration rate).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import shutil
 import tempfile
@@ -41,9 +42,7 @@ def main() -> None:
         "train.tensorboard": "false", "train.eval_every": "0", "train.eval_at_end": "false", "train.threads": "0"})
     work = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="stgc-bench-ray-"))
     # Warm-up: the triangulated initial points land in stgc's cache, which both timed runs then read alike.
-    warm = dict(configs, train=resolve_configs("cpu", {}, {}, {"train.iterations": "1", "train.progress": "false",
-                                                               "train.tensorboard": "false", "train.eval_every": "0",
-                                                               "train.eval_at_end": "false"})["train"])
+    warm = dict(configs, train=dataclasses.replace(configs["train"], iterations=1))
     train_video(args.data, warm, work / "warm-up", args.segment_frames, overwrite=True)
     walls = {}
     for mode, use_ray in (("in-process", False), ("ray", True)):

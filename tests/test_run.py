@@ -65,3 +65,16 @@ def test_create_refuses_an_existing_run_and_overwrite_clears_it(tmp_path):
     fresh = Run.create(run.path, overwrite=True)
     assert not fresh.has_config() and fresh.latest_model_dir() is None
     assert not (run.path / "model_q3.stgc").exists() and (run.path / "notes.txt").read_text() == "mine"
+
+
+def test_progress_reads_the_files_of_a_run_training_elsewhere(tmp_path):
+    run = Run(tmp_path / "r")
+    assert run.progress() == (0, 0)  # nothing written yet
+    run.path.mkdir()
+    run.write_config({"train": {"iterations": 300}})
+    assert run.progress() == (0, 300)
+    # The last complete row counts; a row still being written is skipped.
+    (run.path / Run.METRICS).write_text('{"iteration": 50}\n{"iteration": 100}\n{"iterat')
+    assert run.progress() == (100, 300)
+    run.write_summary({"finished": True})
+    assert run.progress() == (300, 300)

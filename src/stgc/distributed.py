@@ -53,7 +53,6 @@ class Task:
     args: tuple[Any, ...] = ()
     num_cpus: int = 1
     progress: Callable[[], tuple[int, int]] | None = None
-    unit: str = "it"
 
 
 class TasksFailed(StgcError):
@@ -79,7 +78,7 @@ def ray_available() -> bool:
     return importlib.util.find_spec("ray") is not None
 
 
-def run_tasks(tasks: Sequence[Task], *, use_ray: bool = True, address: str | None = None, max_retries: int = 3,
+def run_tasks(tasks: Sequence[Task], *, use_ray: bool = False, address: str | None = None, max_retries: int = 3,
               on_done: Callable[[int, Any], None] | None = None, show_progress: bool = True) -> list[Any]:
     """Run every task and return their results in the order given. on_done(index, result) is called in this
     process as each one finishes (in finishing order). Raises TasksFailed after all have run if any failed."""
@@ -185,7 +184,7 @@ def _run_on_ray(tasks: Sequence[Task], address: str | None, max_retries: int,
             pending[remote.remote(*task.args)] = index
         log.info("%d tasks on Ray (%s)", len(tasks), address or f"local, {os.cpu_count()} CPUs")
         if show_progress:
-            bars = [tqdm(total=1, desc=task.name, unit=task.unit, position=i, dynamic_ncols=True, leave=True)
+            bars = [tqdm(total=1, desc=task.name, unit="it", position=i, dynamic_ncols=True, leave=True)
                     for i, task in enumerate(tasks)]
         results: list[Any] = [None] * len(tasks)
         failures: dict[str, str] = {}

@@ -5,10 +5,14 @@ from __future__ import annotations
 import csv
 import json
 
+import imageio.v2 as imageio
+import numpy as np
 import pytest
 from scenes import write_panoptic_scene
 
 from stgc.cli import main
+from stgc.eval.video import _camera_at as camera_at
+from stgc.eval.video import load_model_and_dataset, render_image
 from stgc.run import Run
 from stgc.train.video import plan_segments
 
@@ -104,12 +108,6 @@ def test_a_segment_on_bad_data_fails_the_command_by_name_and_the_others_are_kept
 
 
 def test_a_video_renders_across_its_segments(scene, tmp_path):
-    import imageio.v2 as imageio
-    import numpy as np
-
-    from stgc.eval.video import _camera_at as camera_at
-    from stgc.eval.video import load_model_and_dataset, render_image
-
     out = tmp_path / "video"
     assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", *QUICK]) == 0
     assert main(["render", str(out), "--camera", "0", "--out", str(tmp_path / "all.mp4")]) == 0

@@ -22,8 +22,8 @@ Gaussian, tested against this to 1e-9 in float64).
 from __future__ import annotations
 
 import math
-from typing import TypeVar
 from dataclasses import dataclass
+from typing import TypeVar
 
 import torch
 from torch import Tensor

@@ -71,6 +71,7 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
         run.write_video({"segment_frames": int(segment_frames), "data_path": str(Path(data_path).resolve()),
                          "segments": plan})
         run.write_config(run_config(whole, configs, data_path=data_path))
+    train_cfg: TrainConfig = configs["train"]
     tasks = []
     for index, segment in enumerate(plan):
         segment_run = Run(run.path / str(segment["name"]))
@@ -81,7 +82,6 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
                  segment["start"] + segment["duration"] - 1)
         segment_configs = {**configs, "data": dataclasses.replace(
             configs["data"], start=int(segment["start"]), duration=int(segment["duration"]))}
-        train_cfg: TrainConfig = configs["train"]
         tasks.append(Task(name=segment_run.path.name, function=train_segment,
                           args=(str(data_path), segment_configs, str(segment_run.path), evaluator),
                           num_cpus=cpus_for_threads(train_cfg.threads), progress=segment_run.progress))
