@@ -317,3 +317,11 @@ def test_a_whole_videos_bitstreams_play_as_one_timeline(scene, tmp_path, capsys)
     decoded = load_model(video / "segment_001" / "m.stgc")
     expected = decoded.render(camera, t=camera.time, background=torch.zeros(3)).rgb
     assert np.array_equal(viewed.render(camera, 2.0), (expected.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy())
+    # The whole video's one file (`stgc compress RUN`): the same timeline, each frame from its segment in the file.
+    whole = compress_run(video, video / "whole.stgc", config=ladder)
+    assert len(whole.segments) == 2
+    for source, bitstream in ((video / "whole.stgc", None), (video, "whole.stgc")):
+        viewed = ViewerScene.open(source, bitstream=bitstream)
+        assert viewed.frames == [0, 1, 2] and [s.size.size_bytes for s in viewed.segments] == [
+            (video / f"segment_{k:03d}" / "m.stgc").stat().st_size for k in range(2)]
+        assert np.array_equal(viewed.render(camera, 2.0), (expected.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy())

@@ -290,14 +290,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train_parser(sub)
 
     p = sub.add_parser("eval", help="evaluate a run or a .stgc file on the test views")
-    p.add_argument("target", help="run directory or .stgc file")
+    p.add_argument("target", help="run directory or .stgc file (single or whole-video)")
     p.add_argument("--data", help="dataset directory (default: the one recorded in the run)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--no-fps", action="store_true", help="skip the render-speed measurement")
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("render", help="render a still or a video from a run")
-    p.add_argument("run", help="run directory or .stgc file")
+    p.add_argument("run", help="run directory or .stgc file (a whole video's plays across its segments)")
     p.add_argument("--out", required=True, help="FILE.png (still) or FILE.mp4 (video)")
     p.add_argument("--camera", help="camera name (default: the first test camera)")
     p.add_argument("--orbit", action="store_true", help="smooth camera path through the training cameras")
@@ -328,7 +328,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("compress", help="write a trained run as a compact .stgc bitstream")
-    p.add_argument("run", help="run directory, iteration directory or .ply")
+    p.add_argument("run", help="run directory, iteration directory or .ply; a whole-video run (--segment-frames) is "
+                   "written as one .stgc holding every segment's bitstream (docs/stgc-format.md section 9)")
     p.add_argument("--out", required=True, help="output .stgc file")
     p.add_argument("--quality", type=int, help="quality level 1..5 (shortcut for --codec.quality)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a codec option, e.g. "
@@ -338,7 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_compress)
 
     p = sub.add_parser("decompress", help="decode a .stgc file into an official-layout run directory")
-    p.add_argument("file", help=".stgc file")
+    p.add_argument("file", help=".stgc file (a whole video's restores a whole-video run: a run per segment)")
     p.add_argument("--out", required=True, help="output run directory")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (its files, bitstreams and evaluations are removed; not the input)")
     p.set_defaults(func=cmd_decompress)

@@ -30,11 +30,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from stgc.codec import is_video_stgc
 from stgc.data.cameras import Camera
 from stgc.data.dataset import Dataset
 from stgc.errors import DataError, StgcError
 from stgc.eval.accounting import ModelSize, bitstream_size, model_size_of
-from stgc.eval.evaluate import dataset_duration_s
+from stgc.eval.evaluate import dataset_duration_s, video_bitstream_segments
 from stgc.eval.video import load_model_and_dataset
 from stgc.metrics import psnr
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel
@@ -100,11 +101,16 @@ class ViewerScene:
         if bitstream is not None:
             if not path.is_dir():
                 raise StgcError(f"--bitstream {bitstream}: names a file inside a run directory, and {path} is not one")
+            if is_video_stgc(path / bitstream):  # the whole video's one file (stgc compress RUN)
+                folders = [path]
             missing = [f / bitstream for f in folders if not (f / bitstream).is_file()]
             if missing:
                 raise DataError(missing[0], "not found (write it with `stgc compress` on that run"
                                 + (" or segment" if len(folders) > 1 else "") + ")")
             folders = [f / bitstream for f in folders]
+        if len(folders) == 1 and is_video_stgc(folders[0]):
+            return cls([Segment(s.model, s.dataset, sorted(int(f) for f in s.dataset.frames), s.size)
+                        for s in video_bitstream_segments(folders[0])], path)
         segments = []
         for target in folders:
             model, dataset = load_model_and_dataset(target)

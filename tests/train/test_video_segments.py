@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 
 import imageio.v2 as imageio
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 from scenes import write_panoptic_scene
 
 from stgc.cli import main
+from stgc.codec import load_video_segment, read_video_index
 from stgc.eval.video import _camera_at as camera_at
 from stgc.eval.video import load_model_and_dataset, render_image
 from stgc.run import Run
@@ -120,3 +122,71 @@ def test_a_video_renders_across_its_segments(scene, tmp_path):
         mse = np.mean((frames[frame][..., :3].astype(float) - still) ** 2)
         assert 10 * np.log10(255**2 / max(mse, 1e-9)) > 30, (frame, mse)
     assert main(["render", str(out), "--orbit", "--out", str(tmp_path / "orbit.mp4")]) == 2
+
+
+def test_a_whole_video_is_one_bitstream_that_evaluates_renders_and_restores(scene, tmp_path):
+    out = tmp_path / "video"
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", *QUICK]) == 0
+    bitstream = out / "video.stgc"
+    assert main(["compress", str(out), "--out", str(bitstream), "--set", "codec.allocation=ladder"]) == 0
+    index = read_video_index(bitstream)
+    assert [(e.first_frame, e.num_frames) for e in index.entries] == [(0, 2), (2, 2), (4, 1)]
+    # Each segment's bytes are exactly what compressing that segment alone writes.
+    for k, segment in enumerate(Run(out).segments()):
+        alone = tmp_path / f"alone_{k}.stgc"
+        assert main(["compress", str(segment.path), "--out", str(alone), "--set", "codec.allocation=ladder"]) == 0
+        entry = index.entries[k]
+        assert bitstream.read_bytes()[entry.offset: entry.offset + entry.length] == alone.read_bytes()
+
+    # eval: per segment on its own frames, whole video sized by the container file.
+    assert main(["eval", str(bitstream), "--no-fps"]) == 0
+    record = json.loads((out / "eval_video.json").read_text())
+    assert record["segments"] == 3 and record["num_views"] == 5
+    assert record["size_bytes"] == bitstream.stat().st_size
+    assert record["mbps"] == pytest.approx(record["size_bytes"] * 8 / record["duration_s"] / 1e6)
+    assert record["container_overhead_bytes"] == 32 + 3 * 32
+    assert sum(s["size_mb"] for s in record["per_segment"].values()) * 2**20 == pytest.approx(
+        record["size_bytes"] - record["container_overhead_bytes"])
+    # Independently: segment 1's PSNR is what its decoded model scores on its own run's dataset.
+    model, _ = load_video_segment(bitstream, 1)
+    _, dataset = load_model_and_dataset(out / "segment_001")
+    scores = []
+    for cam in dataset.test:
+        image = render_image(model, cam, None, (0.0, 0.0, 0.0)).astype(float) / 255.0
+        truth = np.asarray(dataset.load_image(cam))[..., :3].astype(float) / 255.0
+        scores.append(10 * np.log10(1.0 / np.mean((image - truth) ** 2)))
+    assert record["per_segment"]["segment_001"]["psnr"] == pytest.approx(np.mean(scores), abs=0.05)
+    with open(out / "eval_video_per_view.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["segment"] for r in rows].count("segment_002") == 1 and len(rows) == 5
+    assert [s["segment"] for s in record["seams"]] == ["segment_000", "segment_001", "segment_002"]
+    assert (out / "seams_video.png").stat().st_size > 1000
+
+    # Away from its run: the configs the segments embed name the same data; the same numbers come out.
+    away = tmp_path / "away"
+    away.mkdir()
+    shutil.copy(bitstream, away / "copy.stgc")
+    assert main(["eval", str(away / "copy.stgc"), "--no-fps"]) == 0
+    moved = json.loads((away / "eval_copy.json").read_text())
+    assert moved["psnr"] == pytest.approx(record["psnr"]) and moved["size_bytes"] == record["size_bytes"]
+
+    # render plays across the segments of the file.
+    assert main(["render", str(bitstream), "--camera", "0", "--out", str(tmp_path / "all.mp4")]) == 0
+    assert len(imageio.mimread(tmp_path / "all.mp4")) == 5
+
+    # decompress restores a whole-video run, which evaluates to the bitstream's numbers.
+    restored = tmp_path / "restored"
+    assert main(["decompress", str(bitstream), "--out", str(restored)]) == 0
+    assert [(s["start"], s["duration"]) for s in Run(restored).read_video()["segments"]] == [(0, 2), (2, 2), (4, 1)]
+    assert main(["eval", str(restored), "--no-fps"]) == 0
+    again = json.loads((restored / "eval.json").read_text())
+    assert again["psnr"] == pytest.approx(record["psnr"], abs=1e-3)
+    assert again["num_gaussians"] == record["num_gaussians"]
+
+    # A single-model reader refuses the container by name; a damaged container fails before anything is written.
+    damaged = tmp_path / "damaged.stgc"
+    data = bytearray(bitstream.read_bytes())
+    data[index.entries[2].offset + 40] ^= 0xFF
+    damaged.write_bytes(bytes(data))
+    assert main(["decompress", str(damaged), "--out", str(tmp_path / "nothing")]) == 2
+    assert not (tmp_path / "nothing").exists()

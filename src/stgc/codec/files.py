@@ -35,6 +35,13 @@ from .format import (
     read_capped,
     read_header,
 )
+from .video import (
+    VideoIndex,
+    encode_video,
+    is_video_stgc,
+    read_video_index,
+    read_video_segment,
+)
 
 AllocationMode = Literal["auto", "optimised", "ladder"]
 ALLOCATION_MODES = get_args(AllocationMode)
@@ -168,15 +175,71 @@ def stgc_bytes_per_gaussian(path: str | Path) -> float:
 
 
 def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: int | None = None,
-                 config: CodecConfig | None = None) -> CompressResult:
-    """Compress a trained model (a run dir -> its latest iteration, an iteration dir, or a point_cloud.ply)."""
+                 config: CodecConfig | None = None) -> CompressResult | VideoCompressResult:
+    """Compress a trained model (a run dir -> its latest iteration, an iteration dir, or a point_cloud.ply), or a
+    whole-video run (`stgc train --segment-frames`) into one whole-video .stgc of its segments' bitstreams."""
     config = CodecConfig(**vars(config)) if config is not None else CodecConfig()
     if quality is not None:
         config.quality = quality
     config.validate()  # before minutes of bit allocation
-    if Path(out_path).suffix.lower() != ".stgc":
+    out_path = Path(out_path)
+    if out_path.suffix.lower() != ".stgc":
         raise ValueError(f"{out_path}: the bitstream is written as a .stgc file (the name must end in .stgc)")
     source = Path(run_or_model_path)
+    if source.is_dir() and Run(source).is_video():
+        return _compress_video(Run(source), out_path, config)
+    data, result = _encode_model(source, out_path, config)
+    write_stgc(out_path, data)
+    return result
+
+
+@dataclass(frozen=True)
+class VideoCompressResult:
+    """A whole video written as one container: each segment's own result (its bytes inside the container)."""
+
+    path: Path
+    names: tuple[str, ...]
+    segments: tuple[CompressResult, ...]
+    file_bytes: int  # the container: the segments' bitstreams plus its header and index
+
+    @property
+    def num_gaussians(self) -> int:
+        return sum(s.num_gaussians for s in self.segments)
+
+    @property
+    def ply_bytes(self) -> int:
+        return sum(s.ply_bytes for s in self.segments)
+
+    @property
+    def ratio_vs_ply(self) -> float:
+        return self.ply_bytes / self.file_bytes
+
+    def __str__(self) -> str:
+        lines = [f"{self.path}: whole video, {len(self.segments)} segments, {self.num_gaussians} Gaussians, "
+                 f"{self.file_bytes} bytes, {self.ratio_vs_ply:.2f}x smaller than the inputs' float32 PLY rows"]
+        for name, segment in zip(self.names, self.segments):
+            text = str(segment).replace(f"{segment.path}: ", "", 1).replace("\n", "\n    ")
+            lines.append(f"  {name}: {text}")
+        return "\n".join(lines)
+
+
+def _compress_video(run: Run, out_path: Path, config: CodecConfig) -> VideoCompressResult:
+    plan = run.read_video()["segments"]
+    payloads, results = [], []
+    for entry in tqdm(plan, desc="compressing segments", unit="segment", leave=False, disable=len(plan) < 2):
+        segment = Run(run.path / str(entry["name"]))
+        if segment.latest_model_dir() is None:
+            raise DataError(segment.path, "segment has no trained model yet (finish it with stgc train --resume)")
+        data, result = _encode_model(segment.path, out_path, config)
+        payloads.append((int(entry["start"]), int(entry["duration"]), data))
+        results.append(result)
+    container = encode_video(payloads)
+    write_stgc(out_path, container)
+    return VideoCompressResult(out_path, tuple(str(e["name"]) for e in plan), tuple(results), len(container))
+
+
+def _encode_model(source: Path, out_path: Path, config: CodecConfig) -> tuple[bytes, CompressResult]:
+    """One model's bitstream and its result (named `out_path`, where it will be written)."""
     model = STGModel.load(source)
     input_gaussians = model.num_gaussians
     if config.drop_invisible:
@@ -206,10 +269,9 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
             allocation = _optimise(model, arrays, dataset, config, _corrections_of(source))
             metadata["allocation"] = allocation.summary()
     data = encode_with_config(arrays, model.variant, model.decoder_state(), config, metadata, allocation)
-    out = write_stgc(out_path, data)
-    return CompressResult(out, model.num_gaussians, model.variant, len(data),
-                          input_gaussians * ply_bytes_per_gaussian(model.variant),
-                          allocation.summary() if allocation else None, input_gaussians - model.num_gaussians)
+    return data, CompressResult(out_path, model.num_gaussians, model.variant, len(data),
+                                input_gaussians * ply_bytes_per_gaussian(model.variant),
+                                allocation.summary() if allocation else None, input_gaussians - model.num_gaussians)
 
 
 def _training_dataset(run_dir: Path | None, source: Path, required: bool) -> Any:
@@ -290,19 +352,51 @@ def load_model(stgc_path: str | Path) -> Any:
     return _model_from_decoded(read_stgc(stgc_path), stgc_path)
 
 
+def load_video_segment(stgc_path: str | Path, k: int, index: VideoIndex | None = None) -> tuple[Any, DecodedModel]:
+    """Segment `k` of a whole-video .stgc as a renderable model, with what it decodes to (its metadata)."""
+    decoded = read_video_segment(stgc_path, k, index)
+    return _model_from_decoded(decoded, f"{stgc_path} segment {k}"), decoded
+
+
 def decompress(stgc_path: str | Path, out_run_dir: str | Path, *, overwrite: bool = False) -> Path:
     """Restore a run directory from a .stgc file: point_cloud/iteration_<N>/ (official PLY + decoder) and, when
     the file embeds it, config.json. Returns the iteration directory. Like a training, it refuses a folder that
-    already holds a run unless `overwrite` (its old model would stay beside the decoded one)."""
+    already holds a run unless `overwrite` (its old model would stay beside the decoded one).
+
+    A whole-video .stgc restores a whole-video run: RUN/video.json and one such run per segment in
+    RUN/segment_<k>/; returns RUN."""
+    if is_video_stgc(stgc_path):
+        return _decompress_video(Path(stgc_path), Path(out_run_dir), overwrite)
     decoded = read_stgc(stgc_path)
+    model = _model_from_decoded(decoded, stgc_path)  # a defective file fails before anything is written
+    run = Run.create(out_run_dir, overwrite=overwrite, keep=Path(stgc_path))
+    return _restore(decoded, model, str(stgc_path), run)
+
+
+def _restore(decoded: DecodedModel, model: Any, source: str, run: Run) -> Path:
     iteration = decoded.metadata.get("iteration", 0)
     if isinstance(iteration, bool) or not isinstance(iteration, int) or iteration < 0:
-        raise FormatError(stgc_path, f"metadata iteration {iteration!r} is not a non-negative integer")
-    model = _model_from_decoded(decoded, stgc_path)
-    run = Run.create(out_run_dir, overwrite=overwrite, keep=Path(stgc_path))
+        raise FormatError(source, f"metadata iteration {iteration!r} is not a non-negative integer")
     iteration_dir = run.iteration_dir(iteration)
     model.save(iteration_dir)
     run_config = decoded.metadata.get("run_config")
     if isinstance(run_config, dict):
         run.write_config(run_config)
     return iteration_dir
+
+
+def _decompress_video(stgc_path: Path, out_run_dir: Path, overwrite: bool) -> Path:
+    index = read_video_index(stgc_path)
+    # Every segment decodes before anything is written.
+    decoded = [load_video_segment(stgc_path, k, index) for k in range(index.num_segments)]
+    run = Run.create(out_run_dir, overwrite=overwrite, keep=stgc_path)
+    plan = []
+    for k, (entry, (model, segment)) in enumerate(zip(index.entries, decoded)):
+        segment_run = run.segment(k)
+        _restore(segment, model, f"{stgc_path} segment {k}", segment_run)
+        plan.append({"name": segment_run.path.name, "start": entry.first_frame, "duration": entry.num_frames})
+    run_config = decoded[0][1].metadata.get("run_config")
+    data = run_config.get("data") if isinstance(run_config, dict) else None
+    run.write_video({"segment_frames": index.entries[0].num_frames,
+                     "data_path": data.get("path") if isinstance(data, dict) else None, "segments": plan})
+    return run.path

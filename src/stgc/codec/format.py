@@ -52,6 +52,8 @@ from .quantize import (
 MAGIC = b"STGC\r\n\x1a\n"  # the CR-LF / ^Z / LF tail catches text-mode and line-ending mangling, as PNG's does
 # 2: motion and omega are stored scaled by each Gaussian's time span (TIME_SPAN); 3: FLAG_CENTRED; 4: FLAG_PREDICT
 VERSION = 4
+# A whole-video container of such files (stgc.codec.video); its own magic, so this reader names it instead of misreading.
+VIDEO_MAGIC = b"STGV\r\n\x1a\n"
 READABLE_VERSIONS = (2, 3, 4)  # versions 3 and 4 only add section flags: an older file is a valid newer one
 QUALITY_LEVELS = (1, 2, 3, 4, 5)
 DEFAULT_QUALITY = 3
@@ -532,6 +534,9 @@ def read_header(data: bytes, source: str | None = None) -> StgcHeader:
     if len(data) < HEADER_SIZE:
         raise _fail(f"not an .stgc file: {len(data)} bytes is shorter than the {HEADER_SIZE}-byte header", source)
     magic, version, variant_code, quality, n, num_sections, flags, table_size, table_crc = _HEADER.unpack_from(data)
+    if magic == VIDEO_MAGIC:
+        raise _fail("a whole-video .stgc (one bitstream per segment): read it with stgc.codec.read_video_index / "
+                    "read_video_segment, or through stgc eval / render / decompress", source)
     if magic != MAGIC:
         raise _fail("not an .stgc file (bad magic bytes)", source)
     (header_crc,) = _HEADER_CRC.unpack_from(data, _HEADER.size)

@@ -10,7 +10,7 @@ import csv
 import io
 import math
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,7 +20,13 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from stgc.codec import load_model, read_stgc
+from stgc.codec import (
+    is_video_stgc,
+    load_model,
+    load_video_segment,
+    read_stgc,
+    read_video_index,
+)
 from stgc.data.cameras import Camera
 from stgc.data.config import data_config_from_saved, saved_run_data
 from stgc.data.config import open_run_dataset as open_saved_run_dataset
@@ -230,13 +236,20 @@ def write_eval(
     more.update(extra or {})
     record = eval_record(result, model_info, more)
     write_json(json_path, record)
+    _write_per_view(csv_path, [(None, v) for v in result.views])
+    return record
+
+
+def _write_per_view(csv_path: Path, rows: Sequence[tuple[str | None, ViewScore]]) -> None:
+    """The per-view CSV; with a leading `segment` column when the rows come from a whole video's segments."""
+    segmented = any(name is not None for name, _ in rows)
     with atomic_open(csv_path, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(PER_VIEW_COLUMNS)
-        for v in result.views:
-            writer.writerow([v.camera, v.frame, f"{v.time:.6f}", _fmt(v.psnr, 4), _fmt(v.ssim, 5),
-                             _fmt(v.lpips, 5), _fmt(v.render_ms, 2), *(_fmt(v.yuv.get(k), 4) for k in YUV_KEYS)])
-    return record
+        writer.writerow((["segment"] if segmented else []) + list(PER_VIEW_COLUMNS))
+        for name, v in rows:
+            writer.writerow(([name] if segmented else []) + [
+                v.camera, v.frame, f"{v.time:.6f}", _fmt(v.psnr, 4), _fmt(v.ssim, 5), _fmt(v.lpips, 5),
+                _fmt(v.render_ms, 2), *(_fmt(v.yuv.get(k), 4) for k in YUV_KEYS)])
 
 
 def _fmt(x: float | None, digits: int) -> str:
@@ -312,16 +325,58 @@ def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstre
     `.stgc` file away from its run, the run config the encoder embedded in it."""
     if Run(run_dir).has_config() or bitstream is None:
         return open_saved_run_dataset(run_dir, data_path)
+    return open_embedded_dataset(read_stgc(bitstream).metadata, bitstream, data_path)
 
-    embedded = read_stgc(bitstream).metadata.get("run_config")
+
+def open_embedded_dataset(metadata: Mapping[str, Any], source: str | Path, data_path: str | Path | None = None) -> Any:
+    """The dataset named by the run config a bitstream embeds (its `run_config` metadata); `data_path` replaces
+    the saved location."""
+    embedded = metadata.get("run_config")
     section = embedded.get("data") if isinstance(embedded, dict) else None
     if not isinstance(section, dict):
-        raise DataError(bitstream, "no run config found beside or inside the bitstream; pass the dataset with --data")
-    config, path = data_config_from_saved(section, bitstream)
+        raise DataError(source, "no run config found beside or inside the bitstream; pass the dataset with --data")
+    config, path = data_config_from_saved(section, source)
     target = data_path if data_path is not None else path
     if target is None:
-        raise DataError(bitstream, "the embedded run config has no data.path; pass the dataset with --data")
+        raise DataError(source, "the embedded run config has no data.path; pass the dataset with --data")
     return config.open(target)
+
+
+@dataclass
+class BitstreamSegment:
+    """One segment of a whole-video .stgc, ready to render: its model, the dataset of its frames, its size."""
+
+    name: str
+    model: STGModel
+    dataset: Dataset
+    size: ModelSize
+    run: Run | None  # the segment's training run, when the container lies in the whole-video run it came from
+
+
+def video_bitstream_segments(path: str | Path, data_path: str | Path | None = None) -> Iterator[BitstreamSegment]:
+    """The segments of a whole-video .stgc in time order, decoded one at a time (random access: each reads only
+    its own bytes). A segment's dataset is its training run's when the file lies in the whole-video run it was
+    written from (RUN/<name>.stgc), else the one its embedded run config names (`data_path` replaces its location).
+    A dataset whose frames are not the segment's is an error, never a silently shifted timeline."""
+    path = Path(path)
+    index = read_video_index(path)
+    beside = Run(path.parent)
+    runs = beside.segments() if beside.is_video() and data_path is None else []
+    if [(int(s["start"]), int(s["duration"])) for s in (beside.read_video()["segments"] if runs else [])] != [
+            (e.first_frame, e.num_frames) for e in index.entries]:
+        runs = []  # another video's segments: use the configs the file embeds
+    for k, entry in enumerate(index.entries):
+        model, decoded = load_video_segment(path, k, index)
+        source = f"{path} segment {k}"
+        run = runs[k] if runs else None
+        dataset = open_saved_run_dataset(run.path) if run else open_embedded_dataset(decoded.metadata, source, data_path)
+        frames = sorted(int(f) for f in dataset.frames)
+        if frames != list(range(entry.first_frame, entry.last_frame + 1)):
+            raise DataError(source, f"covers frames {entry.first_frame}-{entry.last_frame}, but its dataset has frames "
+                                    f"{frames[0]}-{frames[-1]}" if frames else "its dataset has no frames")
+        size = ModelSize(model.num_gaussians, model.variant, entry.length, "file", dataset_duration_s(dataset), 0,
+                         {f"{path.name} segment {k}": entry.length})
+        yield BitstreamSegment(run.path.name if run else f"segment_{k:03d}", model, dataset, size, run)
 
 
 def dataset_duration_s(dataset: Dataset) -> float:
@@ -355,6 +410,11 @@ def evaluate_run(
         for segment in Run(target).segments():
             evaluate_run(segment.path, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
         return write_video_eval(target)
+    if target.suffix == ".stgc" and is_video_stgc(target):
+        if load_model is not None or open_dataset is not None:
+            raise DataError(target, "a whole-video bitstream is evaluated segment by segment on its own data")
+        return _evaluate_video_bitstream(target, data_path, lpips_net=lpips_net, warmup=warmup,
+                                         measure_fps=measure_fps)
     dataset = open_dataset(run_dir) if open_dataset else open_run_dataset(
         run_dir, data_path, target if target.suffix == ".stgc" else None)
     if load_model is None:
@@ -372,15 +432,52 @@ def evaluate_run(
     )
     if not measure_fps:
         result.speed = None
-    other = None
-    if data_path is not None:  # given data: another dataset unless it is where the run's config points
-
-        saved = saved_run_data(run_dir)
-        saved_path = saved[1] if saved is not None else None
-        if saved_path is None or Path(data_path).resolve() != Path(saved_path).resolve():
-            other = Path(data_path).resolve().name
-    return write_eval(run_dir, result, info, target=target, other_data=other,
+    return write_eval(run_dir, result, info, target=target, other_data=_other_data(run_dir, data_path),
                       extra={"data": str(dataset.root)})
+
+
+def _other_data(run_dir: Path, data_path: str | Path | None) -> str | None:
+    """The name evaluations on `data_path` are filed under: None for the run's own data (where its config points)."""
+    if data_path is None:
+        return None
+    saved = saved_run_data(run_dir)
+    saved_path = saved[1] if saved is not None else None
+    if saved_path is None or Path(data_path).resolve() != Path(saved_path).resolve():
+        return Path(data_path).resolve().name
+    return None
+
+
+def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpips_net: str | None, warmup: int,
+                              measure_fps: bool) -> dict[str, Any]:
+    """`evaluate_run` of a whole-video .stgc: every segment on its own frames, then the whole video as
+    `video_record` sums it, sized by the container file (its index included); eval_<stem>.json with per-view rows
+    of all segments in eval_<stem>_per_view.csv, and the seam figure seams_<stem>.png beside the file."""
+    records, curves, rows = [], [], []
+    for segment in video_bitstream_segments(target, data_path):
+        background = torch.tensor(segment.dataset.background, dtype=torch.float32)
+        model = segment.model
+        result = evaluate(lambda cam, m=model, bg=background: m.render(cam, t=float(cam.time), background=bg),
+                          segment.dataset.test, segment.dataset.load_image, lpips_net=lpips_net, warmup=warmup)
+        if not measure_fps:
+            result.speed = None
+        summary = segment.run.read_summary(strict=False) if segment.run else None
+        records.append((segment.name, eval_record(result, segment.size, {"train_seconds": training_seconds(summary)})))
+        curves.append((segment.name, [(v.frame, v.psnr) for v in result.views]))
+        rows += [(segment.name, v) for v in result.views]
+    record = aggregate_video_records(records)
+    index = read_video_index(target)
+    record.update({"size_bytes": index.file_bytes, "size_mb": index.file_bytes / 2**20,
+                   "mbps": index.file_bytes * 8 / record["duration_s"] / 1e6 if record["duration_s"] else None,
+                   "container_overhead_bytes": index.overhead_bytes, "target": str(target),
+                   "data": str(data_path) if data_path is not None else None})
+    seams = [seam_of(name, curve) for name, curve in curves]
+    record["seams"] = [{k: v for k, v in seam.items() if k != "frames"} for seam in seams if seam]
+    json_path, csv_path = Run(target.parent).eval_paths(_other_data(target.parent, data_path), target)
+    write_json(json_path, record)
+    _write_per_view(csv_path, rows)
+    if record["seams"]:
+        seam_plot([seam for seam in seams if seam], target.parent / f"seams_{target.stem}.png")
+    return record
 
 
 # Per-view means that a whole video averages over all its views (each segment's weighted by its number of views).
@@ -406,6 +503,11 @@ def video_record(run_dir: str | Path) -> dict[str, Any]:
         records.append((segment.path.name, record))
     if not records:
         raise DataError(run.path, "whole-video run without segments")
+    return aggregate_video_records(records)
+
+
+def aggregate_video_records(records: Sequence[tuple[str, Mapping[str, Any]]]) -> dict[str, Any]:
+    """The whole video's record from its segments' (name, eval record) in time order (see `video_record`)."""
     rows = [r for _, r in records]
     duration = sum(float(r.get("duration_s") or 0.0) for r in rows)
     size_bytes = sum(int(r.get("size_bytes") or 0) for r in rows)
@@ -446,20 +548,28 @@ def segment_seams(run_dir: str | Path) -> list[dict[str, Any]]:
         per_view = segment.eval_paths()[1]
         if not per_view.is_file():
             raise DataError(segment.path, "segment has no per-view evaluation yet (stgc eval the video run)")
-        by_frame: dict[int, list[float]] = {}
         with per_view.open(newline="") as f:
-            for row in csv.DictReader(f):
-                if row.get("psnr") not in (None, ""):
-                    by_frame.setdefault(int(row["frame"]), []).append(float(row["psnr"]))
-        if not by_frame:
-            continue
-        frames = sorted(by_frame)
-        curve = [(frame, float(np.mean(by_frame[frame]))) for frame in frames]
-        first, middle, last = curve[0][1], curve[len(curve) // 2][1], curve[-1][1]
-        seams.append({"segment": segment.path.name, "first_frame": frames[0], "last_frame": frames[-1],
-                      "psnr_first": first, "psnr_middle": middle, "psnr_last": last,
-                      "seam_loss_db": middle - (first + last) / 2, "frames": curve})
+            views = [(int(row["frame"]), float(row["psnr"])) for row in csv.DictReader(f)
+                     if row.get("psnr") not in (None, "")]
+        seam = seam_of(segment.path.name, views)
+        if seam:
+            seams.append(seam)
     return seams
+
+
+def seam_of(name: str, views: Sequence[tuple[int, float]]) -> dict[str, Any] | None:
+    """A segment's seam record (see `segment_seams`) from its test views' (frame, PSNR); None without views."""
+    by_frame: dict[int, list[float]] = {}
+    for frame, value in views:
+        if value is not None and math.isfinite(value):
+            by_frame.setdefault(int(frame), []).append(float(value))
+    if not by_frame:
+        return None
+    frames = sorted(by_frame)
+    curve = [(frame, float(np.mean(by_frame[frame]))) for frame in frames]
+    first, middle, last = curve[0][1], curve[len(curve) // 2][1], curve[-1][1]
+    return {"segment": name, "first_frame": frames[0], "last_frame": frames[-1], "psnr_first": first,
+            "psnr_middle": middle, "psnr_last": last, "seam_loss_db": middle - (first + last) / 2, "frames": curve}
 
 
 def seam_plot(seams: Sequence[Mapping[str, Any]], png: Path) -> None:

@@ -23,11 +23,11 @@ from PIL import Image
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, Slerp
 
-from stgc.codec import load_model
+from stgc.codec import is_video_stgc, load_model
 from stgc.data.cameras import Camera
 from stgc.data.dataset import Dataset
 from stgc.errors import DataError
-from stgc.eval.evaluate import open_run_dataset
+from stgc.eval.evaluate import open_run_dataset, video_bitstream_segments
 from stgc.fileio import atomic_path
 from stgc.model import STGModel
 from stgc.run import Run
@@ -260,13 +260,19 @@ def render_video(
     orbit=True: `num_frames` (default 2 x dataset frames) views on a smooth path through the training cameras
     while time sweeps [0, 1]. fps defaults to the dataset's.
 
-    A whole-video run (`stgc train --segment-frames`) plays across its segments: each frame is drawn by the
-    segment that holds it (fixed view only)."""
-    if isinstance(run_or_model, (str, Path)) and Run(run_or_model).is_video():
+    A whole-video run (`stgc train --segment-frames`) or whole-video .stgc plays across its segments: each frame
+    is drawn by the segment that holds it (fixed view only)."""
+    if isinstance(run_or_model, (str, Path)) and (Run(run_or_model).is_video() or is_video_stgc(run_or_model)):
         if orbit or dataset is not None:
             raise DataError(run_or_model, "a whole video renders from a fixed camera, each frame by its own "
                                           "segment (render one segment's run for an orbit)")
-        return _render_across_segments(Run(run_or_model), out, camera_name, frames, fps, background)
+        if is_video_stgc(run_or_model):
+            segments = [(s.model, s.dataset) for s in video_bitstream_segments(run_or_model)]
+        else:
+            segments = [load_model_and_dataset(segment.path) for segment in Run(run_or_model).segments()]
+        if not segments:
+            raise DataError(run_or_model, "whole-video run without segments")
+        return _render_across_segments(segments, out, camera_name, frames, fps, background)
     model, dataset = load_model_and_dataset(run_or_model, dataset)
     rate = float(fps or getattr(dataset, "fps", 30) or 30)
     if orbit:
@@ -280,11 +286,8 @@ def render_video(
     return write_video(out, images, rate)
 
 
-def _render_across_segments(run: Run, out: str | Path, camera_name: str | None, frames: Any, fps: float | None,
-                            background: Sequence[float] | None) -> Path:
-    segments = [load_model_and_dataset(segment.path) for segment in run.segments()]
-    if not segments:
-        raise DataError(run.path, "whole-video run without segments")
+def _render_across_segments(segments: Sequence[tuple[STGModel, Dataset]], out: str | Path, camera_name: str | None,
+                            frames: Any, fps: float | None, background: Sequence[float] | None) -> Path:
     chosen = set(frame_selection(frames, [f for _, d in segments for f in d.frames]))
     first = segments[0][1]
     name = camera_name or str((first.test or first.train)[0].name)
