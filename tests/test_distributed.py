@@ -7,6 +7,7 @@ segment's last checkpoint: the models equal, bit for bit, those of a sequential 
 from __future__ import annotations
 
 import csv
+import logging
 import os
 import pickle
 import shutil
@@ -17,6 +18,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import numba
@@ -52,13 +54,16 @@ def _fail_on_bad_data(path: str) -> None:
     raise DataError(path, "unreadable image")
 
 
-def test_a_failing_task_is_named_and_the_others_finish_in_process():
+def test_a_failing_task_is_named_and_the_others_finish_in_process(tmp_path):
     done = []
-    tasks = [Task("a", _double, (1,)), Task("b", _fail_on_bad_data, ("frame_7.png",)), Task("c", _double, (3,))]
+    tasks = [Task("a", _double, (1,)), Task("b", _fail_on_bad_data, ("frame_7.png",), log_file=tmp_path / "b.log"),
+             Task("c", _double, (3,), log_file=tmp_path / "c.log")]
     with pytest.raises(TasksFailed) as failed:
         run_tasks(tasks, use_ray=False, on_done=lambda i, r: done.append((i, r)))
+    assert "task failed: DataError: frame_7.png: unreadable image" in (tmp_path / "b.log").read_text()
+    assert not (tmp_path / "c.log").exists()  # a task that says nothing leaves no empty log
     assert done == [(0, 2), (2, 6)]
-    assert failed.value.failures == {"b": "frame_7.png: unreadable image"}
+    assert failed.value.failures == {"b": f"frame_7.png: unreadable image (its log: {tmp_path / 'b.log'})"}
     assert "1 of 3 tasks failed; the others finished and are kept" in str(failed.value)
     assert "b: frame_7.png: unreadable image" in str(failed.value)
     assert run_tasks([Task("a", _double, (4,))], use_ray=False) == [8]
@@ -288,18 +293,27 @@ def test_a_worker_killed_mid_segment_is_retried_and_the_video_is_bit_identical(c
 
 
 def _bad_frame_then_fine(index: int) -> int:
+    logging.getLogger("stgc.data").info("segment %d: reading its frames", index)
     if index == 1:
+        warnings.warn("frame_1.png: 3 of 5 views have no mask", UserWarning, stacklevel=1)
         raise DataError(f"frame_{index}.png", "truncated PNG")
     return index
 
 
-def test_a_task_failing_on_bad_data_fails_alone_on_ray(cluster):
+def test_a_task_failing_on_bad_data_fails_alone_on_ray(cluster, tmp_path):
+    """...and what each task said (its log records, its warnings, its failure) is in its own log file: the driver
+    does not show a Ray worker's console."""
     done = []
-    tasks = [Task(f"segment_{i:03d}", _bad_frame_then_fine, (i,)) for i in range(3)]
+    logs = [tmp_path / f"segment_{i:03d}" / "task.log" for i in range(3)]
+    tasks = [Task(f"segment_{i:03d}", _bad_frame_then_fine, (i,), log_file=logs[i]) for i in range(3)]
     with pytest.raises(TasksFailed) as failed:
         run_tasks(tasks, use_ray=True, on_done=lambda i, r: done.append(r), show_progress=False)
     assert sorted(done) == [0, 2]
-    assert failed.value.failures == {"segment_001": "frame_1.png: truncated PNG"}
+    assert failed.value.failures == {"segment_001": f"frame_1.png: truncated PNG (its log: {logs[1]})"}
+    failed_log = logs[1].read_text()
+    assert "segment 1: reading its frames" in failed_log and "3 of 5 views have no mask" in failed_log
+    assert "task failed: DataError: frame_1.png: truncated PNG" in failed_log
+    assert "segment 0: reading its frames" in logs[0].read_text() and "failed" not in logs[0].read_text()
 
 
 FAKE_CLI = REPO / "tests" / "experiment" / "fake_stgc_cli.py"

@@ -14,7 +14,9 @@ itself (bad data) is not retried: it fails that task only; the others run to the
 `run_tasks` then raises a `TasksFailed` naming each failed task.
 
 Progress: one bar per task in this process, fed by each task's `progress` callable, which reads the task's output
-folder (a shared file system), so workers need no channel back to the driver.
+folder (a shared file system), so workers need no channel back to the driver. Messages: a task with a `log_file`
+writes its log records and warnings there (appended, so a retry's follow the failed attempt's), wherever it runs; a
+Ray worker's console is not shown by the driver, so that file is where a task's own messages are read.
 """
 
 from __future__ import annotations
@@ -24,7 +26,9 @@ import importlib.util
 import logging
 import os
 import socket
+import warnings
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 from tqdm import tqdm
@@ -46,13 +50,51 @@ _said_no_ray = False
 class Task:
     """One independent piece of work: `function(*args)` needing `num_cpus` CPUs. `function` must be importable
     by name on the workers (a module-level function). `progress() -> (done, total)`, run in the driver, feeds its
-    progress bar."""
+    progress bar. `log_file`: where the task's log records and warnings are appended."""
 
     name: str
     function: Callable[..., Any]
     args: tuple[Any, ...] = ()
     num_cpus: int = 1
     progress: Callable[[], tuple[int, int]] | None = None
+    log_file: Path | None = None
+
+
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+def run_logged(function: Callable[..., Any], log_file: Path | None, *args: Any) -> Any:
+    """`function(*args)` with stgc's log records (INFO and up) and Python warnings also appended to `log_file`."""
+    if log_file is None:
+        return function(*args)
+    log_file = Path(log_file)
+    log_file.parent.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(log_file, encoding="utf-8", delay=True)  # no empty file for a silent task
+    handler.setFormatter(logging.Formatter(LOG_FORMAT))
+    handler.setLevel(logging.INFO)
+    stgc_logger, warnings_logger = logging.getLogger("stgc"), logging.getLogger("py.warnings")
+    saved_level = stgc_logger.level
+    if stgc_logger.getEffectiveLevel() > logging.INFO:  # a fresh Ray worker: nothing configured its logging
+        stgc_logger.setLevel(logging.INFO)
+    stgc_logger.addHandler(handler)
+    shown = warnings.showwarning
+    try:
+        with warnings.catch_warnings():  # restores the caller's warning display, whatever it was
+            def show(message: Any, category: Any, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
+                handler.handle(warnings_logger.makeRecord(
+                    warnings_logger.name, logging.WARNING, filename, lineno,
+                    warnings.formatwarning(message, category, filename, lineno, line).strip(), None, None))
+                shown(message, category, filename, lineno, file, line)
+
+            warnings.showwarning = show
+            return function(*args)
+    except Exception as error:
+        logging.getLogger(__name__).error("task failed: %s: %s", type(error).__name__, error)
+        raise
+    finally:
+        stgc_logger.removeHandler(handler)
+        handler.close()
+        stgc_logger.setLevel(saved_level)
 
 
 class TasksFailed(StgcError):
@@ -105,10 +147,10 @@ def _run_in_process(tasks: Sequence[Task], on_done: Callable[[int, Any], None] |
     failures: dict[str, str] = {}
     for index, task in enumerate(tasks):
         try:
-            results[index] = task.function(*task.args)
+            results[index] = run_logged(task.function, task.log_file, *task.args)
         except StgcError as error:  # the task's own failure (bad data): the others still run
             log.error("%s failed: %s", task.name, error)
-            failures[task.name] = str(error)
+            failures[task.name] = _with_log(str(error), task)
             continue
         if on_done is not None:
             on_done(index, results[index])
@@ -152,6 +194,10 @@ def _start_ray(address: str | None) -> bool:
     return True
 
 
+def _with_log(message: str, task: Task) -> str:
+    return f"{message} (its log: {task.log_file})" if task.log_file is not None else message
+
+
 def _failure_message(error: Exception) -> str:
     import ray.exceptions  # optional extra
 
@@ -179,9 +225,9 @@ def _run_on_ray(tasks: Sequence[Task], address: str | None, max_retries: int,
             if cpus < task.num_cpus:
                 log.warning("%s asks for %d CPUs; the largest node has %d: it runs there with %d",
                             task.name, task.num_cpus, largest_node, cpus)
-            remote = ray.remote(task.function).options(num_cpus=cpus, max_retries=max_retries,
-                                                       retry_exceptions=False, name=task.name)
-            pending[remote.remote(*task.args)] = index
+            remote = ray.remote(run_logged).options(num_cpus=cpus, max_retries=max_retries,
+                                                    retry_exceptions=False, name=task.name)
+            pending[remote.remote(task.function, task.log_file, *task.args)] = index
         log.info("%d tasks on Ray (%s)", len(tasks), address or f"local, {os.cpu_count()} CPUs")
         if show_progress:
             bars = [tqdm(total=1, desc=task.name, unit="it", position=i, dynamic_ncols=True, leave=True)
@@ -195,7 +241,7 @@ def _run_on_ray(tasks: Sequence[Task], address: str | None, max_retries: int,
                 try:
                     results[index] = ray.get(ref)
                 except ray.exceptions.RayError as error:
-                    failures[tasks[index].name] = _failure_message(error)
+                    failures[tasks[index].name] = _with_log(_failure_message(error), tasks[index])
                     log.error("%s failed: %s", tasks[index].name, failures[tasks[index].name])
                     continue
                 if on_done is not None:

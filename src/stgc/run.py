@@ -37,7 +37,7 @@ RUN_FOLDERS = ("point_cloud", "tensorboard")
 SEGMENT_PREFIX = "segment_"
 # What later verbs derive from the run's model and keep beside it: bitstreams and their evaluations, evaluations on
 # other data. They describe the old model, so replacing the run removes them too.
-DERIVED_PATTERNS = ("*.stgc", "eval_*.json", "eval_*_per_view.csv")
+DERIVED_PATTERNS = ("*.stgc", "eval_*.json", "eval_*_per_view.csv", "seams_*.png")
 
 
 # RUN/point_cloud/iteration_<N>/point_cloud.ply: one saved model per N (official layout).
@@ -97,6 +97,7 @@ class Run:
     SUMMARY = "train_summary.json"
     EXPERIMENT = "experiment.json"
     VIDEO = "video.json"
+    TASK_LOG = "task.log"
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -131,6 +132,11 @@ class Run:
     @property
     def summary_path(self) -> Path:
         return self.path / self.SUMMARY
+
+    @property
+    def task_log_path(self) -> Path:
+        """Where a segment trained as a task (stgc.distributed) appends its messages: a Ray worker's are not shown."""
+        return self.path / self.TASK_LOG
 
     @property
     def checkpoint_path(self) -> Path:

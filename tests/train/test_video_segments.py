@@ -46,6 +46,8 @@ def test_a_video_trains_as_segment_runs_and_evaluates_as_one(scene, tmp_path, ca
         windows.append((config["data"]["start"], config["data"]["duration"]))
         assert segment.training_finished() and segment.latest_model_dir() is not None
     assert windows == [(0, 2), (2, 2), (4, 1)]
+    # Each segment's own messages are in its task log (on Ray the driver does not show a worker's console).
+    assert "random points" in (out / "segment_002" / "task.log").read_text()
     record = json.loads((out / "eval.json").read_text())
     segments = [s.read_eval() for s in run.segments()]
     assert record["segments"] == 3 and record["num_views"] == sum(s["num_views"] for s in segments) == 5

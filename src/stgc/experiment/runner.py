@@ -268,7 +268,8 @@ def run_plan(
         tasks.append(Task(name=spec.name, function=run_spec,
                           args=(spec, run_dir, data_path, preset, overrides, qualities, runner, command_builder,
                                 python, out_dir / "logs" / f"{spec.name}.log", say),
-                          num_cpus=_run_cpus(preset, overrides), progress=Run(run_dir).progress))
+                          num_cpus=_run_cpus(preset, overrides), progress=Run(run_dir).progress,
+                          log_file=Run(run_dir).task_log_path))
 
     def finished(task_index: int, outcomes: list[RunOutcome]) -> None:  # tasks are the plan's runs, in order
         per_spec[task_index] = outcomes

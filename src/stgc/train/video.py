@@ -84,7 +84,8 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
             configs["data"], start=int(segment["start"]), duration=int(segment["duration"]))}
         tasks.append(Task(name=segment_run.path.name, function=train_segment,
                           args=(str(data_path), segment_configs, str(segment_run.path), evaluator),
-                          num_cpus=cpus_for_threads(train_cfg.threads), progress=segment_run.progress))
+                          num_cpus=cpus_for_threads(train_cfg.threads), progress=segment_run.progress,
+                          log_file=segment_run.task_log_path))
     run_tasks(tasks, use_ray=use_ray, address=ray_address)
     return [segment_run.read_summary() or {} for segment_run in run.segments()]
 
