@@ -320,3 +320,21 @@ def test_predicted_layout_is_used_where_components_correlate_and_decodes_identic
     a, b = decode(predicted).arrays, decode(plain).arrays
     for name in ply_fields("full"):
         assert np.array_equal(a[name], b[name]), name
+
+
+@pytest.mark.parametrize("variant", ["full", "lite"])
+def test_simulated_quantization_is_exactly_what_decoding_the_file_gives(models, variant):
+    """What training that sees the codec uses: decode(encode(x)) without the entropy coding, in x's own order;
+    with the ladder, an allocation's depths and step shapes, and the outlier guard."""
+    from stgc.codec import simulate_quantization
+
+    arrays, decoder = models[variant]
+    options = [dict(quality=1), dict(quality=4, position_bits=16),
+               dict(quality=3, group_bits={"MOTN": 5, "SCAL": 6}, step_scales={"ROTN": [1.0, 2.0, 1.5]})]
+    for option in options:
+        simulated = simulate_quantization(arrays, variant, **option)
+        decoded = decode(encode(arrays, variant, decoder if variant == "full" else None, **option)).arrays
+        order = match_rows(arrays, decoded)  # decoded row of each input row (the file is in Morton order)
+        for name in ply_fields(variant):
+            assert simulated[name].dtype == np.float32
+            np.testing.assert_array_equal(simulated[name], decoded[name][order], err_msg=f"{option} {name}")

@@ -29,6 +29,7 @@ from .format import (
     decode,
     encode,
     read_header,
+    simulate_quantization,
 )
 from .video import (
     VideoIndex,
@@ -66,6 +67,7 @@ __all__ = [
     "read_stgc_header",
     "read_video_index",
     "read_video_segment",
+    "simulate_quantization",
     "stgc_bytes_per_gaussian",
     "stgc_file_bytes",
     "write_stgc",

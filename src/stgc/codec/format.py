@@ -15,7 +15,7 @@ import json
 import os
 import struct
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -427,6 +427,82 @@ def _pack_decoder(state: Mapping[str, Any]) -> bytes:
     return b"".join(head + blobs)
 
 
+def _encoder_columns(arrays: Mapping[str, np.ndarray], variant: str, quality: int,
+                     group_bits: Mapping[str, int] | None, step_scales: Mapping[str, Sequence[float]] | None,
+                     ) -> tuple[int, dict[str, np.ndarray]]:
+    """The validated float64 columns the encoder quantizes, rotation and omega canonicalized."""
+    n, cols = _validated_columns(arrays, variant)
+    unknown = (set(group_bits or ()) | set(step_scales or ())) - GROUP_TAGS
+    if unknown:
+        raise ValueError(f"group_bits/step_scales name unknown groups {sorted(unknown)}")
+    for tag_name, factors in (step_scales or {}).items():
+        group = GROUP_BY_TAG[tag_name.encode("latin-1")]
+        if len(factors) != (3 if group.domain == QUAT_SMALLEST3 else len(group.fields(variant))):
+            raise ValueError(f"step_scales[{tag_name!r}] needs one factor per stored component (3 for ROTN)")
+    if quality not in QUALITY_LEVELS:
+        raise ValueError(f"quality must be one of {QUALITY_LEVELS}, got {quality!r}")
+    rot = np.stack([cols[f"rot_{i}"] for i in range(4)], axis=1)
+    omega = np.stack([cols[f"omega_{i}"] for i in range(4)], axis=1)
+    rot, omega = canonical_rotation(rot, omega)
+    for i in range(4):
+        cols[f"rot_{i}"], cols[f"omega_{i}"] = rot[:, i], omega[:, i]
+    return n, cols
+
+
+def _quantized_groups(cols: dict[str, np.ndarray], n: int, variant: str, quality: int, position_bits: int | None,
+                      group_bits: Mapping[str, int] | None, step_scales: Mapping[str, Sequence[float]] | None,
+                      outlier_guard: bool) -> Iterator[tuple[AttributeGroup, int, tuple[Quantizer, ...], np.ndarray,
+                                                             np.ndarray]]:
+    """Per attribute group in GROUPS order: (group, bit depth, quantizers, codes [C, N] in input order, the span
+    its TIME_SPAN scaling used). What the encoder stores and what `simulate_quantization` reconstructs."""
+    decoded_time: dict[bytes, np.ndarray] = {}
+    span = np.ones(n)
+    for group in groups_for(variant):
+        bits = bits_for(group, quality)
+        if group.tag == b"POSI" and position_bits is not None:
+            bits = int(position_bits)
+        if group_bits and group.tag.decode("latin-1") in group_bits:
+            bits = int(group_bits[group.tag.decode("latin-1")])
+        container_dtype(bits)  # validates the range
+        values = _to_domain(np.stack([cols[f] for f in group.fields(variant)], axis=0), group.domain)
+        if group.domain == TIME_SPAN:
+            values = values * _span_factors(group, span)
+        if group.domain in (LINEAR, TIME_SPAN) and outlier_guard:  # the others are bounded ([0, 1], unit quaternion)
+            bits = outlier_guard_bits(values, bits)
+        quantizers = _fit_group(values, group.domain, bits, (step_scales or {}).get(group.tag.decode("latin-1")))
+        codes = np.stack([quantize(v, q) for v, q in zip(values, quantizers)], axis=0)
+        yield group, bits, quantizers, codes, span
+        if group.tag in (b"TCEN", b"TSCL"):  # the decoder sees only the quantized values: derive the span from them
+            decoded_time[group.tag] = dequantize(codes[0], quantizers[0])
+            if len(decoded_time) == 2:
+                span = time_span(decoded_time[b"TCEN"], decoded_time[b"TSCL"])
+
+
+def simulate_quantization(
+    arrays: Mapping[str, np.ndarray],
+    variant: str,
+    quality: int = DEFAULT_QUALITY,
+    *,
+    position_bits: int | None = None,
+    group_bits: Mapping[str, int] | None = None,
+    step_scales: Mapping[str, Sequence[float]] | None = None,
+    outlier_guard: bool = True,
+) -> dict[str, np.ndarray]:
+    """The attribute arrays `decode(encode(arrays, ...))` returns, in the input's order (encode reorders along the
+    Morton curve) and without entropy coding: what a model looks like after the codec, for training that sees it
+    (rotation and omega come back canonicalized, which renders the same). Same keyword options as `encode`."""
+    n, cols = _encoder_columns(arrays, variant, quality, group_bits, step_scales)
+    out: dict[str, np.ndarray] = {}
+    for group, _, quantizers, codes, span in _quantized_groups(cols, n, variant, quality, position_bits, group_bits,
+                                                                step_scales, outlier_guard):
+        values = np.stack([dequantize(c, q) for c, q in zip(codes, quantizers)], axis=0)
+        if group.domain == TIME_SPAN:
+            values = values / _span_factors(group, span)
+        for name, column in zip(group.fields(variant), _from_domain(values, group.domain)):
+            out[name] = column.astype(np.float32)
+    return {name: out.get(name, np.zeros(n, np.float32)) for name in ply_fields(variant)}
+
+
 def encode(
     arrays: Mapping[str, np.ndarray],
     variant: str,
@@ -449,46 +525,13 @@ def encode(
     components whose errors show less get coarser steps at the same depth. outlier_guard adds bits to a linear group whose range
     is stretched by outliers (outlier_guard_bits). The Gaussians are reordered along the Morton curve of their
     quantized positions. metadata: small JSON-able dict kept verbatim."""
-    n, cols = _validated_columns(arrays, variant)
-    unknown = (set(group_bits or ()) | set(step_scales or ())) - GROUP_TAGS
-    if unknown:
-        raise ValueError(f"group_bits/step_scales name unknown groups {sorted(unknown)}")
-    for tag_name, factors in (step_scales or {}).items():
-        group = GROUP_BY_TAG[tag_name.encode("latin-1")]
-        if len(factors) != (3 if group.domain == QUAT_SMALLEST3 else len(group.fields(variant))):
-            raise ValueError(f"step_scales[{tag_name!r}] needs one factor per stored component (3 for ROTN)")
-    if quality not in QUALITY_LEVELS:
-        raise ValueError(f"quality must be one of {QUALITY_LEVELS}, got {quality!r}")
+    n, cols = _encoder_columns(arrays, variant, quality, group_bits, step_scales)
     if variant == "full" and decoder_state is None:
         raise DataError(None, "a full-variant model needs its decoder state")
-    rot = np.stack([cols[f"rot_{i}"] for i in range(4)], axis=1)
-    omega = np.stack([cols[f"omega_{i}"] for i in range(4)], axis=1)
-    rot, omega = canonical_rotation(rot, omega)
-    for i in range(4):
-        cols[f"rot_{i}"], cols[f"omega_{i}"] = rot[:, i], omega[:, i]
-
     sections: list[tuple[bytes, int, _EncodedSection]] = []  # tag, bit depth, content
     order: np.ndarray | None = None
-    decoded_time: dict[bytes, np.ndarray] = {}
-    span = np.ones(n)
-    for group in groups_for(variant):
-        bits = bits_for(group, quality)
-        if group.tag == b"POSI" and position_bits is not None:
-            bits = int(position_bits)
-        if group_bits and group.tag.decode("latin-1") in group_bits:
-            bits = int(group_bits[group.tag.decode("latin-1")])
-        container_dtype(bits)  # validates the range
-        values = _to_domain(np.stack([cols[f] for f in group.fields(variant)], axis=0), group.domain)
-        if group.domain == TIME_SPAN:
-            values = values * _span_factors(group, span)
-        if group.domain in (LINEAR, TIME_SPAN) and outlier_guard:  # the others are bounded ([0, 1], unit quaternion)
-            bits = outlier_guard_bits(values, bits)
-        quantizers = _fit_group(values, group.domain, bits, (step_scales or {}).get(group.tag.decode("latin-1")))
-        codes = np.stack([quantize(v, q) for v, q in zip(values, quantizers)], axis=0)
-        if group.tag in (b"TCEN", b"TSCL"):  # the decoder sees only the quantized values: derive the span from them
-            decoded_time[group.tag] = dequantize(codes[0], quantizers[0])
-            if len(decoded_time) == 2:
-                span = time_span(decoded_time[b"TCEN"], decoded_time[b"TSCL"])
+    for group, bits, quantizers, codes, _ in _quantized_groups(cols, n, variant, quality, position_bits, group_bits,
+                                                               step_scales, outlier_guard):
         if order is None:  # POSI comes first: its codes define the Morton order used by every section
             order = morton_order(codes.T, bits)
         codes = codes[:, order]
