@@ -11,9 +11,10 @@ docs/model.md). With Δ = t − μ_t and Δ' = Δ.detach() (as the official rend
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections import OrderedDict
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -289,6 +290,23 @@ class STGModel:
         return _features_at(self.params, t)
 
     # ------------------------------------------------------------------ rendering
+    @contextlib.contextmanager
+    def params_replaced(self, params: Mapping[str, torch.Tensor] | None) -> Iterator[None]:
+        """Within the block, render with `params` (the same keys and shapes; typically a differentiable function of
+        the model's own, such as the codec's quantization of them) instead of the model's parameters. None: no
+        change."""
+        if params is None:
+            yield
+            return
+        if set(params) != set(self.params) or any(params[k].shape != self.params[k].shape for k in params):
+            raise ValueError("replacement params must have the model's keys and shapes")
+        own = self.params
+        self.params = dict(params)  # type: ignore[assignment]
+        try:
+            yield
+        finally:
+            self.params = own
+
     def render(
         self,
         camera: Camera,

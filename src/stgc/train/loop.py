@@ -45,6 +45,7 @@ from stgc.train.config import Schedule, TrainConfig, resolve_schedule
 from stgc.train.densify import DensityControl
 from stgc.train.ems import ErrorGuidedSampler
 from stgc.train.monitor import JsonLines, Progress, TensorBoard
+from stgc.train.quantization import QuantizationSimulation
 from stgc.train.strategy import (
     CompactionStrategy,
     DensityStrategy,
@@ -237,6 +238,8 @@ class Trainer:
         # After the optimizer step, in this order: density control, error-guided points, compaction.
         self.strategies: list[Strategy] = [DensityStrategy(self.density), ErrorGuidedStrategy(self.ems, self.density)]
         self.compactor = self._make_compactor()
+        self.quantization = QuantizationSimulation(train_cfg.quantization_aware) if (
+            train_cfg.quantization_aware.iterations > 0 and train_cfg.quantization_aware.simulate) else None
         if self.compactor is not None:
             self.strategies.append(CompactionStrategy(
                 self.compactor, lambda event: self.compaction_log.append(_jsonable(event)), self.density,
@@ -304,12 +307,21 @@ class Trainer:
         }
 
     # ------------------------------------------------------------------------------------------- one step
-    def _set_xyz_lr(self, iteration: int) -> float:
-        lr = xyz_learning_rate(self.cfg, self.extent, iteration, self.schedule.iterations)
+    def _set_learning_rates(self, iteration: int) -> float:
+        """The iteration's learning rates: xyz on its decay, the others constant, all times
+        quantization_aware.lr_scale inside the rate-aware window. Returns the xyz rate."""
+        scale = self.cfg.quantization_aware.lr_scale if self.in_quantization_window(iteration) else 1.0
+        base = {**learning_rates(self.cfg, self.extent), "decoder": self.cfg.lr.decoder,
+                "xyz": xyz_learning_rate(self.cfg, self.extent, iteration, self.schedule.iterations)}
         for group in self.optimizer.param_groups:
-            if group.get("name") == "xyz":
-                group["lr"] = lr
-        return lr
+            if group.get("name") in base:
+                group["lr"] = base[group["name"]] * scale
+        return base["xyz"] * scale
+
+    def in_quantization_window(self, iteration: int) -> bool:
+        """Whether `iteration` is one of the run's last quantization_aware.iterations (stgc.train.quantization)."""
+        window = self.cfg.quantization_aware.iterations
+        return window > 0 and iteration > self.schedule.iterations - window
 
     def view_loss(self, render_rgb: torch.Tensor, gt: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, float]:
         """(loss, SSIM value) of one training view."""
@@ -334,13 +346,15 @@ class Trainer:
         picks = rng.choice(len(cameras), size=batch, replace=len(cameras) < batch)
         views = [cameras[int(i)] for i in picks]
         t = float(views[0].time)
-        lr_xyz = self._set_xyz_lr(iteration)
+        lr_xyz = self._set_learning_rates(iteration)
 
         total_loss, total_mse = 0.0, 0.0
         ems_view = None
+        seen = self.quantized_params(iteration)
         for k, cam in enumerate(views):
             gt = self.images.get(cam)
-            out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend)
+            with self.model.params_replaced(seen):
+                out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend)
             rgb = out.rgb if self.colour is None else self.colour.apply(out.rgb, cam.name)
             loss, ssim_value = self.view_loss(rgb, gt, cam)
             (loss / batch).backward()
@@ -355,8 +369,18 @@ class Trainer:
             self.colour.step()
         mean_loss = total_loss / batch
         mean_mse = total_mse / batch
-        return {"t": t, "frame": frame, "loss": mean_loss, "psnr": -10.0 * math.log10(max(mean_mse, 1e-12)),
+        step = {"t": t, "frame": frame, "loss": mean_loss, "psnr": -10.0 * math.log10(max(mean_mse, 1e-12)),
                 "lr_xyz": lr_xyz, "ems_view": ems_view}
+        if seen is not None:
+            step["quantized"] = True
+        return step
+
+    def quantized_params(self, iteration: int) -> dict[str, torch.Tensor] | None:
+        """In the rate-aware window (the run's last quantization_aware.iterations): the parameters as the codec
+        stores them, with straight-through gradients (stgc.train.quantization); else None (the float model)."""
+        if self.quantization is None or not self.in_quantization_window(iteration):
+            return None
+        return self.quantization.quantized_params(self.model)
 
     def importance_views(self) -> list[Any]:
         """One view per training camera, their frames spread evenly over the segment: every view and every part of
@@ -429,6 +453,7 @@ class Trainer:
                         "psnr": step["psnr"],
                         "num_gaussians": self.model.num_gaussians,
                         "lr_xyz": step["lr_xyz"],
+                        **({"quantized": True} if step.get("quantized") else {}),
                         "elapsed_s": round(elapsed, 3),
                         "it_per_s": (iteration - last_log_it) / max(now - last_log_time, 1e-9),
                         **control,
