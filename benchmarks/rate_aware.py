@@ -1,0 +1,88 @@
+"""Rate-aware fine-tuning (issue #17) on a trained run: what the codec's quantization in the forward buys.
+
+    .venv/bin/python benchmarks/rate_aware.py runs/RUN --out runs/rate_aware --iterations 1000 --quality 3 1
+
+From a finished run (its checkpoint), three models per quality: the run as it is; the run trained N more
+iterations at the window's lower learning rates (`train.quantization_aware` with simulate=false: the control); and
+the same N iterations through the codec's quantization at that quality (simulate=true). Each is compressed with
+the fixed ladder at that quality (what the aware model was trained for) and evaluated on the test views, float and
+decoded. Prints one table: test PSNR float / decoded, the quantization loss, the file size and the extra training
+time. The continuation extends the run's schedule (xyz decay over the new total); a run trained with compaction is
+refused, since a longer schedule would move its compaction window.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+STGC = [sys.executable, "-m", "stgc.cli"]
+
+
+def continue_run(run: Path, out: Path, iterations: int, quality: int, simulate: bool) -> float:
+    """Copy `run` to `out` with its schedule extended by `iterations` rate-aware ones; train them; seconds spent."""
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    config = json.loads((run / "config.json").read_text())
+    if (config.get("compaction") or {}).get("method", "none") != "none":
+        raise SystemExit(f"{run}: trained with compaction; a longer schedule would move its compaction window")
+    train = config["train"]
+    base = int(train["iterations"])
+    train["iterations"] = base + iterations
+    train["quantization_aware"] = {"iterations": iterations, "quality": quality, "simulate": simulate}
+    train["eval_every"] = 0
+    train["save_iterations"] = [base + iterations]
+    (out / "config.json").write_text(json.dumps(config, indent=2))
+    shutil.copy(run / "checkpoint.pt", out / "checkpoint.pt")
+    shutil.copy(run / "metrics.jsonl", out / "metrics.jsonl")
+    start = time.perf_counter()
+    subprocess.run([*STGC, "-q", "train", "--out", str(out), "--resume"], check=True, cwd=REPO)
+    return time.perf_counter() - start
+
+
+def compressed_eval(run: Path, quality: int) -> dict:
+    """Compress `run` with the fixed ladder at `quality`, evaluate the file and the float model (if not yet)."""
+    stgc_file = run / f"ladder_q{quality}.stgc"
+    subprocess.run([*STGC, "-q", "compress", str(run), "--out", str(stgc_file), "--quality", str(quality),
+                    "--set", "codec.allocation=ladder"], check=True, cwd=REPO, stdout=subprocess.DEVNULL)
+    if not (run / "eval.json").is_file():
+        subprocess.run([*STGC, "-q", "eval", str(run), "--no-fps"], check=True, cwd=REPO, stdout=subprocess.DEVNULL)
+    subprocess.run([*STGC, "-q", "eval", str(stgc_file), "--no-fps"], check=True, cwd=REPO, stdout=subprocess.DEVNULL)
+    float_record = json.loads((run / "eval.json").read_text())
+    decoded = json.loads((run / f"eval_ladder_q{quality}.json").read_text())
+    return {"float": float_record["psnr"], "decoded": decoded["psnr"], "bytes": stgc_file.stat().st_size,
+            "gaussians": decoded["num_gaussians"]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="a finished run (config.json, checkpoint.pt)")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--iterations", type=int, default=1000, help="rate-aware iterations added to the run")
+    parser.add_argument("--quality", type=int, nargs="+", default=[3], help="codec qualities (fixed ladder)")
+    args = parser.parse_args()
+    rows = []
+    for quality in args.quality:
+        rows.append(("as trained", quality, compressed_eval(args.run, quality), 0.0))
+        for name, simulate in (("control", False), ("aware", True)):
+            out = args.out / f"{name}_q{quality}"
+            seconds = continue_run(args.run, out, args.iterations, quality, simulate)
+            rows.append((name, quality, compressed_eval(out, quality), seconds))
+    print(f"\n{args.run}: +{args.iterations} iterations, fixed ladder, test views")
+    print("| model | quality | test PSNR float | decoded | loss dB | file KB | Gaussians | extra training s |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    for name, quality, r, seconds in rows:
+        print(f"| {name} | q{quality} | {r['float']:.2f} | {r['decoded']:.2f} | {r['float'] - r['decoded']:+.2f} | "
+              f"{r['bytes'] / 1024:.1f} | {r['gaussians']:,} | {seconds:.0f} |")
+    print(json.dumps([{"model": n, "quality": q, **r, "extra_seconds": s} for n, q, r, s in rows]))
+
+
+if __name__ == "__main__":
+    main()
