@@ -21,7 +21,6 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
 STGC = [sys.executable, "-m", "stgc.cli"]
 
 
@@ -43,7 +42,7 @@ def continue_run(run: Path, out: Path, iterations: int, quality: int, simulate: 
     shutil.copy(run / "checkpoint.pt", out / "checkpoint.pt")
     shutil.copy(run / "metrics.jsonl", out / "metrics.jsonl")
     start = time.perf_counter()
-    subprocess.run([*STGC, "-q", "train", "--out", str(out), "--resume"], check=True, cwd=REPO)
+    subprocess.run([*STGC, "-q", "train", "--out", str(out), "--resume"], check=True)
     return time.perf_counter() - start
 
 
@@ -51,10 +50,10 @@ def compressed_eval(run: Path, quality: int) -> dict:
     """Compress `run` with the fixed ladder at `quality`, evaluate the file and the float model (if not yet)."""
     stgc_file = run / f"ladder_q{quality}.stgc"
     subprocess.run([*STGC, "-q", "compress", str(run), "--out", str(stgc_file), "--quality", str(quality),
-                    "--set", "codec.allocation=ladder"], check=True, cwd=REPO, stdout=subprocess.DEVNULL)
+                    "--set", "codec.allocation=ladder"], check=True, stdout=subprocess.DEVNULL)
     if not (run / "eval.json").is_file():
-        subprocess.run([*STGC, "-q", "eval", str(run), "--no-fps"], check=True, cwd=REPO, stdout=subprocess.DEVNULL)
-    subprocess.run([*STGC, "-q", "eval", str(stgc_file), "--no-fps"], check=True, cwd=REPO, stdout=subprocess.DEVNULL)
+        subprocess.run([*STGC, "-q", "eval", str(run), "--no-fps"], check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([*STGC, "-q", "eval", str(stgc_file), "--no-fps"], check=True, stdout=subprocess.DEVNULL)
     float_record = json.loads((run / "eval.json").read_text())
     decoded = json.loads((run / f"eval_ladder_q{quality}.json").read_text())
     return {"float": float_record["psnr"], "decoded": decoded["psnr"], "bytes": stgc_file.stat().st_size,
@@ -68,6 +67,7 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=1000, help="rate-aware iterations added to the run")
     parser.add_argument("--quality", type=int, nargs="+", default=[3], help="codec qualities (fixed ladder)")
     args = parser.parse_args()
+    args.run, args.out = args.run.resolve(), args.out.resolve()
     rows = []
     for quality in args.quality:
         rows.append(("as trained", quality, compressed_eval(args.run, quality), 0.0))
