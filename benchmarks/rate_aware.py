@@ -33,8 +33,9 @@ def continue_run(run: Path, out: Path, iterations: int, quality: int, simulate: 
     if (config.get("compaction") or {}).get("method", "none") != "none":
         raise SystemExit(f"{run}: trained with compaction; a longer schedule would move its compaction window")
     train = config["train"]
-    base = int(train["iterations"])
+    base = int((train.get("resolved_schedule") or train)["iterations"])
     train["iterations"] = base + iterations
+    train.pop("resolved_schedule", None)  # recomputed from the options (it would restore the old total)
     train["quantization_aware"] = {"iterations": iterations, "quality": quality, "simulate": simulate}
     train["eval_every"] = 0
     train["save_iterations"] = [base + iterations]

@@ -209,3 +209,35 @@ def test_on_prune_sees_each_removal_mask_aligned_with_the_model():
             assert event["removed"] > 0
             assert torch.equal(side["xyz"], model.params["xyz"].detach())
     assert events == 6
+
+
+def test_a_probe_signal_steers_the_ratio_instead_of_the_training_losses():
+    """loss_signal 'probe': the controller compares the probe's values (read once per pruning step), whatever the
+    training losses drawn in between; the paper's rule stays the default."""
+    assert CompactionConfig().loss_signal == "training"
+    total = 100
+    cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.7, interval=10, ratio_init=0.1, ratio_step=0.05,
+                           ratio_min=0.05, ratio_max=0.3, loss_signal="probe")
+    probe_values = iter([5.0, 4.0, 4.5, 4.5, 3.0, 3.5])
+    calls = []
+
+    def probe() -> float:
+        calls.append(1)
+        return next(probe_values)
+
+    compactor = STKNNCompactor(cfg, total)
+    model = make_model(random_params(600, seed=1))
+    noisy = list(np.random.default_rng(0).uniform(0, 100, total))  # training losses: noise the probe ignores
+    events = []
+    for it in range(1, total + 1):
+        event = compactor.step(it, (it % 10) / 10, model, noisy[it - 1], probe_fn=probe)
+        if event is not None:
+            events.append(event)
+    assert len(calls) == len(events) == 5  # only at pruning steps (20..60)
+    assert [e["smoothed_loss"] for e in events] == [5.0, 4.0, 4.5, 4.5, 3.0]
+    assert [e["ratio_direction"] for e in events] == [0, 1, -1, 0, 1]
+    assert all(e["loss_signal"] == "probe" for e in events)
+    with pytest.raises(ValueError, match="probe_fn"):
+        STKNNCompactor(cfg, total).step(20, 0.0, make_model(random_params(600, seed=1)), 1.0)
+    with pytest.raises(ValueError, match="loss_signal"):
+        CompactionConfig(loss_signal="psnr").validate()

@@ -82,3 +82,4 @@ def test_the_window_is_the_run_s_last_iterations(scene, tmp_path):
         from stgc.config import validate_config
 
         validate_config(TrainConfig(iterations=10, quantization_aware=QuantizationAwareConfig(iterations=11)), "train")
+

@@ -55,11 +55,13 @@ class STKNNCompactor:
         loss: float,
         importance_fn: Callable[[], torch.Tensor | np.ndarray] | None = None,
         on_prune: Callable[[torch.Tensor], Any] | None = None,
+        probe_fn: Callable[[], float] | None = None,
     ) -> dict[str, Any] | None:
         """Record this iteration's training loss; at a pruning iteration adjust the ratio and prune the model.
 
         `on_prune(keep)` is called with the boolean keep mask right after `model.prune(keep)`, so a caller
         holding per-Gaussian state of its own (the trainer's densification statistics) can drop the same rows.
+        `probe_fn()`: the model's loss on a fixed probe set, the controller's signal when loss_signal is 'probe'.
         Returns the pruning step's log record, or None on other iterations (and always with method 'none')."""
         if not self.enabled:
             return None
@@ -67,7 +69,12 @@ class STKNNCompactor:
         if not self.schedule.is_pruning_iteration(iteration):
             return None
 
-        smoothed = self.smoother.value()
+        if self.config.loss_signal == "probe":
+            if probe_fn is None:
+                raise ValueError("compaction.loss_signal 'probe' needs probe_fn (the loss on the fixed probe views)")
+            smoothed = float(probe_fn())
+        else:
+            smoothed = self.smoother.value()
         previous = self.controller.previous_loss
         direction = self.controller.update(smoothed)
         ratio = self.controller.ratio
@@ -98,6 +105,7 @@ class STKNNCompactor:
             "ratio": ratio,
             "ratio_direction": direction,
             "smoothed_loss": smoothed,
+            "loss_signal": self.config.loss_signal,
             "previous_smoothed_loss": previous,
             "matched_references": pairs.matched_references,
             "matched_pairs": len(pairs),

@@ -27,6 +27,8 @@ CASE_WINDOWS: dict[int, tuple[float, float]] = {
 Method = Literal["none", "st-knn"]
 METHODS = get_args(Method)
 SMOOTHINGS = ("window_mean", "ema")
+LossSignal = Literal["training", "probe"]
+LOSS_SIGNALS = get_args(LossSignal)
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,18 @@ class CompactionConfig:
         },
     )
     ema_decay: float = field(default=0.98, metadata={"help": "EMA decay per iteration (loss_smoothing = ema)"})
+    loss_signal: LossSignal = field(
+        default="training",
+        metadata={
+            "help": "the loss the ratio controller compares between pruning steps: 'training' = the smoothed training "
+            "loss (paper; each from a random timestamp and views, so it varies with what was drawn), 'probe' = the "
+            "training loss of the current model on a fixed set of training views and times, rendered at every "
+            "pruning step (it measures the model, not the sample)"
+        },
+    )
+    probe_views: int = field(
+        default=8, metadata={"help": "training views (camera x frame, spread over both) of the probe set"}
+    )
     rotation_weight: float = field(
         default=0.01,
         metadata={
@@ -123,6 +137,10 @@ class CompactionConfig:
             raise ValueError(f"compaction.loss_tolerance {self.loss_tolerance}: must be >= 0")
         if self.loss_smoothing not in SMOOTHINGS:
             raise ValueError(f"compaction.loss_smoothing {self.loss_smoothing!r}: expected one of {SMOOTHINGS}")
+        if self.loss_signal not in LOSS_SIGNALS:
+            raise ValueError(f"compaction.loss_signal {self.loss_signal!r}: expected one of {LOSS_SIGNALS}")
+        if self.probe_views < 1:
+            raise ValueError(f"compaction.probe_views {self.probe_views}: must be >= 1")
         if not (0.0 <= self.ema_decay < 1.0):
             raise ValueError(f"compaction.ema_decay {self.ema_decay}: must be in [0, 1)")
         if self.rotation_weight < 0:

@@ -243,7 +243,7 @@ class Trainer:
         if self.compactor is not None:
             self.strategies.append(CompactionStrategy(
                 self.compactor, lambda event: self.compaction_log.append(_jsonable(event)), self.density,
-                self.importance,
+                self.importance, self.probe_loss,
             ))  # fmt: skip
         if checkpoint is not None:
             self._restore(checkpoint)
@@ -393,6 +393,25 @@ class Trainer:
             cams = sorted(by_name[name], key=lambda c: c.frame)
             views.append(cams[(k * len(cams)) // max(len(by_name), 1) % len(cams)])
         return views
+
+    def probe_views(self) -> list[Any]:
+        """The compaction controller's fixed probe set (compaction.probe_views training views): cameras and frames
+        spread evenly (a deterministic pick of one view per camera, as importance_views, thinned to the count)."""
+        views = self.importance_views()
+        count = min(len(views), self.compaction_cfg.probe_views if self.compaction_cfg else len(views))
+        return [views[(k * len(views)) // count] for k in range(count)]
+
+    def probe_loss(self) -> float:
+        """The current model's training loss (as train_step computes it, colour correction included) on the probe
+        views, each at its own time: a signal of the model, free of which views an iteration drew."""
+        total = 0.0
+        views = self.probe_views()
+        with torch.no_grad():
+            for cam in views:
+                out = self.model.render(cam, t=float(cam.time), background=self.background, backend=self.cfg.backend)
+                rgb = out.rgb if self.colour is None else self.colour.apply(out.rgb, cam.name)
+                total += float(self.view_loss(rgb, self.images.get(cam), cam)[0])
+        return total / len(views)
 
     def importance(self) -> torch.Tensor:
         """Accumulated blending weight of every Gaussian over the training views of `importance_views` (for the

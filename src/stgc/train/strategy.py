@@ -87,12 +87,13 @@ class CompactionStrategy:
     """ST-KNN compaction with its adaptive ratio; every pruning step is a line of RUN/compaction.jsonl."""
 
     def __init__(self, compactor: STKNNCompactor, record: Callable[[dict[str, Any]], None], density: DensityControl,
-                 importance: Callable[[], torch.Tensor | np.ndarray]):
+                 importance: Callable[[], torch.Tensor | np.ndarray], probe: Callable[[], float] | None = None):
         self.compactor, self.record, self.density, self.importance = compactor, record, density, importance
+        self.probe = probe
 
     def after_step(self, ctx: StepContext) -> dict[str, Any]:
         event = self.compactor.step(ctx.iteration, ctx.t, ctx.model, ctx.loss, importance_fn=self.importance,
-                                    on_prune=self.density.rows_kept)  # fmt: skip
+                                    on_prune=self.density.rows_kept, probe_fn=self.probe)  # fmt: skip
         if event:
             self.record(event)  # the event carries its iteration
         return {}
