@@ -45,9 +45,10 @@ from .format import (
     QUALITY_LEVELS,
     QUAT_SMALLEST3,
     bits_for,
-    decode,
-    encode,
     groups_for,
+    section_payload_bytes,
+    simulate_decoder_state,
+    simulate_quantization,
 )
 from .quantize import MAX_BITS, MIN_BITS
 
@@ -255,18 +256,24 @@ def optimise_allocation(
     planned = 1 + sum(width[t] for t in shaped) + sum(len(c) for c in candidates.values()) + 1
     done = 0
 
+    decoded_decoder = simulate_decoder_state(decoder_state)
+
     def trial(depths: Mapping[str, float], shape: Mapping[str, Sequence[float]] | None = None,
-              ) -> tuple[list[np.ndarray], dict[str, int]]:
+              size_of: str | None = None) -> tuple[list[np.ndarray], int | None]:
+        """Render the model as the codec would store it at `depths` (simulate_quantization: decode(encode())
+        without the entropy coding, which only the measured section's size needs), and that section's bytes."""
         nonlocal done
         group_bits, step_scales = encoder_settings(variant, depths, shapes if shape is None else shape)
-        data = encode(arrays, variant, decoder_state, zstd_level=_PROBE_ZSTD_LEVEL, group_bits=group_bits,
-                      step_scales=step_scales, outlier_guard=outlier_guard)
-        decoded = decode(data)
-        images = list(render(decoded.arrays, decoded.decoder_state))
+        stored = simulate_quantization(arrays, variant, group_bits=group_bits, step_scales=step_scales,
+                                       outlier_guard=outlier_guard)
+        images = list(render(stored, decoded_decoder))
+        size = None if size_of is None else section_payload_bytes(
+            arrays, variant, size_of, zstd_level=_PROBE_ZSTD_LEVEL, group_bits=group_bits, step_scales=step_scales,
+            outlier_guard=outlier_guard)
         done += 1
         if progress:
             progress(done, max(planned, done))
-        return images, decoded.header.section_bytes()
+        return images, size
 
     reference = list(render(arrays, decoder_state))
     if len(reference) != len(ground_truth):
@@ -299,8 +306,9 @@ def optimise_allocation(
     for tag in tags:
         trials = []
         for bits in candidates[tag]:
-            images, sizes = trial({**near_lossless, tag: float(bits)})
-            trials.append(Option(float(bits), sizes[tag], max(0.0, relative_error(images) - floor)))
+            images, size = trial({**near_lossless, tag: float(bits)}, size_of=tag)
+            assert size is not None
+            trials.append(Option(float(bits), size, max(0.0, relative_error(images) - floor)))
         # Fewer bits never remove error; where measurement noise says otherwise, a depth is charged the largest
         # error measured at it or any finer depth (the conservative envelope).
         monotone, largest = [], 0.0

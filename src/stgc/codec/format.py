@@ -408,6 +408,22 @@ def _encode_codes(codes: np.ndarray, bits: int, level: int, adaptive: bool, quan
     return _EncodedSection(codec, flags, payload, len(raw), stored, prediction)
 
 
+def _stored_decoder_dtype(arr: np.ndarray) -> np.dtype:
+    """Half precision unless a weight would overflow it (|w| > 65504); then the tensor stays float32."""
+    return np.dtype(np.float16) if (arr.size == 0 or np.abs(arr).max() <= _FP16_MAX) else np.dtype(np.float32)
+
+
+def simulate_decoder_state(state: Mapping[str, Any] | None) -> dict[str, np.ndarray] | None:
+    """The decoder weights as `decode` returns them (float32 after the stored precision), without packing."""
+    if state is None:
+        return None
+    out = {}
+    for name, value in state.items():
+        arr = np.asarray(value.detach().cpu().numpy() if hasattr(value, "detach") else value, dtype=np.float32)
+        out[name] = arr.astype(_stored_decoder_dtype(arr)).astype(np.float32)
+    return out
+
+
 def _pack_decoder(state: Mapping[str, Any]) -> bytes:
     """Manifest (name, dtype, shape per tensor) followed by the tensors' little-endian data."""
     head = [struct.pack("<H", len(state))]
@@ -416,8 +432,7 @@ def _pack_decoder(state: Mapping[str, Any]) -> bytes:
         arr = np.asarray(value.detach().cpu().numpy() if hasattr(value, "detach") else value, dtype=np.float32)
         if not np.all(np.isfinite(arr)):
             raise DataError(None, f"decoder tensor {name!r} has non-finite values; refusing to encode")
-        # Half precision unless a weight would overflow it (|w| > 65504); then that tensor stays float32.
-        dtype = np.dtype(np.float16) if (arr.size == 0 or np.abs(arr).max() <= _FP16_MAX) else np.dtype(np.float32)
+        dtype = _stored_decoder_dtype(arr)
         key = name.encode("utf-8")
         if len(key) > 0xFFFF or arr.ndim > 8:
             raise DataError(None, f"decoder tensor {name!r} cannot be stored (name too long or ndim > 8)")
@@ -501,6 +516,34 @@ def simulate_quantization(
         for name, column in zip(group.fields(variant), _from_domain(values, group.domain)):
             out[name] = column.astype(np.float32)
     return {name: out.get(name, np.zeros(n, np.float32)) for name in ply_fields(variant)}
+
+
+def section_payload_bytes(
+    arrays: Mapping[str, np.ndarray],
+    variant: str,
+    tag: str,
+    quality: int = DEFAULT_QUALITY,
+    *,
+    zstd_level: int = DEFAULT_ZSTD_LEVEL,
+    position_bits: int | None = None,
+    group_bits: Mapping[str, int] | None = None,
+    step_scales: Mapping[str, Sequence[float]] | None = None,
+    adaptive_delta: bool = True,
+    outlier_guard: bool = True,
+) -> int:
+    """The payload bytes `encode` (same options) writes for attribute section `tag`, entropy-coding only that
+    section (the Morton order still comes from the positions' codes)."""
+    n, cols = _encoder_columns(arrays, variant, quality, group_bits, step_scales)
+    order: np.ndarray | None = None
+    for group, bits, quantizers, codes, _ in _quantized_groups(cols, n, variant, quality, position_bits, group_bits,
+                                                               step_scales, outlier_guard):
+        if order is None:
+            order = morton_order(codes.T, bits)
+        if group.tag.decode("latin-1") == tag:
+            section = _encode_codes(codes[:, order], bits, zstd_level, adaptive_delta, quantizers,
+                                    centrable=group.domain != QUAT_SMALLEST3)
+            return len(section.payload)
+    raise ValueError(f"{variant} models have no attribute section {tag!r}")
 
 
 def encode(
