@@ -83,7 +83,7 @@ def run_logged(function: Callable[..., Any], log_file: Path | None, *args: Any) 
             def show(message: Any, category: Any, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
                 handler.handle(warnings_logger.makeRecord(
                     warnings_logger.name, logging.WARNING, filename, lineno,
-                    warnings.formatwarning(message, category, filename, lineno, line).strip(), None, None))
+                    warnings.formatwarning(message, category, filename, lineno, line).strip(), (), None))
                 shown(message, category, filename, lineno, file, line)
 
             warnings.showwarning = show

@@ -69,6 +69,7 @@ class STKNNCompactor:
         if not self.schedule.is_pruning_iteration(iteration):
             return None
 
+        smoothed: float | None
         if self.config.loss_signal == "probe":
             if probe_fn is None:
                 raise ValueError("compaction.loss_signal 'probe' needs probe_fn (the loss on the fixed probe views)")

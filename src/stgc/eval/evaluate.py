@@ -455,9 +455,12 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
     records, curves, rows = [], [], []
     for segment in video_bitstream_segments(target, data_path):
         background = torch.tensor(segment.dataset.background, dtype=torch.float32)
-        model = segment.model
-        result = evaluate(lambda cam, m=model, bg=background: m.render(cam, t=float(cam.time), background=bg),
-                          segment.dataset.test, segment.dataset.load_image, lpips_net=lpips_net, warmup=warmup)
+
+        def render(cam: Camera, model: STGModel = segment.model, background: torch.Tensor = background) -> Any:
+            return model.render(cam, t=float(cam.time), background=background)
+
+        result = evaluate(render, segment.dataset.test, segment.dataset.load_image, lpips_net=lpips_net,
+                          warmup=warmup)
         if not measure_fps:
             result.speed = None
         summary = segment.run.read_summary(strict=False) if segment.run else None

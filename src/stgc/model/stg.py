@@ -301,7 +301,7 @@ class STGModel:
         if set(params) != set(self.params) or any(params[k].shape != self.params[k].shape for k in params):
             raise ValueError("replacement params must have the model's keys and shapes")
         own = self.params
-        self.params = dict(params)  # type: ignore[assignment]
+        self.params = cast(dict[str, nn.Parameter], dict(params))  # tensors standing in for the parameters
         try:
             yield
         finally:
