@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from stgc.codec.format import simulate_quantization
 from stgc.model import STGModel, ply_columns
 
 from .config import QuantizationAwareConfig
@@ -27,8 +28,6 @@ class QuantizationSimulation:
 
     def quantized_params(self, model: STGModel) -> dict[str, torch.Tensor]:
         """{param key: tensor} whose values are the codec's reconstruction and whose gradient is the identity."""
-        from stgc.codec.format import simulate_quantization  # codec imports stgc.train (colour correction)
-
         quantized = simulate_quantization(model.to_ply_arrays(), model.variant, self.cfg.quality,
                                           position_bits=self.cfg.position_bits or None)
         out = {}
