@@ -49,3 +49,22 @@ def test_a_version_this_reader_does_not_know_is_refused_by_name(version: int):
     _HEADER_CRC.pack_into(data, _HEADER.size, zlib.crc32(bytes(data[: _HEADER.size])))  # a well-formed header
     with pytest.raises(FormatError, match=f"unsupported .stgc version {version}"):
         decode(bytes(data), source="old.stgc")
+
+
+def test_the_whole_video_container_reference_reads_its_segments_bit_exactly():
+    """video_v1.stgc (container version 1, written by `encode_video` at its first commit): frames 10-11 hold
+    v4_lite_q3.stgc, frames 12-14 v2_full_q3.stgc, byte for byte; each decodes to its reference arrays."""
+    from stgc.codec import read_video_index, read_video_segment
+
+    path = REFERENCE / "video_v1.stgc"
+    index = read_video_index(path)
+    assert [(e.first_frame, e.num_frames) for e in index.entries] == [(10, 2), (12, 3)]
+    data = path.read_bytes()
+    for k, name in enumerate(("v4_lite_q3", "v2_full_q3")):
+        entry = index.entries[k]
+        assert data[entry.offset: entry.offset + entry.length] == (REFERENCE / f"{name}.stgc").read_bytes()
+        expected = np.load(REFERENCE / f"{name}_decoded.npz")
+        decoded = read_video_segment(path, k, index)
+        for key in expected.files:
+            got = decoded.arrays[key[2:]] if key.startswith("a:") else decoded.decoder_state[key[2:]]
+            np.testing.assert_array_equal(np.asarray(got), expected[key], err_msg=f"{name} {key}")
