@@ -7,14 +7,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, get_args
 
-import numpy as np
-import torch
 from tqdm import tqdm
 
 from stgc.config import check
-from stgc.data.cameras import Camera
 from stgc.data.config import open_run_dataset
-from stgc.data.dataset import Dataset
 from stgc.errors import DataError, FormatError
 from stgc.fileio import atomic_path
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel
@@ -23,7 +19,7 @@ from stgc.model.ply import resolve_ply_path
 from stgc.run import Run, iteration_of
 from stgc.train.colour import COLOUR_CORRECTION_NAME, saved_corrections
 
-from .allocation import Allocation, budget_db, optimise_allocation
+from .allocation import Allocation
 from .format import (
     DEFAULT_QUALITY,
     DEFAULT_ZSTD_LEVEL,
@@ -42,6 +38,7 @@ from .video import (
     read_video_index,
     read_video_segment,
 )
+from .views import optimise_on_views
 
 AllocationMode = Literal["auto", "optimised", "ladder"]
 ALLOCATION_MODES = get_args(AllocationMode)
@@ -266,7 +263,9 @@ def _encode_model(source: Path, out_path: Path, config: CodecConfig) -> tuple[by
     if config.allocation != "ladder":
         dataset = _training_dataset(run_dir, source, required=config.allocation == "optimised")
         if dataset is not None:
-            allocation = _optimise(model, arrays, dataset, config, _corrections_of(source))
+            allocation = optimise_on_views(model, arrays, dataset, config.quality, views=config.allocation_views,
+                                           position_bits=config.position_bits, outlier_guard=config.outlier_guard,
+                                           corrections=_corrections_of(source))
             metadata["allocation"] = allocation.summary()
     data = encode_with_config(arrays, model.variant, model.decoder_state(), config, metadata, allocation)
     return data, CompressResult(out_path, model.num_gaussians, model.variant, len(data),
@@ -289,45 +288,6 @@ def _training_dataset(run_dir: Path | None, source: Path, required: bool) -> Any
 def _corrections_of(source: Path) -> dict:
     """The training cameras' colour correction saved beside the model (empty when it was trained without)."""
     return saved_corrections(resolve_ply_path(source).parent / COLOUR_CORRECTION_NAME)
-
-
-def _optimise(model: STGModel, arrays: dict, dataset: Dataset, config: CodecConfig, corrections: dict) -> Allocation:
-    """The rd-optimised allocation measured on training views, each rendered as training saw it: with its camera's
-    colour correction (on a real rig a raw render of a training camera is off by that camera's tint, which would
-    hide part of the quantization error and loosen the budget)."""
-
-    train = list(dataset.train)
-    picked = np.random.default_rng(0).choice(len(train), size=min(config.allocation_views, len(train)),
-                                             replace=False)
-    views = [train[i] for i in sorted(picked)]
-    def ground_truth(cam: Camera) -> np.ndarray:  # as stgc.eval reads it: uint8 -> [0, 1], colour channels only
-        image = np.asarray(dataset.load_image(cam))[..., :3]
-        return image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else image.astype(np.float32)
-
-    truth = [ground_truth(cam) for cam in views]
-    background = torch.tensor(dataset.background, dtype=torch.float32)
-
-    @torch.no_grad()
-    def render(candidate: Any, decoder_state: Any) -> list:
-        trial = STGModel.from_ply_arrays(dict(candidate), model.variant, decoder_state,
-                                         decoder_activation=model.decoder_activation or "sigmoid")
-        out = []
-        for cam in views:
-            rgb = trial.render(cam, t=float(cam.time), background=background).rgb.numpy()
-            gain, offset = corrections.get(str(cam.name), (1.0, 0.0))
-            out.append(np.clip(rgb * gain + offset, 0.0, 1.0))
-        return out
-
-    fixed = {"POSI": config.position_bits} if config.position_bits else None
-    with tqdm(total=1, desc="allocating bits", unit="trial", leave=False) as bar:
-        def progress(done: int, total: int) -> None:
-            bar.total = total
-            bar.n = done
-            bar.refresh()
-
-        return optimise_allocation(arrays, model.variant, model.decoder_state(), render, truth,
-                                   budget_db(config.quality), fixed_bits=fixed, outlier_guard=config.outlier_guard,
-                                   progress=progress)
 
 
 def _model_from_decoded(decoded: DecodedModel, source: str | Path) -> Any:
