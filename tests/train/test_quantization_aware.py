@@ -3,6 +3,8 @@ when the model is really encoded and decoded than the same training without it."
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -23,12 +25,14 @@ def scene(tmp_path_factory):
     return write_panoptic_scene(tmp_path_factory.mktemp("qat"), views=8, frames=2, width=64, height=48)
 
 
-def _config(window: int, iterations: int = 300, simulate: bool = True) -> TrainConfig:
-    return TrainConfig(iterations=iterations, densify=DensifyConfig(enabled=False, opacity_reset_interval=0),
-                       colour_correction="off", save_iterations=(), checkpoint_every=0, log_every=10,
-                       progress=False, tensorboard=False, seed=1, eval_at_end=False,
-                       quantization_aware=QuantizationAwareConfig(iterations=window, quality=QUALITY,
-                                                                  simulate=simulate))
+def _config(window: int, iterations: int = 300, simulate: bool = True, allocation: str = "ladder",
+            **over) -> TrainConfig:
+    options = dict(iterations=iterations, densify=DensifyConfig(enabled=False, opacity_reset_interval=0),
+                   colour_correction="off", save_iterations=(), checkpoint_every=0, log_every=10, progress=False,
+                   tensorboard=False, seed=1, eval_at_end=False,
+                   quantization_aware=QuantizationAwareConfig(iterations=window, quality=QUALITY, simulate=simulate,
+                                                              allocation=allocation))
+    return TrainConfig(**{**options, **over})
 
 
 def _psnr(model: STGModel, dataset) -> float:
@@ -83,3 +87,29 @@ def test_the_window_is_the_run_s_last_iterations(scene, tmp_path):
 
         validate_config(TrainConfig(iterations=10, quantization_aware=QuantizationAwareConfig(iterations=11)), "train")
 
+
+
+def test_the_optimised_allocation_is_measured_once_when_the_window_opens_and_kept_across_a_resume(scene, tmp_path,
+                                                                                                 monkeypatch):
+    """allocation 'optimised' (the default, as stgc compress): the rd-optimised depths are measured on the training
+    views at the window's first iteration, simulated for the rest of it, recorded in the summary, and a run killed
+    inside the window resumes with the same depths instead of measuring again on a different model."""
+    import stgc.train.quantization as quantization
+
+    measured = []
+    real = quantization.optimise_on_views
+    monkeypatch.setattr(quantization, "optimise_on_views",
+                        lambda *a, **k: measured.append(1) or real(*a, **k))
+    dataset = open_dataset(scene.root)
+    start = STGModel.from_ply_arrays(scene.model.to_ply_arrays(), "lite", None, scene_extent=3.3)
+    run = tmp_path / "run"
+    config = _config(20, iterations=40, allocation="optimised", checkpoint_every=5)
+    train(dataset, None, None, dataclasses.replace(config, stop_after=25), None, run, model=start)
+    assert len(measured) == 1  # at iteration 21
+    settings = torch.load(run / "checkpoint.pt", weights_only=False)["quantization_aware"]["settings"]
+    assert settings is not None and set(settings[0]) >= {"POSI", "FDC_", "SCAL"}
+    summary = train(dataset, None, None, config, None, run, resume=True)
+    assert len(measured) == 1  # not measured again after the resume
+    assert summary["quantization_aware_allocation"]["depths"] and summary["finished"]
+    seen = torch.load(run / "checkpoint.pt", weights_only=False)["quantization_aware"]["settings"]
+    assert [dict(x) for x in seen] == [dict(x) for x in settings]

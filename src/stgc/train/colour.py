@@ -64,6 +64,11 @@ class ColourCorrection:
     def offsets(self) -> torch.Tensor:
         return self.table.weight.detach()[:, 3:].clone()
 
+    def as_dict(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """{camera: (gain [3], offset [3])}, the form `saved_corrections` reads back."""
+        gains, offsets = self.gains().numpy(), self.offsets().numpy()
+        return {n: (gains[i], offsets[i]) for i, n in enumerate(self.names)}
+
     def to_json(self) -> dict[str, Any]:
         gains, offsets = self.gains(), self.offsets()
         return {

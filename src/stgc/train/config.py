@@ -192,8 +192,11 @@ class QuantizationAwareConfig:
         "help": "the last N iterations render every Gaussian attribute quantized as the codec stores it at `quality` "
                 "(straight-through gradients to the float parameters); 0 = off"})
     quality: int = field(default=3, metadata={
-        "help": "codec quality 1..5 whose fixed-ladder bit depths are simulated; compress with "
-                "--set codec.allocation=ladder at the same quality to store exactly what was trained"})
+        "help": "codec quality 1..5 (as stgc compress --quality) whose bit depths are simulated"})
+    allocation: Literal["optimised", "ladder"] = field(default="optimised", metadata={
+        "help": "how the depths are chosen, as the codec's option: 'optimised' = the rd-optimised allocation "
+                "measured on the training views when the window opens (what stgc compress does by default), "
+                "'ladder' = the quality's fixed depths (then compress with --set codec.allocation=ladder)"})
     position_bits: int = field(default=0, metadata={"help": "as the codec's position_bits (0 = the quality's)"})
     lr_scale: float = field(default=0.01, metadata={
         "help": "every learning rate is multiplied by this inside the window: the straight-through gradient only "
@@ -207,6 +210,8 @@ class QuantizationAwareConfig:
         check(self.iterations >= 0, f"{prefix}iterations", self.iterations, ">= 0 (0 = off)")
         check(math.isfinite(self.lr_scale) and 0 < self.lr_scale <= 1, f"{prefix}lr_scale", self.lr_scale, "in (0, 1]")
         check(self.quality in (1, 2, 3, 4, 5), f"{prefix}quality", self.quality, "in 1..5 (the codec's levels)")
+        check(self.allocation in ("optimised", "ladder"), f"{prefix}allocation", self.allocation,
+              "'optimised' or 'ladder'")
         check(self.position_bits == 0 or 2 <= self.position_bits <= 24, f"{prefix}position_bits",
               self.position_bits, "0 or in 2..24")
 

@@ -290,6 +290,8 @@ class Trainer:
         self.elapsed_before = float(ckpt["elapsed_s"])
         if self.colour is not None and ckpt.get("colour_correction") is not None:
             self.colour.load_state_dict(ckpt["colour_correction"])
+        if self.quantization is not None:
+            self.quantization.load_state_dict(ckpt.get("quantization_aware"))
         restore_rng_states(ckpt["rng"])
         self.metrics_log.truncate_after(self.start_iteration)
         self.compaction_log.truncate_after(self.start_iteration)
@@ -304,6 +306,7 @@ class Trainer:
             "compactor": None,  # replaced by the compaction strategy's state when there is one
             **{key: value for strategy in self.strategies for key, value in strategy.state_dict().items()},
             "colour_correction": None if self.colour is None else self.colour.state_dict(),
+            "quantization_aware": None if self.quantization is None else self.quantization.state_dict(),
         }
 
     # ------------------------------------------------------------------------------------------- one step
@@ -380,6 +383,10 @@ class Trainer:
         stores them, with straight-through gradients (stgc.train.quantization); else None (the float model)."""
         if self.quantization is None or not self.in_quantization_window(iteration):
             return None
+        if self.quantization.settings is None and self.cfg.quantization_aware.allocation == "optimised":
+            log.info("rate-aware window: measuring the codec's bit allocation on the training views")
+            self.quantization.prepare(self.model, self.dataset, None if self.colour is None else self.colour.as_dict())
+            log.info("rate-aware window: depths %s", (self.quantization.allocation or {}).get("depths"))
         return self.quantization.quantized_params(self.model)
 
     def importance_views(self) -> list[Any]:
@@ -510,6 +517,8 @@ class Trainer:
         }
         if self.colour is not None:
             summary["colour_correction"] = self.colour.summary()
+        if self.quantization is not None and self.quantization.allocation is not None:
+            summary["quantization_aware_allocation"] = self.quantization.allocation
         if finished:
             # The summary goes first: the evaluation record reads the training time from it.
             self.out_run.write_summary(summary)
