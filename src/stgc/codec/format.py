@@ -518,31 +518,30 @@ def simulate_quantization(
     return {name: out.get(name, np.zeros(n, np.float32)) for name in ply_fields(variant)}
 
 
-def section_payload_bytes(
-    arrays: Mapping[str, np.ndarray],
-    variant: str,
-    tag: str,
-    quality: int = DEFAULT_QUALITY,
-    *,
-    zstd_level: int = DEFAULT_ZSTD_LEVEL,
-    position_bits: int | None = None,
-    group_bits: Mapping[str, int] | None = None,
-    step_scales: Mapping[str, Sequence[float]] | None = None,
-    adaptive_delta: bool = True,
-    outlier_guard: bool = True,
-) -> int:
-    """The payload bytes `encode` (same options) writes for attribute section `tag`, entropy-coding only that
-    section (the Morton order still comes from the positions' codes)."""
+def _encoded_sections(arrays: Mapping[str, np.ndarray], variant: str, quality: int, *, zstd_level: int = DEFAULT_ZSTD_LEVEL,
+                      position_bits: int | None = None, group_bits: Mapping[str, int] | None = None,
+                      step_scales: Mapping[str, Sequence[float]] | None = None, adaptive_delta: bool = True,
+                      outlier_guard: bool = True, only: str | None = None,
+                      ) -> Iterator[tuple[bytes, int, _EncodedSection]]:
+    """(tag, bit depth, entropy-coded section) of every attribute group, in GROUPS order, Gaussians in the Morton
+    order of their quantized positions; with `only`, that section alone is entropy-coded and yielded."""
     n, cols = _encoder_columns(arrays, variant, quality, group_bits, step_scales)
     order: np.ndarray | None = None
     for group, bits, quantizers, codes, _ in _quantized_groups(cols, n, variant, quality, position_bits, group_bits,
                                                                step_scales, outlier_guard):
-        if order is None:
+        if order is None:  # POSI comes first: its codes define the Morton order used by every section
             order = morton_order(codes.T, bits)
-        if group.tag.decode("latin-1") == tag:
-            section = _encode_codes(codes[:, order], bits, zstd_level, adaptive_delta, quantizers,
-                                    centrable=group.domain != QUAT_SMALLEST3)
-            return len(section.payload)
+        if only is None or group.tag.decode("latin-1") == only:
+            yield group.tag, bits, _encode_codes(codes[:, order], bits, zstd_level, adaptive_delta, quantizers,
+                                                 centrable=group.domain != QUAT_SMALLEST3)
+
+
+def section_payload_bytes(arrays: Mapping[str, np.ndarray], variant: str, tag: str, quality: int = DEFAULT_QUALITY,
+                          **options: Any) -> int:
+    """The payload bytes `encode` writes for attribute section `tag` (`options`: encode's keyword options but
+    metadata), entropy-coding only that section."""
+    for _, _, section in _encoded_sections(arrays, variant, quality, only=tag, **options):
+        return len(section.payload)
     raise ValueError(f"{variant} models have no attribute section {tag!r}")
 
 
@@ -568,18 +567,12 @@ def encode(
     components whose errors show less get coarser steps at the same depth. outlier_guard adds bits to a linear group whose range
     is stretched by outliers (outlier_guard_bits). The Gaussians are reordered along the Morton curve of their
     quantized positions. metadata: small JSON-able dict kept verbatim."""
-    n, cols = _encoder_columns(arrays, variant, quality, group_bits, step_scales)
     if variant == "full" and decoder_state is None:
         raise DataError(None, "a full-variant model needs its decoder state")
-    sections: list[tuple[bytes, int, _EncodedSection]] = []  # tag, bit depth, content
-    order: np.ndarray | None = None
-    for group, bits, quantizers, codes, _ in _quantized_groups(cols, n, variant, quality, position_bits, group_bits,
-                                                               step_scales, outlier_guard):
-        if order is None:  # POSI comes first: its codes define the Morton order used by every section
-            order = morton_order(codes.T, bits)
-        codes = codes[:, order]
-        sections.append((group.tag, bits, _encode_codes(codes, bits, zstd_level, adaptive_delta, quantizers,
-                                                        centrable=group.domain != QUAT_SMALLEST3)))
+    sections = list(_encoded_sections(arrays, variant, quality, zstd_level=zstd_level, position_bits=position_bits,
+                                      group_bits=group_bits, step_scales=step_scales, adaptive_delta=adaptive_delta,
+                                      outlier_guard=outlier_guard))  # (tag, bit depth, content); validates arrays
+    n = len(np.asarray(arrays["x"]))
 
     if decoder_state is not None:
         raw = _pack_decoder(decoder_state)
