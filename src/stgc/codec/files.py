@@ -328,15 +328,20 @@ def decompress(stgc_path: str | Path, out_run_dir: str | Path, *, overwrite: boo
     if is_video_stgc(stgc_path):
         return _decompress_video(Path(stgc_path), Path(out_run_dir), overwrite)
     decoded = read_stgc(stgc_path)
-    model = _model_from_decoded(decoded, stgc_path)  # a defective file fails before anything is written
+    restored = _restorable(decoded, str(stgc_path))  # a defective file fails before anything is written
     run = Run.create(out_run_dir, overwrite=overwrite, keep=Path(stgc_path))
-    return _restore(decoded, model, str(stgc_path), run)
+    return _restore(decoded, *restored, run)
 
 
-def _restore(decoded: DecodedModel, model: Any, source: str, run: Run) -> Path:
+def _restorable(decoded: DecodedModel, source: str) -> tuple[Any, int]:
+    """(model, iteration) of a decoded file, or a FormatError naming `source`."""
     iteration = decoded.metadata.get("iteration", 0)
     if isinstance(iteration, bool) or not isinstance(iteration, int) or iteration < 0:
         raise FormatError(source, f"metadata iteration {iteration!r} is not a non-negative integer")
+    return _model_from_decoded(decoded, source), iteration
+
+
+def _restore(decoded: DecodedModel, model: Any, iteration: int, run: Run) -> Path:
     iteration_dir = run.iteration_dir(iteration)
     model.save(iteration_dir)
     run_config = decoded.metadata.get("run_config")
@@ -348,14 +353,15 @@ def _restore(decoded: DecodedModel, model: Any, source: str, run: Run) -> Path:
 def _decompress_video(stgc_path: Path, out_run_dir: Path, overwrite: bool) -> Path:
     index = read_video_index(stgc_path)
     # Every segment decodes before anything is written.
-    decoded = [load_video_segment(stgc_path, k, index) for k in range(index.num_segments)]
+    decoded = [read_video_segment(stgc_path, k, index) for k in range(index.num_segments)]
+    restored = [_restorable(d, f"{stgc_path} segment {k}") for k, d in enumerate(decoded)]
     run = Run.create(out_run_dir, overwrite=overwrite, keep=stgc_path)
     plan = []
-    for k, (entry, (model, segment)) in enumerate(zip(index.entries, decoded)):
+    for k, (entry, segment, (model, iteration)) in enumerate(zip(index.entries, decoded, restored)):
         segment_run = run.segment(k)
-        _restore(segment, model, f"{stgc_path} segment {k}", segment_run)
+        _restore(segment, model, iteration, segment_run)
         plan.append({"name": segment_run.path.name, "start": entry.first_frame, "duration": entry.num_frames})
-    run_config = decoded[0][1].metadata.get("run_config")
+    run_config = decoded[0].metadata.get("run_config")
     data = run_config.get("data") if isinstance(run_config, dict) else None
     run.write_video({"segment_frames": index.entries[0].num_frames,
                      "data_path": data.get("path") if isinstance(data, dict) else None, "segments": plan})
