@@ -175,6 +175,7 @@ def test_a_whole_video_is_one_bitstream_that_evaluates_renders_and_restores(scen
     # render plays across the segments of the file.
     assert main(["render", str(bitstream), "--camera", "0", "--out", str(tmp_path / "all.mp4")]) == 0
     assert len(imageio.mimread(tmp_path / "all.mp4")) == 5
+    assert main(["render", str(bitstream), "--out", str(tmp_path / "still.png")]) == 2  # a still has no segment
 
     # decompress restores a whole-video run, which evaluates to the bitstream's numbers.
     restored = tmp_path / "restored"

@@ -43,6 +43,9 @@ def load_model_and_dataset(run_or_model: ModelSource, dataset: Dataset | None = 
     if isinstance(run_or_model, (str, Path)):
 
         path = Path(run_or_model)
+        if path.suffix == ".stgc" and is_video_stgc(path):
+            raise DataError(path, "a whole video's .stgc: render it as a video (.mp4, played across its segments), "
+                                  "or `stgc decompress` it and render one segment's run")
         if path.suffix == ".stgc":
 
             model = load_model(path)
