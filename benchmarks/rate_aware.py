@@ -4,8 +4,9 @@
 
 From a finished run (its checkpoint), three models per quality: the run as it is; the run trained N more
 iterations at the window's lower learning rates (`train.quantization_aware` with simulate=false: the control); and
-the same N iterations through the codec's quantization at that quality (simulate=true). Each is compressed with
-the fixed ladder at that quality (what the aware model was trained for) and evaluated on the test views, float and
+the same N iterations through the codec's quantization at that quality (simulate=true). Each is compressed at that
+quality with the same kind of depths the window simulated (`--allocation`: the fixed ladder, or the rd-optimised
+allocation, measured again on each final model as `stgc compress` does) and evaluated on the test views, float and
 decoded. Prints one table: test PSNR float / decoded, the quantization loss, the file size and the extra training
 time. The continuation extends the run's schedule (xyz decay over the new total); a run trained with compaction is
 refused, since a longer schedule would move its compaction window.
@@ -24,7 +25,7 @@ from pathlib import Path
 STGC = [sys.executable, "-m", "stgc.cli"]
 
 
-def continue_run(run: Path, out: Path, iterations: int, quality: int, simulate: bool) -> float:
+def continue_run(run: Path, out: Path, iterations: int, quality: int, simulate: bool, allocation: str) -> float:
     """Copy `run` to `out` with its schedule extended by `iterations` rate-aware ones; train them; seconds spent."""
     if out.exists():
         shutil.rmtree(out)
@@ -36,7 +37,8 @@ def continue_run(run: Path, out: Path, iterations: int, quality: int, simulate: 
     base = int((train.get("resolved_schedule") or train)["iterations"])
     train["iterations"] = base + iterations
     train.pop("resolved_schedule", None)  # recomputed from the options (it would restore the old total)
-    train["quantization_aware"] = {"iterations": iterations, "quality": quality, "simulate": simulate}
+    train["quantization_aware"] = {"iterations": iterations, "quality": quality, "simulate": simulate,
+                                   "allocation": allocation}
     train["eval_every"] = 0
     train["save_iterations"] = [base + iterations]
     (out / "config.json").write_text(json.dumps(config, indent=2))
@@ -47,16 +49,18 @@ def continue_run(run: Path, out: Path, iterations: int, quality: int, simulate: 
     return time.perf_counter() - start
 
 
-def compressed_eval(run: Path, quality: int) -> dict:
-    """Compress `run` with the fixed ladder at `quality`, evaluate the file and the float model (if not yet)."""
-    stgc_file = run / f"ladder_q{quality}.stgc"
+def compressed_eval(run: Path, quality: int, allocation: str) -> dict:
+    """Compress `run` at `quality` (fixed ladder or rd-optimised allocation), evaluate the file and the float model
+    (if not yet)."""
+    name = f"{allocation}_q{quality}"
+    stgc_file = run / f"{name}.stgc"
     subprocess.run([*STGC, "-q", "compress", str(run), "--out", str(stgc_file), "--quality", str(quality),
-                    "--set", "codec.allocation=ladder"], check=True, stdout=subprocess.DEVNULL)
+                    "--set", f"codec.allocation={allocation}"], check=True, stdout=subprocess.DEVNULL)
     if not (run / "eval.json").is_file():
         subprocess.run([*STGC, "-q", "eval", str(run), "--no-fps"], check=True, stdout=subprocess.DEVNULL)
     subprocess.run([*STGC, "-q", "eval", str(stgc_file), "--no-fps"], check=True, stdout=subprocess.DEVNULL)
     float_record = json.loads((run / "eval.json").read_text())
-    decoded = json.loads((run / f"eval_ladder_q{quality}.json").read_text())
+    decoded = json.loads((run / f"eval_{name}.json").read_text())
     return {"float": float_record["psnr"], "decoded": decoded["psnr"], "bytes": stgc_file.stat().st_size,
             "gaussians": decoded["num_gaussians"]}
 
@@ -66,17 +70,20 @@ def main() -> None:
     parser.add_argument("run", type=Path, help="a finished run (config.json, checkpoint.pt)")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--iterations", type=int, default=1000, help="rate-aware iterations added to the run")
-    parser.add_argument("--quality", type=int, nargs="+", default=[3], help="codec qualities (fixed ladder)")
+    parser.add_argument("--quality", type=int, nargs="+", default=[3], help="codec qualities")
+    parser.add_argument("--allocation", choices=["ladder", "optimised"], default="ladder",
+                        help="bit depths of the window and of the compression: the quality's fixed ladder, or the "
+                             "rd-optimised allocation (what stgc compress does by default)")
     args = parser.parse_args()
     args.run, args.out = args.run.resolve(), args.out.resolve()
     rows = []
     for quality in args.quality:
-        rows.append(("as trained", quality, compressed_eval(args.run, quality), 0.0))
+        rows.append(("as trained", quality, compressed_eval(args.run, quality, args.allocation), 0.0))
         for name, simulate in (("control", False), ("aware", True)):
-            out = args.out / f"{name}_q{quality}"
-            seconds = continue_run(args.run, out, args.iterations, quality, simulate)
-            rows.append((name, quality, compressed_eval(out, quality), seconds))
-    print(f"\n{args.run}: +{args.iterations} iterations, fixed ladder, test views")
+            out = args.out / f"{name}_{args.allocation}_q{quality}"
+            seconds = continue_run(args.run, out, args.iterations, quality, simulate, args.allocation)
+            rows.append((name, quality, compressed_eval(out, quality, args.allocation), seconds))
+    print(f"\n{args.run}: +{args.iterations} iterations, {args.allocation} bit depths, test views")
     print("| model | quality | test PSNR float | decoded | loss dB | file KB | Gaussians | extra training s |")
     print("|---|---|---:|---:|---:|---:|---:|---:|")
     for name, quality, r, seconds in rows:
