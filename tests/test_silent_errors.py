@@ -222,6 +222,7 @@ def test_the_codec_allocation_measures_training_views_with_their_colour_correcti
     import numpy as np
 
     import stgc.codec.files as files
+    import stgc.codec.views as views
 
     run = tmp_path / "run"
     shutil.copytree(trained_run, run)
@@ -237,7 +238,7 @@ def test_the_codec_allocation_measures_training_views_with_their_colour_correcti
         renders.append(render(arrays, decoder_state))
         raise RuntimeError("captured")
 
-    monkeypatch.setattr(files, "optimise_allocation", capture)
+    monkeypatch.setattr(views, "optimise_allocation", capture)
     config = files.CodecConfig(allocation="optimised", allocation_views=3)
     for _ in range(2):
         with pytest.raises(RuntimeError, match="captured"):
