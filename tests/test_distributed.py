@@ -200,6 +200,10 @@ def test_the_cli_names_an_unreachable_cluster(video_scene, tmp_path, capsys):
                  "--ray-address", f"127.0.0.1:{port}"])
     assert code != 0 and f"127.0.0.1:{port}: cannot reach a Ray cluster" in capsys.readouterr().err
     assert not (tmp_path / "v").exists()  # refused before anything was written
+    code = main(["experiment", str(video_scene.root), "--plan", "table2", "--out", str(tmp_path / "x"),
+                 "--ray-address", f"127.0.0.1:{port}"])
+    assert code != 0 and f"127.0.0.1:{port}: cannot reach a Ray cluster" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
     assert main(["train", str(video_scene.root), "--out", str(tmp_path / "w"), "--ray-address", "auto"]) != 0
     assert "give --segment-frames" in capsys.readouterr().err
 

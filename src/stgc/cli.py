@@ -30,7 +30,6 @@ from stgc.config import (
 from stgc.data import inspect_text
 from stgc.data.preprocess import MODES as PREPROCESS_MODES
 from stgc.demo import run_demo
-from stgc.distributed import check_reachable
 from stgc.errors import StgcError
 from stgc.eval import RunEvaluator, evaluate_run, format_eval_table
 from stgc.eval.bjontegaard import METHODS as BD_METHODS
@@ -108,9 +107,6 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.resume and args.overwrite:
         raise StgcError("--resume continues a run and --overwrite replaces it: give one of them")
     if args.segment_frames is not None or (args.resume and Run(out).is_video()):
-        if args.ray_address is not None:  # before anything is written
-            check_reachable(args.ray_address)
-
         train_video(data_path, configs, out, args.segment_frames, resume=args.resume, overwrite=args.overwrite,
                     evaluator=RunEvaluator(), use_ray=not args.no_ray, ray_address=args.ray_address)
         print(f"whole video written to {out} ({len(Run(out).segments())} segments)")
@@ -217,8 +213,6 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-    if args.ray_address is not None:
-        check_reachable(args.ray_address)
     result = run_plan(
         args.data, args.plan, args.out, preset=args.preset, extra_overrides=args.set or [],
         codec_qualities=args.codec_quality or [], preprocess=args.preprocess, bd_method=args.bd_method,

@@ -177,7 +177,8 @@ def check_reachable(address: str) -> None:
 
 
 def _start_ray(address: str | None) -> bool:
-    """Connect to (or start) Ray; True when this call started it (and so must stop it)."""
+    """Start a local Ray, or connect to the cluster at `address` (its callers probed it with `check_reachable` before
+    writing anything); True when this call did either, and so must shut it down."""
     import ray  # optional extra
 
     if ray.is_initialized():
@@ -186,7 +187,6 @@ def _start_ray(address: str | None) -> bool:
     if address is None:
         ray.init(num_cpus=os.cpu_count() or 1, object_store_memory=LOCAL_OBJECT_STORE_BYTES, **quiet)
         return True
-    check_reachable(address)
     try:
         ray.init(address=address, **quiet)
     except (ConnectionError, RuntimeError, TimeoutError) as error:

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from stgc.config import ConfigError
-from stgc.distributed import Task, cpus_for_threads, run_tasks
+from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.errors import FormatError
 from stgc.eval.report import Report, ReportRow, make_report, record_fields
 from stgc.experiment.plans import Plan, RunSpec, load_plan
@@ -242,6 +242,8 @@ def run_plan(
     points) is a task (`stgc.distributed.run_tasks`): with use_ray on a local Ray or the cluster at
     `ray_address`, else one after another here. `runner(cmd, log_path) -> exit status` and `command_builder` are
     injectable (tests use a fake trainer)."""
+    if use_ray and ray_address is not None:
+        check_reachable(ray_address)  # refused in seconds, before anything is written
     plan = load_plan(plan, preprocess)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

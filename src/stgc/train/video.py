@@ -21,7 +21,7 @@ from typing import Any
 
 from stgc.data import DataConfig
 from stgc.data.dataset import segments
-from stgc.distributed import Task, cpus_for_threads, run_tasks
+from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.errors import StgcError
 from stgc.run import Run
 from stgc.train.config import TrainConfig
@@ -49,6 +49,8 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
     returns their training summaries in time order. resume: continue the video in `out_dir` (its saved segments;
     `segment_frames` must be None or the saved value); a finished segment is never trained again. evaluator: as
     `train`'s, for every segment."""
+    if use_ray and ray_address is not None:
+        check_reachable(ray_address)  # refused in seconds, before anything is written
     run = Run(out_dir)
     if resume and run.is_video():
         video = run.read_video()
