@@ -15,6 +15,7 @@ import math
 from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
+from stgc.codec.format import DEFAULT_QUALITY, QUALITY_LEVELS
 from stgc.config import check
 from stgc.render.api import BACKENDS, Backend
 
@@ -191,7 +192,7 @@ class QuantizationAwareConfig:
     iterations: int = field(default=0, metadata={
         "help": "the last N iterations render every Gaussian attribute quantized as the codec stores it at `quality` "
                 "(straight-through gradients to the float parameters); 0 = off"})
-    quality: int = field(default=3, metadata={
+    quality: int = field(default=DEFAULT_QUALITY, metadata={
         "help": "codec quality 1..5 (as stgc compress --quality) whose bit depths are simulated"})
     allocation: Literal["optimised", "ladder"] = field(default="optimised", metadata={
         "help": "how the depths are chosen, as the codec's option: 'optimised' = the rd-optimised allocation "
@@ -209,7 +210,8 @@ class QuantizationAwareConfig:
     def validate(self, prefix: str = "") -> None:
         check(self.iterations >= 0, f"{prefix}iterations", self.iterations, ">= 0 (0 = off)")
         check(math.isfinite(self.lr_scale) and 0 < self.lr_scale <= 1, f"{prefix}lr_scale", self.lr_scale, "in (0, 1]")
-        check(self.quality in (1, 2, 3, 4, 5), f"{prefix}quality", self.quality, "in 1..5 (the codec's levels)")
+        check(self.quality in QUALITY_LEVELS, f"{prefix}quality", self.quality,
+              f"one of {', '.join(map(str, QUALITY_LEVELS))} (the codec's levels)")
         check(self.allocation in ("optimised", "ladder"), f"{prefix}allocation", self.allocation,
               "'optimised' or 'ladder'")
         check(self.position_bits == 0 or 2 <= self.position_bits <= 24, f"{prefix}position_bits",
