@@ -263,7 +263,7 @@ def _encode_model(source: Path, out_path: Path, config: CodecConfig) -> tuple[by
     if config.allocation != "ladder":
         dataset = _training_dataset(run_dir, source, required=config.allocation == "optimised")
         if dataset is not None:
-            allocation = optimise_on_views(model, arrays, dataset, config.quality, views=config.allocation_views,
+            allocation = optimise_on_views(model, dataset, config.quality, views=config.allocation_views,
                                            position_bits=config.position_bits, outlier_guard=config.outlier_guard,
                                            corrections=_corrections_of(source))
             metadata["allocation"] = allocation.summary()

@@ -20,10 +20,10 @@ from .allocation import Allocation, budget_db, optimise_allocation
 Corrections = Mapping[str, tuple[Any, Any]]
 
 
-def optimise_on_views(model: STGModel, arrays: Mapping[str, np.ndarray], dataset: Dataset, quality: int, *,
-                      views: int = 16, position_bits: int = 0, outlier_guard: bool = True,
-                      corrections: Corrections | None = None, show_progress: bool = True) -> Allocation:
-    """The rd-optimised allocation of `model` (whose PLY arrays are `arrays`) at `quality`'s PSNR budget, measured on
+def optimise_on_views(model: STGModel, dataset: Dataset, quality: int, *, views: int = 16, position_bits: int = 0,
+                      outlier_guard: bool = True, corrections: Corrections | None = None,
+                      show_progress: bool = True) -> Allocation:
+    """The rd-optimised allocation of `model` at `quality`'s PSNR budget, measured on
     `views` training views (camera x frame, fixed seed), each rendered as training saw it: with its camera's colour
     correction (on a real rig a raw render of a training camera is off by that camera's tint, which would hide part
     of the quantization error and loosen the budget)."""
@@ -66,5 +66,5 @@ def optimise_on_views(model: STGModel, arrays: Mapping[str, np.ndarray], dataset
             bar.n = done
             bar.refresh()
 
-        return optimise_allocation(arrays, model.variant, model.decoder_state(), render, truth, budget_db(quality),
+        return optimise_allocation(model.to_ply_arrays(), model.variant, model.decoder_state(), render, truth, budget_db(quality),
                                    fixed_bits=fixed, outlier_guard=outlier_guard, progress=progress)

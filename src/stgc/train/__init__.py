@@ -13,7 +13,13 @@ from stgc.train.config import (
     resolve_schedule,
     train_preset,
 )
-from stgc.train.loop import TestEvaluator, TestScore, Trainer, build_initial_model, train
+from stgc.train.loop import (
+    TestEvaluator,
+    TestScore,
+    Trainer,
+    build_initial_model,
+    train,
+)
 
 __all__ = [
     "CPU_SCHEDULE_SCALE",

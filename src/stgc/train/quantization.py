@@ -43,11 +43,9 @@ class QuantizationSimulation:
         if self.cfg.allocation != "optimised" or self.settings is not None:
             return
         keep = _visible(model)
-        arrays = {k: v[keep] for k, v in model.to_ply_arrays().items()}
-        with torch.no_grad():
-            kept = STGModel.from_ply_arrays(arrays, model.variant, model.decoder_state(),
-                                            decoder_activation=model.decoder_activation or "sigmoid")
-        allocation = optimise_on_views(kept, arrays, dataset, self.cfg.quality, position_bits=self.cfg.position_bits,
+        kept = STGModel.from_ply_arrays({k: v[keep] for k, v in model.to_ply_arrays().items()}, model.variant,
+                                        model.decoder_state(), decoder_activation=model.decoder_activation or "sigmoid")
+        allocation = optimise_on_views(kept, dataset, self.cfg.quality, position_bits=self.cfg.position_bits,
                                        corrections=corrections, show_progress=False)
         self.settings = allocation.encoder_settings()
         self.allocation = allocation.summary()
