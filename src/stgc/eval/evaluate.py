@@ -361,10 +361,10 @@ def video_bitstream_segments(path: str | Path, data_path: str | Path | None = No
     path = Path(path)
     index = read_video_index(path)
     beside = Run(path.parent)
-    runs = beside.segments() if beside.is_video() and data_path is None else []
-    if [(int(s["start"]), int(s["duration"])) for s in (beside.read_video()["segments"] if runs else [])] != [
-            (e.first_frame, e.num_frames) for e in index.entries]:
-        runs = []  # another video's segments: use the configs the file embeds
+    plan = beside.read_video()["segments"] if beside.is_video() and data_path is None else []
+    # The run's segments when they are the file's (else another video's: the configs the file embeds are used).
+    same = [(int(s["start"]), int(s["duration"])) for s in plan] == [(e.first_frame, e.num_frames) for e in index.entries]
+    runs = [Run(beside.path / str(s["name"])) for s in plan] if same else []
     for k, entry in enumerate(index.entries):
         model, decoded = load_video_segment(path, k, index)
         source = f"{path} segment {k}"
@@ -425,15 +425,19 @@ def evaluate_run(
         info = bitstream_size(target, model.num_gaussians, model.variant, duration_s)
     else:
         info = size_of_saved_model(target, duration_s)
-    background = torch.tensor(dataset.background, dtype=torch.float32)  # what the trainer rendered on
-    result = evaluate(
-        lambda cam: model.render(cam, t=float(cam.time), background=background), dataset.test, dataset.load_image,
-        lpips_net=lpips_net, warmup=warmup,
-    )
-    if not measure_fps:
-        result.speed = None
+    result = _score_model(model, dataset, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
     return write_eval(run_dir, result, info, target=target, other_data=_other_data(run_dir, data_path),
                       extra={"data": str(dataset.root)})
+
+
+def _score_model(model: Any, dataset: Dataset, *, lpips_net: str | None, warmup: int, measure_fps: bool) -> EvalResult:
+    """`evaluate` of a model on its dataset's test views, on the background the trainer rendered on."""
+    background = torch.tensor(dataset.background, dtype=torch.float32)
+    result = evaluate(lambda cam: model.render(cam, t=float(cam.time), background=background), dataset.test,
+                      dataset.load_image, lpips_net=lpips_net, warmup=warmup)
+    if not measure_fps:
+        result.speed = None
+    return result
 
 
 def _other_data(run_dir: Path, data_path: str | Path | None) -> str | None:
@@ -454,15 +458,8 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
     of all segments in eval_<stem>_per_view.csv, and the seam figure seams_<stem>.png beside the file."""
     records, curves, rows = [], [], []
     for segment in video_bitstream_segments(target, data_path):
-        background = torch.tensor(segment.dataset.background, dtype=torch.float32)
-
-        def render(cam: Camera, model: STGModel = segment.model, background: torch.Tensor = background) -> Any:
-            return model.render(cam, t=float(cam.time), background=background)
-
-        result = evaluate(render, segment.dataset.test, segment.dataset.load_image, lpips_net=lpips_net,
-                          warmup=warmup)
-        if not measure_fps:
-            result.speed = None
+        result = _score_model(segment.model, segment.dataset, lpips_net=lpips_net, warmup=warmup,
+                              measure_fps=measure_fps)
         summary = segment.run.read_summary(strict=False) if segment.run else None
         records.append((segment.name, eval_record(result, segment.size, {"train_seconds": training_seconds(summary)})))
         curves.append((segment.name, [(v.frame, v.psnr) for v in result.views]))
