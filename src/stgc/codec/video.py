@@ -16,7 +16,7 @@ from pathlib import Path
 
 from stgc.errors import DataError, FormatError
 
-from .format import MAX_FILE_BYTES, VIDEO_MAGIC, DecodedModel, decode
+from .format import MAX_FILE_BYTES, VIDEO_MAGIC, DecodedModel, decode, read_header
 
 VIDEO_VERSION = 1
 MAX_VIDEO_SEGMENTS = 4096
