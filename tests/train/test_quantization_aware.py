@@ -59,11 +59,14 @@ def test_training_through_the_codec_loses_less_when_really_encoded(scene, tmp_pa
         compress_run(run, tmp_path / f"{name}.stgc", config=CodecConfig(quality=QUALITY, allocation="ladder"))
         decoded[name] = _psnr(load_model(tmp_path / f"{name}.stgc"), dataset)
     print({k: (round(floats[k], 2), round(decoded[k], 2)) for k in floats})
-    # Measured (float / decoded dB): plain 50.86 / 42.75, control 53.52 / 46.43, aware 50.32 / 47.26. Most of the gain
-    # over plain is the lower learning rates; the quantization in the forward adds the rest, and leaves the aware
-    # model the smallest quantization loss.
-    assert decoded["aware"] > decoded["control"] + 0.2 > decoded["plain"] + 0.2
-    assert floats["aware"] - decoded["aware"] < floats["control"] - decoded["control"]
+    # Measured (float / decoded dB): plain 52.38 / 43.54, control 54.61 / 43.24, aware 50.76 / 44.35. The lower
+    # learning rates alone (control) fit the floats better but not the decoded model (with the kernels before issue
+    # #18's rewrite they did: plain 42.75, control 46.43, aware 47.26 decoded: on a scene this small, which of the
+    # two decodes better is chance); the quantization in the forward is what keeps the decoded model ahead, with the
+    # smallest quantization loss.
+    assert decoded["aware"] > max(decoded["control"], decoded["plain"]) + 0.2
+    loss = {k: floats[k] - decoded[k] for k in floats}
+    assert loss["aware"] < min(loss["control"], loss["plain"]) - 1.0
 
 
 def test_the_window_is_the_run_s_last_iterations(scene, tmp_path):

@@ -35,6 +35,11 @@ def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, sigma_cut: Tensor,
     return gdata
 
 
+def _scratch(n_threads: int, longest: int, *rows: tuple[int, ...], dtype: type[np.floating]) -> list[np.ndarray]:
+    """Per-thread kernel scratch: one [threads, *r, L] array per `rows` entry, L = the longest tile list."""
+    return [np.empty((n_threads, *r, max(longest, 1)), dtype=dtype) for r in rows]
+
+
 class _NumbaProjection(torch.autograd.Function):
     """(means, quats, scales) -> (means2d, conics); depths, radii and the camera are side outputs without
     gradient (`out` receives them)."""
@@ -111,10 +116,10 @@ class _NumbaComposite(torch.autograd.Function):
         n_threads = numba.get_num_threads()
         weight_rows = np.zeros((n_threads, N) if want_weights else (1, 1), dtype=np_dtype)
         longest = int((offsets[1:] - offsets[:-1]).max()) if offsets.shape[0] > 1 else 0
-        scratch = np.empty((n_threads, max(longest, 1), 8 + C), dtype=np_dtype)
         kernels.composite_forward(
             gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts,
-            want_depth, want_weights, out_color, out_trans, out_last, out_depth, weight_rows, scratch,
+            want_depth, want_weights, out_color, out_trans, out_last, out_depth, weight_rows,
+            *_scratch(n_threads, longest, (8,), (C,), (2,), dtype=np_dtype),
         )  # fmt: skip
         ctx.arrays = (gdata, col, offsets, flat, centers_x, centers_y, consts, out_trans, out_last)
         ctx.layout = (tile_size, tiles_x, N, C, longest)
@@ -136,11 +141,9 @@ class _NumbaComposite(torch.autograd.Function):
         gt = np.zeros((H, W), np_dtype) if grad_trans is None else np.ascontiguousarray(grad_trans.numpy(), np_dtype)
         n_threads = numba.get_num_threads()
         rows = np.zeros((n_threads, N, kernels.N_GEOM_GRADS + C), dtype=np_dtype)
-        scratch = np.empty((n_threads, max(longest, 1), 8 + C), dtype=np_dtype)
-        scratch_grads = np.empty((n_threads, max(longest, 1), kernels.N_GEOM_GRADS + C), dtype=np_dtype)
         kernels.composite_backward(
             gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts, out_trans, out_last, gc, gt,
-            rows, scratch, scratch_grads,
+            rows, *_scratch(n_threads, longest, (8,), (C,), (kernels.N_GEOM_GRADS + C,), (5,), dtype=np_dtype),
         )  # fmt: skip
         if rows.shape[0] == 1:
             total = rows[0]
