@@ -48,7 +48,8 @@ PARENT = {"projection": "render (per-Gaussian formulas, culling)",
           "tile binning": "render (per-Gaussian formulas, culling)",
           "compositing forward": "render (per-Gaussian formulas, culling)",
           "decoder forward": "render (per-Gaussian formulas, culling)"}
-BACKWARD_NODES = {"_NumbaCompositeBackward": "rasterizer backward", "_SeparableBlurBackward": "SSIM backward"}
+BACKWARD_NODES = {"_NumbaCompositeBackward": "rasterizer backward", "_SeparableBlurBackward": "SSIM backward",
+                  "_SSIMMeanBackward": "SSIM backward"}
 
 
 def _scoped(label, fn):

@@ -104,6 +104,34 @@ def test_ssim_gradient_matches_finite_differences() -> None:
         lambda t: ssim(t, torch.from_numpy(ref)), (x,), eps=1e-6, atol=1e-6, fast_mode=True)
 
 
+@pytest.mark.parametrize("layout", ["hw", "hwc", "bchw"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_ssim_fused_backward_equals_autograd_through_the_map(layout: str, dtype: torch.dtype) -> None:
+    """ssim() on the CPU runs a hand-written backward; ssim_map().mean() is plain autograd through the same math."""
+    img, ref = _pair(8, h=19, w=26)
+    a, b = torch.from_numpy(img).to(dtype), torch.from_numpy(ref).to(dtype)
+    if layout == "hw":
+        a, b = a[..., 1], b[..., 1]
+    elif layout == "bchw":
+        a, b = torch.stack([a, b.flip(0)]).permute(0, 3, 1, 2), torch.stack([b, a.flip(0)]).permute(0, 3, 1, 2)
+    fused_in, map_in = a.clone().requires_grad_(True), a.clone().requires_grad_(True)
+    fused, generic = ssim(fused_in, b), ssim_map(map_in, b).mean()
+    fused.backward()
+    generic.backward()
+    tol = 1e-12 if dtype == torch.float64 else 1e-6
+    assert float(fused.detach()) == pytest.approx(float(generic.detach()), abs=tol)
+    assert fused_in.grad is not None and map_in.grad is not None
+    assert float((fused_in.grad - map_in.grad).abs().max()) <= tol * float(map_in.grad.abs().max()) * 10
+
+
+def test_ssim_reference_that_needs_a_gradient_gets_one() -> None:
+    img, ref = _pair(9, h=14, w=15)
+    x = torch.from_numpy(img).requires_grad_(True)
+    y = torch.from_numpy(ref).requires_grad_(True)
+    ssim(x, y).backward()
+    assert x.grad is not None and y.grad is not None and float(y.grad.abs().sum()) > 0
+
+
 def test_shape_mismatch_is_reported() -> None:
     with pytest.raises(ValueError, match="shapes differ"):
         ssim(torch.zeros(8, 8, 3), torch.zeros(8, 9, 3))

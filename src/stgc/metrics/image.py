@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from stgc.data.yuv import rgb_to_yuv420
-from stgc.metrics._blur_kernel import blur_planes
+from stgc.metrics._blur_kernel import blur_planes, ssim_input_grad, ssim_terms
 
 SSIM_WINDOW_SIZE = 11
 SSIM_SIGMA = 1.5
@@ -188,8 +188,60 @@ def ssim_map(
 
 
 def ssim(img: Any, ref: Any, window_size: int = SSIM_WINDOW_SIZE, sigma: float = SSIM_SIGMA) -> torch.Tensor:
-    """Mean SSIM over all pixels, channels and batch items (3DGS `ssim(..., size_average=True)`)."""
+    """Mean SSIM over all pixels, channels and batch items (3DGS `ssim(..., size_average=True)`).
+
+    On the CPU (float32/float64, a reference without gradient: the training loss and evaluation) one fused pass
+    (`_SSIMMean`); otherwise the mean of `ssim_map`."""
+    img, ref = _as_float_tensor(img), _as_float_tensor(ref)
+    _check_pair(img, ref)
+    ref = ref.to(img.dtype)
+    if img.device.type == "cpu" and img.dtype in (torch.float32, torch.float64) and not ref.requires_grad:
+        return _SSIMMean.apply(img, ref, _gaussian_taps(window_size, sigma, img.dtype))
     return ssim_map(img, ref, window_size, sigma).mean()
+
+
+def _planes(x: torch.Tensor) -> np.ndarray:
+    """[P, H, W] contiguous numpy planes (P = batch x channels) of an image in any of the accepted layouts."""
+    bchw = _to_bchw(x.detach())
+    return np.ascontiguousarray(bchw.reshape(-1, *bchw.shape[-2:]).numpy())
+
+
+class _SSIMMean(torch.autograd.Function):
+    """Mean SSIM with a hand-written backward (gradient for the image only). The five local moments are one blur
+    call, the SSIM terms and their partial derivatives one numba pass; the backward blurs the three partials (the
+    blur is self-adjoint) instead of backpropagating through the five moments and some twenty element-wise torch
+    ops."""
+
+    @staticmethod
+    def forward(ctx: Any, img: torch.Tensor, ref: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        x, y = _planes(img), _planes(ref)
+        stack = np.stack([x, y, x * x, y * y, x * y])
+        moments = np.empty_like(stack)
+        blur_planes(stack.reshape(-1, *x.shape[1:]), taps.numpy(), moments.reshape(-1, *x.shape[1:]))
+        want_grad = ctx.needs_input_grad[0]
+        partials = np.empty((3, *x.shape) if want_grad else (3, 0, 0, 0), dtype=x.dtype)
+        sums = ssim_terms(moments, SSIM_C1, SSIM_C2, want_grad, partials)
+        if want_grad:
+            ctx.arrays = (x, y, partials, taps)
+            ctx.shape = img.shape
+        return torch.tensor(float(sums.sum()) / x.size, dtype=img.dtype)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, None, None]:  # type: ignore[override]
+        x, y, partials, taps = ctx.arrays
+        blurred = np.empty_like(partials)
+        blur_planes(partials.reshape(-1, *x.shape[1:]), taps.numpy(), blurred.reshape(-1, *x.shape[1:]))
+        out = np.empty_like(x)
+        ssim_input_grad(blurred, x, y, float(grad) / x.size, out)
+        result = torch.from_numpy(out)
+        shape = ctx.shape
+        if len(shape) == 2:
+            result = result.reshape(shape)
+        elif len(shape) == 3:
+            result = result.reshape(shape[2], shape[0], shape[1]).permute(1, 2, 0)
+        else:
+            result = result.reshape(shape)
+        return result, None, None
 
 
 def ssim_per_image(img: Any, ref: Any) -> torch.Tensor:

@@ -188,12 +188,16 @@ def _alphas(geometry, lo, hi, pcx, pcy, consts, alphas, gaussians):
     alpha_min = consts[ALPHA_MIN]
     zero = consts[ZERO]
     with_gaussians = gaussians.shape[0] > 0
-    for k in range(lo, hi):
-        dx = geometry[GX, k] - pcx
-        dy = geometry[GY, k] - pcy
-        sigma = half * (geometry[GA, k] * dx * dx + geometry[GC, k] * dy * dy) + geometry[GB, k] * dx * dy
+    # Unsigned indices: with a signed one numba wraps negative indices on every access, which keeps LLVM from
+    # vectorising the loop (1.3x on the forward kernel, measured).
+    gx, gy, ga, gb, gc, go = geometry[GX], geometry[GY], geometry[GA], geometry[GB], geometry[GC], geometry[GO]
+    for i in range(lo, hi):
+        k = np.uint64(i)
+        dx = gx[k] - pcx
+        dy = gy[k] - pcy
+        sigma = half * (ga[k] * dx * dx + gc[k] * dy * dy) + gb[k] * dx * dy
         G = exp_neg(sigma)
-        raw = geometry[GO, k] * G
+        raw = go[k] * G
         alpha = min(alpha_max, raw)
         keep = (sigma >= zero) & (alpha >= alpha_min)
         alphas[k] = alpha if keep else zero
@@ -206,7 +210,7 @@ def _alphas(geometry, lo, hi, pcx, pcy, consts, alphas, gaussians):
 def _dot(a, b, n):
     s = a[0] * b[0]
     for i in range(1, n):
-        s += a[i] * b[i]
+        s += a[np.uint64(i)] * b[np.uint64(i)]
     return s
 
 
