@@ -235,13 +235,9 @@ class _SSIMMean(torch.autograd.Function):
         ssim_input_grad(blurred, x, y, float(grad) / x.size, out)
         result = torch.from_numpy(out)
         shape = ctx.shape
-        if len(shape) == 2:
-            result = result.reshape(shape)
-        elif len(shape) == 3:
-            result = result.reshape(shape[2], shape[0], shape[1]).permute(1, 2, 0)
-        else:
-            result = result.reshape(shape)
-        return result, None, None
+        if len(shape) == 3:  # [H, W, C] was taken as planes [C, H, W]
+            return result.reshape(shape[2], shape[0], shape[1]).permute(1, 2, 0), None, None
+        return result.reshape(shape), None, None
 
 
 def ssim_per_image(img: Any, ref: Any) -> torch.Tensor:
