@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
-from stgc.render import rasterize
+from stgc.render import numba_backend, rasterize
 
 from .scenes import make_scene
 
@@ -128,7 +129,7 @@ ARG_NAMES = ["means", "quats", "scales", "opacities", "features", "K", "viewmat"
 
 
 @pytest.mark.parametrize("name", ARG_NAMES + ["background"])
-@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
 def test_non_finite_input_is_rejected_by_name(name, bad):
     scene = make_scene(5, 8, 8)
     args = dict(zip(ARG_NAMES, [scene.means, scene.quats, scene.scales, scene.opacities, scene.features, scene.K,
@@ -172,3 +173,15 @@ def test_numpy_inputs_are_accepted():
     out = rasterize(*arrays, 16, 16)
     ref = rasterize(*scene.args())
     assert torch.equal(out.image, ref.image)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_depth_order_is_the_stable_depth_sort_of_the_gaussians_with_a_tile(dtype):
+    rng = np.random.default_rng(0)
+    depths = rng.choice(np.array([0.5, 1.0, 1.0 + 1e-6, 2.0, 1e-30, 3.5e4]), size=400).astype(dtype)  # many ties
+    radii = rng.integers(0, 3, size=(400, 2)).astype(np.int32)
+    culled = (radii == 0).all(axis=1)
+    depths[culled] = rng.choice([-1.0, 0.0, 0.7], size=int(culled.sum()))  # culled: behind the camera or anywhere
+    want = [i for i in torch.argsort(torch.from_numpy(depths), stable=True).tolist() if not culled[i]]
+    assert 0 < int(culled.sum()) < 400
+    assert numba_backend.depth_order(depths, radii).tolist() == want

@@ -57,9 +57,10 @@ def bin_tiles(gdata, radii, order, width, height, tile_size):
     """Tile binning: returns (offsets [T+1] int64, flat_ids [M] int32), each tile's list sorted by depth.
 
     A Gaussian's candidate tiles are its screen box [floor((m - r) / ts), ceil((m + r) / ts)) (gsplat's rule); of
-    those, only tiles its alpha >= 1/255 ellipse actually reaches are kept (_reaches_tile). `order` lists Gaussian
-    ids by increasing depth. The (tile, Gaussian) pairs are laid out in depth order (parallel over Gaussians), then
-    a stable counting sort by tile makes every tile's list depth-sorted without sorting the M pairs."""
+    those, only tiles its alpha >= 1/255 ellipse actually reaches are kept (_reaches_tile). `order` lists the ids
+    of every Gaussian with radii > 0 (it may leave out the others) by increasing depth. The (tile, Gaussian) pairs
+    are laid out in depth order (parallel over Gaussians), then a stable counting sort by tile makes every tile's
+    list depth-sorted without sorting the M pairs."""
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     n_tiles = tiles_x * tiles_y

@@ -64,7 +64,8 @@ def _to_tensor(name: str, value: object, shape: tuple[int | None, ...], dtype: t
     if value.device != device:
         raise ValueError(f"{name}: on {value.device}, expected {device} (the device of means)")
     value = value.to(dtype)
-    if value.numel() and not bool(torch.isfinite(value).all()):
+    # The extremes are NaN when any value is and infinite when any value is: two reductions, no mask allocated.
+    if value.numel() and not all(bool(torch.isfinite(e)) for e in torch.aminmax(value)):
         raise ValueError(f"{name}: contains NaN or inf")
     return value
 

@@ -35,6 +35,21 @@ def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, sigma_cut: Tensor,
     return gdata
 
 
+def depth_order(depths: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Ids of the Gaussians binning can use (radii > 0), front to back; equal depths in id order.
+
+    Culled Gaussians get no tile, so they are left out of the sort (in training most of a model is culled at any
+    one time). The projection culls every depth <= near plane > 0, so the rest are positive finite floats, whose
+    bit patterns sort as unsigned integers in the same order: numpy sorts those 2-3x faster than torch.argsort
+    sorts the floats (stable in both)."""
+    visible = np.flatnonzero((radii > 0).any(axis=1))
+    keys = depths[visible]
+    if keys.size and not keys.min() > 0:
+        raise ValueError("depth_order: a Gaussian with a tile has a depth <= 0; the projection should have culled it")
+    unsigned = np.uint32 if keys.dtype == np.float32 else np.uint64
+    return visible[np.argsort(keys.view(unsigned), kind="stable")]
+
+
 def _scratch(n_threads: int, longest: int, *rows: tuple[int, ...], dtype: type[np.floating]) -> list[np.ndarray]:
     """Per-thread kernel scratch: one [threads, *r, L] array per `rows` entry, L = the longest tile list."""
     return [np.empty((n_threads, *r, max(longest, 1)), dtype=dtype) for r in rows]
@@ -181,8 +196,9 @@ def composite_numba(
     tile_size = TILE_SIZE if tile_size is None else tile_size
     np_dtype = np.float64 if colors.dtype == torch.float64 else np.float32
     gdata = _pack(means2d, conics, opacities, sigma_cut, depths, np_dtype)
-    order = torch.argsort(depths, stable=True).numpy()
-    offsets, flat = kernels.bin_tiles(gdata, radii.numpy(), order, width, height, tile_size)
+    radii_np = radii.numpy()
+    order = depth_order(depths.detach().numpy(), radii_np)
+    offsets, flat = kernels.bin_tiles(gdata, radii_np, order, width, height, tile_size)
     consts = _consts(np_dtype, alpha_max, alpha_min, t_min)
     color, trans, depth, weights = _NumbaComposite.apply(  # type: ignore[no-untyped-call]
         means2d, conics, opacities, colors, gdata, offsets, flat, width, height, tile_size, consts,
