@@ -91,17 +91,21 @@ def test_budgets_and_candidates():
     assert min(candidate_bits("OMGA")) >= 2
 
 
-def _projection_renderer(weights: dict[str, float], seed: int = 0):
-    """A stand-in renderer: 4 'views' of 64 pixels, each pixel a sum over Gaussians of attribute columns times a
-    smooth function of the Gaussian's position (so, like a real renderer, it does not depend on the Gaussians'
-    order). The error a group's quantization adds scales with its weight; weight 0: the group does not show."""
+def _projection_renderer(weights: dict[str, float], seed: int = 0, views: int = 4, calls: list | None = None):
+    """A stand-in renderer: `views` 'views' of 64 pixels, each pixel a sum over Gaussians of attribute columns
+    times a smooth function of the Gaussian's position (so, like a real renderer, it does not depend on the
+    Gaussians' order). The error a group's quantization adds scales with its weight; weight 0: the group does not
+    show. Called with no view list it renders all (for the tests' own references); `calls` records each list."""
     rng = np.random.default_rng(seed)
-    freq = rng.normal(0, 0.3, (4, 64, 3))
-    phase = rng.uniform(0, 2 * np.pi, (4, 64, 1))
+    freq = rng.normal(0, 0.3, (views, 64, 3))
+    phase = rng.uniform(0, 2 * np.pi, (views, 64, 1))
 
-    def render(arrays, decoder_state):
+    def render(arrays, decoder_state, which=None):
+        which = list(range(views)) if which is None else list(which)
+        if calls is not None:
+            calls.append(which)
         pos = np.stack([np.asarray(arrays[c], np.float64) for c in "xyz"])
-        basis = np.cos(np.einsum("vpk,kn->vpn", freq, pos) + phase) / math.sqrt(pos.shape[1])
+        basis = np.cos(np.einsum("vpk,kn->vpn", freq[which], pos) + phase[which]) / math.sqrt(pos.shape[1])
         images = sum(w * basis @ np.asarray(arrays[name], np.float64) for name, w in weights.items())
         return [0.5 + 0.05 * img.reshape(8, 8, 1).repeat(3, axis=2) for img in images]
 
@@ -130,6 +134,27 @@ def test_optimiser_spends_bits_where_they_show_and_meets_its_budget():
 
     tighter = optimise_allocation(arrays, "full", decoder, render, truth, 0.01)
     assert tighter.depths["FDC_"] > result.depths["FDC_"]
+
+
+def test_the_table_renders_a_subset_of_the_views_and_rate_control_renders_them_all():
+    arrays, decoder = synthetic_model(1500, "full", seed=1)
+    calls: list[list[int]] = []
+    render = _projection_renderer({"f_dc_0": 1.0, "f_dc_3": 1.0, "scale_0": 0.02}, views=16, calls=calls)
+    reference = render(arrays, decoder)
+    rng = np.random.default_rng(5)
+    truth = [r + rng.normal(0, 0.002, r.shape) for r in reference]
+    calls.clear()
+    result = optimise_allocation(arrays, "full", decoder, render, truth, 0.1)
+    assert result.within_budget and result.views == 16
+    subsets = [c for c in calls if len(c) < 16]
+    assert calls[0] == list(range(16))  # the reference
+    assert subsets and all(c == subsets[0] for c in subsets) and len(subsets[0]) == 8
+    assert subsets[0][0] == 0 and subsets[0][-1] == 15  # spread over the views
+    rounds = [c for c in calls[1:] if len(c) == 16]
+    assert 1 <= len(rounds) <= result.rounds  # a round that repeats an allocation reuses its measurement
+    # The sweep stops early: fewer trials than every candidate depth of every group.
+    table_trials = len(subsets) - 1 - sum(len(v) for v in result.shapes.values())
+    assert table_trials < sum(len(candidate_bits(t)) for t in result.depths)
 
 
 def test_optimiser_rejects_bad_input():

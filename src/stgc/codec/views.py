@@ -3,7 +3,7 @@ training both use): renders for `stgc.codec.allocation.optimise_allocation`."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -42,7 +42,7 @@ def optimise_on_views(model: STGModel, dataset: Dataset, quality: int, *, views:
     trial: STGModel | None = None  # one model whose parameters each trial overwrites (its camera cache stays)
 
     @torch.no_grad()
-    def render(candidate: Mapping[str, np.ndarray], decoder_state: Any) -> list:
+    def render(candidate: Mapping[str, np.ndarray], decoder_state: Any, views: Sequence[int]) -> list:
         nonlocal trial
         if trial is None or trial.num_gaussians != len(candidate["x"]):
             trial = STGModel.from_ply_arrays(dict(candidate), model.variant, decoder_state,
@@ -53,7 +53,7 @@ def optimise_on_views(model: STGModel, dataset: Dataset, quality: int, *, views:
             if decoder_state is not None and trial.decoder is not None:
                 trial.decoder.load_state_dict({k: torch.from_numpy(np.asarray(v)) for k, v in decoder_state.items()})
         out = []
-        for cam in chosen:
+        for cam in (chosen[v] for v in views):
             rgb = trial.render(cam, t=float(cam.time), background=background).rgb.numpy()
             gain, offset = corrections.get(str(cam.name), (1.0, 0.0))
             out.append(np.clip(rgb * gain + offset, 0.0, 1.0))
