@@ -338,3 +338,26 @@ def test_simulated_quantization_is_exactly_what_decoding_the_file_gives(models, 
         for name in ply_fields(variant):
             assert simulated[name].dtype == np.float32
             np.testing.assert_array_equal(simulated[name], decoded[name][order], err_msg=f"{option} {name}")
+
+
+def test_a_quantization_memo_changes_no_result_and_serves_only_its_arrays(models):
+    """The rd allocation's trials share a memo of per-group results: with it, every call must give what it gives
+    without, whichever groups change between calls (TCEN and TSCL change the span the motion groups are scaled by)."""
+    from stgc.codec.format import QuantizationMemo, section_payload_bytes, simulate_quantization
+
+    arrays, _ = models["full"]
+    memo = QuantizationMemo(arrays)
+    settings = [dict(group_bits={"MOTN": 5}), dict(group_bits={"TCEN": 6}), dict(group_bits={"TSCL": 4, "MOTN": 5}),
+                dict(group_bits={"MOTN": 5}), dict(group_bits={"POSI": 11}, step_scales={"FDC_": [1, 2, 1, 1, 4, 1]}),
+                dict(quality=1), dict(group_bits={"MOTN": 5})]
+    for option in settings * 2:  # the second pass is served from the memo
+        alone = simulate_quantization(arrays, "full", **option)
+        shared = simulate_quantization(arrays, "full", memo=memo, **option)
+        for name in ply_fields("full"):
+            np.testing.assert_array_equal(shared[name], alone[name], err_msg=f"{option} {name}")
+            shared[name][:] = 0  # a caller may write into what it gets: the memo keeps its own copy
+        for tag in ("POSI", "MOTN", "FDC_"):
+            assert section_payload_bytes(arrays, "full", tag, memo=memo, **option) == \
+                section_payload_bytes(arrays, "full", tag, **option)
+    with pytest.raises(ValueError, match="only the arrays it was made for"):
+        simulate_quantization(dict(arrays), "full", memo=memo)

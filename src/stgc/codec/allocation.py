@@ -46,6 +46,7 @@ from .format import (
     GROUP_BY_TAG,
     QUALITY_LEVELS,
     QUAT_SMALLEST3,
+    QuantizationMemo,
     bits_for,
     groups_for,
     section_payload_bytes,
@@ -266,6 +267,7 @@ def optimise_allocation(
     done = 0
 
     decoded_decoder = simulate_decoder_state(decoder_state)
+    memo = QuantizationMemo(arrays)  # a trial redoes only the groups whose settings differ from earlier trials'
 
     every_view = list(range(len(ground_truth)))
     # The table's trials (one group at a time) compare with the reference on a subset of the views, spread over
@@ -281,11 +283,11 @@ def optimise_allocation(
         nonlocal done
         group_bits, step_scales = encoder_settings(variant, depths, shapes if shape is None else shape)
         stored = simulate_quantization(arrays, variant, group_bits=group_bits, step_scales=step_scales,
-                                       outlier_guard=outlier_guard)
+                                       outlier_guard=outlier_guard, memo=memo)
         images = list(render(stored, decoded_decoder, views))
         size = None if size_of is None else section_payload_bytes(
             arrays, variant, size_of, zstd_level=_PROBE_ZSTD_LEVEL, group_bits=group_bits, step_scales=step_scales,
-            outlier_guard=outlier_guard)
+            outlier_guard=outlier_guard, memo=memo)
         done += 1
         if progress:
             progress(done, max(planned, done))

@@ -15,7 +15,8 @@ import json
 import os
 import struct
 import zlib
-from collections.abc import Iterator, Mapping, Sequence
+from collections import OrderedDict
+from collections.abc import Callable, Hashable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -442,11 +443,39 @@ def _pack_decoder(state: Mapping[str, Any]) -> bytes:
     return b"".join(head + blobs)
 
 
+class QuantizationMemo:
+    """What the encoder's quantization gave each attribute group of ONE model's arrays under given settings, kept
+    so that calls that differ in a few groups' settings only redo those groups (the rd allocation's trials change
+    one group at a time, `stgc.codec.allocation`). Results are the same with or without it. Pass a memo only with
+    the arrays it was made for (checked by identity); it keeps the most recently used CAPACITY results."""
+
+    CAPACITY = 64  # one trial's settings use about 25 results
+
+    def __init__(self, arrays: Mapping[str, np.ndarray]):
+        self.arrays = arrays
+        self._results: OrderedDict[Hashable, Any] = OrderedDict()
+
+    def get(self, key: Hashable, compute: Callable[[], Any]) -> Any:
+        if key in self._results:
+            self._results.move_to_end(key)
+            return self._results[key]
+        value = self._results[key] = compute()
+        if len(self._results) > self.CAPACITY:
+            self._results.popitem(last=False)
+        return value
+
+
+def _remember(memo: QuantizationMemo | None, key: Hashable, compute: Callable[[], Any]) -> Any:
+    return compute() if memo is None else memo.get(key, compute)
+
+
 def _encoder_columns(arrays: Mapping[str, np.ndarray], variant: str, quality: int,
                      group_bits: Mapping[str, int] | None, step_scales: Mapping[str, Sequence[float]] | None,
-                     ) -> tuple[int, dict[str, np.ndarray]]:
+                     memo: QuantizationMemo | None = None) -> tuple[int, dict[str, np.ndarray]]:
     """The validated float64 columns the encoder quantizes, rotation and omega canonicalized."""
-    n, cols = _validated_columns(arrays, variant)
+    if memo is not None and memo.arrays is not arrays:
+        raise ValueError("a QuantizationMemo serves only the arrays it was made for")
+    n, cols = _remember(memo, ("columns", variant), lambda: _canonical_columns(arrays, variant))
     unknown = (set(group_bits or ()) | set(step_scales or ())) - GROUP_TAGS
     if unknown:
         raise ValueError(f"group_bits/step_scales name unknown groups {sorted(unknown)}")
@@ -456,6 +485,11 @@ def _encoder_columns(arrays: Mapping[str, np.ndarray], variant: str, quality: in
             raise ValueError(f"step_scales[{tag_name!r}] needs one factor per stored component (3 for ROTN)")
     if quality not in QUALITY_LEVELS:
         raise ValueError(f"quality must be one of {QUALITY_LEVELS}, got {quality!r}")
+    return n, cols
+
+
+def _canonical_columns(arrays: Mapping[str, np.ndarray], variant: str) -> tuple[int, dict[str, np.ndarray]]:
+    n, cols = _validated_columns(arrays, variant)
     rot = np.stack([cols[f"rot_{i}"] for i in range(4)], axis=1)
     omega = np.stack([cols[f"omega_{i}"] for i in range(4)], axis=1)
     rot, omega = canonical_rotation(rot, omega)
@@ -466,31 +500,46 @@ def _encoder_columns(arrays: Mapping[str, np.ndarray], variant: str, quality: in
 
 def _quantized_groups(cols: dict[str, np.ndarray], n: int, variant: str, quality: int, position_bits: int | None,
                       group_bits: Mapping[str, int] | None, step_scales: Mapping[str, Sequence[float]] | None,
-                      outlier_guard: bool) -> Iterator[tuple[AttributeGroup, int, tuple[Quantizer, ...], np.ndarray,
-                                                             np.ndarray]]:
+                      outlier_guard: bool, memo: QuantizationMemo | None = None,
+                      ) -> Iterator[tuple[AttributeGroup, int, tuple[Quantizer, ...], np.ndarray, np.ndarray, Hashable]]:
     """Per attribute group in GROUPS order: (group, bit depth, quantizers, codes [C, N] in input order, the span
-    its TIME_SPAN scaling used). What the encoder stores and what `simulate_quantization` reconstructs."""
-    decoded_time: dict[bytes, np.ndarray] = {}
+    its TIME_SPAN scaling used, the key of this result). What the encoder stores and what `simulate_quantization`
+    reconstructs. A group's result depends on its own settings and, for TIME_SPAN groups, on the span, i.e. on
+    TCEN's and TSCL's: `memo` keys it by exactly those."""
+    time_groups: dict[bytes, tuple[Hashable, tuple[Quantizer, ...], np.ndarray]] = {}
+    span_key: Hashable = None
     span = np.ones(n)
     for group in groups_for(variant):
+        tag = group.tag.decode("latin-1")
         bits = bits_for(group, quality)
         if group.tag == b"POSI" and position_bits is not None:
             bits = int(position_bits)
-        if group_bits and group.tag.decode("latin-1") in group_bits:
-            bits = int(group_bits[group.tag.decode("latin-1")])
+        if group_bits and tag in group_bits:
+            bits = int(group_bits[tag])
         container_dtype(bits)  # validates the range
-        values = _to_domain(np.stack([cols[f] for f in group.fields(variant)], axis=0), group.domain)
-        if group.domain == TIME_SPAN:
-            values = values * _span_factors(group, span)
-        if group.domain in (LINEAR, TIME_SPAN) and outlier_guard:  # the others are bounded ([0, 1], unit quaternion)
-            bits = outlier_guard_bits(values, bits)
-        quantizers = _fit_group(values, group.domain, bits, (step_scales or {}).get(group.tag.decode("latin-1")))
-        codes = np.stack([quantize(v, q) for v, q in zip(values, quantizers)], axis=0)
-        yield group, bits, quantizers, codes, span
+        shape = (step_scales or {}).get(tag)
+        key = (variant, tag, bits, None if shape is None else tuple(float(f) for f in shape), outlier_guard,
+               span_key if group.domain == TIME_SPAN else None)
+
+        def quantized(group: AttributeGroup = group, bits: int = bits, span: np.ndarray = span,
+                      shape: Sequence[float] | None = shape) -> tuple[int, tuple[Quantizer, ...], np.ndarray]:
+            values = _to_domain(np.stack([cols[f] for f in group.fields(variant)], axis=0), group.domain)
+            if group.domain == TIME_SPAN:
+                values = values * _span_factors(group, span)
+            if group.domain in (LINEAR, TIME_SPAN) and outlier_guard:  # the others are bounded ([0, 1], unit quaternion)
+                bits = outlier_guard_bits(values, bits)
+            quantizers = _fit_group(values, group.domain, bits, shape)
+            return bits, quantizers, np.stack([quantize(v, q) for v, q in zip(values, quantizers)], axis=0)
+
+        bits, quantizers, codes = _remember(memo, key, quantized)
+        yield group, bits, quantizers, codes, span, key
         if group.tag in (b"TCEN", b"TSCL"):  # the decoder sees only the quantized values: derive the span from them
-            decoded_time[group.tag] = dequantize(codes[0], quantizers[0])
-            if len(decoded_time) == 2:
-                span = time_span(decoded_time[b"TCEN"], decoded_time[b"TSCL"])
+            time_groups[group.tag] = (key, quantizers, codes)
+            if len(time_groups) == 2:
+                (centre_key, centre_q, centre), (scale_key, scale_q, scale) = time_groups[b"TCEN"], time_groups[b"TSCL"]
+                span_key = ("span", centre_key, scale_key)
+                span = _remember(memo, span_key, lambda: time_span(dequantize(centre[0], centre_q[0]),
+                                                                  dequantize(scale[0], scale_q[0])))
 
 
 def simulate_quantization(
@@ -502,35 +551,41 @@ def simulate_quantization(
     group_bits: Mapping[str, int] | None = None,
     step_scales: Mapping[str, Sequence[float]] | None = None,
     outlier_guard: bool = True,
+    memo: QuantizationMemo | None = None,
 ) -> dict[str, np.ndarray]:
     """The attribute arrays `decode(encode(arrays, ...))` returns, in the input's order (encode reorders along the
     Morton curve) and without entropy coding: what a model looks like after the codec, for training that sees it
-    (rotation and omega come back canonicalized, which renders the same). Same keyword options as `encode`."""
-    n, cols = _encoder_columns(arrays, variant, quality, group_bits, step_scales)
+    (rotation and omega come back canonicalized, which renders the same). Same keyword options as `encode`; `memo`
+    (made for these `arrays`) keeps each group's result for later calls."""
+    n, cols = _encoder_columns(arrays, variant, quality, group_bits, step_scales, memo)
     out: dict[str, np.ndarray] = {}
-    for group, _, quantizers, codes, span in _quantized_groups(cols, n, variant, quality, position_bits, group_bits,
-                                                                step_scales, outlier_guard):
-        values = np.stack([dequantize(c, q) for c, q in zip(codes, quantizers)], axis=0)
-        if group.domain == TIME_SPAN:
-            values = values / _span_factors(group, span)
-        for name, column in zip(group.fields(variant), _from_domain(values, group.domain)):
-            out[name] = column.astype(np.float32)
+    for group, _, quantizers, codes, span, key in _quantized_groups(cols, n, variant, quality, position_bits,
+                                                                     group_bits, step_scales, outlier_guard, memo):
+        def decoded(group: AttributeGroup = group, quantizers: tuple[Quantizer, ...] = quantizers,
+                    codes: np.ndarray = codes, span: np.ndarray = span) -> list[np.ndarray]:
+            values = np.stack([dequantize(c, q) for c, q in zip(codes, quantizers)], axis=0)
+            if group.domain == TIME_SPAN:
+                values = values / _span_factors(group, span)
+            return [column.astype(np.float32) for column in _from_domain(values, group.domain)]
+
+        columns = _remember(memo, ("decoded", key), decoded)
+        out.update(zip(group.fields(variant), columns if memo is None else (c.copy() for c in columns)))
     return {name: out.get(name, np.zeros(n, np.float32)) for name in ply_fields(variant)}
 
 
 def _encoded_sections(arrays: Mapping[str, np.ndarray], variant: str, quality: int, *, zstd_level: int = DEFAULT_ZSTD_LEVEL,
                       position_bits: int | None = None, group_bits: Mapping[str, int] | None = None,
                       step_scales: Mapping[str, Sequence[float]] | None = None, adaptive_delta: bool = True,
-                      outlier_guard: bool = True, only: str | None = None,
+                      outlier_guard: bool = True, only: str | None = None, memo: QuantizationMemo | None = None,
                       ) -> Iterator[tuple[bytes, int, _EncodedSection]]:
     """(tag, bit depth, entropy-coded section) of every attribute group, in GROUPS order, Gaussians in the Morton
     order of their quantized positions; with `only`, that section alone is entropy-coded and yielded."""
-    n, cols = _encoder_columns(arrays, variant, quality, group_bits, step_scales)
+    n, cols = _encoder_columns(arrays, variant, quality, group_bits, step_scales, memo)
     order: np.ndarray | None = None
-    for group, bits, quantizers, codes, _ in _quantized_groups(cols, n, variant, quality, position_bits, group_bits,
-                                                               step_scales, outlier_guard):
+    for group, bits, quantizers, codes, _, key in _quantized_groups(cols, n, variant, quality, position_bits,
+                                                                    group_bits, step_scales, outlier_guard, memo):
         if order is None:  # POSI comes first: its codes define the Morton order used by every section
-            order = morton_order(codes.T, bits)
+            order = _remember(memo, ("morton", key), lambda: morton_order(codes.T, bits))
         if only is None or group.tag.decode("latin-1") == only:
             yield group.tag, bits, _encode_codes(codes[:, order], bits, zstd_level, adaptive_delta, quantizers,
                                                  centrable=group.domain != QUAT_SMALLEST3)
@@ -539,7 +594,7 @@ def _encoded_sections(arrays: Mapping[str, np.ndarray], variant: str, quality: i
 def section_payload_bytes(arrays: Mapping[str, np.ndarray], variant: str, tag: str, quality: int = DEFAULT_QUALITY,
                           **options: Any) -> int:
     """The payload bytes `encode` writes for attribute section `tag` (`options`: encode's keyword options but
-    metadata), entropy-coding only that section."""
+    metadata, and `memo` as simulate_quantization's), entropy-coding only that section."""
     for _, _, section in _encoded_sections(arrays, variant, quality, only=tag, **options):
         return len(section.payload)
     raise ValueError(f"{variant} models have no attribute section {tag!r}")
