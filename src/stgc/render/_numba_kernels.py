@@ -289,21 +289,19 @@ def composite_forward(
 @njit(parallel=True, cache=True, nogil=True)
 def composite_backward(
     gdata, colors, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts,
-    last_ids, grad_color, grad_trans, grad_rows, scratch_geometry, scratch_colors, scratch_grads,
+    final_trans, last_ids, grad_color, grad_trans, grad_rows, scratch_geometry, scratch_colors, scratch_grads,
     scratch_entries,
 ):  # fmt: skip
     """Gradients of (color, final T) w.r.t. means2d, conics, opacities and features, accumulated per thread.
 
-    Recomputes the transmittance in front of each contributor front to back, with the forward's own products
-    (bit for bit the forward's T; the CUDA kernels divide back to front instead, T_j = T_{j+1} / (1 - alpha_j), a
-    division on the critical path of every entry), then walks back to front carrying the normalised color
-    composited behind each entry (only its dot product with dL/dcolor is needed, a multiply-add per entry).
-    With C_out = sum_j c_j a_j T_j and T_final = prod_j (1 - a_j):
+    Walks each pixel's contributors back to front, recovering the transmittance in front of each by division
+    (T_j = T_{j+1} / (1 - alpha_j), as the Inria and gsplat CUDA kernels do) and carrying the normalised color
+    composited behind it (only its dot product with dL/dcolor is needed). With C_out = sum_j c_j a_j T_j and T_final = prod_j (1 - a_j):
         dC/da_j = T_j (c_j - behind_j),   dT_final/da_j = -T_final / (1 - a_j),
     and a_j = min(alpha_max, o G): no gradient through the clamp when o G > alpha_max.
     A tile's gradients go to per-list-entry columns (scratch_grads [6 + C, L]) and are added to the thread's
-    per-Gaussian rows once per tile. scratch_entries per thread: [7, L] (alpha, exp(-sigma), dL/dcolor . c,
-    dL/dalpha, weight alpha*T, T in front, 1 / (1 - alpha) of each entry at the current pixel)."""
+    per-Gaussian rows once per tile. scratch_entries per thread: [5, L] (alpha, exp(-sigma), dL/dcolor . c,
+    dL/dalpha, weight alpha*T of each entry at the current pixel)."""
     height = centers_y.shape[0]
     width = centers_x.shape[0]
     n_colors = colors.shape[1]
@@ -334,8 +332,6 @@ def composite_backward(
         color_dots = scratch_entries[thread, 2]
         d_alphas = scratch_entries[thread, 3]
         weights = scratch_entries[thread, 4]
-        in_front = scratch_entries[thread, 5]
-        inv_one_minus = scratch_entries[thread, 6]
         _gather(gdata, colors, flat, start, 0, used, geometry, local_colors)
         for f in range(n_grads):
             for k in range(used):
@@ -365,22 +361,19 @@ def composite_backward(
                     for k in range(last):
                         color_dots[k] += gc * local_colors[c, k]
                 _alphas(geometry, 0, last, pcx, pcy, consts, alphas, gaussians)
-                # A skipped entry has alpha 0: T and behind_dot pass it unchanged, its weight is 0.
-                T = one
-                for k in range(last):
-                    in_front[k] = T
-                    T = T * (one - alphas[k])
-                g_final = g_trans * T  # T is now the forward's final transmittance
-                for k in range(last):
-                    inv_one_minus[k] = one / (one - alphas[k])
-                    weights[k] = alphas[k] * in_front[k]
+                # The recursion, back to front. A skipped entry has alpha 0: T, behind_dot unchanged, weight 0.
                 # behind_dot = dot(color composited behind entry k, dL/dpixel color), carried as a scalar since
                 # behind_{k-1} = alpha_k c_k + (1 - alpha_k) behind_k is linear in the colors.
+                T_final = final_trans[py, px]
+                T = T_final
                 behind_dot = zero
                 for k in range(last - 1, -1, -1):
                     alpha = alphas[k]
+                    inv_one_minus = one / (one - alpha)
+                    T = T * inv_one_minus
+                    weights[k] = alpha * T
                     col_dot = color_dots[k]
-                    d_alphas[k] = (col_dot - behind_dot) * in_front[k] - g_final * inv_one_minus[k]
+                    d_alphas[k] = (col_dot - behind_dot) * T - g_trans * T_final * inv_one_minus
                     behind_dot = alpha * col_dot + (one - alpha) * behind_dot
                 for k in range(last):
                     d_opacity = d_alphas[k] * gaussians[k]

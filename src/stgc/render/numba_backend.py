@@ -136,29 +136,29 @@ class _NumbaComposite(torch.autograd.Function):
             want_depth, want_weights, out_color, out_trans, out_last, out_depth, weight_rows,
             *_scratch(n_threads, longest, (8,), (C,), (2,), dtype=np_dtype),
         )  # fmt: skip
-        ctx.arrays = (gdata, col, offsets, flat, centers_x, centers_y, consts, out_last)
+        ctx.arrays = (gdata, col, offsets, flat, centers_x, centers_y, consts, out_trans, out_last)
         ctx.layout = (tile_size, tiles_x, N, C, longest)
         depth = torch.from_numpy(out_depth) if want_depth else None
         weights = torch.from_numpy(weight_rows.sum(axis=0)) if want_weights else None
         for t in (depth, weights):
             if t is not None:
                 ctx.mark_non_differentiable(t)
-        return torch.from_numpy(out_color), torch.from_numpy(out_trans), depth, weights
+        return torch.from_numpy(out_color), torch.from_numpy(out_trans.copy()), depth, weights
 
     @staticmethod
     def backward(ctx: Any, grad_color: Tensor | None, grad_trans: Tensor | None, _grad_depth: Tensor | None,
                  _grad_weights: Tensor | None) -> tuple[Tensor | None, ...]:
-        gdata, col, offsets, flat, centers_x, centers_y, consts, out_last = ctx.arrays
+        gdata, col, offsets, flat, centers_x, centers_y, consts, out_trans, out_last = ctx.arrays
         tile_size, tiles_x, N, C, longest = ctx.layout
         np_dtype = gdata.dtype.type
-        H, W = out_last.shape
+        H, W = out_trans.shape
         gc = np.zeros((H, W, C), np_dtype) if grad_color is None else np.ascontiguousarray(grad_color.numpy(), np_dtype)
         gt = np.zeros((H, W), np_dtype) if grad_trans is None else np.ascontiguousarray(grad_trans.numpy(), np_dtype)
         n_threads = numba.get_num_threads()
         rows = np.zeros((n_threads, N, kernels.N_GEOM_GRADS + C), dtype=np_dtype)
         kernels.composite_backward(
-            gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts, out_last, gc, gt,
-            rows, *_scratch(n_threads, longest, (8,), (C,), (kernels.N_GEOM_GRADS + C,), (7,), dtype=np_dtype),
+            gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts, out_trans, out_last, gc, gt,
+            rows, *_scratch(n_threads, longest, (8,), (C,), (kernels.N_GEOM_GRADS + C,), (5,), dtype=np_dtype),
         )  # fmt: skip
         if rows.shape[0] == 1:
             total = rows[0]
