@@ -69,7 +69,8 @@ _STEPS_PER_BIT = 4  # depths and step shapes are searched in quarter bits (step 
 _PROBE_FINER_BITS = 8  # while one component is measured, the rest of its group is this much finer (error / 4**8)
 _MAX_COARSER_BITS = 4.0  # a component's step is at most 16x its group's finest
 # The depth sweep of a group stops going finer at an error below this fraction of the budget, and coarser at an
-# error above this many budgets (an error roughly quadruples per bit removed).
+# error above this many budgets (an error roughly quadruples per bit removed; rate control starts from one budget
+# and widens it at most 4x a round while the measured loss stays far below it).
 _NEGLIGIBLE = 1e-3
 _HOPELESS = 16.0
 # Views the table's trials render (of the sampled ones; measured on a trained blender_toys model, q3: 8 of 16 views
@@ -250,8 +251,9 @@ def optimise_allocation(
     """Choose the depth and step shape of every attribute group (see the module docstring).
 
     `render(arrays, decoder_state, views)` renders the sampled training views listed in `views` (indices into
-    `ground_truth`, in that order) of the model given as official PLY arrays (float images in [0, 1]). `fixed_bits` pins groups to an integer depth with
-    unshaped steps (e.g. a user's position_bits); the other groups are optimised."""
+    `ground_truth`, in that order) of the model given as official PLY arrays (float images in [0, 1]).
+    `fixed_bits` pins groups to an integer depth with unshaped steps (e.g. a user's position_bits); the other
+    groups are optimised."""
     if not ground_truth:
         raise ValueError("optimise_allocation needs at least one training view")
     if not loss_budget_db > 0:
@@ -332,7 +334,7 @@ def optimise_allocation(
     for tag in tags:
         # From the middle of the group's depths outwards, each way until a depth decides nothing: finer ones once
         # the error is negligible (the knapsack would pay bytes to remove less than _NEGLIGIBLE of the budget),
-        # coarser ones once the error is hopeless (_HOPELESS budgets: rate control never widens the budget that far).
+        # coarser ones once the error is hopeless (_HOPELESS budgets: more than rate control's search widens to).
         depths = candidates[tag]
         middle = len(depths) // 2
         trials = [measure(tag, depths[middle])]
