@@ -127,12 +127,12 @@ def test_iterations_are_real_iterations_and_the_help_shows_the_presets(capsys):
     configs = resolve_configs("cpu", {}, {"train": {"iterations": "300"}}, {})
     train = configs["train"]
     schedule = resolve_schedule(replace(train, densify=train.densify.resolved(sparse_cloud=False)))
-    assert schedule.iterations == 300  # was 60: the number was scaled by the preset's 0.2
-    assert schedule.densify_start == 100  # the schedule points still follow the preset's scale
+    assert schedule.iterations == 300  # was 90: the number was scaled by the preset's 0.3
+    assert schedule.densify_start == 150  # the schedule points still follow the preset's scale (500 x 0.3)
     with pytest.raises(SystemExit):
         main(["train", "--help"])
     help_text = " ".join(capsys.readouterr().out.split())
-    assert "iterations to train (real iterations, not scaled) (default: 6000)" in help_text
+    assert "iterations to train (real iterations, not scaled) (default: 9000)" in help_text
 
 
 def test_a_run_saved_with_iterations_in_schedule_units_resumes_with_its_real_count(trained_run, tmp_path):
@@ -235,7 +235,7 @@ def test_the_codec_allocation_measures_training_views_with_their_colour_correcti
     renders = []
 
     def capture(arrays, variant, decoder_state, render, truth, budget, **kwargs):
-        renders.append(render(arrays, decoder_state))
+        renders.append(render(arrays, decoder_state, range(len(truth))))
         raise RuntimeError("captured")
 
     monkeypatch.setattr(views, "optimise_allocation", capture)

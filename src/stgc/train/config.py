@@ -4,8 +4,8 @@
 *schedule* (densification start/interval, pruning and reset windows, EMS start, PLY save points) is written on
 the official 30k-iteration scale and multiplied by ONE factor, `schedule_scale`, when the run starts
 (`resolve_schedule`). The `paper` preset is scale 1 with 30,000 iterations (the official STG schedule); the `cpu`
-preset shrinks the same schedule by 0.2 and trains 6,000 iterations, so a 2-core CPU finishes in well under an
-hour. Operational counters (logging, checkpointing, `stop_after`) are in real iterations and are not scaled.
+preset shrinks the same schedule by 0.3 and trains 9,000 iterations, so a 2-core CPU finishes a 320x180 capture
+in about 20 minutes and a 640x360 one in about an hour. Operational counters (logging, checkpointing, `stop_after`) are in real iterations and are not scaled.
 """
 
 from __future__ import annotations
@@ -285,10 +285,10 @@ class TrainConfig:
               self.quantization_aware.iterations, f"at most the run's {self.iterations} iterations")
 
 
-# 0.2 x 30k = 6,000 iterations. Measured on this 2-core machine when it was idle: the full model on blender_toys
-# 160x120 (27k-45k Gaussians) trains at 5-9 it/s, so the schedule takes ~15-20 min (docs/training.md); under heavy
-# contention from other jobs the same code ran at 0.1-0.6 it/s.
-CPU_SCHEDULE_SCALE = 0.2
+# 0.3 x 30k = 9,000 iterations (0.2 and 6,000 until session 12, when the iteration had become 1.75-2.3x faster):
+# every `cpu` curve was still rising at 6,000, and the longer schedule gained on every scene measured
+# (benchmarks/RESULTS.md, "Real captures", session 12) while a 640x360 run stays within an hour on 2 cores.
+CPU_SCHEDULE_SCALE = 0.3
 
 
 def paper_preset() -> TrainConfig:
