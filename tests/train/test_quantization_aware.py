@@ -59,14 +59,15 @@ def test_training_through_the_codec_loses_less_when_really_encoded(scene, tmp_pa
         compress_run(run, tmp_path / f"{name}.stgc", config=CodecConfig(quality=QUALITY, allocation="ladder"))
         decoded[name] = _psnr(load_model(tmp_path / f"{name}.stgc"), dataset)
     print({k: (round(floats[k], 2), round(decoded[k], 2)) for k in floats})
-    # Measured (float / decoded dB): plain 52.38 / 43.54, control 54.61 / 43.24, aware 50.76 / 44.35. The lower
-    # learning rates alone (control) fit the floats better but not the decoded model (with the kernels before issue
-    # #18's rewrite they did: plain 42.75, control 46.43, aware 47.26 decoded: on a scene this small, which of the
-    # two decodes better is chance); the quantization in the forward is what keeps the decoded model ahead, with the
-    # smallest quantization loss.
-    assert decoded["aware"] > max(decoded["control"], decoded["plain"]) + 0.2
+    # Measured (float / decoded dB) on two machines with the same code: plain 52.38 / 43.54, control 54.61 / 43.24,
+    # aware 50.76 / 44.35; and (an AVX-512 CPU, session 12) plain 52.13 / 42.80, control 52.22 / 41.26, aware
+    # 48.91 / 42.72. What holds on both is what the method claims: the smallest quantization loss (float - decoded)
+    # by far, and a better decoded model than the control, which differs from it only by the quantization in the
+    # forward. Against plain training (other learning rates) the decoded ordering is chance on a scene this small
+    # (+0.81 dB on one machine, -0.08 on the other; with the kernels before issue #18's rewrite +4.5).
     loss = {k: floats[k] - decoded[k] for k in floats}
     assert loss["aware"] < min(loss["control"], loss["plain"]) - 1.0
+    assert decoded["aware"] > decoded["control"] + 0.5
 
 
 def test_the_window_is_the_run_s_last_iterations(scene, tmp_path):

@@ -39,9 +39,9 @@ def depth_order(depths: np.ndarray, radii: np.ndarray) -> np.ndarray:
     """Ids of the Gaussians binning can use (radii > 0), front to back; equal depths in id order.
 
     Culled Gaussians get no tile, so they are left out of the sort (in training most of a model is culled at any
-    one time). The projection culls every depth <= near plane > 0, so the rest are positive finite floats, whose
-    bit patterns sort as unsigned integers in the same order: numpy sorts those 2-3x faster than torch.argsort
-    sorts the floats (stable in both)."""
+    one time). The projection culls every depth at or below the near plane, which is positive, so the rest are
+    positive finite floats, whose bit patterns sort as unsigned integers in the same order: numpy sorts those 2-3x
+    faster than torch.argsort sorts the floats (stable in both)."""
     visible = np.flatnonzero((radii > 0).any(axis=1))
     keys = depths[visible]
     if keys.size and not keys.min() > 0:

@@ -5,7 +5,8 @@
 the official 30k-iteration scale and multiplied by ONE factor, `schedule_scale`, when the run starts
 (`resolve_schedule`). The `paper` preset is scale 1 with 30,000 iterations (the official STG schedule); the `cpu`
 preset shrinks the same schedule by 0.3 and trains 9,000 iterations, so a 2-core CPU finishes a 320x180 capture
-in about 20 minutes and a 640x360 one in about an hour. Operational counters (logging, checkpointing, `stop_after`) are in real iterations and are not scaled.
+in about 20 minutes and a 640x360 one in about an hour. Operational counters (logging, checkpointing,
+`stop_after`) are in real iterations and are not scaled.
 """
 
 from __future__ import annotations
