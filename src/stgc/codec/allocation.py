@@ -73,8 +73,8 @@ _MAX_COARSER_BITS = 4.0  # a component's step is at most 16x its group's finest
 # and widens it at most 4x a round while the measured loss stays far below it).
 _NEGLIGIBLE = 1e-3
 _HOPELESS = 16.0
-# Views the table's trials render (of the sampled ones; measured on a trained blender_toys model, q3: 8 of 16 views
-# gave a file 0.3 % smaller at -0.008 dB on the test view, 4 of 16 1.6 % smaller at -0.010 dB).
+# Views the table's trials render (of the sampled ones). Measured against all 16 on two trained blender_toys models
+# at q3: files within 1.3 % (one smaller, one larger), test PSNR -0.003 and -0.007 dB (benchmarks/RESULTS.md).
 _TABLE_VIEWS = 8
 
 
@@ -263,7 +263,8 @@ def optimise_allocation(
     candidates = {t: ([fixed[t]] if t in fixed else candidate_bits(t)) for t in tags}
     shaped = [t for t in shapeable_groups(variant) if t not in fixed]
     shapes: dict[str, list[float]] = {}
-    # Progress counts encode/decode/render trials: probes and table, then one per rate-control round (grows it).
+    # Progress counts encode/decode/render trials: probes and table (an upper bound: the sweep stops early; the
+    # total is corrected once the table is done), then one per rate-control round (grows it).
     width = {t: len(GROUP_BY_TAG[t.encode("latin-1")].fields(variant)) for t in tags}
     planned = 1 + sum(width[t] for t in shaped) + sum(len(c) for c in candidates.values()) + 1
     done = 0
@@ -355,6 +356,7 @@ def optimise_allocation(
         monotone.reverse()
         table[tag] = monotone if tag in fixed else with_fractional_depths(monotone)
 
+    planned = done + 1  # the table is done: what is left is rate control, at least one round
     # Rate control: the sum of per-group errors only approximates the joint error (in practice it over-estimates
     # it), so the knapsack budget is searched (geometric bisection) for the cheapest allocation whose *measured*
     # loss on the views stays within the budget.

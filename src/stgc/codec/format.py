@@ -447,7 +447,8 @@ class QuantizationMemo:
     """What the encoder's quantization gave each attribute group of ONE model's arrays under given settings, kept
     so that calls that differ in a few groups' settings only redo those groups (the rd allocation's trials change
     one group at a time, `stgc.codec.allocation`). Results are the same with or without it. Pass a memo only with
-    the arrays it was made for (checked by identity); it keeps the most recently used CAPACITY results."""
+    the arrays it was made for (checked by identity), and do not change those arrays while the memo lives (their
+    contents are not checked); it keeps the most recently used CAPACITY results."""
 
     CAPACITY = 64  # one trial's settings use about 25 results
 
