@@ -10,7 +10,7 @@ from stgc.cli import build_parser, main
 from stgc.config import iter_fields
 from stgc.options import default_configs, resolve_configs
 
-VERBS = ["train", "eval", "render", "compress", "decompress", "plot", "experiment", "report", "demo"]
+VERBS = ["train", "finetune", "eval", "render", "compress", "decompress", "plot", "experiment", "report", "demo"]
 
 
 @pytest.mark.parametrize("verb", VERBS)

@@ -129,6 +129,22 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_finetune(args: argparse.Namespace) -> int:
+    from stgc.train.continuation import start_continuation
+
+    out = Path(args.out)
+    configs = start_continuation(args.run, out, args.iterations, parse_set_arguments(args.set),
+                                 overwrite=args.overwrite, data_path=args.data)
+    dataset = configs["data"].open(configs["data_path"])
+    train(dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=True,
+          evaluator=RunEvaluator())
+    print(f"run written to {out} ({args.run} + {args.iterations} iterations)")
+    record = Run(out).read_eval()
+    if record is not None:
+        print(format_eval_table(record))
+    return 0
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     record = evaluate_run(args.target, data_path=args.data, measure_fps=not args.no_fps)
     if args.json:
@@ -282,6 +298,21 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
 
     _add_train_parser(sub)
+
+    p = sub.add_parser(
+        "finetune",
+        help="continue a finished run into a new run with changed train.* options (rate-aware fine-tuning)",
+        description="Start NEW from RUN's last checkpoint and train ITERATIONS more with RUN's configuration, "
+        "changed by --set train.KEY=VALUE (e.g. train.quantization_aware.iterations=1000, "
+        "train.quantization_aware.rate_weight=0.001). RUN stays as it is; NEW resumes like any run.",
+    )
+    p.add_argument("run", help="a finished run directory")
+    p.add_argument("--out", required=True, help="the new run directory")
+    p.add_argument("--iterations", type=int, required=True, help="iterations to train beyond RUN's")
+    p.add_argument("--data", help="dataset directory (default: the one recorded in RUN)")
+    p.add_argument("--overwrite", action="store_true", help="replace a run already in NEW")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="change a train.* option")
+    p.set_defaults(func=cmd_finetune)
 
     p = sub.add_parser("eval", help="evaluate a run or a .stgc file on the test views")
     p.add_argument("target", help="run directory or .stgc file (single or whole-video)")

@@ -31,6 +31,7 @@ RUN_FILES = (
     "compaction.png",
     "seams.png",
     "video.json",
+    "continued_from.json",
 )
 RUN_FOLDERS = ("point_cloud", "tensorboard")
 # A whole-video run (`stgc train --segment-frames N`) holds one complete run per segment in RUN/segment_<k>/.
@@ -82,6 +83,7 @@ class Run:
         RUN/metrics.jsonl, compaction.jsonl  training logs
         RUN/checkpoint.pt                    the latest training checkpoint (resume)
         RUN/train_summary.json               iterations, wall seconds, finished
+        RUN/continued_from.json              the run a fine-tuning started from (stgc finetune)
         RUN/point_cloud/iteration_<N>/       saved models (official layout); the largest N is the run's model
         RUN/eval.json, eval_per_view.csv     the evaluation on the run's own test views
         RUN/eval_on_<data>.json              an evaluation on other data (never replaces the run's own)
@@ -98,6 +100,7 @@ class Run:
     EXPERIMENT = "experiment.json"
     VIDEO = "video.json"
     TASK_LOG = "task.log"
+    CONTINUED_FROM = "continued_from.json"
 
     def __init__(self, path: str | Path):
         self.path = Path(path)

@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from stgc.eval.bjontegaard import bd_psnr, bd_rate
-from stgc.eval.report import ReportRow, make_report, report_from_runs
+from stgc.eval.report import ReportRow, make_report, rate_points, report_from_runs
 
 TABLE2 = [
     ("Trained model", "STG", 433_936, 62.9, 527.68, 35.58),
@@ -30,8 +30,9 @@ def _table2_rows() -> list[ReportRow]:
 def test_table2_report_files(tmp_path: Path) -> None:
     report = make_report(_table2_rows(), tmp_path, baseline="STG", title="Table 2 (paper numbers)")
     md = report.markdown.read_text()
-    assert "| STG | Trained model | 433,936 | 62.90 | 527.68 | 35.58 |" in md
-    assert "|  | Case 4 | 124,224 | 18.01 | 151.07 | 34.26 |" in md
+    assert "| STG | Trained model | rp02 | 433,936 | 62.90 | 527.68 | 35.58 |" in md
+    assert "|  | Case 4 | rp01 | 124,224 | 18.01 | 151.07 | 34.26 |" in md
+    assert "YUV-PSNR" not in md  # none of the rows has it
     # Change vs the baseline's highest-rate point: Case 4 is -71.4 % rate at -1.32 dB (the paper's 3.5x).
     assert "-71.4 %" in md and "-1.32" in md
     with Image.open(report.plot_png) as im:
@@ -116,3 +117,18 @@ def test_rate_axis_turns_logarithmic_when_the_rates_span_more_than_ten_times(tmp
     assert not rate_axis_is_log(close + [ReportRow(name="d", family="codec", mbps=0.5, psnr=None)])
     report = make_report(wide, tmp_path / "r")
     assert report.plot_png is not None and report.plot_png.stat().st_size > 0
+
+
+def test_rate_points_name_four_points_per_curve_spread_over_log_rate(tmp_path):
+    """MPEG's rp01..rp04, rp01 the lowest rate: a curve of four or fewer points names them all in rate order; a
+    longer one its lowest, its highest and the points nearest 1/3 and 2/3 of the way in log rate."""
+    rates = [0.1, 0.12, 0.2, 0.45, 0.5, 1.0, 2.2, 10.0]  # log10: -1 ... 1; thirds at 10^(-1/3) and 10^(1/3)
+    curve = [ReportRow(f"lambda {k}", "rate-aware", m, 30 + k) for k, m in enumerate(reversed(rates))]
+    short = [ReportRow(f"q{k}", "codec", m, 28 + k) for k, m in enumerate([3.0, 1.0, 2.0])]
+    names = rate_points(curve + short)
+    assert {r.mbps: names[id(r)] for r in curve if id(r) in names} == {0.1: "rp01", 0.45: "rp02", 2.2: "rp03",
+                                                                        10.0: "rp04"}
+    assert [names[id(r)] for r in short] == ["rp03", "rp01", "rp02"]
+    rows = [ReportRow("a", "A", 1.0, 30.0, extra={"psnr_yuv": 33.25}), ReportRow("b", "A", 2.0, 31.0)]
+    md = make_report(rows, tmp_path, baseline="A").markdown.read_text()
+    assert "| A | a | rp01 | – | – | 1.00 | 30.00 | 33.25 |" in md and "|  | b | rp02 | – | – | 2.00 | 31.00 | – |" in md

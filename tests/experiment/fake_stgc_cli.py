@@ -3,7 +3,7 @@
 train: config.json, checkpoint.pt, train_summary.json (finished) and eval.json whose PSNR/rate depend on
 compaction.case. `--set fake.fail=1` exits 3; `--set fake.no_eval=1` leaves eval.json to the eval verb;
 `--set fake.sleep=S` trains for S seconds after its first checkpoint (a kill can land mid-run). `--resume` continues
-with the options of the run's config.json.
+with the options of the run's config.json. finetune: the source's files, its evaluation 0.1 dB lower at half the rate.
 Every call is appended to <run parent>/invocations.txt so tests can count launches."""
 
 from __future__ import annotations
@@ -54,6 +54,22 @@ def main(argv: list[str]) -> int:
                                                             "iterations": 10}))
         if sets.get("fake.no_eval") != "1":
             (out / "eval.json").write_text(json.dumps(_eval_record(case, preprocess)))
+        return 0
+    if verb == "finetune":
+        # A continuation of a finished run: refuses an unfinished source, as `stgc finetune` does; its evaluation
+        # is the source's less 0.1 dB at half the rate.
+        source, out = Path(argv[1]), Path(argv[argv.index("--out") + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        _record(out, argv)
+        if not json.loads((source / "train_summary.json").read_text()).get("finished"):
+            return 2
+        config = json.loads((source / "config.json").read_text())
+        (out / "config.json").write_text(json.dumps({**config, "from": str(source)}))
+        (out / "checkpoint.pt").write_bytes(b"fake")
+        (out / "train_summary.json").write_text(json.dumps({"finished": True, "wall_seconds": 0.5, "iterations": 20}))
+        record = json.loads((source / "eval.json").read_text())
+        record |= {"psnr": record["psnr"] - 0.1, "mbps": record["mbps"] / 2, "size_mb": record["size_mb"] / 2}
+        (out / "eval.json").write_text(json.dumps(record))
         return 0
     if verb == "eval":
         target = Path(argv[1])

@@ -236,3 +236,75 @@ def test_plan_options_are_checked_before_the_first_run(tmp_path: Path) -> None:
         run_plan("DATA", plan_path, tmp_path / "out", runner=lambda cmd, log: calls.append(cmd) or 0,
                  make_report_files=False, log=lambda m: None)
     assert calls == []  # not even the good run started
+
+
+FINETUNE_TOML = """
+name = "rate"
+baseline = "STG"
+[[runs]]
+name = "stg"
+family = "STG"
+overrides = { "compaction.method" = "none", "data.preprocess" = "none" }
+[[runs]]
+name = "rate-a"
+family = "rate-aware"
+from = "stg"
+iterations = 100
+overrides = { "train.quantization_aware.iterations" = 100, "train.quantization_aware.rate_weight" = 0.001 }
+[[runs]]
+name = "rate-b"
+family = "rate-aware"
+from = "rate-a"
+iterations = 50
+overrides = { "train.quantization_aware.iterations" = 50, "train.quantization_aware.rate_weight" = 0.01 }
+codec_qualities = [2]
+"""
+
+
+def test_fine_tuning_runs_start_from_their_finished_source(tmp_path: Path) -> None:
+    plan_path = tmp_path / "rate.toml"
+    plan_path.write_text(FINETUNE_TOML)
+    out = tmp_path / "exp"
+    result = run_plan("DATA", plan_path, out, preset="cpu", extra_overrides=["train.threads=1"], runner=fake_runner,
+                      codec_qualities=[1, 3], python=sys.executable, log=lambda m: None)
+    assert [o.name for o in result.outcomes] == ["stg", "stg-q1", "stg-q3", "rate-a", "rate-a-q1", "rate-a-q3",
+                                                 "rate-b", "rate-b-q2"]  # rate-b names its own codec quality
+    assert {o.status for o in result.outcomes} == {"finished"}
+    calls = [c for c in _invocations(out) if not c.startswith(("compress", "eval"))]
+    assert [c.split()[0] for c in calls] == ["train", "finetune", "finetune"]  # each after its source
+    assert calls[1].startswith(f"finetune {out / 'stg'} --out {out / 'rate-a'} --iterations 100 --overwrite")
+    assert "train.quantization_aware.rate_weight=0.001" in calls[1] and "train.threads" not in calls[1]
+    assert calls[2].startswith(f"finetune {out / 'rate-a'} --out {out / 'rate-b'} --iterations 50")
+    # The checked options are the source's with the run's own on top (train.threads came from --set).
+    rows = {r["name"]: r for r in _results(out, "rate")}
+    assert "train.threads=1" in rows["rate-b"]["overrides"] and "rate_weight=0.01" in rows["rate-b"]["overrides"]
+    assert float(rows["rate-b"]["psnr"]) == pytest.approx(float(rows["stg"]["psnr"]) - 0.2)
+    assert rows["rate-b"]["rate_point"] == "rp01" and rows["rate-a"]["rate_point"] == "rp02"
+    again = run_plan("DATA", plan_path, out, preset="cpu", extra_overrides=["train.threads=1"], runner=fake_runner,
+                     python=sys.executable, log=lambda m: None)
+    assert {o.status for o in again.outcomes} == {"skipped"} and len(_invocations(out)) == 3 + 2 * 5
+
+
+def test_a_failed_source_fails_its_fine_tuning_runs_without_launching_them(tmp_path: Path) -> None:
+    plan_path = tmp_path / "rate.toml"
+    plan_path.write_text(FINETUNE_TOML.replace('"data.preprocess" = "none" }', '"data.preprocess" = "none", "fake.fail" = "1" }', 1))
+    out = tmp_path / "exp"
+    result = run_plan("DATA", plan_path, out, runner=fake_runner, check_options=False, python=sys.executable,
+                      log=lambda m: None)
+    assert [o.status for o in result.outcomes] == ["failed"] * 3
+    assert "source run 'stg' failed" in result.outcomes[1].message
+    assert [c.split()[0] for c in _invocations(out)] == ["train"]
+
+
+@pytest.mark.parametrize("run, problem", [
+    ('name = "x"\nfrom = "later"\niterations = 5', "must name a run listed before it"),
+    ('name = "x"\nfrom = "stg"', "needs iterations = N >= 1"),
+    ('name = "x"\nfrom = "stg"\niterations = 5\noverrides = { "data.downscale" = 2 }', "train.* options only"),
+    ('name = "x"\niterations = 5', "counts the fine-tuning of a 'from' run"),
+    ('name = "x"\ncodec_qualities = [0]', "codec_qualities must be a list"),
+])
+def test_fine_tuning_runs_in_a_plan_are_checked(tmp_path: Path, run: str, problem: str) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text(f'[[runs]]\nname = "stg"\n[[runs]]\n{run}\n[[runs]]\nname = "later"\n')
+    with pytest.raises(FormatError, match=problem):
+        load_plan_toml(bad)

@@ -543,6 +543,42 @@ def _quantized_groups(cols: dict[str, np.ndarray], n: int, variant: str, quality
                                                                   dequantize(scale[0], scale_q[0])))
 
 
+@dataclass(frozen=True)
+class QuantizedGroup:
+    """One attribute group as the encoder quantizes it: codes [C, N] in the input's order (the stored layout, its
+    Morton reordering and entropy coding aside), the quantizers that map them back, and, for TIME_SPAN groups,
+    the per-Gaussian span the values were scaled by."""
+
+    group: AttributeGroup
+    bits: int
+    quantizers: tuple[Quantizer, ...]
+    codes: np.ndarray
+    span: np.ndarray
+
+    @property
+    def tag(self) -> str:
+        return self.group.tag.decode("latin-1")
+
+
+def quantized_groups(
+    arrays: Mapping[str, np.ndarray],
+    variant: str,
+    quality: int = DEFAULT_QUALITY,
+    *,
+    position_bits: int | None = None,
+    group_bits: Mapping[str, int] | None = None,
+    step_scales: Mapping[str, Sequence[float]] | None = None,
+    outlier_guard: bool = True,
+    memo: QuantizationMemo | None = None,
+) -> list[QuantizedGroup]:
+    """Every attribute group's codes as `encode` quantizes them (same options), in GROUPS order: what a rate
+    estimate measures (stgc.codec.rate). Positions come first; their codes define the stored Morton order."""
+    n, cols = _encoder_columns(arrays, variant, quality, group_bits, step_scales, memo)
+    return [QuantizedGroup(group, bits, quantizers, codes, span)
+            for group, bits, quantizers, codes, span, _ in _quantized_groups(
+                cols, n, variant, quality, position_bits, group_bits, step_scales, outlier_guard, memo)]
+
+
 def simulate_quantization(
     arrays: Mapping[str, np.ndarray],
     variant: str,

@@ -104,6 +104,27 @@ def _curve(rows: Sequence[ReportRow]) -> list[ReportRow]:
                   key=lambda r: r.mbps)  # type: ignore[arg-type, return-value]
 
 
+RATE_POINTS = 4  # rp01..rp04, as the MPEG Gaussian-splat-coding test conditions name a curve's points
+
+
+def rate_points(rows: Sequence[ReportRow]) -> dict[int, str]:
+    """{id(row): "rp01".."rp04"} for each curve's points from its lowest rate up (MPEG's numbering: rp01 is the
+    lowest rate). A curve with more than four points names four of them, spread evenly over its log rate: the
+    lowest, the highest, and the points nearest one and two thirds of the way between."""
+    names: dict[int, str] = {}
+    for members in _families(rows).values():
+        curve = _curve(members)
+        if len(curve) > RATE_POINTS:
+            logs = np.log([float(r.mbps) for r in curve])  # type: ignore[arg-type]
+            picked: list[int] = []
+            for target in np.linspace(logs[0], logs[-1], RATE_POINTS):
+                free = [i for i in range(len(curve)) if i not in picked]
+                picked.append(min(free, key=lambda i: abs(logs[i] - target)))
+            curve = [curve[i] for i in sorted(picked)]
+        names.update({id(r): f"rp{k + 1:02d}" for k, r in enumerate(curve)})
+    return names
+
+
 def resolve_baseline(rows: Sequence[ReportRow], baseline: str | None) -> str | None:
     """The baseline family: `baseline` may name a family or a row (run); default: the first row's family."""
     if not rows:
@@ -158,18 +179,25 @@ def markdown_table(rows: Sequence[ReportRow], baseline: str | None, bd: Sequence
     """The paper's Table 2 layout: method | setting | # Gaussians | size (MB) | Mbps | PSNR (dB) | SSIM,
     then change against the baseline's highest-rate point, then the BD deltas."""
     show_lpips = any(r.lpips is not None for r in rows)
+    show_yuv = any(_num(r.extra.get("psnr_yuv")) is not None for r in rows)
+    points = rate_points(rows)
     ref = _curve(_families(rows).get(baseline, []))[-1:] if baseline else []
     ref_row = ref[0] if ref else None
-    head = ["Method", "Setting", "# Gaussians", "Size (MB)", "Mbps", "PSNR (dB)", "SSIM"]
+    head = ["Method", "Setting", "RP", "# Gaussians", "Size (MB)", "Mbps", "PSNR (dB)"]
+    head += ["YUV-PSNR (dB)"] if show_yuv else []
+    head += ["SSIM"]
     head += ["LPIPS"] if show_lpips else []
     head += ["Rate vs ref.", "ΔPSNR vs ref. (dB)"] if ref_row else []
     lines = [f"## {title}", "", "| " + " | ".join(head) + " |",
              "|" + "|".join(["---", "---"] + ["---:"] * (len(head) - 2)) + "|"]
     for family, members in _families(rows).items():
         for i, r in enumerate(members):
-            cells = [family if i == 0 else "", r.name,
+            cells = [family if i == 0 else "", r.name, points.get(id(r), ""),
                      "–" if r.num_gaussians is None else f"{r.num_gaussians:,}",
-                     _f(r.size_mb, ".2f"), _f(r.mbps, ".2f"), _f(r.psnr, ".2f"), _f(r.ssim, ".4f")]
+                     _f(r.size_mb, ".2f"), _f(r.mbps, ".2f"), _f(r.psnr, ".2f")]
+            if show_yuv:
+                cells.append(_f(_num(r.extra.get("psnr_yuv")), ".2f"))
+            cells.append(_f(r.ssim, ".4f"))
             if show_lpips:
                 cells.append(_f(r.lpips, ".4f"))
             if ref_row:
@@ -178,6 +206,11 @@ def markdown_table(rows: Sequence[ReportRow], baseline: str | None, bd: Sequence
                 cells.append("–" if r.psnr is None or ref_row.psnr is None else f"{r.psnr - ref_row.psnr:+.2f}")
             lines.append("| " + " | ".join(cells) + " |")
     lines += ["", SIZE_NOTE]
+    if points:
+        lines.append("RP: the curve's rate points rp01 (lowest rate) to rp04, as MPEG's Gaussian-splat-coding test "
+                     "conditions name them; a curve of more than four points names four spread over its log rate.")
+    if show_yuv:
+        lines.append("YUV-PSNR: BT.709 YUV 4:2:0, (6 Y + U + V) / 8, as MPEG video coding reports quality.")
     if ref_row:
         lines.append(f"Reference for the last two columns: {ref_row.family} / {ref_row.name}.")
     if bd:
@@ -275,8 +308,10 @@ def _write_report(rows: list[ReportRow], out_dir: Path, baseline: str | None, ti
         for note in notes:
             f.write(f"\n{note}\n")
     json_path = out_dir / f"{stem}.json"
+    points = rate_points(rows)
     write_json(json_path, {"title": title, "baseline": base, "bd_method": bd_method, "size_note": SIZE_NOTE,
-                           "rows": [asdict(r) for r in rows], "bd": [asdict(b) for b in bd]})
+                           "rows": [asdict(r) | ({"rate_point": points[id(r)]} if id(r) in points else {})
+                                    for r in rows], "bd": [asdict(b) for b in bd]})
     return Report(out_dir, md, png, svg, json_path, rows, bd, base)
 
 
@@ -326,7 +361,7 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
     return rows
 
 
-RECORD_FIELDS = ("num_gaussians", "size_mb", "mbps", "psnr", "ssim", "lpips", "fps", "train_seconds")
+RECORD_FIELDS = ("num_gaussians", "size_mb", "mbps", "psnr", "psnr_yuv", "ssim", "lpips", "fps", "train_seconds")
 
 
 def record_fields(record: Mapping[str, Any]) -> dict[str, Any]:

@@ -15,6 +15,12 @@ PLAN.toml:
     label = "no preprocessing" # optional, default: the name
     overrides = { "data.preprocess" = "none", "compaction.method" = "none" }
     # or: overrides = ["data.preprocess=none", "compaction.method=none"]
+    [[runs]]
+    name = "stg-rate-1e-3"
+    from = "stg"               # fine-tune that (earlier) run's finished model instead of training from scratch
+    iterations = 1000          # ... for this many more iterations (stgc finetune); overrides: train.* only
+    overrides = { "train.quantization_aware.iterations" = 1000, "train.quantization_aware.rate_weight" = 1e-3 }
+    codec_qualities = [2]      # this run's .stgc rate points (default: the experiment's --codec-quality)
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from stgc.codec.format import QUALITY_LEVELS
 from stgc.errors import DataError, FormatError
 
 PAPER_PREPROCESS = "stg-isolated"
@@ -39,6 +46,9 @@ class RunSpec:
     overrides: dict[str, str]
     family: str
     label: str
+    source: str | None = None  # a run of the same plan whose finished model this one fine-tunes (stgc finetune)
+    iterations: int = 0  # with `source`: the iterations trained beyond it
+    codec_qualities: tuple[int, ...] | None = None  # this run's .stgc rate points (default: the experiment's)
 
 
 @dataclass(frozen=True)
@@ -139,7 +149,27 @@ def load_plan_toml(path: str | Path) -> Plan:
             overrides = _overrides(r.get("overrides"), path, name)
         except TypeError:
             raise FormatError(path, f"run {name!r}: override values must be scalars") from None
-        runs.append(RunSpec(name, overrides, str(r.get("family", name)), str(r.get("label", name))))
+        source, iterations = r.get("from"), r.get("iterations")
+        if source is not None:
+            if source not in seen - {name}:
+                raise FormatError(path, f"run {name!r}: from = {source!r} must name a run listed before it")
+            if not isinstance(iterations, int) or isinstance(iterations, bool) or iterations < 1:
+                raise FormatError(path, f"run {name!r}: a run with 'from' needs iterations = N >= 1 (how many more)")
+            others = sorted(k for k in overrides if not k.startswith("train."))
+            if others:
+                raise FormatError(path, f"run {name!r}: {', '.join(others)}: a fine-tuning run changes train.* "
+                                        f"options only (it keeps {source!r}'s data, model and compaction)")
+        elif iterations is not None:
+            raise FormatError(path, f"run {name!r}: 'iterations' counts the fine-tuning of a 'from' run; set the "
+                                    "training length of a run of its own with train.iterations")
+        qualities = r.get("codec_qualities")
+        if qualities is not None and (not isinstance(qualities, list) or not all(
+                isinstance(q, int) and not isinstance(q, bool) and q in QUALITY_LEVELS for q in qualities)):
+            raise FormatError(path, f"run {name!r}: codec_qualities must be a list of codec qualities "
+                                    f"({', '.join(map(str, QUALITY_LEVELS))})")
+        runs.append(RunSpec(name, overrides, str(r.get("family", name)), str(r.get("label", name)),
+                            None if source is None else str(source), int(iterations or 0),
+                            None if qualities is None else tuple(qualities)))
     baseline = data.get("baseline")
     plan_name = str(data.get("name", path.stem))
     if not _NAME.match(plan_name):  # it names OUT/results-<plan>.csv and OUT/report-<plan>/

@@ -35,7 +35,7 @@ from typing import Any
 from stgc.config import ConfigError
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.errors import FormatError
-from stgc.eval.report import Report, ReportRow, make_report, record_fields
+from stgc.eval.report import Report, ReportRow, make_report, rate_points, record_fields
 from stgc.experiment.plans import Plan, RunSpec, load_plan
 from stgc.fileio import atomic_open, read_json_object, write_json
 from stgc.options import resolve_configs
@@ -43,8 +43,8 @@ from stgc.run import Run
 
 _log = logging.getLogger(__name__)
 
-RESULT_COLUMNS = ("plan", "name", "family", "label", "status", "num_gaussians", "size_mb", "mbps", "psnr", "ssim",
-                  "lpips", "fps", "train_seconds", "overrides", "run_dir")
+RESULT_COLUMNS = ("plan", "name", "family", "label", "status", "rate_point", "num_gaussians", "size_mb", "mbps", "psnr",
+                  "psnr_yuv", "ssim", "lpips", "fps", "train_seconds", "overrides", "run_dir")
 CLI_MODULE = "stgc.cli"
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
@@ -77,14 +77,51 @@ def build_train_command(
     return cmd
 
 
+def build_finetune_command(source_dir: str | Path, run_dir: str | Path, iterations: int,
+                           overrides: Mapping[str, str], *, python: str = sys.executable) -> list[str]:
+    """`python -m stgc.cli finetune SOURCE --out RUN --iterations N --overwrite --set key=value ...` (a fine-tuning
+    run resumes with build_train_command(..., resume=True) like any other)."""
+    cmd = [python, "-m", CLI_MODULE, "finetune", str(source_dir), "--out", str(run_dir), "--iterations",
+           str(iterations), "--overwrite"]
+    for key, value in overrides.items():
+        cmd += ["--set", f"{key}={value}"]
+    return cmd
+
+
+def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str]) -> dict[str, str]:
+    """The options that make `spec`'s run: its own over the plan's and --set's; a fine-tuning run's start from
+    its source's (which it inherits) and change only train.* ones (its own)."""
+    if spec.source is None:
+        return {**spec.overrides, **extra}
+    source = next(s for s in plan.runs if s.name == spec.source)
+    return {**run_overrides(plan, source, extra), **spec.overrides}
+
+
 def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str]) -> None:
     """Resolve and validate every run's options before the first training starts: a typo in the plan's last run
     must not surface hours later. Raises ConfigError naming the run."""
     for spec in plan.runs:
         try:
-            resolve_configs(preset or "cpu", {}, {}, {**spec.overrides, **extra})
+            resolve_configs(preset or "cpu", {}, {}, run_overrides(plan, spec, extra))
         except ConfigError as exc:
             raise ConfigError(f"plan {plan.name!r}, run {spec.name!r}: {exc}") from None
+
+
+def _failed(outcomes: Sequence[RunOutcome]) -> bool:
+    """Whether a run's training or evaluation failed (its first outcome; codec points come after it)."""
+    return bool(outcomes) and outcomes[0].status == "failed"
+
+
+def _waves(plan: Plan) -> list[list[int]]:
+    """The plan's run indices in waves: runs trained from scratch first, then each fine-tuning run in the wave
+    after its source's (a source is always listed before the runs that start from it)."""
+    depth: dict[str, int] = {}
+    for spec in plan.runs:
+        depth[spec.name] = 0 if spec.source is None else depth[spec.source] + 1
+    waves: list[list[int]] = [[] for _ in range(max(depth.values(), default=0) + 1)]
+    for index, spec in enumerate(plan.runs):
+        waves[depth[spec.name]].append(index)
+    return waves
 
 
 def build_eval_command(target: str | Path, *, python: str = sys.executable) -> list[str]:
@@ -198,21 +235,26 @@ def _result_row(plan: Plan, o: RunOutcome, out_dir: Path) -> dict[str, Any]:
 
 
 def write_results(path: Path, plan: Plan, outcomes: Sequence[RunOutcome], out_dir: Path) -> None:
+    reported = _reported(outcomes)
+    points = rate_points(list(reported.values()))
     with atomic_open(path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=RESULT_COLUMNS)
         writer.writeheader()
         for o in outcomes:
-            writer.writerow({k: ("" if v is None else v) for k, v in _result_row(plan, o, out_dir).items()})
+            row = _result_row(plan, o, out_dir)
+            row["rate_point"] = points.get(id(reported[id(o)])) if id(o) in reported else None
+            writer.writerow({k: ("" if row.get(k) is None else row[k]) for k in RESULT_COLUMNS})
+
+
+def _reported(outcomes: Sequence[RunOutcome]) -> dict[int, ReportRow]:
+    """{id(outcome): its report row} of the outcomes that have a result to report."""
+    return {id(o): ReportRow.from_mapping({**record_fields(o.record), "name": o.label, "family": o.family,
+                                           "run": o.name})
+            for o in outcomes if o.record is not None and o.status not in ("failed", "dry-run")}
 
 
 def _report_rows(outcomes: Sequence[RunOutcome]) -> list[ReportRow]:
-    rows = []
-    for o in outcomes:
-        if o.record is None or o.status in ("failed", "dry-run"):
-            continue
-        rows.append(ReportRow.from_mapping({**record_fields(o.record), "name": o.label, "family": o.family,
-                                            "run": o.name}))
-    return rows
+    return list(_reported(outcomes).values())
 
 
 def run_plan(
@@ -256,29 +298,43 @@ def run_plan(
         check_plan_options(plan, preset, extra)
 
     per_spec: list[list[RunOutcome]] = [[] for _ in plan.runs]
-    tasks = []
-    for index, spec in enumerate(plan.runs):
-        run_dir = out_dir / spec.name
-        overrides = {**spec.overrides, **extra}
-        if dry_run:
-            outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
-            if not run_is_finished(run_dir):
-                outcome.status = "dry-run"
-                outcome.message = " ".join(command_builder(data_path, run_dir, preset, overrides, python=python))
-            per_spec[index] = [outcome]
-            continue
-        tasks.append(Task(name=spec.name, function=run_spec,
-                          args=(spec, run_dir, data_path, preset, overrides, qualities, runner, command_builder,
-                                python, out_dir / "logs" / f"{spec.name}.log", say),
-                          num_cpus=_run_cpus(preset, overrides), progress=Run(run_dir).progress,
-                          log_file=Run(run_dir).task_log_path))
+    index_of = {spec.name: index for index, spec in enumerate(plan.runs)}
+    for wave in _waves(plan):  # a fine-tuning run starts once its source has finished
+        tasks, indices = [], []
+        for index in wave:
+            spec = plan.runs[index]
+            run_dir = out_dir / spec.name
+            overrides = run_overrides(plan, spec, extra)
+            if dry_run:
+                outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
+                if not run_is_finished(run_dir):
+                    outcome.status = "dry-run"
+                    outcome.message = " ".join(
+                        command_builder(data_path, run_dir, preset, overrides, python=python) if spec.source is None
+                        else build_finetune_command(out_dir / spec.source, run_dir, spec.iterations, spec.overrides,
+                                                    python=python))
+                per_spec[index] = [outcome]
+                continue
+            if spec.source is not None and _failed(per_spec[index_of[spec.source]]):
+                per_spec[index] = [RunOutcome(spec.name, spec.family, spec.label, "failed", run_dir, overrides,
+                                              message=f"its source run {spec.source!r} failed")]
+                continue
+            tasks.append(Task(name=spec.name, function=run_spec,
+                              args=(spec, run_dir, data_path, preset, overrides,
+                                    qualities if spec.codec_qualities is None else list(spec.codec_qualities),
+                                    runner, command_builder,
+                                    python, out_dir / "logs" / f"{spec.name}.log", say),
+                              num_cpus=_run_cpus(preset, overrides), progress=Run(run_dir).progress,
+                              log_file=Run(run_dir).task_log_path))
+            indices.append(index)
 
-    def finished(task_index: int, outcomes: list[RunOutcome]) -> None:  # tasks are the plan's runs, in order
-        per_spec[task_index] = outcomes
-        result.outcomes = [o for group in per_spec for o in group]
-        write_results(results_csv, plan, result.outcomes, out_dir)  # after every run: a kill keeps what is done
+        def finished(task_index: int, outcomes: list[RunOutcome], indices: list[int] = indices) -> None:
+            per_spec[indices[task_index]] = outcomes
+            result.outcomes = [o for group in per_spec for o in group]
+            write_results(results_csv, plan, result.outcomes, out_dir)  # after every run: a kill keeps what is done
 
-    run_tasks(tasks, use_ray=use_ray, address=ray_address, on_done=finished)
+        if tasks:
+            run_tasks(tasks, use_ray=use_ray, address=ray_address, on_done=finished)
     result.outcomes = [o for group in per_spec for o in group]
     write_results(results_csv, plan, result.outcomes, out_dir)
 
@@ -327,7 +383,11 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
     run = Run(run_dir)
     if not run.training_finished():
         resume = run.checkpoint_path.is_file() and run.has_config()
-        cmd = command_builder(data_path, run_dir, preset, overrides, resume=resume, python=python)
+        if spec.source is not None and not resume:
+            cmd = build_finetune_command(run_dir.parent / spec.source, run_dir, spec.iterations, spec.overrides,
+                                         python=python)
+        else:
+            cmd = command_builder(data_path, run_dir, preset, overrides, resume=resume, python=python)
         say(f"[{spec.name}] {'resuming' if resume else 'training'} (log: {log_path})")
         code = runner(cmd, log_path)
         if code != 0:

@@ -204,6 +204,10 @@ class QuantizationAwareConfig:
         "help": "every learning rate is multiplied by this inside the window: the straight-through gradient only "
                 "points the way, and a parameter that moves by a quantization step per iteration jumps between "
                 "levels instead of settling (measured on a small scene: 0.01 beats 0.1 and 1)"})
+    rate_weight: float = field(default=0.0, metadata={
+        "help": "lambda of the rate term: the loss adds lambda x the estimated bits per Gaussian of the quantized "
+                "attributes (their order-0 entropy under the model's own code histograms, stgc.codec.rate), so "
+                "training trades distortion for rate; each lambda is one point of an RD curve; 0 = no rate term"})
     simulate: bool = field(default=True, metadata={
         "help": "render through the codec's quantization in the window; false keeps only the window's lower "
                 "learning rates (the control that separates what the quantization teaches from what annealing does)"})
@@ -211,6 +215,10 @@ class QuantizationAwareConfig:
     def validate(self, prefix: str = "") -> None:
         check(self.iterations >= 0, f"{prefix}iterations", self.iterations, ">= 0 (0 = off)")
         check(math.isfinite(self.lr_scale) and 0 < self.lr_scale <= 1, f"{prefix}lr_scale", self.lr_scale, "in (0, 1]")
+        check(math.isfinite(self.rate_weight) and self.rate_weight >= 0, f"{prefix}rate_weight", self.rate_weight,
+              ">= 0 (0 = no rate term)")
+        check(self.rate_weight == 0 or self.simulate, f"{prefix}rate_weight", self.rate_weight,
+              "0 when simulate is false: the rate term measures the codec's quantization, which the control skips")
         check(self.quality in QUALITY_LEVELS, f"{prefix}quality", self.quality,
               f"one of {', '.join(map(str, QUALITY_LEVELS))} (the codec's levels)")
         check(self.allocation in ("optimised", "ladder"), f"{prefix}allocation", self.allocation,

@@ -353,7 +353,7 @@ class Trainer:
 
         total_loss, total_mse = 0.0, 0.0
         ems_view = None
-        seen = self.quantized_params(iteration)
+        seen, rate_bits = self.quantized_params(iteration)
         for k, cam in enumerate(views):
             gt = self.images.get(cam)
             with self.model.params_replaced(seen):
@@ -366,6 +366,8 @@ class Trainer:
             total_loss += float(loss.detach())
             total_mse += float(((rgb.detach().clamp(0, 1) - gt) ** 2).mean())
             self.density.observe(out, k, batch)
+        if rate_bits is not None:
+            (self.cfg.quantization_aware.rate_weight * rate_bits).backward()
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         if self.colour is not None:
@@ -376,13 +378,16 @@ class Trainer:
                 "lr_xyz": lr_xyz, "ems_view": ems_view}
         if seen is not None:
             step["quantized"] = True
+        if rate_bits is not None:
+            step["rate_bits"] = float(rate_bits.detach())
         return step
 
-    def quantized_params(self, iteration: int) -> dict[str, torch.Tensor] | None:
+    def quantized_params(self, iteration: int) -> tuple[dict[str, torch.Tensor] | None, torch.Tensor | None]:
         """In the rate-aware window (the run's last quantization_aware.iterations): the parameters as the codec
-        stores them, with straight-through gradients (stgc.train.quantization); else None (the float model)."""
+        stores them, with straight-through gradients, and the rate term's bits per Gaussian when it is on
+        (stgc.train.quantization); else (None, None): the float model."""
         if self.quantization is None or not self.in_quantization_window(iteration):
-            return None
+            return None, None
         if self.quantization.settings is None and self.cfg.quantization_aware.allocation == "optimised":
             log.info("rate-aware window: measuring the codec's bit allocation on the training views")
             self.quantization.prepare(self.model, self.dataset, None if self.colour is None else self.colour.as_dict())
@@ -480,6 +485,7 @@ class Trainer:
                         "num_gaussians": self.model.num_gaussians,
                         "lr_xyz": step["lr_xyz"],
                         **({"quantized": True} if step.get("quantized") else {}),
+                        **({"rate_bits": step["rate_bits"]} if "rate_bits" in step else {}),
                         "elapsed_s": round(elapsed, 3),
                         "it_per_s": (iteration - last_log_it) / max(now - last_log_time, 1e-9),
                         **control,

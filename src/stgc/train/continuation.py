@@ -1,0 +1,87 @@
+"""Fine-tuning a finished run into a new run: `stgc finetune RUN --out NEW --iterations N` (issue #17).
+
+Rate-aware fine-tuning, and every RD point of a lambda sweep, starts from one trained model rather than from
+scratch: NEW begins as RUN's last checkpoint (model, optimizer, colour correction, random streams) with RUN's
+configuration, its schedule extended by N iterations, and only `train.*` options changed (the data, the model and
+the finished compaction are what RUN was trained with; changing them would not describe what NEW holds). ST-KNN
+compaction is not re-opened: a compacted RUN stays as pruned as it is. The xyz learning rate decays over the new
+total, as if the run had been planned that long. NEW keeps RUN's metrics and compaction logs, so its curves show
+the whole history, and `continued_from.json` names RUN and the iteration NEW started at. NEW resumes like any run
+(`stgc train --out NEW --resume`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from stgc.config import ConfigError, apply_overrides, split_sections, validate_config
+from stgc.errors import StgcError
+from stgc.fileio import read_json_object, write_json
+from stgc.options import configs_from_run
+from stgc.run import Run, prepare_new_run
+from stgc.train.config import resolve_schedule
+from stgc.train.loop import run_config
+
+def continuation_configs(source: str | Path, iterations: int, overrides: Mapping[str, str] | None = None,
+                         ) -> dict[str, Any]:
+    """The configs (data, model, train, compaction, data_path) a continuation of `source` by `iterations` trains
+    with: `source`'s, train.iterations extended, `overrides` ({"train.x": value}) applied and validated, and the
+    compaction switched off. Raises StgcError/ConfigError naming the problem."""
+    source = Path(source)
+    run = Run(source)
+    if run.is_video():
+        raise StgcError(f"{source}: a whole video; fine-tune its segments one by one (RUN/segment_<k>)")
+    if not run.has_config() or not run.checkpoint_path.is_file():
+        raise StgcError(f"{source}: not a run with config.json and checkpoint.pt to continue from")
+    if not run.training_finished():
+        raise StgcError(f"{source}: its training is not finished; finish it first (stgc train --out {source} --resume)")
+    if iterations < 1:
+        raise ConfigError(f"iterations {iterations}: a continuation trains at least 1 more iteration")
+    sections = split_sections(dict(overrides or {}), {"data", "model", "train", "compaction"})
+    others = sorted(f"{section}.{key}" for section, values in sections.items() if section != "train" for key in values)
+    if others:
+        raise ConfigError(f"{', '.join(others)}: a continuation changes train.* options only (it keeps the data, the "
+                          f"model and the compaction {source} was trained with)")
+    configs = configs_from_run(source)
+    train_cfg = configs["train"]
+    train_cfg = dataclasses.replace(train_cfg, iterations=train_cfg.iterations + iterations)
+    train_cfg = apply_overrides(train_cfg, sections.get("train", {}), "train")
+    if train_cfg.iterations != configs["train"].iterations + iterations:
+        raise ConfigError("train.iterations: give the continuation's length as its iterations, not as an override")
+    configs["train"] = validate_config(train_cfg, "train")
+    configs["compaction"] = dataclasses.replace(configs["compaction"], method="none")
+    return configs
+
+
+def start_continuation(source: str | Path, out: str | Path, iterations: int,
+                       overrides: Mapping[str, str] | None = None, *, overwrite: bool = False,
+                       data_path: str | None = None) -> dict[str, Any]:
+    """Write NEW (`out`) as `source` continued by `iterations`: its config.json, source's checkpoint and logs, and
+    continued_from.json; returns the configs to train it with (`train(..., resume=True)`)."""
+    source, out = Path(source), Path(out)
+    configs = continuation_configs(source, iterations, overrides)
+    if out.resolve() == source.resolve():
+        raise StgcError(f"{out}: the continuation must go to a new run directory, not into {source}")
+    data_path = data_path or configs["data_path"]
+    if data_path is None:
+        raise StgcError(f"{source}: the run has no saved data path; give DATA")
+    dataset = configs["data"].open(data_path)
+    prepare_new_run(out, overwrite=overwrite)
+    started = int((Run(source).read_summary() or {}).get("iterations") or configs["train"].iterations - iterations)
+    for name in (Run.CHECKPOINT, Run.METRICS, Run.COMPACTION_LOG):
+        if (source / name).is_file():
+            shutil.copy2(source / name, out / name)
+    Run(out).write_config(run_config(dataset, {k: configs[k] for k in ("data", "model", "train", "compaction")},
+                                     resolve_schedule(configs["train"])))
+    write_json(out / Run.CONTINUED_FROM, {"run": str(source.resolve()), "iteration": started,
+                                      "iterations": iterations, "overrides": dict(overrides or {})})
+    return configs | {"data_path": data_path}
+
+
+def continued_from(run_dir: str | Path) -> dict[str, Any] | None:
+    """What `run_dir` was continued from (continued_from.json), or None for a run trained from the start."""
+    return read_json_object(Path(run_dir) / Run.CONTINUED_FROM, strict=False)

@@ -1,0 +1,94 @@
+"""`stgc finetune RUN --out NEW --iterations N`: NEW starts as RUN's finished model and trains N more iterations
+with only train.* options changed; RUN is left as it was."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import pytest
+from scenes import write_panoptic_scene
+
+from stgc.cli import main
+from stgc.model import STGModel
+from stgc.run import Run
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return write_panoptic_scene(tmp_path_factory.mktemp("scene"), views=5, frames=2, width=32, height=24)
+
+
+def _train(scene, run, *extra):
+    return main(["train", str(scene.root), "--out", str(run), "--set", "train.iterations=20",
+                 "--set", "train.schedule_scale=0.01", "--set", "data.init_source=random",
+                 "--set", "train.progress=false", "--set", "train.tensorboard=false",
+                 "--set", "train.checkpoint_every=5", "--set", "train.log_every=1",
+                 "--set", "train.densify.enabled=false", *extra])
+
+
+@pytest.fixture(scope="module")
+def source(scene, tmp_path_factory):
+    run = tmp_path_factory.mktemp("runs") / "source"
+    assert _train(scene, run, "--compaction", "st-knn") == 0
+    return run
+
+
+def _digest(run):
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(run.rglob("*")) if p.is_file()}
+
+
+def test_finetune_continues_the_finished_model_with_new_train_options(source, tmp_path):
+    before = _digest(source)
+    start = STGModel.load(source)
+    new = tmp_path / "new"
+    assert main(["finetune", str(source), "--out", str(new), "--iterations", "10",
+                 "--set", "train.quantization_aware.iterations=10",
+                 "--set", "train.quantization_aware.allocation=ladder",
+                 "--set", "train.quantization_aware.rate_weight=0.01"]) == 0
+    assert _digest(source) == before  # the source run is untouched
+    config = Run(new).read_config()
+    assert config["train"]["iterations"] == 30 and config["train"]["quantization_aware"]["rate_weight"] == 0.01
+    assert config["compaction"]["method"] == "none"  # the source's pruning is done, not re-opened
+    assert config["data"] == Run(source).read_config()["data"] and config["model"] == Run(source).read_config()["model"]
+    assert json.loads((new / Run.CONTINUED_FROM).read_text())["iteration"] == 20
+    rows = [json.loads(line) for line in (new / Run.METRICS).read_text().splitlines()]
+    iterations = [r["iteration"] for r in rows]
+    assert iterations == sorted(iterations) and iterations[-1] == 30 and min(iterations) <= 5  # the whole history
+    assert all(r.get("quantized") and "rate_bits" in r for r in rows if r["iteration"] > 20)
+    assert Run(new).training_finished() and Run(new).read_eval() is not None
+    # It started from the source's final model: the same Gaussians, moved a little by 10 iterations.
+    final = STGModel.load(new)
+    assert final.num_gaussians == start.num_gaussians and Run(new).latest_model_dir().name == "iteration_30"
+    moved = (final.params["xyz"] - start.params["xyz"]).abs().max().item()
+    assert 0 < moved < 0.05 * start.scene_extent
+
+
+def test_finetune_refuses_what_it_cannot_honour(source, scene, tmp_path, capsys):
+    def refused(*argv, expect):
+        capsys.readouterr()
+        assert main(["finetune", *argv]) == 2
+        assert expect in capsys.readouterr().err
+
+    refused(str(source), "--out", str(tmp_path / "a"), "--iterations", "5", "--set", "data.downscale=2",
+            expect="data.downscale: a continuation changes train.* options only")
+    refused(str(source), "--out", str(tmp_path / "b"), "--iterations", "5", "--set", "train.iterations=100",
+            expect="train.iterations")
+    refused(str(source), "--out", str(source), "--iterations", "5", expect="new run directory")
+    refused(str(source), "--out", str(tmp_path / "c"), "--iterations", "0", expect="at least 1")
+    refused(str(tmp_path / "nowhere"), "--out", str(tmp_path / "d"), "--iterations", "5", expect="not a run")
+    unfinished = tmp_path / "unfinished"
+    assert _train(scene, unfinished, "--set", "train.stop_after=10") == 0
+    refused(str(unfinished), "--out", str(tmp_path / "e"), "--iterations", "5", expect="not finished")
+    refused(str(source), "--out", str(tmp_path / "f"), "--iterations", "5", "--set",
+            "train.quantization_aware.rate_weight=-1", expect="rate_weight")
+    assert not any((tmp_path / x).exists() for x in "abcdf")  # nothing half-written
+
+
+def test_a_killed_finetune_resumes_like_any_run(source, tmp_path):
+    new = tmp_path / "new"
+    assert main(["finetune", str(source), "--out", str(new), "--iterations", "10",
+                 "--set", "train.stop_after=5"]) == 0
+    assert not Run(new).training_finished()
+    assert main(["train", "--out", str(new), "--resume"]) == 0
+    assert Run(new).training_finished() and Run(new).latest_model_dir().name == "iteration_30"
