@@ -43,6 +43,7 @@ from stgc.options import configs_from_run, default_configs, resolve_configs
 from stgc.run import Run
 from stgc.train import train
 from stgc.train.config import PRESETS
+from stgc.train.continuation import check_continuable, continuation_configs, start_continuation
 from stgc.train.video import train_video
 from stgc.viewer import serve
 
@@ -130,12 +131,12 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_finetune(args: argparse.Namespace) -> int:
-    from stgc.train.continuation import start_continuation
-
-    out = Path(args.out)
-    configs = start_continuation(args.run, out, args.iterations, parse_set_arguments(args.set),
-                                 overwrite=args.overwrite, data_path=args.data)
-    dataset = configs["data"].open(configs["data_path"])
+    out, overrides = Path(args.out), parse_set_arguments(args.set)
+    check_continuable(args.run)
+    configs = continuation_configs(configs_from_run(Path(args.run)), args.run, args.iterations, overrides)
+    data_path = start_continuation(args.run, out, args.iterations, configs, overrides, overwrite=args.overwrite,
+                                   data_path=args.data)
+    dataset = configs["data"].open(data_path)
     train(dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=True,
           evaluator=RunEvaluator())
     print(f"run written to {out} ({args.run} + {args.iterations} iterations)")

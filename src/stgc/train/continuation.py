@@ -21,16 +21,12 @@ from typing import Any
 from stgc.config import ConfigError, apply_overrides, split_sections, validate_config
 from stgc.errors import StgcError
 from stgc.fileio import read_json_object, write_json
-from stgc.options import configs_from_run
 from stgc.run import Run, prepare_new_run
 from stgc.train.config import resolve_schedule
 from stgc.train.loop import run_config
 
-def continuation_configs(source: str | Path, iterations: int, overrides: Mapping[str, str] | None = None,
-                         ) -> dict[str, Any]:
-    """The configs (data, model, train, compaction, data_path) a continuation of `source` by `iterations` trains
-    with: `source`'s, train.iterations extended, `overrides` ({"train.x": value}) applied and validated, and the
-    compaction switched off. Raises StgcError/ConfigError naming the problem."""
+def check_continuable(source: str | Path) -> None:
+    """Raise StgcError unless `source` is a finished single-segment run with a checkpoint."""
     source = Path(source)
     run = Run(source)
     if run.is_video():
@@ -39,6 +35,14 @@ def continuation_configs(source: str | Path, iterations: int, overrides: Mapping
         raise StgcError(f"{source}: not a run with config.json and checkpoint.pt to continue from")
     if not run.training_finished():
         raise StgcError(f"{source}: its training is not finished; finish it first (stgc train --out {source} --resume)")
+
+
+def continuation_configs(saved: Mapping[str, Any], source: str | Path, iterations: int,
+                         overrides: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """The configs (data, model, train, compaction, data_path) a continuation of `source` by `iterations` trains
+    with, from `saved` (`stgc.options.configs_from_run(source)`): train.iterations extended, `overrides`
+    ({"train.x": value}) applied and validated, the compaction switched off. Raises ConfigError naming the
+    problem."""
     if iterations < 1:
         raise ConfigError(f"iterations {iterations}: a continuation trains at least 1 more iteration")
     sections = split_sections(dict(overrides or {}), {"data", "model", "train", "compaction"})
@@ -46,24 +50,25 @@ def continuation_configs(source: str | Path, iterations: int, overrides: Mapping
     if others:
         raise ConfigError(f"{', '.join(others)}: a continuation changes train.* options only (it keeps the data, the "
                           f"model and the compaction {source} was trained with)")
-    configs = configs_from_run(source)
-    train_cfg = configs["train"]
-    train_cfg = dataclasses.replace(train_cfg, iterations=train_cfg.iterations + iterations)
-    train_cfg = apply_overrides(train_cfg, sections.get("train", {}), "train")
-    if train_cfg.iterations != configs["train"].iterations + iterations:
+    configs = dict(saved)
+    base = saved["train"].iterations
+    train_cfg = apply_overrides(dataclasses.replace(saved["train"], iterations=base + iterations),
+                                sections.get("train", {}), "train")
+    if train_cfg.iterations != base + iterations:
         raise ConfigError("train.iterations: give the continuation's length as its iterations, not as an override")
     configs["train"] = validate_config(train_cfg, "train")
-    configs["compaction"] = dataclasses.replace(configs["compaction"], method="none")
+    configs["compaction"] = dataclasses.replace(saved["compaction"], method="none")
     return configs
 
 
-def start_continuation(source: str | Path, out: str | Path, iterations: int,
+def start_continuation(source: str | Path, out: str | Path, iterations: int, configs: Mapping[str, Any],
                        overrides: Mapping[str, str] | None = None, *, overwrite: bool = False,
-                       data_path: str | None = None) -> dict[str, Any]:
-    """Write NEW (`out`) as `source` continued by `iterations`: its config.json, source's checkpoint and logs, and
-    continued_from.json; returns the configs to train it with (`train(..., resume=True)`)."""
+                       data_path: str | None = None) -> str:
+    """Write NEW (`out`) as `source` continued by `iterations` with `configs` (continuation_configs): its
+    config.json, source's checkpoint and logs, and continued_from.json. Returns the data path to train it on
+    (`train(..., resume=True)`)."""
     source, out = Path(source), Path(out)
-    configs = continuation_configs(source, iterations, overrides)
+    check_continuable(source)
     if out.resolve() == source.resolve():
         raise StgcError(f"{out}: the continuation must go to a new run directory, not into {source}")
     data_path = data_path or configs["data_path"]
@@ -78,8 +83,8 @@ def start_continuation(source: str | Path, out: str | Path, iterations: int,
     Run(out).write_config(run_config(dataset, {k: configs[k] for k in ("data", "model", "train", "compaction")},
                                      resolve_schedule(configs["train"])))
     write_json(out / Run.CONTINUED_FROM, {"run": str(source.resolve()), "iteration": started,
-                                      "iterations": iterations, "overrides": dict(overrides or {})})
-    return configs | {"data_path": data_path}
+                                          "iterations": iterations, "overrides": dict(overrides or {})})
+    return str(data_path)
 
 
 def continued_from(run_dir: str | Path) -> dict[str, Any] | None:
