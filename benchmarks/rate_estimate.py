@@ -13,7 +13,7 @@ import argparse
 import time
 from pathlib import Path
 
-from stgc.codec.format import decode, encode
+from stgc.codec.format import decode, encode, quantized_groups
 from stgc.codec.rate import estimate_section_bits
 from stgc.model import STGModel
 
@@ -28,7 +28,7 @@ def main() -> None:
         arrays, state = model.to_ply_arrays(), model.decoder_state()
         for quality in args.quality:
             start = time.perf_counter()
-            estimate = estimate_section_bits(arrays, model.variant, quality)
+            estimate = estimate_section_bits(quantized_groups(arrays, model.variant, quality))
             seconds = time.perf_counter() - start
             real = decode(encode(arrays, model.variant, state, quality)).header.section_bytes()
             print(f"\n{run} ({model.num_gaussians:,} Gaussians), q{quality} ladder; estimate took {seconds:.2f} s")

@@ -8,6 +8,7 @@ import pytest
 from scenes import scene_model, write_panoptic_scene
 
 from stgc.codec import decode, encode
+from stgc.codec.format import quantized_groups
 from stgc.codec.rate import code_lengths, entropy_bits, estimate_section_bits
 from stgc.codec.synthetic import synthetic_model
 from stgc.data import open_dataset
@@ -31,7 +32,7 @@ def test_entropy_of_known_distributions():
 
 
 def _relative_errors(arrays, variant, decoder_state, quality):
-    estimate = estimate_section_bits(arrays, variant, quality)
+    estimate = estimate_section_bits(quantized_groups(arrays, variant, quality))
     real = decode(encode(arrays, variant, decoder_state, quality)).header.section_bytes()
     per_section = {tag: bits / 8 / real[tag] - 1 for tag, bits in estimate.items()}
     total = sum(estimate.values()) / 8 / sum(real[tag] for tag in estimate) - 1

@@ -10,11 +10,11 @@ per component, the code length of each symbol under the model's own histogram.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
-from .format import DEFAULT_QUALITY, QUAT_SMALLEST3, QuantizationMemo, QuantizedGroup, quantized_groups
+from .format import QUAT_SMALLEST3, QuantizedGroup
 from .quantize import MAX_BITS, centre_encode, delta_encode, fit_prediction, morton_order, predict_encode, zigzag
 
 
@@ -65,21 +65,10 @@ def section_bits(group: QuantizedGroup, order: np.ndarray) -> float:
     return min(candidates)
 
 
-def estimate_section_bits(
-    arrays: Mapping[str, np.ndarray],
-    variant: str,
-    quality: int = DEFAULT_QUALITY,
-    *,
-    position_bits: int | None = None,
-    group_bits: Mapping[str, int] | None = None,
-    step_scales: Mapping[str, Sequence[float]] | None = None,
-    outlier_guard: bool = True,
-    memo: QuantizationMemo | None = None,
-) -> dict[str, float]:
-    """{section tag: estimated payload bits} of the attribute sections `encode` writes with the same options
-    (encode's keyword options). The decoder and metadata sections are not estimated."""
-    groups = quantized_groups(arrays, variant, quality, position_bits=position_bits, group_bits=group_bits,
-                              step_scales=step_scales, outlier_guard=outlier_guard, memo=memo)
+def estimate_section_bits(groups: Sequence[QuantizedGroup]) -> dict[str, float]:
+    """{section tag: estimated payload bits} of the attribute sections `encode` writes for `groups`
+    (`stgc.codec.format.quantized_groups` of the arrays, with encode's options). The decoder and metadata
+    sections are not estimated."""
     positions = groups[0]
     order = morton_order(positions.codes.T, positions.bits)
     return {group.tag: section_bits(group, order) for group in groups}
