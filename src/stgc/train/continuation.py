@@ -20,10 +20,11 @@ from typing import Any
 
 from stgc.config import ConfigError, apply_overrides, split_sections, validate_config
 from stgc.errors import StgcError
-from stgc.fileio import read_json_object, write_json
+from stgc.fileio import write_json
 from stgc.run import Run, prepare_new_run
 from stgc.train.config import resolve_schedule
 from stgc.train.loop import run_config
+
 
 def check_continuable(source: str | Path) -> None:
     """Raise StgcError unless `source` is a finished single-segment run with a checkpoint."""
@@ -86,7 +87,3 @@ def start_continuation(source: str | Path, out: str | Path, iterations: int, con
                                           "iterations": iterations, "overrides": dict(overrides or {})})
     return str(data_path)
 
-
-def continued_from(run_dir: str | Path) -> dict[str, Any] | None:
-    """What `run_dir` was continued from (continued_from.json), or None for a run trained from the start."""
-    return read_json_object(Path(run_dir) / Run.CONTINUED_FROM, strict=False)
