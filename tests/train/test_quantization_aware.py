@@ -155,3 +155,30 @@ def test_a_rate_term_needs_the_simulation():
     with pytest.raises(ValueError, match="rate_weight"):
         validate_config(TrainConfig(iterations=10, quantization_aware=QuantizationAwareConfig(
             iterations=5, rate_weight=-1.0)), "train")
+
+
+def test_the_rate_term_sees_each_component_in_the_codec_s_own_domain():
+    """What the rate term differentiates must be what the codec quantizes: the values it computes from the
+    parameters (sigmoid opacity, smallest three of the canonical quaternion, motion times its time span), put
+    through the codec's own quantizers, give the codec's codes (float32 against float64 may flip a rounding tie)."""
+    from stgc.codec.format import quantized_groups
+    from stgc.codec.quantize import quantize
+    from stgc.codec.synthetic import synthetic_model
+    from stgc.train.quantization import _stored_components, _visible
+
+    arrays, decoder = synthetic_model(3000, seed=5)
+    model = STGModel.from_ply_arrays(arrays, "full", decoder, scene_extent=3.0)
+    keep = _visible(model)
+    groups = quantized_groups({k: v[keep] for k, v in model.to_ply_arrays().items()}, "full", QUALITY)
+    rows = torch.from_numpy(np.flatnonzero(keep))
+    checked = set()
+    for group in groups:
+        if group.tag not in RateTerm.GROUPS:
+            continue
+        for row, (values, quantizer) in enumerate(zip(_stored_components(model, group, rows), group.quantizers)):
+            codes = quantize(values.detach().double().numpy(), quantizer).astype(np.int64)
+            expected = group.codes[row].astype(np.int64)
+            assert np.abs(codes - expected).max() <= 1, (group.tag, row)
+            assert np.mean(codes == expected) > 0.99, (group.tag, row)
+        checked.add(group.tag)
+    assert checked == set(RateTerm.GROUPS)
