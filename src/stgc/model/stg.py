@@ -315,16 +315,22 @@ class STGModel:
         backend: str = "auto",
         return_depth: bool = False,
         return_weights: bool = False,
+        opacity_scale: torch.Tensor | None = None,
         **raster_options: Any,
     ) -> ModelRender:
         """Render `camera` at time t (default camera.time).
 
         background is in the splatted feature space: 3 values for lite; for full either 9 values or 3 (taken as the
-        albedo channels, the rest zero). Extra keyword arguments go to `stgc.render.rasterize`.
+        albedo channels, the rest zero). opacity_scale [N] multiplies every Gaussian's temporal opacity (a learned
+        keep/drop mask: rows scaled to 0 are culled). Extra keyword arguments go to `stgc.render.rasterize`.
         """
         t = float(camera.time if t is None else t)
         raster_options.setdefault("near_plane", float(camera.near))
         opacity = self.temporal_opacity(t)
+        if opacity_scale is not None:
+            if tuple(opacity_scale.shape) != (self.num_gaussians,):
+                raise ValueError(f"opacity_scale must have shape ({self.num_gaussians},), got {tuple(opacity_scale.shape)}")
+            opacity = opacity * opacity_scale
         index = torch.nonzero(opacity.detach() >= MIN_VISIBLE_OPACITY, as_tuple=False)[:, 0]
         rows: Mapping[str, torch.Tensor]
         if len(index) == self.num_gaussians:  # nothing culled (e.g. early training): skip the row copies

@@ -211,6 +211,15 @@ class QuantizationAwareConfig:
     simulate: bool = field(default=True, metadata={
         "help": "render through the codec's quantization in the window; false keeps only the window's lower "
                 "learning rates (the control that separates what the quantization teaches from what annealing does)"})
+    mask: bool = field(default=False, metadata={
+        "help": "also learn a keep factor per Gaussian in the window (after Compact3D's learned mask; it multiplies "
+                "the opacity): with it the rate term charges every Gaussian lambda x its estimated bits, all of "
+                "its sections included, times its factor, so a Gaussian whose contribution to the views is worth "
+                "less than its bits fades out; in the window's last fifth the faded ones (factor < 1/2) are removed "
+                "and the others keep their factor in their opacity; needs rate_weight > 0"})
+    mask_lr: float = field(default=0.01, metadata={
+        "help": "Adam learning rate of the mask logits (not scaled by lr_scale; they start at 3, a Gaussian is "
+                "removed if its logit is below 0 when the mask settles)"})
 
     def validate(self, prefix: str = "") -> None:
         check(self.iterations >= 0, f"{prefix}iterations", self.iterations, ">= 0 (0 = off)")
@@ -219,6 +228,9 @@ class QuantizationAwareConfig:
               ">= 0 (0 = no rate term)")
         check(self.rate_weight == 0 or self.simulate, f"{prefix}rate_weight", self.rate_weight,
               "0 when simulate is false: the rate term measures the codec's quantization, which the control skips")
+        check(not self.mask or self.rate_weight > 0, f"{prefix}mask", self.mask,
+              "false when rate_weight is 0: a Gaussian's price is lambda x its bits")
+        check(math.isfinite(self.mask_lr) and self.mask_lr > 0, f"{prefix}mask_lr", self.mask_lr, "> 0")
         check(self.quality in QUALITY_LEVELS, f"{prefix}quality", self.quality,
               f"one of {', '.join(map(str, QUALITY_LEVELS))} (the codec's levels)")
         check(self.allocation in ("optimised", "ladder"), f"{prefix}allocation", self.allocation,

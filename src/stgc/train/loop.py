@@ -45,11 +45,12 @@ from stgc.train.config import Schedule, TrainConfig, resolve_schedule
 from stgc.train.densify import DensityControl
 from stgc.train.ems import ErrorGuidedSampler
 from stgc.train.monitor import JsonLines, Progress, TensorBoard
-from stgc.train.quantization import QuantizationSimulation
+from stgc.train.quantization import MASK_SETTLE_FRACTION, QuantizationSimulation
 from stgc.train.strategy import (
     CompactionStrategy,
     DensityStrategy,
     ErrorGuidedStrategy,
+    MaskStrategy,
     StepContext,
     Strategy,
 )
@@ -240,6 +241,10 @@ class Trainer:
         self.compactor = self._make_compactor()
         self.quantization = QuantizationSimulation(train_cfg.quantization_aware) if (
             train_cfg.quantization_aware.iterations > 0 and train_cfg.quantization_aware.simulate) else None
+        if self.quantization is not None and train_cfg.quantization_aware.mask:
+            window = train_cfg.quantization_aware.iterations
+            settle = self.schedule.iterations - round(MASK_SETTLE_FRACTION * window)
+            self.strategies.append(MaskStrategy(self.quantization, self.density, settle))
         if self.compactor is not None:
             self.strategies.append(CompactionStrategy(
                 self.compactor, lambda event: self.compaction_log.append(_jsonable(event)), self.density,
@@ -354,10 +359,12 @@ class Trainer:
         total_loss, total_mse = 0.0, 0.0
         ems_view = None
         seen, rate_bits = self.quantized_params(iteration)
+        mask = None if seen is None or self.quantization is None else self.quantization.mask
         for k, cam in enumerate(views):
             gt = self.images.get(cam)
             with self.model.params_replaced(seen):
-                out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend)
+                out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend,
+                                        opacity_scale=None if mask is None else mask.keep_factor())
             rgb = out.rgb if self.colour is None else self.colour.apply(out.rgb, cam.name)
             loss, ssim_value = self.view_loss(rgb, gt, cam)
             (loss / batch).backward()
@@ -370,6 +377,8 @@ class Trainer:
             (self.cfg.quantization_aware.rate_weight * rate_bits).backward()
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+        if mask is not None:
+            mask.step()
         if self.colour is not None:
             self.colour.step()
         mean_loss = total_loss / batch

@@ -17,6 +17,18 @@ attributes (`RateTerm`): each stored component's code costs -log2 of its frequen
 (stgc.codec.rate), interpolated linearly between neighbouring codes so that the gradient moves a value toward the
 cheaper of its two nearest codes. Training then trades distortion for rate: values gather on fewer, more frequent
 codes, which the entropy coder stores in fewer bits at the same depth.
+
+With `mask` the window also learns which Gaussians are worth their bits (`GaussianMask`, after Compact3D's learned
+mask): a logit per Gaussian whose sigmoid multiplies the temporal opacity. The rate term then prices the file
+rather than the average Gaussian: the sum over Gaussians of mask x estimated bits (the GROUPS' code lengths plus an
+equal share of the position and omega sections, which the rate term does not differentiate) over the Gaussian
+count when the window opened. With every mask at 1 this is the plain rate term plus a constant, so lambda means the
+same with and without the mask; what the mask adds is that fading a Gaussian out saves lambda x its bits, which
+the rendering loss must outweigh for it to stay. The mask is soft while it learns (a Gaussian that fades makes its
+neighbours' gradients take over its work, so redundant Gaussians do not all go at once, as they do with a binary
+forward pass) and is settled for the window's last MASK_SETTLE_FRACTION: Gaussians below one half are removed,
+the others keep their mask baked into their opacity, and the rest of the window trains the model without the
+removed ones.
 """
 
 from __future__ import annotations
@@ -37,7 +49,7 @@ from stgc.codec.format import (
     quantized_groups,
     simulate_quantization,
 )
-from stgc.codec.rate import code_lengths
+from stgc.codec.rate import code_lengths, estimate_section_bits
 from stgc.codec.views import Corrections, optimise_on_views
 from stgc.data.dataset import Dataset
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel, ply_columns
@@ -53,6 +65,8 @@ class QuantizationSimulation:
         # (group_bits, step_scales) of the allocation chosen when the window opened; None before, or for the ladder.
         self.settings: tuple[dict[str, int], dict[str, list[float]]] | None = None
         self.allocation: dict[str, Any] | None = None  # its summary, for the run's records
+        self.mask: GaussianMask | None = None  # with cfg.mask: created on the window's first step
+        self.mask_settled = False  # the mask's Gaussians were removed or baked; no mask from then on
 
     def prepare(self, model: STGModel, dataset: Dataset, corrections: Corrections | None) -> None:
         """Choose the bit depths once, on the model as the window finds it (no-op when chosen or for the ladder)."""
@@ -68,7 +82,15 @@ class QuantizationSimulation:
 
     def quantized_params(self, model: STGModel) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
         """({param key: tensor} whose values are the codec's reconstruction and whose gradient is the identity,
-        the rate term's estimated bits per Gaussian, differentiable, or None when rate_weight is 0)."""
+        the rate term's estimated bits per Gaussian, differentiable, or None when rate_weight is 0). With the mask,
+        the rate is that of the kept Gaussians per Gaussian of the window's start, differentiable in the mask."""
+        if self.cfg.mask and self.mask is None and not self.mask_settled:
+            self.mask = GaussianMask(model.num_gaussians, self.cfg.mask_lr)
+        if self.mask is not None and len(self.mask) != model.num_gaussians:
+            raise RuntimeError(
+                f"train.quantization_aware.mask: the model has {model.num_gaussians} Gaussians but the mask "
+                f"{len(self.mask)}: something else (density control, error-guided sampling or compaction) changed "
+                "the rows inside the rate-aware window; end them before the window opens")
         keep = _visible(model)
         arrays = model.to_ply_arrays()
         group_bits, step_scales = self.settings or (None, None)
@@ -81,7 +103,10 @@ class QuantizationSimulation:
         if self.cfg.rate_weight > 0:
             groups = quantized_groups(visible, model.variant, self.cfg.quality, position_bits=position_bits,
                                       group_bits=group_bits, step_scales=step_scales, memo=memo)
-            rate = RateTerm.bits_per_gaussian(model, keep, groups)
+            if self.mask is None:
+                rate = RateTerm.bits_per_gaussian(model, keep, groups)
+            else:
+                rate = RateTerm.masked_bits(model, keep, groups, self.mask)
         out = {}
         for key, names in ply_columns(model.variant).items():
             param = model.params[key]
@@ -90,8 +115,22 @@ class QuantizationSimulation:
             out[key] = param + (torch.from_numpy(values).to(param) - param).detach()
         return out, rate
 
+    def settle_mask(self, model: STGModel) -> torch.Tensor | None:
+        """End the mask's learning: bake each kept Gaussian's mask into its opacity (sigmoid(o) x mask) and return
+        the rows to keep (mask >= 1/2) for the caller to prune with; None when there is no mask to settle."""
+        if self.mask is None:
+            return None
+        with torch.no_grad():
+            factor = torch.sigmoid(self.mask.logits.detach())
+            opacity = (torch.sigmoid(model.params["opacity"].detach()[:, 0]) * factor).clamp(1e-6, 1 - 1e-6)
+            model.replace_param("opacity", torch.logit(opacity)[:, None], reset_moments=False)
+        keep = factor >= 0.5
+        self.mask, self.mask_settled = None, True
+        return keep
+
     def state_dict(self) -> dict[str, Any]:
-        return {"settings": self.settings, "allocation": self.allocation}
+        return {"settings": self.settings, "allocation": self.allocation,
+                "mask": None if self.mask is None else self.mask.state_dict(), "mask_settled": self.mask_settled}
 
     def load_state_dict(self, state: Mapping[str, Any] | None) -> None:
         if state and state.get("settings") is not None:
@@ -99,6 +138,9 @@ class QuantizationSimulation:
             self.settings = ({str(k): int(v) for k, v in group_bits.items()},
                              {str(k): [float(x) for x in v] for k, v in step_scales.items()})
             self.allocation = state.get("allocation")
+        if state and state.get("mask") is not None:
+            self.mask = GaussianMask.from_state_dict(state["mask"], self.cfg.mask_lr)
+        self.mask_settled = bool(state and state.get("mask_settled"))
 
 
 class RateTerm:
@@ -110,12 +152,31 @@ class RateTerm:
 
     GROUPS = ("TCEN", "TSCL", "MOTN", "FDC_", "OPAC", "SCAL", "ROTN", "FT__")
 
+    UNPRICED = ("POSI", "OMGA")  # their sections' bits are shared equally among the Gaussians (mask only)
+
     @staticmethod
     def bits_per_gaussian(model: STGModel, keep: np.ndarray, groups: list[QuantizedGroup]) -> torch.Tensor:
         """Sum over the visible Gaussians (`keep`) and the GROUPS' stored components of each value's code length,
         interpolated between its two nearest codes, divided by the number of visible Gaussians."""
+        return RateTerm.row_bits(model, keep, groups).sum() / max(int(keep.sum()), 1)
+
+    @staticmethod
+    def masked_bits(model: STGModel, keep: np.ndarray, groups: list[QuantizedGroup],
+                    mask: GaussianMask) -> torch.Tensor:
+        """Sum over the visible Gaussians of (mask's keep factor) x (their code lengths plus an equal share of the
+        UNPRICED sections' estimated bits), divided by the mask's reference count (the window's start)."""
+        visible = max(int(keep.sum()), 1)
+        shared = sum(estimate_section_bits([g for g in groups if g.tag in RateTerm.UNPRICED]).values()) / visible
         rows = torch.from_numpy(np.flatnonzero(keep))
-        total = torch.zeros((), dtype=torch.float64)
+        per_row = RateTerm.row_bits(model, keep, groups) + shared
+        return (mask.keep_factor()[rows].double() * per_row).sum() / mask.reference_count
+
+    @staticmethod
+    def row_bits(model: STGModel, keep: np.ndarray, groups: list[QuantizedGroup]) -> torch.Tensor:
+        """[visible rows] each visible Gaussian's code lengths over the GROUPS' stored components, each interpolated
+        between its value's two nearest codes."""
+        rows = torch.from_numpy(np.flatnonzero(keep))
+        total = torch.zeros(len(rows), dtype=torch.float64)
         for group in groups:
             if group.tag not in RateTerm.GROUPS:
                 continue
@@ -126,8 +187,47 @@ class RateTerm:
                 code = (component.double() / quantizer.step - quantizer.zero_point).clamp(0, levels - 1)
                 below = code.detach().floor().clamp(max=levels - 2).long()
                 frac = code - below
-                total = total + (lengths[below] * (1 - frac) + lengths[below + 1] * frac).sum()
-        return total / max(len(rows), 1)
+                total = total + lengths[below] * (1 - frac) + lengths[below + 1] * frac
+        return total
+
+
+# Every Gaussian starts nearly fully kept (sigmoid(3) = 0.95): the mask costs the model little at the start, and
+# it takes a run of steps that agree, not one noisy step, to fade a Gaussian out.
+MASK_INIT_LOGIT = 3.0
+MASK_SETTLE_FRACTION = 0.2  # the window's last fifth trains without the mask, on the Gaussians it kept
+
+
+class GaussianMask:
+    """A learned keep factor per Gaussian, sigmoid(logit), that multiplies its opacity, with its own Adam."""
+
+    def __init__(self, count: int, lr: float, logits: torch.Tensor | None = None, reference_count: int | None = None):
+        start = torch.full((count,), MASK_INIT_LOGIT) if logits is None else logits.detach().float().clone()
+        self.logits = torch.nn.Parameter(start)
+        self.optimizer = torch.optim.Adam([self.logits], lr=lr, eps=1e-15)
+        self.reference_count = int(reference_count or count)  # the rate's denominator: the count at the start
+
+    def __len__(self) -> int:
+        return int(self.logits.shape[0])
+
+    def keep_factor(self) -> torch.Tensor:
+        """[N] each Gaussian's keep factor in (0, 1), differentiable."""
+        return torch.sigmoid(self.logits)
+
+    def step(self) -> None:
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"logits": self.logits.detach().clone(), "optimizer": self.optimizer.state_dict(),
+                "reference_count": self.reference_count}
+
+    @classmethod
+    def from_state_dict(cls, state: Mapping[str, Any], lr: float) -> GaussianMask:
+        mask = cls(len(state["logits"]), lr, logits=state["logits"], reference_count=state["reference_count"])
+        mask.optimizer.load_state_dict(state["optimizer"])
+        for group in mask.optimizer.param_groups:
+            group["lr"] = lr
+        return mask
 
 
 def _stored_components(model: STGModel, group: QuantizedGroup, rows: torch.Tensor) -> list[torch.Tensor]:

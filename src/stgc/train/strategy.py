@@ -17,6 +17,7 @@ from stgc.data import Camera
 from stgc.model import STGModel
 from stgc.train.densify import DensityControl
 from stgc.train.ems import ErrorGuidedSampler
+from stgc.train.quantization import QuantizationSimulation
 
 
 @dataclass
@@ -104,3 +105,29 @@ class CompactionStrategy:
     def load_state_dict(self, checkpoint: dict[str, Any]) -> None:
         if checkpoint.get("compactor") is not None:
             self.compactor.load_state_dict(checkpoint["compactor"])
+
+
+class MaskStrategy:
+    """Settles the rate-aware window's learned mask (stgc.train.quantization.GaussianMask) at `settle_iteration`:
+    the Gaussians it faded out are removed, the others keep it baked into their opacity."""
+
+    def __init__(self, quantization: QuantizationSimulation, density: DensityControl, settle_iteration: int):
+        self.quantization, self.density, self.settle_iteration = quantization, density, settle_iteration
+
+    def after_step(self, ctx: StepContext) -> dict[str, Any]:
+        if ctx.iteration < self.settle_iteration:
+            return {}
+        keep = self.quantization.settle_mask(ctx.model)
+        if keep is None:
+            return {}
+        dropped = int((~keep).sum())
+        if dropped:
+            ctx.model.prune(keep)
+            self.density.rows_kept(keep)
+        return {"mask_dropped": dropped}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}  # the mask itself is in the quantization simulation's checkpoint entry
+
+    def load_state_dict(self, checkpoint: dict[str, Any]) -> None:
+        pass
