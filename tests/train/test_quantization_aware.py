@@ -261,3 +261,24 @@ def test_a_mask_needs_a_price():
     with pytest.raises(ValueError, match="mask"):
         validate_config(TrainConfig(iterations=10, quantization_aware=QuantizationAwareConfig(
             iterations=5, mask=True)), "train")
+
+
+def test_a_run_killed_while_the_mask_learns_resumes_to_the_same_model(scene, tmp_path):
+    """The mask's logits, its Adam state and whether it has settled are in the checkpoint: a run stopped inside the
+    window's learning part and resumed ends with the same Gaussians and parameters as one that was not stopped."""
+    dataset = open_dataset(scene.root)
+    config = _config(40, iterations=60, checkpoint_every=5)
+    config = dataclasses.replace(config, quantization_aware=dataclasses.replace(
+        config.quantization_aware, rate_weight=1e-3, mask=True, mask_lr=0.2))
+    models = {}
+    for name, stops in (("whole", []), ("resumed", [30])):
+        run = tmp_path / name
+        start, _ = _with_hidden_gaussians(scene.model, 50)
+        for stop in stops:
+            train(dataset, None, None, dataclasses.replace(config, stop_after=stop), None, run, model=start)
+        train(dataset, None, None, config, None, run, model=start, resume=bool(stops))
+        models[name] = STGModel.load(run)
+    assert models["whole"].num_gaussians < scene.model.num_gaussians + 50  # the mask removed some
+    assert models["resumed"].num_gaussians == models["whole"].num_gaussians
+    for key, value in models["whole"].params.items():
+        assert torch.equal(value, models["resumed"].params[key]), key
