@@ -85,7 +85,7 @@ class QuantizationSimulation:
         the rate term's estimated bits per Gaussian, differentiable, or None when rate_weight is 0). With the mask,
         the rate is that of the kept Gaussians per Gaussian of the window's start, differentiable in the mask."""
         if self.cfg.mask and self.mask is None and not self.mask_settled:
-            self.mask = GaussianMask(model.num_gaussians, self.cfg.mask_lr)
+            self.mask = GaussianMask(model.num_gaussians, self.cfg.mask_lr, reference_count=int(_visible(model).sum()))
         if self.mask is not None and len(self.mask) != model.num_gaussians:
             raise RuntimeError(
                 f"train.quantization_aware.mask: the model has {model.num_gaussians} Gaussians but the mask "
@@ -204,7 +204,7 @@ class GaussianMask:
         start = torch.full((count,), MASK_INIT_LOGIT) if logits is None else logits.detach().float().clone()
         self.logits = torch.nn.Parameter(start)
         self.optimizer = torch.optim.Adam([self.logits], lr=lr, eps=1e-15)
-        self.reference_count = int(reference_count or count)  # the rate's denominator: the count at the start
+        self.reference_count = int(reference_count or count)  # the rate's denominator: the visible count at the start
 
     def __len__(self) -> int:
         return int(self.logits.shape[0])
