@@ -243,11 +243,11 @@ def test_the_masked_rate_is_the_plain_rate_plus_the_shared_sections_and_its_grad
     kept = GaussianMask(model.num_gaussians, 0.01, logits=torch.full((model.num_gaussians,), 40.0),
                         reference_count=visible)
     all_kept = float(RateTerm.masked_bits(model, keep, groups, kept).detach())
-    assert all_kept == pytest.approx(float(plain) + shared, rel=1e-9)
+    assert all_kept == pytest.approx(float(plain.detach()) + shared, rel=1e-9)
     mask = GaussianMask(model.num_gaussians, 0.01, reference_count=visible)
     masked = RateTerm.masked_bits(model, keep, groups, mask)
     factor = torch.sigmoid(torch.tensor(MASK_INIT_LOGIT, dtype=torch.float64))
-    assert float(masked.detach()) == pytest.approx(float(factor) * (float(plain) + shared), rel=1e-6)
+    assert float(masked.detach()) == pytest.approx(float(factor) * (float(plain.detach()) + shared), rel=1e-6)
     masked.backward()
     slope = factor * (1 - factor)
     rows = np.flatnonzero(keep)
