@@ -19,16 +19,16 @@ cheaper of its two nearest codes. Training then trades distortion for rate: valu
 codes, which the entropy coder stores in fewer bits at the same depth.
 
 With `mask` the window also learns which Gaussians are worth their bits (`GaussianMask`, after Compact3D's learned
-mask): a logit per Gaussian whose sigmoid multiplies the temporal opacity. The rate term then prices the file
-rather than the average Gaussian: the sum over Gaussians of mask x estimated bits (the GROUPS' code lengths plus an
-equal share of the position and omega sections, which the rate term does not differentiate) over the Gaussian
-count when the window opened. With every mask at 1 this is the plain rate term plus a constant, so lambda means the
-same with and without the mask; what the mask adds is that fading a Gaussian out saves lambda x its bits, which
-the rendering loss must outweigh for it to stay. The mask is soft while it learns (a Gaussian that fades makes its
-neighbours' gradients take over its work, so redundant Gaussians do not all go at once, as they do with a binary
-forward pass) and is settled for the window's last MASK_SETTLE_FRACTION: Gaussians below one half are removed,
-the others keep their mask baked into their opacity, and the rest of the window trains the model without the
-removed ones.
+mask): a logit per Gaussian whose sigmoid multiplies the temporal opacity. The rate term then prices the file rather
+than the average Gaussian: the sum over Gaussians of mask x estimated bits (the GROUPS' code lengths plus an equal
+share of the position and omega sections, which the rate term does not differentiate) over the Gaussian count (of
+those some frame shows) when the window opened. With every mask at 1 this is the plain rate term plus a constant, so
+lambda means the same with and without the mask; what the mask adds is that fading a Gaussian out saves lambda x its
+bits, which the rendering loss must outweigh for it to stay. The mask is soft while it learns (a Gaussian that fades
+makes its neighbours' gradients take over its work, so redundant Gaussians do not all go at once, as they do with a
+binary forward pass) and is settled for the window's last MASK_SETTLE_FRACTION: Gaussians below one half are
+removed, the others keep their mask baked into their opacity, and the rest of the window trains the model without
+the removed ones.
 """
 
 from __future__ import annotations
