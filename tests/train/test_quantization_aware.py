@@ -283,3 +283,22 @@ def test_a_run_killed_while_the_mask_learns_resumes_to_the_same_model(scene, tmp
     assert models["resumed"].num_gaussians == models["whole"].num_gaussians
     for key, value in models["whole"].params.items():
         assert torch.equal(value, models["resumed"].params[key]), key
+
+
+def test_a_mask_window_that_density_control_or_compaction_could_edit_is_refused_before_training(scene, tmp_path):
+    """The mask keeps a logit per row, so a run in which something else may remove Gaussians inside the window is
+    refused when the trainer is built (not hours later, when the rows first change), naming what overlaps."""
+    from stgc.compaction import CompactionConfig
+    from stgc.train.config import FloaterConfig
+
+    dataset = open_dataset(scene.root)
+    start = STGModel.from_ply_arrays(scene.model.to_ply_arrays(), "lite", None, scene_extent=3.3)
+    config = _config(50, iterations=100)
+    config = dataclasses.replace(config, quantization_aware=dataclasses.replace(
+        config.quantization_aware, rate_weight=1e-3, mask=True))
+    Trainer(dataset, None, None, config, None, tmp_path / "fine", model=start)  # nothing else edits rows: accepted
+    floaters = dataclasses.replace(config, schedule_scale=0.01, floaters=FloaterConfig(near_camera=0.3))
+    with pytest.raises(ValueError, match=r"floater pruning \(until iteration 300\)"):
+        Trainer(dataset, None, None, floaters, None, tmp_path / "floaters", model=start)
+    with pytest.raises(ValueError, match="overlaps ST-KNN compaction"):
+        Trainer(dataset, None, None, config, CompactionConfig(method="st-knn"), tmp_path / "stknn", model=start)

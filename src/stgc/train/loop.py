@@ -242,6 +242,7 @@ class Trainer:
         self.quantization = QuantizationSimulation(train_cfg.quantization_aware) if (
             train_cfg.quantization_aware.iterations > 0 and train_cfg.quantization_aware.simulate) else None
         if self.quantization is not None and train_cfg.quantization_aware.mask:
+            self._check_mask_window()
             window = train_cfg.quantization_aware.iterations
             settle = self.schedule.iterations - round(MASK_SETTLE_FRACTION * window)
             self.strategies.append(MaskStrategy(self.quantization, self.density, settle))
@@ -263,6 +264,33 @@ class Trainer:
         if cfg is None or cfg.method == "none":
             return None
         return STKNNCompactor(cfg, total_iterations=self.schedule.iterations)
+
+    def _check_mask_window(self) -> None:
+        """The learned mask keeps one logit per row: refuse, before training, a run in which something else may add
+        or remove Gaussians inside the rate-aware window (the mask would lose track of its rows mid-run)."""
+        cfg, sched = self.cfg, self.schedule
+        first = sched.iterations - cfg.quantization_aware.iterations + 1
+        # Density control acts only at densification steps: the first one inside the window, if any.
+        after = max(first, sched.densify_start + 1) - sched.densify_start
+        step = sched.densify_start + sched.densify_interval * -(-after // sched.densify_interval)
+        density_steps = step <= sched.iterations
+        overlapping = []
+        if self.compaction_cfg is not None and self.compaction_cfg.method != "none":
+            overlapping.append("ST-KNN compaction (compaction.method)")
+        if cfg.ems.enabled:
+            overlapping.append("error-guided sampling (train.ems.enabled)")
+        if density_steps and sched.densify_end >= step:
+            overlapping.append(f"clone/split rounds (until iteration {sched.densify_end})")
+        if density_steps and sched.prune_until > step:
+            overlapping.append(f"low-opacity pruning (until iteration {sched.prune_until})")
+        if density_steps and (cfg.floaters.near_camera > 0 or cfg.floaters.max_world_scale > 0) \
+                and sched.floaters_until >= step:
+            overlapping.append(f"floater pruning (until iteration {sched.floaters_until})")
+        if overlapping:
+            raise ValueError(
+                f"train.quantization_aware.mask: the rate-aware window (iterations {first}-{sched.iterations}) "
+                f"overlaps {', '.join(overlapping)}, which change the Gaussians the mask learns over; fine-tune the "
+                "finished run instead (stgc finetune RUN --out NEW ... --set train.quantization_aware.mask=true)")
 
     def _make_foreground_masks(self) -> ForegroundMasks | None:
         """The masks of the mask term, or None when the term is off or the data has no masks (said once)."""
