@@ -164,11 +164,13 @@ class RateTerm:
     def masked_bits(model: STGModel, keep: np.ndarray, groups: list[QuantizedGroup],
                     mask: GaussianMask) -> torch.Tensor:
         """Sum over the visible Gaussians of (mask's keep factor) x (their code lengths plus an equal share of the
-        UNPRICED sections' estimated bits), divided by the mask's reference count (the window's start)."""
-        visible = max(int(keep.sum()), 1)
-        shared = sum(estimate_section_bits([g for g in groups if g.tag in RateTerm.UNPRICED]).values()) / visible
+        UNPRICED sections' estimated bits, estimated once, on the mask's first step: it changes slowly and costs
+        a tenth of an iteration), divided by the mask's reference count (the window's start)."""
+        if mask.shared_bits is None:
+            unpriced = estimate_section_bits([g for g in groups if g.tag in RateTerm.UNPRICED])
+            mask.shared_bits = sum(unpriced.values()) / max(int(keep.sum()), 1)
         rows = torch.from_numpy(np.flatnonzero(keep))
-        per_row = RateTerm.row_bits(model, keep, groups) + shared
+        per_row = RateTerm.row_bits(model, keep, groups) + mask.shared_bits
         return (mask.keep_factor()[rows].double() * per_row).sum() / mask.reference_count
 
     @staticmethod
@@ -205,6 +207,7 @@ class GaussianMask:
         self.logits = torch.nn.Parameter(start)
         self.optimizer = torch.optim.Adam([self.logits], lr=lr, eps=1e-15)
         self.reference_count = int(reference_count or count)  # the rate's denominator: the visible count at the start
+        self.shared_bits: float | None = None  # RateTerm.masked_bits' share of the unpriced sections per Gaussian
 
     def __len__(self) -> int:
         return int(self.logits.shape[0])
@@ -219,12 +222,13 @@ class GaussianMask:
 
     def state_dict(self) -> dict[str, Any]:
         return {"logits": self.logits.detach().clone(), "optimizer": self.optimizer.state_dict(),
-                "reference_count": self.reference_count}
+                "reference_count": self.reference_count, "shared_bits": self.shared_bits}
 
     @classmethod
     def from_state_dict(cls, state: Mapping[str, Any], lr: float) -> GaussianMask:
         mask = cls(len(state["logits"]), lr, logits=state["logits"], reference_count=state["reference_count"])
         mask.optimizer.load_state_dict(state["optimizer"])
+        mask.shared_bits = state.get("shared_bits")
         for group in mask.optimizer.param_groups:
             group["lr"] = lr
         return mask
