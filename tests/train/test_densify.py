@@ -148,6 +148,9 @@ def test_schedule_scaling_and_xyz_decay():
     assert sched.densify_end == 50 + 6 * 10 and sched.opacity_reset_interval == 300
     assert sched.save_iterations[-1] == 3000 and 700 in sched.save_iterations
     assert not sched.is_densify_step(50) and sched.is_densify_step(60) and not sched.is_densify_step(65)
+    for start in (0, 50, 51, 60, 61, 2995, 3000):  # the first step is_densify_step accepts, found by walking
+        walked = next((i for i in range(start, 3001) if sched.is_densify_step(i)), None)
+        assert sched.first_densify_step(start) == walked, start
     cfg = TrainConfig()
     assert xyz_learning_rate(cfg, 2.0, 0, 100) == pytest.approx(3.2e-4)
     assert xyz_learning_rate(cfg, 2.0, 100, 100) == pytest.approx(3.2e-6)

@@ -354,6 +354,13 @@ class Schedule:
     def is_densify_step(self, iteration: int) -> bool:
         return iteration > self.densify_start and (iteration - self.densify_start) % self.densify_interval == 0
 
+    def first_densify_step(self, start: int) -> int | None:
+        """The first iteration >= `start` at which density control acts (is_densify_step), or None when the run
+        has none left."""
+        after = max(start, self.densify_start + 1) - self.densify_start
+        step = self.densify_start + self.densify_interval * -(-after // self.densify_interval)
+        return step if step <= self.iterations else None
+
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 

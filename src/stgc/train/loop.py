@@ -270,20 +270,17 @@ class Trainer:
         or remove Gaussians inside the rate-aware window (the mask would lose track of its rows mid-run)."""
         cfg, sched = self.cfg, self.schedule
         first = sched.iterations - cfg.quantization_aware.iterations + 1
-        # Density control acts only at densification steps: the first one inside the window, if any.
-        after = max(first, sched.densify_start + 1) - sched.densify_start
-        step = sched.densify_start + sched.densify_interval * -(-after // sched.densify_interval)
-        density_steps = step <= sched.iterations
+        step = sched.first_densify_step(first)  # density control acts only at densification steps
         overlapping = []
         if self.compaction_cfg is not None and self.compaction_cfg.method != "none":
             overlapping.append("ST-KNN compaction (compaction.method)")
         if cfg.ems.enabled:
             overlapping.append("error-guided sampling (train.ems.enabled)")
-        if density_steps and sched.densify_end >= step:
+        if step is not None and sched.densify_end >= step:
             overlapping.append(f"clone/split rounds (until iteration {sched.densify_end})")
-        if density_steps and sched.prune_until > step:
+        if step is not None and sched.prune_until > step:
             overlapping.append(f"low-opacity pruning (until iteration {sched.prune_until})")
-        if density_steps and (cfg.floaters.near_camera > 0 or cfg.floaters.max_world_scale > 0) \
+        if step is not None and (cfg.floaters.near_camera > 0 or cfg.floaters.max_world_scale > 0) \
                 and sched.floaters_until >= step:
             overlapping.append(f"floater pruning (until iteration {sched.floaters_until})")
         if overlapping:
