@@ -69,3 +69,12 @@ def test_estimate_tracks_the_coded_size_of_a_trained_model(trained):
     # Measured: total -3.1 %, every section within 6.4 % (7-40 kB each).
     assert abs(total) < 0.10
     assert all(abs(error) < 0.10 for error in per_section.values()), per_section
+
+
+def test_the_estimate_needs_the_positions_that_order_every_section():
+    arrays, _ = synthetic_model(500, seed=2)
+    groups = quantized_groups(arrays, "full", 3)
+    reordered = [g for g in groups if g.tag != "POSI"] + [g for g in groups if g.tag == "POSI"]
+    assert estimate_section_bits(reordered) == estimate_section_bits(groups)  # found by tag, not by place
+    with pytest.raises(ValueError, match="POSI"):
+        estimate_section_bits([g for g in groups if g.tag != "POSI"])

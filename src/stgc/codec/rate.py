@@ -68,7 +68,10 @@ def section_bits(group: QuantizedGroup, order: np.ndarray) -> float:
 def estimate_section_bits(groups: Sequence[QuantizedGroup]) -> dict[str, float]:
     """{section tag: estimated payload bits} of the attribute sections `encode` writes for `groups`
     (`stgc.codec.format.quantized_groups` of the arrays, with encode's options). The decoder and metadata
-    sections are not estimated."""
-    positions = groups[0]
+    sections are not estimated. Every layout is measured along the positions' Morton order, so the POSI group must
+    be among `groups`."""
+    positions = next((group for group in groups if group.tag == "POSI"), None)
+    if positions is None:
+        raise ValueError("estimate_section_bits needs the POSI group: the sections are ordered by position")
     order = morton_order(positions.codes.T, positions.bits)
     return {group.tag: section_bits(group, order) for group in groups}
