@@ -86,4 +86,3 @@ def start_continuation(source: str | Path, out: str | Path, iterations: int, con
     write_json(out / Run.CONTINUED_FROM, {"run": str(source.resolve()), "iteration": started,
                                           "iterations": iterations, "overrides": dict(overrides or {})})
     return str(data_path)
-
