@@ -14,6 +14,7 @@ from stgc.compaction import (
     plot_compaction,
     read_compaction_log,
 )
+from stgc.compaction.plot import loss_label
 from stgc.errors import DataError
 
 from .compaction_helpers import make_model, random_params
@@ -57,3 +58,11 @@ def test_a_last_line_cut_short_by_a_kill_is_skipped_but_a_bad_middle_line_is_not
     log.write_text('{"iteration": 5, "ratio": 0.1}\n{"iteration": 6, "rat\n{"iteration": 7, "ratio": 0.1}\n')
     with pytest.raises(DataError, match="line 2 is not JSON"):
         read_compaction_log(log)
+
+
+def test_the_loss_panel_names_the_signal_the_controller_compared():
+    assert loss_label([{"iteration": 1, "loss_signal": "probe"}]).startswith("probe loss")
+    assert loss_label([{"iteration": 1, "loss_signal": "training"}]) == "smoothed training loss"
+    assert loss_label([{"iteration": 1}]) == "smoothed training loss"  # logs written before the probe signal existed
+    mixed = loss_label([{"iteration": 1, "loss_signal": "training"}, {"iteration": 2, "loss_signal": "probe"}])
+    assert "probe" in mixed and "training" in mixed

@@ -39,6 +39,18 @@ def read_compaction_log(run_dir_or_jsonl: str | Path) -> list[dict[str, Any]]:
     return records
 
 
+# What the ratio controller compared between steps, by the records' `loss_signal` (older logs have none: training).
+_LOSS_LABELS = {"training": "smoothed training loss", "probe": "probe loss\n(fixed training views and times)"}
+
+
+def loss_label(records: list[dict[str, Any]]) -> str:
+    """The y label of the loss panel: the signal the run's controller compared."""
+    signals = {str(r.get("loss_signal", "training")) for r in records}
+    if len(signals) == 1 and (signal := signals.pop()) in _LOSS_LABELS:
+        return _LOSS_LABELS[signal]
+    return "controller's loss (" + ", ".join(sorted(signals)) + ")"
+
+
 def plot_compaction(run_dir_or_jsonl: str | Path, out_png: str | Path) -> Path:
     """Write a 3-panel PNG (ratio, smoothed loss, #Gaussians against iteration); returns its path."""
     import matplotlib
@@ -56,7 +68,7 @@ def plot_compaction(run_dir_or_jsonl: str | Path, out_png: str | Path) -> Path:
     axes[0].step(iterations, series("ratio"), where="post", color="tab:blue")
     axes[0].set_ylabel("pruning ratio\n(of matched pairs)")
     axes[1].plot(iterations, series("smoothed_loss"), marker=".", color="tab:red")
-    axes[1].set_ylabel("smoothed training loss")
+    axes[1].set_ylabel(loss_label(records))
     axes[2].plot(iterations, series("gaussians_left"), marker=".", color="tab:green")
     axes[2].set_ylabel("Gaussians")
     axes[2].set_xlabel("iteration")
