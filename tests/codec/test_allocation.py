@@ -9,8 +9,9 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
-from stgc.codec import CodecConfig, compress_run, read_stgc
+from stgc.codec import CodecConfig, compress_run, read_stgc, views
 from stgc.codec.allocation import (
     _GRID,
     LOSS_BUDGET_DB,
@@ -146,14 +147,20 @@ def test_the_table_renders_a_subset_of_the_views_and_rate_control_renders_them_a
     calls.clear()
     result = optimise_allocation(arrays, "full", decoder, render, truth, 0.1)
     assert result.within_budget and result.views == 16
-    subsets = [c for c in calls if len(c) < 16]
     assert calls[0] == list(range(16))  # the reference
-    assert subsets and all(c == subsets[0] for c in subsets) and len(subsets[0]) == 8
-    assert subsets[0][0] == 0 and subsets[0][-1] == 15  # spread over the views
+    table = [c for c in calls if len(c) == 8]
+    assert table and all(c == table[0] for c in table)
+    assert table[0][0] == 0 and table[0][-1] == 15  # spread over the views
+    # The step-shape probes, one per component of each shaped group, render 4 of the table's views.
+    probes = [c for c in calls if len(c) == 4]
+    assert len(probes) == sum(len(v) for v in result.shapes.values())
+    assert all(c == probes[0] for c in probes) and set(probes[0]) <= set(table[0])
+    assert probes[0][0] == 0 and probes[0][-1] == 15
+    assert all(len(c) in (4, 8, 16) for c in calls)
     rounds = [c for c in calls[1:] if len(c) == 16]
     assert 1 <= len(rounds) <= result.rounds  # a round that repeats an allocation reuses its measurement
-    # The sweep stops early: fewer trials than every candidate depth of every group.
-    table_trials = len(subsets) - 1 - sum(len(v) for v in result.shapes.values())
+    # The sweep stops early: fewer trials than every candidate depth of every group (table: near-lossless + sweep).
+    table_trials = len(table) - 1
     assert table_trials < sum(len(candidate_bits(t)) for t in result.depths)
 
 
@@ -200,6 +207,30 @@ def test_compress_run_optimises_bit_depths_on_the_runs_training_views(toys_run):
     ladder = compress_run(toys_run, toys_run / "ladder.stgc", quality=3, config=CodecConfig(allocation="ladder"))
     assert ladder.allocation is None and "fixed ladder" in str(ladder)
     assert "allocation" not in read_stgc(toys_run / "ladder.stgc").metadata
+
+
+def test_views_rendered_side_by_side_give_the_same_file_as_in_turn(toys_run, monkeypatch):
+    pools = []
+
+    class CountingPool(views.ThreadPoolExecutor):
+        def map(self, *args, **kwargs):
+            pools.append(self)
+            return super().map(*args, **kwargs)
+
+    monkeypatch.setattr(views, "ThreadPoolExecutor", CountingPool)
+    config = CodecConfig(allocation="optimised", allocation_views=4)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        compress_run(toys_run, toys_run / "in_turn.stgc", quality=3, config=config)
+        assert not pools
+        torch.set_num_threads(2)
+        compress_run(toys_run, toys_run / "side_by_side.stgc", quality=3, config=config)
+        assert pools  # the views went through the pool
+        assert torch.get_num_threads() == 2  # restored after the allocation
+    finally:
+        torch.set_num_threads(threads)
+    assert (toys_run / "in_turn.stgc").read_bytes() == (toys_run / "side_by_side.stgc").read_bytes()
 
 
 def test_optimised_allocation_without_the_dataset_is_a_clear_error_and_auto_falls_back(toys_run, tmp_path):

@@ -13,7 +13,8 @@ mean_view(e_g / m0) <= 10^(L/10) - 1, with e_g measured by rendering the model w
    albedo against the decoder's features, ...): each component is measured alone at the ladder's q3 depth, and
    since at fine quantization a component's error grows with the square of its step, the group's error for a
    given number of bits is smallest when every component adds the same error. The less visible components get
-   steps coarser by sqrt(largest error / their error) (in quarter bits, at most 4 bits);
+   steps coarser by sqrt(largest error / their error) (in quarter bits, at most 4 bits). The probes render 4 of
+   the table's views: they only rank a group's components against each other;
 3. for each group and integer bit depth, encodes/decodes the model with only that group coarse, renders,
    and records the section's bytes and its relative added error. The depths are swept from the middle of the
    group's range outwards and a direction stops at the first depth that decides nothing: finer than one whose
@@ -76,6 +77,15 @@ _HOPELESS = 16.0
 # Views the table's trials render (of the sampled ones). Measured against all 16 on two trained blender_toys models
 # at q3: files within 1.3 % (one smaller, one larger), test PSNR -0.003 and -0.007 dB (benchmarks/RESULTS.md).
 _TABLE_VIEWS = 8
+# Views the step-shape probes render (of the table's): a probe only ranks a group's components against each other,
+# in quarter bits.
+_PROBE_VIEWS = 4
+
+
+def spread_views(count: int, wanted: int) -> list[int]:
+    """`wanted` of `count` view indices (all when fewer), spread evenly over them."""
+    spread = np.linspace(0, count - 1, min(wanted, count))
+    return sorted({int(round(x)) for x in spread})
 
 
 def budget_db(quality: int) -> float:
@@ -274,9 +284,10 @@ def optimise_allocation(
 
     every_view = list(range(len(ground_truth)))
     # The table's trials (one group at a time) compare with the reference on a subset of the views, spread over
-    # them; rate control, which decides what is held to the budget, renders every view.
-    spread = np.linspace(0, len(ground_truth) - 1, min(_TABLE_VIEWS, len(ground_truth)))
-    table_views = sorted({int(round(x)) for x in spread})
+    # them, and the step-shape probes on a smaller one; rate control, which decides what is held to the budget,
+    # renders every view.
+    table_views = spread_views(len(ground_truth), _TABLE_VIEWS)
+    probe_views = [table_views[i] for i in spread_views(len(table_views), _PROBE_VIEWS)]
 
     def trial(depths: Mapping[str, float], shape: Mapping[str, Sequence[float]] | None = None,
               size_of: str | None = None, views: Sequence[int] = table_views) -> tuple[list[np.ndarray], int | None]:
@@ -309,20 +320,21 @@ def optimise_allocation(
         se = float(np.std(drop, ddof=1) / math.sqrt(len(drop))) if len(drop) > 1 else 0.0
         return float(np.mean(drop)), float(np.mean(drop)) + se
 
-    def relative_error(images: Sequence[np.ndarray]) -> float:
-        """Mean added squared error relative to the model's own, over the table's views."""
-        return float(np.mean([_mse(i, reference[v]) / base_mse[v] for i, v in zip(images, table_views)]))
+    def relative_error(images: Sequence[np.ndarray], views: Sequence[int] = table_views) -> float:
+        """Mean added squared error relative to the model's own, over `views` (rendered as `images`)."""
+        return float(np.mean([_mse(i, reference[v]) / base_mse[v] for i, v in zip(images, views)]))
 
     near_lossless = {t: float(fixed.get(t, _NEAR_LOSSLESS_BITS)) for t in tags}
     images, _ = trial(near_lossless)
     floor = relative_error(images)  # fp16 decoder weights, float32 casts: common to every option
+    probe_floor = relative_error([images[table_views.index(v)] for v in probe_views], probe_views)
     for tag in shaped:  # each component alone at the ladder's q3 depth, the rest of its group much finer
         probe_depth = bits_for(GROUP_BY_TAG[tag.encode("latin-1")], DEFAULT_QUALITY) + _PROBE_FINER_BITS
         errors = []
         for component in range(width[tag]):
             probe = [float(_PROBE_FINER_BITS) if c == component else 0.0 for c in range(width[tag])]
-            images, _ = trial({**near_lossless, tag: probe_depth}, {tag: probe})
-            errors.append(relative_error(images) - floor)
+            images, _ = trial({**near_lossless, tag: probe_depth}, {tag: probe}, views=probe_views)
+            errors.append(relative_error(images, probe_views) - probe_floor)
         shapes[tag] = coarser_bits(errors)
     target = 10.0 ** (loss_budget_db / 10.0) - 1.0
 

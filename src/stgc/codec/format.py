@@ -308,21 +308,27 @@ def _from_domain(values: np.ndarray, domain: str) -> np.ndarray:
     return values
 
 
-def outlier_guard_bits(values: np.ndarray, bits: int) -> int:
-    """`bits` plus enough to keep the bulk's precision when a few outliers stretch the range.
+def outlier_guard_extra_bits(values: np.ndarray) -> int:
+    """The bits to add to a group's depth to keep the bulk's precision when a few outliers stretch the range.
 
     The quantizer step follows the full [min, max] range, so one Gaussian far out (a floater, a stray motion
     coefficient) would coarsen every other Gaussian's step. When the full span exceeds _GUARD_RATIO (4) times the
     span of the central 99.8 % (0.1 to 99.9 percentile) of any component, ceil(log2(ratio / 4)) bits are added, up
-    to +8 bits (and 24 in all). Outlier-free heavy-tailed data (ratio ~2) stays below 4 and is unaffected."""
+    to +8 bits (and 24 in all: `outlier_guard_bits`). Outlier-free heavy-tailed data (ratio ~2) stays below 4 and
+    is unaffected. It depends on the values only, not on the depth (the allocation's trials reuse it)."""
     if values.shape[1] < 2:
-        return bits
+        return 0
     lo, hi = np.quantile(values, [0.001, 0.999], axis=1)
     full = values.max(axis=1) - values.min(axis=1)
     robust = np.maximum(hi - lo, np.finfo(np.float64).tiny)
     ratio = float(np.max(np.where(full > 0, full / robust, 1.0)))
     extra = int(np.ceil(np.log2(ratio / _GUARD_RATIO))) if ratio > _GUARD_RATIO else 0
-    return min(MAX_BITS, bits + min(extra, 8))
+    return min(extra, 8)
+
+
+def outlier_guard_bits(values: np.ndarray, bits: int) -> int:
+    """`bits` plus `outlier_guard_extra_bits(values)`, at most MAX_BITS."""
+    return min(MAX_BITS, bits + outlier_guard_extra_bits(values))
 
 
 def _fit_group(values: np.ndarray, domain: str, bits: int,
@@ -522,13 +528,22 @@ def _quantized_groups(cols: dict[str, np.ndarray], n: int, variant: str, quality
         key = (variant, tag, bits, None if shape is None else tuple(float(f) for f in shape), outlier_guard,
                span_key if group.domain == TIME_SPAN else None)
 
-        def quantized(group: AttributeGroup = group, bits: int = bits, span: np.ndarray = span,
-                      shape: Sequence[float] | None = shape) -> tuple[int, tuple[Quantizer, ...], np.ndarray]:
+        # What a group's depth and steps do not change (its values in the quantized domain, the outlier guard's
+        # extra bits) is kept apart, so that the allocation's trials at other settings reuse it.
+        values_key: tuple[Hashable, ...] = ("domain", variant, tag, span_key if group.domain == TIME_SPAN else None)
+
+        def domain_values(group: AttributeGroup = group, span: np.ndarray = span) -> np.ndarray:
             values = _to_domain(np.stack([cols[f] for f in group.fields(variant)], axis=0), group.domain)
-            if group.domain == TIME_SPAN:
-                values = values * _span_factors(group, span)
+            return values * _span_factors(group, span) if group.domain == TIME_SPAN else values
+
+        def quantized(group: AttributeGroup = group, bits: int = bits, shape: Sequence[float] | None = shape,
+                      values_key: tuple[Hashable, ...] = values_key,
+                      domain_values: Callable[[], np.ndarray] = domain_values,
+                      ) -> tuple[int, tuple[Quantizer, ...], np.ndarray]:
+            values = _remember(memo, values_key, domain_values)
             if group.domain in (LINEAR, TIME_SPAN) and outlier_guard:  # the others are bounded ([0, 1], unit quaternion)
-                bits = outlier_guard_bits(values, bits)
+                extra = _remember(memo, ("guard", *values_key), lambda: outlier_guard_extra_bits(values))
+                bits = min(MAX_BITS, bits + extra)
             quantizers = _fit_group(values, group.domain, bits, shape)
             return bits, quantizers, np.stack([quantize(v, q) for v, q in zip(values, quantizers)], axis=0)
 

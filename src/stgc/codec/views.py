@@ -3,9 +3,12 @@ training both use): renders for `stgc.codec.allocation.optimise_allocation`."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import contextlib
+from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
+import numba
 import numpy as np
 import torch
 from tqdm import tqdm
@@ -41,6 +44,13 @@ def optimise_on_views(model: STGModel, dataset: Dataset, quality: int, *, views:
     columns = ply_columns(model.variant)
     trial: STGModel | None = None  # one model whose parameters each trial overwrites (its camera cache stays)
 
+    @torch.no_grad()  # (per thread: the pool's workers need their own)
+    def render_view(cam: Camera) -> np.ndarray:
+        assert trial is not None
+        rgb = trial.render(cam, t=float(cam.time), background=background).rgb.numpy()
+        gain, offset = corrections.get(str(cam.name), (1.0, 0.0))
+        return np.clip(rgb * gain + offset, 0.0, 1.0)
+
     @torch.no_grad()
     def render(candidate: Mapping[str, np.ndarray], decoder_state: Any, views: Sequence[int]) -> list:
         nonlocal trial
@@ -52,15 +62,14 @@ def optimise_on_views(model: STGModel, dataset: Dataset, quality: int, *, views:
                 trial.params[key].copy_(torch.from_numpy(np.stack([candidate[n] for n in names], axis=1)))
             if decoder_state is not None and trial.decoder is not None:
                 trial.decoder.load_state_dict({k: torch.from_numpy(np.asarray(v)) for k, v in decoder_state.items()})
-        out = []
-        for cam in (chosen[v] for v in views):
-            rgb = trial.render(cam, t=float(cam.time), background=background).rgb.numpy()
-            gain, offset = corrections.get(str(cam.name), (1.0, 0.0))
-            out.append(np.clip(rgb * gain + offset, 0.0, 1.0))
-        return out
+        cams = [chosen[v] for v in views]
+        if pool is None:
+            return [render_view(cam) for cam in cams]
+        return list(pool.map(render_view, cams))
 
     fixed = {"POSI": position_bits} if position_bits else None
-    with tqdm(total=1, desc="allocating bits", unit="trial", leave=False, disable=not show_progress) as bar:
+    with tqdm(total=1, desc="allocating bits", unit="trial", leave=False, disable=not show_progress) as bar, \
+            _view_pool() as pool:
         def progress(done: int, total: int) -> None:
             bar.total = total
             bar.n = done
@@ -68,3 +77,36 @@ def optimise_on_views(model: STGModel, dataset: Dataset, quality: int, *, views:
 
         return optimise_allocation(model.to_ply_arrays(), model.variant, model.decoder_state(), render, truth, budget_db(quality),
                                    fixed_bits=fixed, outlier_guard=outlier_guard, progress=progress)
+
+
+@contextlib.contextmanager
+def _view_pool() -> Iterator[ThreadPoolExecutor | None]:
+    """Threads that render one view each, one thread per core torch may use, each single-threaded inside (torch
+    and numba) for the block; None (render in turn) with one thread, or where numba's threading layer cannot run
+    parallel kernels from several threads at once (its workqueue layer; omp and tbb can).
+
+    At the allocation's sizes (a few hundred pixels square, tens of thousands of Gaussians) much of a render is
+    per-Gaussian torch work on tensors too small for torch's own threads, so views side by side keep the cores
+    busier than one view at a time with both (benchmarks/RESULTS.md, the codec's allocation trials). A pixel's
+    colour does not depend on the number of threads: the images are the same either way."""
+    workers = torch.get_num_threads()
+    if workers < 2 or not _concurrent_kernels_safe():
+        yield None
+        return
+    torch.set_num_threads(1)  # process-wide: restored below
+    try:
+        with ThreadPoolExecutor(workers, initializer=numba.set_num_threads, initargs=(1,)) as pool:  # per thread
+            yield pool
+    finally:
+        torch.set_num_threads(workers)
+
+
+def _concurrent_kernels_safe() -> bool:
+    try:
+        layer = numba.threading_layer()
+    except ValueError:  # no parallel kernel has run yet in this process: run one so that numba picks its layer
+        from stgc.render._numba_kernels import sum_rows
+
+        sum_rows(np.zeros((1, 1, 1), np.float32), np.zeros((1, 1), np.float32))
+        layer = numba.threading_layer()
+    return layer in ("omp", "tbb")
