@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -13,6 +14,7 @@ from stgc.compaction import (
     CompactionConfig,
     LossSmoother,
     STKNNCompactor,
+    budget_for_psnr_drop,
     match_spatiotemporal_pairs,
     resolve_schedule,
 )
@@ -128,6 +130,12 @@ def test_resume_gives_identical_events():
     assert strip(events) == strip(straight)
     with pytest.raises(ValueError, match="different CompactionConfig"):
         STKNNCompactor(CompactionConfig(), total).load_state_dict(state)
+    # A state saved before an option existed resumes when the run leaves that option at its default.
+    older = json.loads(json.dumps(state))
+    del older["config"]["loss_budget_db"]
+    STKNNCompactor(cfg, total).load_state_dict(older)
+    with pytest.raises(ValueError, match="different CompactionConfig"):
+        STKNNCompactor(dataclasses.replace(cfg, loss_budget_db=0.3), total).load_state_dict(older)
 
 
 def test_method_none_and_min_gaussians():
@@ -241,3 +249,49 @@ def test_a_probe_signal_steers_the_ratio_instead_of_the_training_losses():
         STKNNCompactor(cfg, total).step(20, 0.0, make_model(random_params(600, seed=1)), 1.0)
     with pytest.raises(ValueError, match="loss_signal"):
         CompactionConfig(loss_signal="psnr").validate()
+
+
+def test_a_damage_budget_holds_the_accumulated_rise_not_the_step_to_step_change():
+    """With a budget the ratio rises while the loss stays within budget of the best seen, even when it rose since
+    the previous step (the paper's rule would step down), and falls while it is beyond it, even when it fell since
+    the previous step (the paper's rule would step up)."""
+    budget = 0.10
+    ctrl = AdaptiveRatio(initial=0.03, step=0.01, minimum=0.01, maximum=0.06, budget=budget)
+    losses = [1.0, 0.9, 0.95, 0.98, 1.2, 1.1, 1.0, 0.99, 0.5]
+    # best:       -   1.0  0.9   0.9   0.9  0.9  0.9  0.9   0.9 ; bound = best x 1.1 = 0.99
+    expected_dir = [0, 1, 1, 1, -1, -1, -1, 1, 1]
+    got = [ctrl.update(loss) for loss in losses]
+    assert got == expected_dir
+    assert ctrl.ratio == 0.05 and ctrl.best_loss == 0.5
+    paper = AdaptiveRatio(initial=0.03, step=0.01, minimum=0.01, maximum=0.06)
+    assert [paper.update(loss) for loss in losses] == [0, 1, -1, -1, -1, 1, 1, 1, 1]  # the same losses, step to step
+    # The state carries the best; a checkpoint from before the budget existed falls back to the last loss.
+    restored = AdaptiveRatio(initial=0.03, step=0.01, minimum=0.01, maximum=0.06, budget=budget)
+    restored.load_state_dict(json.loads(json.dumps(ctrl.state_dict())))
+    assert restored.best_loss == 0.5 and restored.update(0.56) == -1
+    restored.load_state_dict({"ratio": 0.03, "previous_loss": 0.8})
+    assert restored.best_loss == 0.8
+    with pytest.raises(ValueError, match="budget"):
+        AdaptiveRatio(0.03, 0.01, 0.01, 0.06, budget=-0.1)
+
+
+def test_the_budget_is_a_psnr_drop_in_the_config():
+    # An L1-like loss grows with the RMS error: a 0.3 dB drop is 10^(0.3/20) - 1 = 3.5 % more loss.
+    assert budget_for_psnr_drop(0.3) == pytest.approx(0.03514, abs=1e-5)
+    assert budget_for_psnr_drop(20.0) == pytest.approx(9.0)
+    cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.7, interval=10, loss_signal="probe",
+                           loss_budget_db=0.3)
+    compactor = STKNNCompactor(cfg, 100)
+    assert compactor.controller.budget == pytest.approx(budget_for_psnr_drop(0.3))
+    assert STKNNCompactor(CompactionConfig(), 100).controller.budget == 0.0  # the paper's rule by default
+    model = make_model(random_params(600, seed=1))
+    probe_values = iter([1.0, 1.02, 1.05, 1.0, 0.9])
+    events = [e for it in range(1, 101)
+              if (e := compactor.step(it, 0.5, model, 1.0, probe_fn=lambda: next(probe_values))) is not None]
+    assert [e["ratio_direction"] for e in events] == [0, 1, -1, 1, 1]  # 1.05 > 1.0 x 1.035; 1.02 is within
+    assert [e["best_smoothed_loss"] for e in events] == [None, 1.0, 1.0, 1.0, 1.0]
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="loss_budget_db"):
+            CompactionConfig(loss_budget_db=bad).validate()
+    with pytest.raises(ValueError, match="set one of them"):
+        CompactionConfig(loss_budget_db=0.3, loss_tolerance=0.01).validate()

@@ -6,7 +6,7 @@ exact rules and defaults are in docs/compaction.md.
 
 from .compactor import STKNNCompactor
 from .config import CASE_WINDOWS, CompactionConfig, PruningSchedule, resolve_schedule
-from .controller import AdaptiveRatio, LossSmoother
+from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
 from .matching import (
     PairMatches,
     match_pairs,
@@ -28,6 +28,7 @@ __all__ = [
     "PruneSelection",
     "PruningSchedule",
     "STKNNCompactor",
+    "budget_for_psnr_drop",
     "match_pairs",
     "match_pairs_bruteforce",
     "match_spatiotemporal_pairs",

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from .config import CompactionConfig, PruningSchedule, resolve_schedule
-from .controller import AdaptiveRatio, LossSmoother
+from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
 from .matching import SpacetimeModel, match_spatiotemporal_pairs
 from .pruning import removal_scores, select_removals
 
@@ -34,7 +34,8 @@ class STKNNCompactor:
         self.schedule: PruningSchedule = resolve_schedule(config, self.total_iterations)
         self.smoother = LossSmoother(config.loss_smoothing, self.schedule.interval, config.ema_decay)
         self.controller = AdaptiveRatio(
-            config.ratio_init, config.ratio_step, config.ratio_min, config.ratio_max, config.loss_tolerance
+            config.ratio_init, config.ratio_step, config.ratio_min, config.ratio_max, config.loss_tolerance,
+            budget_for_psnr_drop(config.loss_budget_db) if config.loss_budget_db > 0 else 0.0,
         )
         self.steps_done = 0
         self.total_removed = 0
@@ -76,7 +77,7 @@ class STKNNCompactor:
             smoothed = float(probe_fn())
         else:
             smoothed = self.smoother.value()
-        previous = self.controller.previous_loss
+        previous, best = self.controller.previous_loss, self.controller.best_loss
         direction = self.controller.update(smoothed)
         ratio = self.controller.ratio
 
@@ -108,6 +109,8 @@ class STKNNCompactor:
             "smoothed_loss": smoothed,
             "loss_signal": self.config.loss_signal,
             "previous_smoothed_loss": previous,
+            "best_smoothed_loss": best,
+            "loss_budget": self.controller.budget,
             "matched_references": pairs.matched_references,
             "matched_pairs": len(pairs),
             "selected_pairs": selection.selected_pairs,
@@ -136,7 +139,9 @@ class STKNNCompactor:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a `state_dict()`; the config and schedule must be the ones this compactor was built with."""
         saved = state.get("config")
-        if saved is not None and saved != dataclasses.asdict(self.config):
+        # An option added since the state was saved is taken at its default (what the saving code did).
+        defaults = dataclasses.asdict(CompactionConfig())
+        if saved is not None and {**defaults, **saved} != dataclasses.asdict(self.config):
             raise ValueError("compaction state was saved with a different CompactionConfig; resume with the same config")
         if int(state.get("total_iterations", self.total_iterations)) != self.total_iterations:
             raise ValueError(

@@ -8,6 +8,7 @@ steps (60, 100, 140, 180) and the adaptive ratio controller sees the same number
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal, get_args
 
@@ -70,6 +71,15 @@ class CompactionConfig:
     loss_tolerance: float = field(
         default=0.0,
         metadata={"help": "relative loss change treated as 'no change' (ratio kept); 0 = paper (any change counts)"},
+    )
+    loss_budget_db: float = field(
+        default=0.0,
+        metadata={
+            "help": "damage budget of the ratio controller, as the PSNR drop it may see: > 0 compares the signal with "
+            "the lowest value seen so far (ratio down while it is worse by more than the loss increase this drop "
+            "means, up otherwise) instead of with the previous step; 0 = paper (step to step). Best with "
+            "loss_signal probe"
+        },
     )
     loss_smoothing: Literal["window_mean", "ema"] = field(
         default="window_mean",
@@ -135,6 +145,11 @@ class CompactionConfig:
             raise ValueError(f"compaction.ratio_step {self.ratio_step}: must be >= 0")
         if self.loss_tolerance < 0:
             raise ValueError(f"compaction.loss_tolerance {self.loss_tolerance}: must be >= 0")
+        if not (math.isfinite(self.loss_budget_db) and self.loss_budget_db >= 0):
+            raise ValueError(f"compaction.loss_budget_db {self.loss_budget_db}: must be a finite number >= 0")
+        if self.loss_budget_db > 0 and self.loss_tolerance > 0:
+            raise ValueError("compaction.loss_tolerance applies to the paper's step-to-step comparison; with "
+                             "loss_budget_db > 0 the budget is the tolerance: set one of them")
         if self.loss_smoothing not in SMOOTHINGS:
             raise ValueError(f"compaction.loss_smoothing {self.loss_smoothing!r}: expected one of {SMOOTHINGS}")
         if self.loss_signal not in LOSS_SIGNALS:

@@ -10,6 +10,13 @@ Control. At each pruning step the smoothed loss is compared with the one of the 
 `tolerance` relative) -> ratio - step, lower -> ratio + step, otherwise unchanged; then clamped to [min, max]. The
 first step has nothing to compare with and prunes at the initial ratio. The ratio is updated *before* the step's
 prune, so each step's ratio reflects the effect of the previous prunes.
+
+Damage budget (an alternative to the paper's comparison, `budget` > 0). While training lowers the loss faster than
+pruning raises it, a comparison with the previous step raises the ratio whatever the pruning costs, until the damage
+outruns the training's gain; then it steps down too slowly to undo it (benchmarks/RESULTS.md, issue #17). With a
+budget the signal is compared with the lowest value seen so far instead: down one step while it exceeds that best by
+more than `budget` (relative), up one step otherwise. So the accumulated damage, not its change, is what is held.
+`budget_for_psnr_drop` turns a PSNR drop into it.
 """
 
 from __future__ import annotations
@@ -54,23 +61,38 @@ class LossSmoother:
         self.ignored = int(state.get("ignored", 0))
 
 
-class AdaptiveRatio:
-    """The pruning ratio: down one step when the smoothed loss rose, up one step when it fell, clamped."""
+def budget_for_psnr_drop(drop_db: float) -> float:
+    """The relative loss increase that a PSNR drop of `drop_db` corresponds to for an L1-like loss: PSNR follows the
+    RMS error, 20 log10, and L1 scales with it, so 10^(drop/20) - 1 (0.3 dB -> 3.5 %)."""
+    return 10.0 ** (float(drop_db) / 20.0) - 1.0
 
-    def __init__(self, initial: float, step: float, minimum: float, maximum: float, tolerance: float = 0.0):
+
+class AdaptiveRatio:
+    """The pruning ratio: down one step when the smoothed loss rose, up one step when it fell, clamped; or, with a
+    damage `budget`, down while the loss exceeds the best seen by more than the budget, up otherwise."""
+
+    def __init__(self, initial: float, step: float, minimum: float, maximum: float, tolerance: float = 0.0,
+                 budget: float = 0.0):
         if not (minimum <= initial <= maximum):
             raise ValueError(f"initial ratio {initial} outside [{minimum}, {maximum}]")
+        if budget < 0:
+            raise ValueError(f"damage budget {budget} must be >= 0")
         self.ratio = float(initial)
         self.step = float(step)
         self.minimum = float(minimum)
         self.maximum = float(maximum)
         self.tolerance = float(tolerance)
+        self.budget = float(budget)
         self.previous_loss: float | None = None
+        self.best_loss: float | None = None
 
     def update(self, loss: float | None) -> int:
         """Feed this step's smoothed loss; returns the direction taken (-1, 0, +1). `self.ratio` is the new ratio."""
         direction = 0
-        if loss is not None and self.previous_loss is not None:
+        if loss is not None and self.budget > 0:
+            if self.best_loss is not None:
+                direction = -1 if loss > self.best_loss * (1.0 + self.budget) else 1
+        elif loss is not None and self.previous_loss is not None:
             change = loss - self.previous_loss
             if abs(change) > self.tolerance * abs(self.previous_loss):
                 direction = -1 if change > 0 else 1
@@ -78,11 +100,15 @@ class AdaptiveRatio:
         self.ratio = round(min(self.maximum, max(self.minimum, self.ratio + direction * self.step)), 12)
         if loss is not None:
             self.previous_loss = loss
+            self.best_loss = loss if self.best_loss is None else min(self.best_loss, loss)
         return direction
 
     def state_dict(self) -> dict[str, Any]:
-        return {"ratio": self.ratio, "previous_loss": self.previous_loss}
+        return {"ratio": self.ratio, "previous_loss": self.previous_loss, "best_loss": self.best_loss}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.ratio = float(state["ratio"])
         self.previous_loss = None if state["previous_loss"] is None else float(state["previous_loss"])
+        # Checkpoints written before the damage budget existed: the best so far is unknown, the last loss stands in.
+        best = state.get("best_loss", state["previous_loss"])
+        self.best_loss = None if best is None else float(best)
