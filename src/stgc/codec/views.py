@@ -63,13 +63,18 @@ def optimise_on_views(model: STGModel, dataset: Dataset, quality: int, *, views:
             if decoder_state is not None and trial.decoder is not None:
                 trial.decoder.load_state_dict({k: torch.from_numpy(np.asarray(v)) for k, v in decoder_state.items()})
         cams = [chosen[v] for v in views]
-        if pool is None:
+        if not pools:  # the first call (the reference) renders in turn: numba has picked its threading layer after it
+            images = [render_view(cam) for cam in cams]
+            pools.append(stack.enter_context(_view_pool()))
+            return images
+        if pools[0] is None:
             return [render_view(cam) for cam in cams]
-        return list(pool.map(render_view, cams))
+        return list(pools[0].map(render_view, cams))
 
     fixed = {"POSI": position_bits} if position_bits else None
+    pools: list[ThreadPoolExecutor | None] = []
     with tqdm(total=1, desc="allocating bits", unit="trial", leave=False, disable=not show_progress) as bar, \
-            _view_pool() as pool:
+            contextlib.ExitStack() as stack:
         def progress(done: int, total: int) -> None:
             bar.total = total
             bar.n = done
@@ -103,10 +108,6 @@ def _view_pool() -> Iterator[ThreadPoolExecutor | None]:
 
 def _concurrent_kernels_safe() -> bool:
     try:
-        layer = numba.threading_layer()
-    except ValueError:  # no parallel kernel has run yet in this process: run one so that numba picks its layer
-        from stgc.render._numba_kernels import sum_rows
-
-        sum_rows(np.zeros((1, 1, 1), np.float32), np.zeros((1, 1), np.float32))
-        layer = numba.threading_layer()
-    return layer in ("omp", "tbb")
+        return numba.threading_layer() in ("omp", "tbb")
+    except ValueError:  # no parallel kernel has run in this process, so none was chosen: do not guess
+        return False
