@@ -260,9 +260,11 @@ def test_a_damage_budget_holds_the_accumulated_rise_not_the_step_to_step_change(
     losses = [1.0, 0.9, 0.95, 0.98, 1.2, 1.1, 1.0, 0.99, 0.5]
     # best:       -   1.0  0.9   0.9   0.9  0.9  0.9  0.9   0.9 ; bound = best x 1.1 = 0.99
     expected_dir = [0, 1, 1, 1, -1, -1, -1, 1, 1]
-    got = [ctrl.update(loss) for loss in losses]
-    assert got == expected_dir
-    assert ctrl.ratio == 0.05 and ctrl.best_loss == 0.5
+    expected_ratio = [0.03, 0.04, 0.05, 0.06, 0.03, 0.015, 0.01, 0.02, 0.03]  # up a step, down by half, clamped
+    got = [(ctrl.update(loss), ctrl.ratio) for loss in losses]
+    assert [d for d, _ in got] == expected_dir
+    assert [r for _, r in got] == expected_ratio
+    assert ctrl.best_loss == 0.5
     paper = AdaptiveRatio(initial=0.03, step=0.01, minimum=0.01, maximum=0.06)
     assert [paper.update(loss) for loss in losses] == [0, 1, -1, -1, -1, 1, 1, 1, 1]  # the same losses, step to step
     # The state carries the best; a checkpoint from before the budget existed falls back to the last loss.

@@ -76,8 +76,8 @@ class CompactionConfig:
         default=0.0,
         metadata={
             "help": "damage budget of the ratio controller, as the PSNR drop it may see: > 0 compares the signal with "
-            "the lowest value seen so far (ratio down while it is worse by more than the loss increase this drop "
-            "means, up otherwise) instead of with the previous step; 0 = paper (step to step). Best with "
+            "the lowest value seen so far (ratio halved while it is worse by more than the loss increase this drop "
+            "means, up one step otherwise) instead of with the previous step; 0 = paper (step to step). Best with "
             "loss_signal probe"
         },
     )

@@ -14,8 +14,9 @@ prune, so each step's ratio reflects the effect of the previous prunes.
 Damage budget (an alternative to the paper's comparison, `budget` > 0). While training lowers the loss faster than
 pruning raises it, a comparison with the previous step raises the ratio whatever the pruning costs, until the damage
 outruns the training's gain; then it steps down too slowly to undo it (benchmarks/RESULTS.md, issue #17). With a
-budget the signal is compared with the lowest value seen so far instead: down one step while it exceeds that best by
-more than `budget` (relative), up one step otherwise. So the accumulated damage, not its change, is what is held.
+budget the signal is compared with the lowest value seen so far instead: the ratio halves while the signal exceeds
+that best by more than `budget` (relative), and rises one step otherwise (additive increase, multiplicative decrease:
+the damage shows some steps after the prunes that caused it). So the accumulated damage, not its change, is held.
 `budget_for_psnr_drop` turns a PSNR drop into it.
 """
 
@@ -69,7 +70,7 @@ def budget_for_psnr_drop(drop_db: float) -> float:
 
 class AdaptiveRatio:
     """The pruning ratio: down one step when the smoothed loss rose, up one step when it fell, clamped; or, with a
-    damage `budget`, down while the loss exceeds the best seen by more than the budget, up otherwise."""
+    damage `budget`, halved while the loss exceeds the best seen by more than the budget, up one step otherwise."""
 
     def __init__(self, initial: float, step: float, minimum: float, maximum: float, tolerance: float = 0.0,
                  budget: float = 0.0):
@@ -89,15 +90,20 @@ class AdaptiveRatio:
     def update(self, loss: float | None) -> int:
         """Feed this step's smoothed loss; returns the direction taken (-1, 0, +1). `self.ratio` is the new ratio."""
         direction = 0
+        proposed = self.ratio
         if loss is not None and self.budget > 0:
             if self.best_loss is not None:
                 direction = -1 if loss > self.best_loss * (1.0 + self.budget) else 1
+                # Additive increase, multiplicative decrease: the damage shows some steps after the prunes that
+                # caused it, so a ratio that only stepped down would keep pruning at nearly the rate that overshot.
+                proposed = self.ratio / 2.0 if direction < 0 else self.ratio + self.step
         elif loss is not None and self.previous_loss is not None:
             change = loss - self.previous_loss
             if abs(change) > self.tolerance * abs(self.previous_loss):
                 direction = -1 if change > 0 else 1
+                proposed = self.ratio + direction * self.step
         # Round away float drift (0.02 + 0.005 - 0.005 != 0.02) so ratios land on the step grid reproducibly.
-        self.ratio = round(min(self.maximum, max(self.minimum, self.ratio + direction * self.step)), 12)
+        self.ratio = round(min(self.maximum, max(self.minimum, proposed)), 12)
         if loss is not None:
             self.previous_loss = loss
             self.best_loss = loss if self.best_loss is None else min(self.best_loss, loss)
