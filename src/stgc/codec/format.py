@@ -314,7 +314,7 @@ def outlier_guard_extra_bits(values: np.ndarray) -> int:
     The quantizer step follows the full [min, max] range, so one Gaussian far out (a floater, a stray motion
     coefficient) would coarsen every other Gaussian's step. When the full span exceeds _GUARD_RATIO (4) times the
     span of the central 99.8 % (0.1 to 99.9 percentile) of any component, ceil(log2(ratio / 4)) bits are added, up
-    to +8 bits (and 24 in all: `outlier_guard_bits`). Outlier-free heavy-tailed data (ratio ~2) stays below 4 and
+    to +8 bits (and MAX_BITS in all). Outlier-free heavy-tailed data (ratio ~2) stays below 4 and
     is unaffected. It depends on the values only, not on the depth (the allocation's trials reuse it)."""
     if values.shape[1] < 2:
         return 0
@@ -324,11 +324,6 @@ def outlier_guard_extra_bits(values: np.ndarray) -> int:
     ratio = float(np.max(np.where(full > 0, full / robust, 1.0)))
     extra = int(np.ceil(np.log2(ratio / _GUARD_RATIO))) if ratio > _GUARD_RATIO else 0
     return min(extra, 8)
-
-
-def outlier_guard_bits(values: np.ndarray, bits: int) -> int:
-    """`bits` plus `outlier_guard_extra_bits(values)`, at most MAX_BITS."""
-    return min(MAX_BITS, bits + outlier_guard_extra_bits(values))
 
 
 def _fit_group(values: np.ndarray, domain: str, bits: int,
@@ -672,7 +667,7 @@ def encode(
     group's ({"MOTN": 10, ...}, keyed by section tag). step_scales ({"FDC_": [1, 1, 1, 8, 8, 4], ...}) multiplies
     the steps of a group's components by factors >= 1 (one per stored component; ROTN: its three stored ones):
     components whose errors show less get coarser steps at the same depth. outlier_guard adds bits to a linear group whose range
-    is stretched by outliers (outlier_guard_bits). The Gaussians are reordered along the Morton curve of their
+    is stretched by outliers (outlier_guard_extra_bits). The Gaussians are reordered along the Morton curve of their
     quantized positions. metadata: small JSON-able dict kept verbatim."""
     if variant == "full" and decoder_state is None:
         raise DataError(None, "a full-variant model needs its decoder state")

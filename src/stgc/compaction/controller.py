@@ -102,7 +102,8 @@ class AdaptiveRatio:
             if abs(change) > self.tolerance * abs(self.previous_loss):
                 direction = -1 if change > 0 else 1
                 proposed = self.ratio + direction * self.step
-        # Round away float drift (0.02 + 0.005 - 0.005 != 0.02) so ratios land on the step grid reproducibly.
+        # Round away float drift (0.02 + 0.005 - 0.005 != 0.02) so that ratios are reproducible (and on the step grid
+        # in the paper's rule; halving leaves it).
         self.ratio = round(min(self.maximum, max(self.minimum, proposed)), 12)
         if loss is not None:
             self.previous_loss = loss
