@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from stgc.model import STGModel
-from stgc.train.config import DensifyConfig, TrainConfig, resolve_schedule
+from stgc.train.config import DensifyConfig, QuantizationAwareConfig, TrainConfig, resolve_schedule
 from stgc.train.densify import (
     DensificationStats,
     apply_prune,
@@ -137,8 +137,57 @@ def test_floater_rules():
     centers = np.array([[5.05, 0.0, 0.0]])
     remove = prune_mask_floaters(model, centers, near_camera=0.05, max_world_scale=0.0)
     assert remove.tolist() == [True] + [False] * 39  # 0.05 < 0.05*E = 0.1
-    remove = prune_mask_floaters(model, centers, near_camera=0.0, max_world_scale=1.0)
-    assert remove[1] and int(remove.sum()) == int((model.scales.max(dim=1).values > 2.0).sum())
+
+
+def _scene(centres: np.ndarray, seed: int = 0) -> STGModel:
+    """Points at `centres` with small scales, the scene extent of cameras on a circle of radius 1.5 around them."""
+    rng = np.random.default_rng(seed)
+    cloud = SimpleNamespace(xyz=centres.astype(np.float32), rgb=rng.uniform(size=(len(centres), 3)),
+                            time=rng.uniform(size=len(centres)))
+    model = STGModel.from_points(cloud, variant="full", scene_extent=1.1 * 1.5)
+    with torch.no_grad():
+        model.params["scaling"].fill_(np.log(0.05))
+    return model
+
+
+def test_scale_rule_removes_gaussians_larger_than_the_scene_around_the_cameras():
+    # Cameras on a circle of radius 1.5 around a unit ball of points: the scene radius is E = 1.65.
+    rng = np.random.default_rng(1)
+    model = _scene(rng.uniform(-1, 1, size=(400, 3)))
+    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    cameras = np.column_stack([1.5 * np.cos(angles), 1.5 * np.sin(angles), np.zeros(8)])
+    with torch.no_grad():
+        model.params["scaling"][0] = np.log(2.0)  # larger than the scene: removed
+        model.params["scaling"][1, 0] = np.log(1.5)  # a wall-sized sheet within it: kept
+    remove = prune_mask_floaters(model, cameras, near_camera=0.0, max_world_scale=1.0)
+    assert remove.nonzero().ravel().tolist() == [0]
+    assert not prune_mask_floaters(model, cameras, near_camera=0.0, max_world_scale=0.0).any()
+
+
+def test_scale_rule_keeps_a_far_background_of_a_forward_facing_rig():
+    # Cameras within 0.2 of the origin (E = 0.22 by their spread), the scene up to 10 away: a background Gaussian
+    # of size 3 at distance 10 is part of the scene (a rule in units of E would remove it); one of 12 is not.
+    rng = np.random.default_rng(2)
+    near = rng.uniform(-1, 1, size=(300, 3)) + [0, 0, 3]
+    background = np.column_stack([rng.uniform(-5, 5, 100), rng.uniform(-3, 3, 100), np.full(100, 10.0)])
+    model = _scene(np.vstack([near, background]))
+    model.scene_extent = 0.22
+    cameras = np.array([[-0.2, 0, 0], [0.2, 0, 0], [0, 0.2, 0], [0, -0.2, 0]])
+    with torch.no_grad():
+        model.params["scaling"][300] = np.log(3.0)
+        model.params["scaling"][301] = np.log(12.0)
+    remove = prune_mask_floaters(model, cameras, near_camera=0.0, max_world_scale=1.0)
+    assert remove.nonzero().ravel().tolist() == [301]
+
+
+def test_floater_rules_stop_before_a_learned_mask_window():
+    official = DensifyConfig().resolved(sparse_cloud=False)
+    plain = TrainConfig(iterations=3000, schedule_scale=0.1, densify=official)
+    assert resolve_schedule(plain).floaters_until == 3000
+    simulated = replace(plain, quantization_aware=QuantizationAwareConfig(iterations=500))
+    assert resolve_schedule(simulated).floaters_until == 3000  # no mask: the rows may change
+    masked = replace(plain, quantization_aware=QuantizationAwareConfig(iterations=500, mask=True))
+    assert resolve_schedule(masked).floaters_until == 2500
 
 
 def test_schedule_scaling_and_xyz_decay():
@@ -245,7 +294,7 @@ def test_pruning_in_clone_split_rounds_is_an_option(prune_in_rounds):
         model.params["opacity"][:5] = -8.0  # sigmoid ~ 3e-4, below the 0.005 threshold
     cfg = replace(DensifyConfig(), prune_in_rounds=prune_in_rounds).resolved(sparse_cloud=True)
     schedule = resolve_schedule(replace(TrainConfig(), densify=cfg, schedule_scale=0.2, iterations=6000))
-    control = DensityControl(cfg, FloaterConfig(), schedule, model.num_gaussians, np.zeros((0, 3)))
+    control = DensityControl(cfg, FloaterConfig(max_world_scale=0.0), schedule, model.num_gaussians, np.zeros((0, 3)))
     first_round = schedule.densify_start + schedule.densify_interval
     report = control.step(first_round, model, torch.Generator().manual_seed(0))
     assert control.rounds_done == 1

@@ -297,8 +297,12 @@ def test_a_mask_window_that_density_control_or_compaction_could_edit_is_refused_
     config = dataclasses.replace(config, quantization_aware=dataclasses.replace(
         config.quantization_aware, rate_weight=1e-3, mask=True))
     Trainer(dataset, None, None, config, None, tmp_path / "fine", model=start)  # nothing else edits rows: accepted
-    floaters = dataclasses.replace(config, schedule_scale=0.01, floaters=FloaterConfig(near_camera=0.3))
-    with pytest.raises(ValueError, match=r"floater pruning \(until iteration 300\)"):
-        Trainer(dataset, None, None, floaters, None, tmp_path / "floaters", model=start)
+    # The floater rules stop where the window starts (resolve_schedule), so they never overlap it.
+    floaters = dataclasses.replace(config, floaters=FloaterConfig(near_camera=0.3))
+    trainer = Trainer(dataset, None, None, floaters, None, tmp_path / "floaters", model=start)
+    assert trainer.schedule.floaters_until == 50
+    early = dataclasses.replace(config, schedule_scale=0.01)  # low-opacity pruning until iteration 70
+    with pytest.raises(ValueError, match=r"overlaps low-opacity pruning \(until iteration 70\)"):
+        Trainer(dataset, None, None, early, None, tmp_path / "early", model=start)
     with pytest.raises(ValueError, match="overlaps ST-KNN compaction"):
         Trainer(dataset, None, None, config, CompactionConfig(method="st-knn"), tmp_path / "stknn", model=start)

@@ -154,14 +154,18 @@ class DensifyConfig:
 
 @dataclass(frozen=True)
 class FloaterConfig:
-    """CPU-scale floater control (not in official STG; see docs/training.md). Zero disables a rule."""
+    """Floater control (not in official STG; see docs/training.md). Zero disables a rule."""
 
     near_camera: float = field(
         default=0.0,
         metadata={"help": "prune Gaussians whose centre is closer than this fraction of E to a training camera"},
     )
     max_world_scale: float = field(
-        default=0.0, metadata={"help": "prune Gaussians whose largest axis exceeds this fraction of E"}
+        default=0.5,
+        metadata={"help": "prune Gaussians whose largest axis (one standard deviation) exceeds this fraction of the "
+                  "scene radius: the larger of E and the 99th percentile of the Gaussian centres' distances from "
+                  "the training cameras' centroid (a Gaussian the size of the scene fogs views that no training "
+                  "view constrains)"},
     )
     until: int = field(
         default=30000, metadata={"help": "apply the rules at densification intervals until this iteration (schedule units)"}
@@ -393,7 +397,9 @@ def resolve_schedule(cfg: TrainConfig) -> Schedule:
         prune_until=scaled(d.prune_until),
         opacity_reset_interval=scaled(d.opacity_reset_interval) if d.opacity_reset_interval > 0 else 0,
         opacity_reset_until=scaled(d.opacity_reset_until),
-        floaters_until=scaled(cfg.floaters.until),
+        # A learned mask tracks the model's rows through the rate-aware window: the floater rules stop before it.
+        floaters_until=min(scaled(cfg.floaters.until), iterations - cfg.quantization_aware.iterations)
+        if cfg.quantization_aware.mask else scaled(cfg.floaters.until),
         ems_start=scaled(cfg.ems.start),
         ems_min_gap=scaled(cfg.ems.min_gap),
         save_iterations=tuple(saves),

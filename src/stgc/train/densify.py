@@ -149,22 +149,38 @@ def prune_mask_nonfinite(model: STGModel) -> torch.Tensor:
 def prune_mask_floaters(
     model: STGModel, camera_centers: np.ndarray, near_camera: float, max_world_scale: float
 ) -> torch.Tensor:
-    """Rows to REMOVE by the CPU-scale floater rules (fractions of the scene extent E; 0 disables a rule).
+    """Rows to REMOVE by the floater rules (0 disables a rule).
 
     near_camera: the Gaussian's centre (its position at its own temporal centre) lies within near_camera * E of a
-    training camera centre; such Gaussians cover held-out views with blur although training views barely see them.
-    max_world_scale: its largest axis exceeds max_world_scale * E.
+    training camera centre (E: the scene extent); such Gaussians cover held-out views with blur although training
+    views barely see them.
+    max_world_scale: its largest axis exceeds max_world_scale * `scene_radius`. A Gaussian larger than the scene
+    sits mostly behind what the training views see, where they cannot correct it, and a held-out camera that looks
+    past the modelled surfaces sees it as a haze over the whole image.
     """
     remove = torch.zeros(model.num_gaussians, dtype=torch.bool)
     extent = model.scene_extent
-    if near_camera > 0 and len(camera_centers):
-        xyz = model.params["xyz"].detach()
-        centers = torch.as_tensor(np.asarray(camera_centers), dtype=xyz.dtype)
+    xyz = model.params["xyz"].detach()
+    centers = torch.as_tensor(np.asarray(camera_centers, dtype=np.float64).reshape(-1, 3), dtype=xyz.dtype)
+    if near_camera > 0 and len(centers):
         nearest = torch.cdist(xyz, centers).min(dim=1).values
         remove |= nearest < near_camera * extent
-    if max_world_scale > 0:
-        remove |= model.scales.detach().max(dim=1).values > max_world_scale * extent
+    if max_world_scale > 0 and model.num_gaussians:
+        remove |= model.scales.detach().max(dim=1).values > max_world_scale * scene_radius(model, centers)
     return remove
+
+
+def scene_radius(model: STGModel, camera_centers: torch.Tensor) -> float:
+    """How far the scene reaches from the training cameras' centroid: the 99th percentile of the Gaussian centres'
+    distances from it, and at least the scene extent E (cameras around a scene: E; a forward-facing rig, whose
+    background lies far beyond its cameras: the background's distance)."""
+    xyz = model.params["xyz"].detach()
+    if not len(camera_centers) or not len(xyz):
+        return float(model.scene_extent)
+    distances = (xyz - camera_centers.mean(dim=0)).norm(dim=1)
+    finite = distances[torch.isfinite(distances)]
+    reach = float(torch.quantile(finite, 0.99)) if len(finite) else 0.0
+    return max(float(model.scene_extent), reach)
 
 
 def apply_prune(model: STGModel, stats: DensificationStats, remove: torch.Tensor) -> int:

@@ -280,9 +280,6 @@ class Trainer:
             overlapping.append(f"clone/split rounds (until iteration {sched.densify_end})")
         if step is not None and sched.prune_until > step:
             overlapping.append(f"low-opacity pruning (until iteration {sched.prune_until})")
-        if step is not None and (cfg.floaters.near_camera > 0 or cfg.floaters.max_world_scale > 0) \
-                and sched.floaters_until >= step:
-            overlapping.append(f"floater pruning (until iteration {sched.floaters_until})")
         if overlapping:
             raise ValueError(
                 f"train.quantization_aware.mask: the rate-aware window (iterations {first}-{sched.iterations}) "
