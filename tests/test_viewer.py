@@ -176,8 +176,11 @@ def test_playback_moves_the_frame_at_the_chosen_speed(run, fps, seconds, expecte
 
 def test_ctrl_c_stops_the_server_cleanly(run):
     port = free_port()
+    # A shell starts background jobs with SIGINT ignored, and a child inherits that: Python then never turns SIGINT
+    # into KeyboardInterrupt, and `make test &` waited here for ever. Give the viewer the default disposition.
     proc = subprocess.Popen([sys.executable, "-m", "stgc.cli", "view", str(run), "--port", str(port)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         line = ""
         deadline = time.monotonic() + 120

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from stgc.model import STGModel
-from stgc.train.config import DensifyConfig, QuantizationAwareConfig, TrainConfig, resolve_schedule
+from stgc.train.config import DensifyConfig, FloaterConfig, QuantizationAwareConfig, TrainConfig, resolve_schedule
 from stgc.train.densify import (
     DensificationStats,
     apply_prune,
@@ -165,8 +165,9 @@ def test_scale_rule_removes_gaussians_larger_than_the_scene_around_the_cameras()
 
 
 def test_scale_rule_keeps_a_far_background_of_a_forward_facing_rig():
-    # Cameras within 0.2 of the origin (E = 0.22 by their spread), the scene up to 10 away: a background Gaussian
-    # of size 3 at distance 10 is part of the scene (a rule in units of E would remove it); one of 12 is not.
+    # Cameras within 0.2 of the origin (E = 0.22 by their spread), the scene up to 10 away: with the default
+    # threshold a background Gaussian of size 3 at distance 10 is part of the scene (a rule in units of E would
+    # remove it); one of 12 is not.
     rng = np.random.default_rng(2)
     near = rng.uniform(-1, 1, size=(300, 3)) + [0, 0, 3]
     background = np.column_stack([rng.uniform(-5, 5, 100), rng.uniform(-3, 3, 100), np.full(100, 10.0)])
@@ -176,7 +177,7 @@ def test_scale_rule_keeps_a_far_background_of_a_forward_facing_rig():
     with torch.no_grad():
         model.params["scaling"][300] = np.log(3.0)
         model.params["scaling"][301] = np.log(12.0)
-    remove = prune_mask_floaters(model, cameras, near_camera=0.0, max_world_scale=1.0)
+    remove = prune_mask_floaters(model, cameras, near_camera=0.0, max_world_scale=FloaterConfig().max_world_scale)
     assert remove.nonzero().ravel().tolist() == [301]
 
 
@@ -286,7 +287,6 @@ def test_trainer_records_the_densification_its_initial_cloud_called_for(tmp_path
 def test_pruning_in_clone_split_rounds_is_an_option(prune_in_rounds):
     """Off (official STG): a faint Gaussian outlives a clone/split round; on (3DGS): the round removes it, and the
     statistics stay row-aligned with the model."""
-    from stgc.train.config import FloaterConfig
     from stgc.train.densify import DensityControl
 
     model = _model(40)
