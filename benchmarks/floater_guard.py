@@ -3,7 +3,7 @@ fact: for each run, the Gaussians whose largest axis exceeds each threshold (a f
 `stgc.train.densify.scene_radius`) are dropped, and the test views are scored with and without them.
 
 A held-out camera that looks past the surfaces the training views modelled can see a Gaussian larger than the scene
-as a haze over the whole image (issue #14: panoptic cameras fogged at 12-21 dB). Prints one row per run and
+as a haze over the whole image (issue #14: panoptic cameras fogged at 12-25 dB). Prints one row per run and
 threshold: Gaussians removed, test PSNR overall and per camera.
 
     .venv/bin/python benchmarks/floater_guard.py RUN [RUN ...] --thresholds 2 1 0.5

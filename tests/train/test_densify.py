@@ -129,7 +129,7 @@ def test_opacity_reset_caps_opacity_and_clears_its_moments_only():
     assert not torch.equal(model.params["opacity"].detach(), before)
 
 
-def test_floater_rules():
+def test_near_camera_rule():
     model = _model()
     with torch.no_grad():
         model.params["xyz"][0] = torch.tensor([5.0, 0.0, 0.0])
