@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from stgc.config import ConfigError, validate_config
 from stgc.model import STGModel
 from stgc.train.config import DensifyConfig, FloaterConfig, QuantizationAwareConfig, TrainConfig, resolve_schedule
 from stgc.train.densify import (
@@ -162,6 +163,30 @@ def test_scale_rule_removes_gaussians_larger_than_the_scene_around_the_cameras()
     remove = prune_mask_floaters(model, cameras, near_camera=0.0, max_world_scale=1.0)
     assert remove.nonzero().ravel().tolist() == [0]
     assert not prune_mask_floaters(model, cameras, near_camera=0.0, max_world_scale=0.0).any()
+
+
+def test_scale_rule_with_an_opacity_gate_keeps_large_translucent_gaussians():
+    # Two Gaussians larger than the scene: an opaque one (a haze over a held-out view) and a translucent one;
+    # with scale_min_opacity 0.5 only the opaque one goes, with 0 both do.
+    rng = np.random.default_rng(3)
+    model = _scene(rng.uniform(-1, 1, size=(200, 3)))
+    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    cameras = np.column_stack([1.5 * np.cos(angles), 1.5 * np.sin(angles), np.zeros(8)])
+    with torch.no_grad():
+        model.params["scaling"][[0, 1]] = np.log(2.0)
+        model.params["opacity"][0] = torch.logit(torch.tensor(0.9))
+        model.params["opacity"][1] = torch.logit(torch.tensor(0.1))
+    gated = prune_mask_floaters(model, cameras, near_camera=0.0, max_world_scale=1.0, scale_min_opacity=0.5)
+    assert gated.nonzero().ravel().tolist() == [0]
+    ungated = prune_mask_floaters(model, cameras, near_camera=0.0, max_world_scale=1.0)
+    assert ungated.nonzero().ravel().tolist() == [0, 1]
+
+
+def test_floater_options_are_validated():
+    with pytest.raises(ConfigError, match="floaters.scale_min_opacity"):
+        validate_config(FloaterConfig(scale_min_opacity=1.5), "floaters")
+    with pytest.raises(ConfigError, match="floaters.max_world_scale"):
+        validate_config(FloaterConfig(max_world_scale=-1.0), "floaters")
 
 
 def test_scale_rule_keeps_a_far_background_of_a_forward_facing_rig():

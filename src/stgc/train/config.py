@@ -167,9 +167,21 @@ class FloaterConfig:
                   "the training cameras' centroid (a Gaussian the size of the scene fogs views that no training "
                   "view constrains)"},
     )
+    scale_min_opacity: float = field(
+        default=0.0,
+        metadata={"help": "the max_world_scale rule removes only Gaussians whose base opacity is at least this (a haze "
+                  "needs opacity; large translucent Gaussians inside the scene do real work for some views; 0 = any)"},
+    )
     until: int = field(
         default=30000, metadata={"help": "apply the rules at densification intervals until this iteration (schedule units)"}
     )
+
+    def validate(self, prefix: str = "") -> None:
+        for name in ("near_camera", "max_world_scale"):
+            value = getattr(self, name)
+            check(math.isfinite(value) and value >= 0, f"{prefix}{name}", value, ">= 0 (0 = off)")
+        check(0 <= self.scale_min_opacity <= 1, f"{prefix}scale_min_opacity", self.scale_min_opacity,
+              "in [0, 1] (0 = any opacity)")
 
 
 @dataclass(frozen=True)

@@ -147,7 +147,8 @@ def prune_mask_nonfinite(model: STGModel) -> torch.Tensor:
 
 @torch.no_grad()
 def prune_mask_floaters(
-    model: STGModel, camera_centers: np.ndarray, near_camera: float, max_world_scale: float
+    model: STGModel, camera_centers: np.ndarray, near_camera: float, max_world_scale: float,
+    scale_min_opacity: float = 0.0,
 ) -> torch.Tensor:
     """Rows to REMOVE by the floater rules (0 disables a rule).
 
@@ -157,6 +158,8 @@ def prune_mask_floaters(
     max_world_scale: its largest axis exceeds max_world_scale * `scene_radius`. A Gaussian larger than the scene
     sits mostly behind what the training views see, where they cannot correct it, and a held-out camera that looks
     past the modelled surfaces sees it as a haze over the whole image.
+    scale_min_opacity: the scale rule only removes Gaussians at least this opaque (base opacity): a haze needs
+    opacity, and large translucent needles and sheets inside the scene do real work for some views (0 = any).
     """
     remove = torch.zeros(model.num_gaussians, dtype=torch.bool)
     extent = model.scene_extent
@@ -166,7 +169,8 @@ def prune_mask_floaters(
         nearest = torch.cdist(xyz, centers).min(dim=1).values
         remove |= nearest < near_camera * extent
     if max_world_scale > 0 and model.num_gaussians:
-        remove |= model.scales.detach().max(dim=1).values > max_world_scale * scene_radius(model, centers)
+        large = model.scales.detach().max(dim=1).values > max_world_scale * scene_radius(model, centers)
+        remove |= large & (model.opacity.detach() >= scale_min_opacity)
     return remove
 
 
@@ -237,7 +241,8 @@ class DensityControl:
             elif iteration < sched.prune_until:
                 report["pruned_opacity"] = apply_prune(model, self.stats, prune_mask_low_opacity(model, d.prune_opacity))
             if iteration <= sched.floaters_until and (fl.near_camera > 0 or fl.max_world_scale > 0):
-                remove = prune_mask_floaters(model, self.train_centers, fl.near_camera, fl.max_world_scale)
+                remove = prune_mask_floaters(model, self.train_centers, fl.near_camera, fl.max_world_scale,
+                                             fl.scale_min_opacity)
                 report["pruned_floaters"] = apply_prune(model, self.stats, remove)
             report["pruned_nonfinite"] = apply_prune(model, self.stats, prune_mask_nonfinite(model))
         if sched.opacity_reset_interval and iteration % sched.opacity_reset_interval == 0 \
