@@ -6,7 +6,7 @@ A held-out camera that looks past the surfaces the training views modelled can s
 as a haze over the whole image (issue #14: panoptic cameras fogged at 12-25 dB). Prints one row per run and
 threshold: Gaussians removed, test PSNR overall and per camera.
 
-    .venv/bin/python benchmarks/floater_guard.py RUN [RUN ...] --thresholds 2 1 0.5
+    .venv/bin/python benchmarks/floater_guard.py RUN [RUN ...] --thresholds 2 1 0.5 [--min-opacity 0.5]
 """
 
 from __future__ import annotations
@@ -27,6 +27,8 @@ def main() -> None:
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--thresholds", nargs="+", type=float, default=[2.0, 1.0, 0.5],
                         help="largest axis / scene radius above which a Gaussian is dropped")
+    parser.add_argument("--min-opacity", type=float, default=0.0,
+                        help="drop only Gaussians at least this opaque (train.floaters.scale_min_opacity)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -38,7 +40,8 @@ def main() -> None:
         centres = np.array([c.center for c in dataset.train], dtype=np.float64).reshape(-1, 3)
         background = torch.tensor(dataset.background, dtype=torch.float32)
         for threshold in [0.0, *args.thresholds]:
-            remove = prune_mask_floaters(model, centres, near_camera=0.0, max_world_scale=threshold)
+            remove = prune_mask_floaters(model, centres, near_camera=0.0, max_world_scale=threshold,
+                                         scale_min_opacity=args.min_opacity)
             keep = (~remove).float()
             with torch.no_grad():
                 result = evaluate(lambda cam: model.render(cam, t=float(cam.time), background=background,
@@ -46,6 +49,8 @@ def main() -> None:
                                   dataset.test, dataset.load_image, warmup=0)
             cameras = " / ".join(f"{name} {score['psnr']:.2f}" for name, score in result.per_camera.items())
             rule = f"larger than {threshold:g} x scene radius" if threshold else "none"
+            if threshold and args.min_opacity:
+                rule += f", opacity >= {args.min_opacity:g}"
             print(f"| {run} | {rule} | {model.num_gaussians:,} | {int(remove.sum()):,} | {result.psnr:.2f} | "
                   f"{cameras} |", flush=True)
 
