@@ -151,12 +151,16 @@ def _scene(centres: np.ndarray, seed: int = 0) -> STGModel:
     return model
 
 
+def _camera_ring(count: int = 8, radius: float = 1.5) -> np.ndarray:
+    angles = np.linspace(0, 2 * np.pi, count, endpoint=False)
+    return np.column_stack([radius * np.cos(angles), radius * np.sin(angles), np.zeros(count)])
+
+
 def test_scale_rule_removes_gaussians_larger_than_the_scene_around_the_cameras():
     # Cameras on a circle of radius 1.5 around a unit ball of points: the scene radius is E = 1.65.
     rng = np.random.default_rng(1)
     model = _scene(rng.uniform(-1, 1, size=(400, 3)))
-    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
-    cameras = np.column_stack([1.5 * np.cos(angles), 1.5 * np.sin(angles), np.zeros(8)])
+    cameras = _camera_ring()
     with torch.no_grad():
         model.params["scaling"][0] = np.log(2.0)  # larger than the scene: removed
         model.params["scaling"][1, 0] = np.log(1.5)  # a wall-sized sheet within it: kept
@@ -170,8 +174,7 @@ def test_scale_rule_with_an_opacity_gate_keeps_large_translucent_gaussians():
     # with scale_min_opacity 0.5 only the opaque one goes, with 0 both do.
     rng = np.random.default_rng(3)
     model = _scene(rng.uniform(-1, 1, size=(200, 3)))
-    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
-    cameras = np.column_stack([1.5 * np.cos(angles), 1.5 * np.sin(angles), np.zeros(8)])
+    cameras = _camera_ring()
     with torch.no_grad():
         model.params["scaling"][[0, 1]] = np.log(2.0)
         model.params["opacity"][0] = torch.logit(torch.tensor(0.9))
