@@ -185,3 +185,14 @@ def test_depth_order_is_the_stable_depth_sort_of_the_gaussians_with_a_tile(dtype
     want = [i for i in torch.argsort(torch.from_numpy(depths), stable=True).tolist() if not culled[i]]
     assert 0 < int(culled.sum()) < 400
     assert numba_backend.depth_order(depths, radii).tolist() == want
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_depth_order_sorts_depths_over_every_bit_of_the_key(dtype):
+    # Depths from 1e-30 to 1e30: every radix pass of the key (3 for float32, 6 for float64) decides some order.
+    rng = np.random.default_rng(1)
+    depths = (10.0 ** rng.uniform(-30, 30, size=5000)).astype(dtype)
+    depths[::7] = depths[3]  # ties keep id order
+    radii = np.ones((5000, 2), dtype=np.int32)
+    want = torch.argsort(torch.from_numpy(depths), stable=True).numpy()
+    assert np.array_equal(numba_backend.depth_order(depths, radii), want)

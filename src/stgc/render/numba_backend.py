@@ -40,14 +40,15 @@ def depth_order(depths: np.ndarray, radii: np.ndarray) -> np.ndarray:
 
     Culled Gaussians get no tile, so they are left out of the sort (in training most of a model is culled at any
     one time). The projection culls every depth at or below the near plane, which is positive, so the rest are
-    positive finite floats, whose bit patterns sort as unsigned integers in the same order: numpy sorts those 2-3x
-    faster than torch.argsort sorts the floats (stable in both)."""
+    positive finite floats, whose bit patterns sort as unsigned integers in the same order, which a radix sort
+    orders in a few linear passes (stable; a tenth of numpy's stable argsort at 50k: the sort is serial work that
+    the second thread cannot share)."""
     visible = np.flatnonzero((radii > 0).any(axis=1))
     keys = depths[visible]
     if keys.size and not keys.min() > 0:
         raise ValueError("depth_order: a Gaussian with a tile has a depth <= 0; the projection should have culled it")
     unsigned = np.uint32 if keys.dtype == np.float32 else np.uint64
-    return visible[np.argsort(keys.view(unsigned), kind="stable")]
+    return kernels.radix_argsort(keys.view(unsigned), visible)
 
 
 def _scratch(n_threads: int, longest: int, *rows: tuple[int, ...], dtype: type[np.floating]) -> list[np.ndarray]:
