@@ -151,11 +151,11 @@ def radix_argsort(keys, ids):
             counts[b] = total
             total += c
         for j in range(n):
-            b = np.int64((np.uint64(src_keys[j]) >> shift) & mask)
-            at = counts[b]
+            bucket = np.int64((np.uint64(src_keys[j]) >> shift) & mask)
+            at = counts[bucket]
             dst_keys[at] = src_keys[j]
             dst_ids[at] = src_ids[j]
-            counts[b] = at + 1
+            counts[bucket] = at + 1
         src_keys, dst_keys = dst_keys, src_keys
         src_ids, dst_ids = dst_ids, src_ids
     return src_ids

@@ -48,7 +48,8 @@ def depth_order(depths: np.ndarray, radii: np.ndarray) -> np.ndarray:
     if keys.size and not keys.min() > 0:
         raise ValueError("depth_order: a Gaussian with a tile has a depth <= 0; the projection should have culled it")
     unsigned = np.uint32 if keys.dtype == np.float32 else np.uint64
-    return kernels.radix_argsort(keys.view(unsigned), visible)
+    order: np.ndarray = kernels.radix_argsort(keys.view(unsigned), visible)
+    return order
 
 
 def _scratch(n_threads: int, longest: int, *rows: tuple[int, ...], dtype: type[np.floating]) -> list[np.ndarray]:
