@@ -297,3 +297,71 @@ def test_the_budget_is_a_psnr_drop_in_the_config():
             CompactionConfig(loss_budget_db=bad).validate()
     with pytest.raises(ValueError, match="set one of them"):
         CompactionConfig(loss_budget_db=0.3, loss_tolerance=0.01).validate()
+
+
+def test_a_reference_loss_holds_the_budget_against_the_unpruned_run_not_the_best_seen():
+    """With a reference (the unpruned run's loss at each step) the ratio halves once the loss is more than the budget
+    above it, even while the loss is the lowest this run has seen: the unpruned model kept improving."""
+    budget = 0.10
+    losses = [1.0, 0.9, 0.85, 0.8, 0.78, 0.77]
+    references = [1.0, 0.88, 0.8, 0.7, 0.66, 0.72]
+    # bound = reference x 1.1:   1.1  0.968 0.88  0.77  0.726 0.792
+    ctrl = AdaptiveRatio(initial=0.04, step=0.01, minimum=0.01, maximum=0.06, budget=budget)
+    got = [(ctrl.update(loss, reference), ctrl.ratio) for loss, reference in zip(losses, references)]
+    assert [d for d, _ in got] == [1, 1, 1, -1, -1, 1]
+    assert [r for _, r in got] == [0.05, 0.06, 0.06, 0.03, 0.015, 0.025]
+    best_seen = AdaptiveRatio(initial=0.04, step=0.01, minimum=0.01, maximum=0.06, budget=budget)
+    assert [best_seen.update(loss) for loss in losses] == [0, 1, 1, 1, 1, 1]  # every loss a new best: always up
+
+
+def _reference_log(path, iterations, losses, **extra):
+    path.mkdir(parents=True, exist_ok=True)
+    with open(path / "compaction.jsonl", "w") as f:
+        for it, loss in zip(iterations, losses):
+            f.write(json.dumps({"iteration": it, "smoothed_loss": loss, "loss_signal": "probe", "removed": 0,
+                                **extra}) + "\n")
+    return path
+
+
+def test_a_reference_run_prunes_nothing_and_its_log_steers_another_runs_budget(tmp_path):
+    total = 100
+    common = dict(case=0, window_start=0.2, window_end=0.7, interval=10, loss_signal="probe")
+    reference = STKNNCompactor(CompactionConfig(method="reference", **common), total)
+    model = make_model(random_params(600, seed=1))
+    probe_values = iter([1.0, 0.9, 0.8, 0.7, 0.6])
+    events = [e for it in range(1, total + 1)
+              if (e := reference.step(it, 0.5, model, 3.0, probe_fn=lambda: next(probe_values))) is not None]
+    assert model.num_gaussians == 600 and [e["removed"] for e in events] == [0] * 5
+    assert [e["iteration"] for e in events] == list(resolve_schedule(CompactionConfig(**common), total).iterations())
+    log = tmp_path / "ref"
+    log.mkdir()
+    (log / "compaction.jsonl").write_text("".join(json.dumps(e) + "\n" for e in events))
+
+    budgeted = CompactionConfig(method="st-knn", loss_budget_db=0.3, loss_reference=str(log), **common)
+    compactor = STKNNCompactor(budgeted, total)
+    pruned = make_model(random_params(600, seed=1))
+    mine = iter([1.0, 0.92, 0.85, 0.69, 0.7])  # 0.85 > 0.8 x 1.035; 0.7 > 0.6 x 1.035
+    steps = [e for it in range(1, total + 1)
+             if (e := compactor.step(it, 0.5, pruned, 3.0, probe_fn=lambda: next(mine))) is not None]
+    assert [e["reference_loss"] for e in steps] == [1.0, 0.9, 0.8, 0.7, 0.6]
+    assert [e["ratio_direction"] for e in steps] == [1, 1, -1, 1, -1]
+
+
+def test_a_reference_that_is_not_one_or_misses_iterations_is_refused_naming_its_log(tmp_path):
+    from stgc.errors import DataError
+
+    common = dict(case=0, window_start=0.2, window_end=0.7, interval=10, loss_signal="probe", loss_budget_db=0.3)
+    short = _reference_log(tmp_path / "short", [20, 30, 40], [1.0, 0.9, 0.8])
+    with pytest.raises(DataError, match=r"short/compaction.jsonl.*no probe loss at iteration 50"):
+        STKNNCompactor(CompactionConfig(loss_reference=str(short), **common), 100)
+    pruned = _reference_log(tmp_path / "pruned", [20, 30, 40, 50, 60], [1.0] * 5)
+    lines = (pruned / "compaction.jsonl").read_text().splitlines()
+    lines[1] = lines[1].replace('"removed": 0', '"removed": 7')
+    (pruned / "compaction.jsonl").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match="iteration 30: not a reference run"):
+        STKNNCompactor(CompactionConfig(loss_reference=str(pruned), **common), 100)
+    with pytest.raises(DataError, match="no compaction log"):
+        STKNNCompactor(CompactionConfig(loss_reference=str(tmp_path / "absent"), **common), 100)
+    for bad in (dict(loss_budget_db=0.0), dict(loss_signal="training"), dict(method="none")):
+        with pytest.raises(ValueError, match="loss_reference"):
+            CompactionConfig(**{**common, "loss_reference": "x", **bad}).validate()

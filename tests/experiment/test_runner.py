@@ -308,3 +308,49 @@ def test_fine_tuning_runs_in_a_plan_are_checked(tmp_path: Path, run: str, proble
     bad.write_text(f'[[runs]]\nname = "stg"\n[[runs]]\n{run}\n[[runs]]\nname = "later"\n')
     with pytest.raises(FormatError, match=problem):
         load_plan_toml(bad)
+
+
+REFERENCE_TOML = """
+name = "budget"
+[[runs]]
+name = "pruned-first"
+overrides = { "compaction.method" = "st-knn", "compaction.loss_signal" = "probe", "compaction.loss_budget_db" = 0.3 }
+[[runs]]
+name = "ref"
+overrides = { "compaction.method" = "reference", "compaction.case" = 4 }
+[[runs]]
+name = "budget"
+loss_reference = "ref"
+overrides = { "compaction.method" = "st-knn", "compaction.case" = 4, "compaction.loss_signal" = "probe", "compaction.loss_budget_db" = 0.3 }
+"""
+
+
+def test_a_run_with_a_loss_reference_trains_after_it_and_is_pointed_at_its_folder(tmp_path: Path) -> None:
+    plan_path = tmp_path / "budget.toml"
+    plan_path.write_text(REFERENCE_TOML)
+    out = tmp_path / "exp"
+    result = run_plan("DATA", plan_path, out, preset="cpu", runner=fake_runner, python=sys.executable,
+                      log=lambda m: None)
+    assert {o.status for o in result.outcomes} == {"finished"}
+    calls = [c for c in _invocations(out) if c.startswith("train")]
+    folders = [c.split()[3] for c in calls]  # the first wave's two may run in either order
+    assert sorted(folders[:2]) == [str(out / "pruned-first"), str(out / "ref")] and folders[2] == str(out / "budget")
+    assert f"compaction.loss_reference={out / 'ref'}" in calls[2]
+    assert "loss_reference" not in calls[0] + calls[1]
+    failing = tmp_path / "failing.toml"
+    failing.write_text(REFERENCE_TOML.replace('"compaction.case" = 4 }', '"compaction.case" = 4, "fake.fail" = "1" }', 1))
+    failed = run_plan("DATA", failing, tmp_path / "exp2", runner=fake_runner, check_options=False,
+                      python=sys.executable, log=lambda m: None)
+    assert failed.outcomes[-1].status == "failed" and "loss reference run 'ref' failed" in failed.outcomes[-1].message
+
+
+@pytest.mark.parametrize("run, problem", [
+    ('name = "x"\nloss_reference = "later"', "must name a run listed before it"),
+    ('name = "x"\nfrom = "stg"\niterations = 5\nloss_reference = "stg"', "keeps its source's compaction"),
+    ('name = "x"\nloss_reference = "stg"\noverrides = { "compaction.loss_reference" = "y" }', "not with the"),
+])
+def test_loss_references_in_a_plan_are_checked(tmp_path: Path, run: str, problem: str) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text(f'[[runs]]\nname = "stg"\n[[runs]]\n{run}\n[[runs]]\nname = "later"\n')
+    with pytest.raises(FormatError, match=problem):
+        load_plan_toml(bad)

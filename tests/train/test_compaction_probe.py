@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
+import torch
 from scenes import write_panoptic_scene
 
 from stgc.compaction import CompactionConfig
 from stgc.data import open_dataset
+from stgc.errors import DataError
 from stgc.model import STGModel
 from stgc.train import TrainConfig
 from stgc.train.config import DensifyConfig
@@ -44,3 +47,42 @@ def test_the_compaction_probe_is_a_fixed_spread_set_of_training_views_and_steers
     events = [json.loads(line) for line in (tmp_path / "run" / "compaction.jsonl").read_text().splitlines()]
     assert [e["iteration"] for e in events] == [20, 30, 40, 50]
     assert [e["smoothed_loss"] for e in events] == pytest.approx(read)
+
+
+def test_a_budget_run_reads_its_unpruned_reference_run_at_the_same_iterations(scene, tmp_path):
+    """compaction.method 'reference' trains as without compaction and logs the probe loss at each pruning iteration;
+    a run of the same configuration with loss_reference holds its budget against those values. Until its first
+    prune it is the same run, so the first probe losses agree exactly (the views drawn per iteration are seeded)."""
+    dataset = open_dataset(scene.root)
+    common = dict(case=0, window_start=0.25, window_end=0.75, interval=10, loss_signal="probe", probe_views=4)
+
+    def start() -> STGModel:
+        return STGModel.from_ply_arrays(scene.model.to_ply_arrays(), "lite", None, scene_extent=3.3)
+
+    reference_trainer = Trainer(dataset, None, None, _config(80), CompactionConfig(method="reference", **common),
+                                tmp_path / "ref", model=start())
+    reference_trainer.run()
+    reference = [json.loads(line) for line in (tmp_path / "ref" / "compaction.jsonl").read_text().splitlines()]
+    assert [e["iteration"] for e in reference] == [20, 30, 40, 50]
+    assert all(e["removed"] == 0 for e in reference)
+    unpruned = Trainer(dataset, None, None, _config(80), CompactionConfig(method="none"), tmp_path / "plain",
+                       model=start())
+    unpruned.run()
+    for key, value in unpruned.model.params.items():  # the probe renders change nothing in the training
+        assert torch.equal(value, reference_trainer.model.params[key]), key
+
+    budgeted = CompactionConfig(method="st-knn", loss_budget_db=0.3, loss_reference=str(tmp_path / "ref"),
+                                ratio_init=0.02, ratio_max=0.05, **common)
+    trainer = Trainer(dataset, None, None, _config(80), budgeted, tmp_path / "run", model=start())
+    trainer.run()
+    events = [json.loads(line) for line in (tmp_path / "run" / "compaction.jsonl").read_text().splitlines()]
+    assert [e["reference_loss"] for e in events] == [e["smoothed_loss"] for e in reference]
+    assert events[0]["smoothed_loss"] == reference[0]["smoothed_loss"]
+    assert sum(e["removed"] for e in events) > 0
+    with pytest.raises(DataError, match="probed 4 views, this run probes 8"):
+        Trainer(dataset, None, None, _config(80), dataclasses.replace(budgeted, probe_views=8), tmp_path / "other",
+                model=start())
+    assert not (tmp_path / "other").exists()  # refused before the run's folder was made
+    with pytest.raises(DataError, match="compaction.method is 'none'"):
+        Trainer(dataset, None, None, _config(80), dataclasses.replace(budgeted, loss_reference=str(tmp_path / "plain")),
+                tmp_path / "other", model=start())

@@ -4,15 +4,20 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from pathlib import Path
 from collections.abc import Callable
 from typing import Any, Protocol
 
 import numpy as np
 import torch
 
+from stgc.errors import DataError
+from stgc.fileio import read_json_object
+
 from .config import CompactionConfig, PruningSchedule, resolve_schedule
 from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
 from .matching import SpacetimeModel, match_spatiotemporal_pairs
+from .plot import LOG_NAME, read_compaction_log
 from .pruning import removal_scores, select_removals
 
 
@@ -39,6 +44,8 @@ class STKNNCompactor:
         )
         self.steps_done = 0
         self.total_removed = 0
+        self.reference = (load_reference_losses(config.loss_reference, self.schedule, config.probe_views)
+                          if config.loss_reference else None)
 
     @property
     def enabled(self) -> bool:
@@ -71,17 +78,23 @@ class STKNNCompactor:
             return None
 
         smoothed: float | None
-        if self.config.loss_signal == "probe":
+        if self.config.loss_signal == "probe" or self.config.method == "reference":
             if probe_fn is None:
-                raise ValueError("compaction.loss_signal 'probe' needs probe_fn (the loss on the fixed probe views)")
+                raise ValueError("compaction: the probe loss needs probe_fn (the loss on the fixed probe views)")
             smoothed = float(probe_fn())
         else:
             smoothed = self.smoother.value()
+        n_before = int(model.params["xyz"].shape[0])
+        if self.config.method == "reference":
+            self.steps_done += 1
+            return {"iteration": int(iteration), "t": float(t), "step": self.steps_done, "ratio": 0.0,
+                    "smoothed_loss": smoothed, "loss_signal": "probe", "removed": 0, "gaussians_before": n_before,
+                    "gaussians_left": n_before, "total_removed": 0}
+        reference = None if self.reference is None else self.reference[int(iteration)]
         previous, best = self.controller.previous_loss, self.controller.best_loss
-        direction = self.controller.update(smoothed)
+        direction = self.controller.update(smoothed, reference)
         ratio = self.controller.ratio
 
-        n_before = int(model.params["xyz"].shape[0])
         started = time.perf_counter()
         pairs = match_spatiotemporal_pairs(model, t, self.config.rotation_weight, self.config.sample_times)
         matched_at = time.perf_counter()
@@ -110,6 +123,7 @@ class STKNNCompactor:
             "loss_signal": self.config.loss_signal,
             "previous_smoothed_loss": previous,
             "best_smoothed_loss": best,
+            "reference_loss": reference,
             "loss_budget": self.controller.budget,
             "matched_references": pairs.matched_references,
             "matched_pairs": len(pairs),
@@ -151,3 +165,32 @@ class STKNNCompactor:
         self.total_removed = int(state["total_removed"])
         self.controller.load_state_dict(state["controller"])
         self.smoother.load_state_dict(state["smoother"])
+
+
+def load_reference_losses(run_dir: str, schedule: PruningSchedule, probe_views: int) -> dict[int, float]:
+    """The probe loss of a compaction.method=reference run at every pruning iteration of `schedule`, by iteration.
+    Raises DataError naming the file when the run is not such a reference, does not cover the schedule, or (its
+    config.json says) probed a different number of views."""
+    path = Path(run_dir) / LOG_NAME if Path(run_dir).is_dir() else Path(run_dir)
+    config_path = path.parent / "config.json"
+    if config_path.is_file():
+        theirs = (read_json_object(config_path) or {}).get("compaction") or {}
+        if theirs.get("method") != "reference":
+            raise DataError(config_path, f"compaction.method is {theirs.get('method')!r}: a loss reference is a run "
+                                         "trained with compaction.method=reference")
+        if int(theirs.get("probe_views", probe_views)) != probe_views:
+            raise DataError(config_path, f"the reference probed {theirs['probe_views']} views, this run probes "
+                                         f"{probe_views}: the losses would not compare")
+    records = read_compaction_log(path)
+    losses: dict[int, float] = {}
+    for record in records:
+        if record.get("removed", 0) != 0 or record.get("loss_signal") != "probe":
+            raise DataError(path, f"iteration {record['iteration']}: not a reference run's record (it pruned, or "
+                                  "logged no probe loss); train the reference with compaction.method=reference")
+        losses[int(record["iteration"])] = float(record["smoothed_loss"])
+    missing = [i for i in schedule.iterations() if i not in losses]
+    if missing:
+        raise DataError(path, f"no probe loss at iteration {missing[0]} ({len(missing)} of this run's "
+                              f"{schedule.num_steps} pruning iterations missing): the reference must be trained to the "
+                              "end with the same schedule and compaction case/interval")
+    return losses

@@ -25,7 +25,7 @@ CASE_WINDOWS: dict[int, tuple[float, float]] = {
     4: (6_000 / PAPER_ITERATIONS, 24_000 / PAPER_ITERATIONS),
 }
 
-Method = Literal["none", "st-knn"]
+Method = Literal["none", "st-knn", "reference"]
 METHODS = get_args(Method)
 SMOOTHINGS = ("window_mean", "ema")
 LossSignal = Literal["training", "probe"]
@@ -37,7 +37,12 @@ class CompactionConfig:
     """Spatiotemporal KNN pruning during training with a rendering-loss-adaptive pruning ratio."""
 
     method: Method = field(
-        default="st-knn", metadata={"help": "'none' trains without compaction; 'st-knn' prunes matched pairs"}
+        default="st-knn",
+        metadata={
+            "help": "'none' trains without compaction; 'st-knn' prunes matched pairs; 'reference' prunes nothing but "
+            "records the probe loss at every pruning iteration of the schedule (the unpruned run that another run's "
+            "loss_reference names)"
+        },
     )
     case: int = field(
         default=2,
@@ -79,6 +84,15 @@ class CompactionConfig:
             "the lowest value seen so far (ratio halved while it is worse by more than the loss increase this drop "
             "means, up one step otherwise) instead of with the previous step; 0 = paper (step to step). Best with "
             "loss_signal probe"
+        },
+    )
+    loss_reference: str = field(
+        default="",
+        metadata={
+            "help": "with loss_budget_db and loss_signal probe: a run of the same configuration trained with "
+            "compaction.method=reference; the budget then holds the probe loss against that unpruned run's at the "
+            "same iteration instead of against the best seen so far (which stops falling once pruning takes the "
+            "capacity, while the unpruned model's keeps falling). '' = the best seen so far"
         },
     )
     loss_smoothing: Literal["window_mean", "ema"] = field(
@@ -154,6 +168,10 @@ class CompactionConfig:
             raise ValueError(f"compaction.loss_smoothing {self.loss_smoothing!r}: expected one of {SMOOTHINGS}")
         if self.loss_signal not in LOSS_SIGNALS:
             raise ValueError(f"compaction.loss_signal {self.loss_signal!r}: expected one of {LOSS_SIGNALS}")
+        if self.loss_reference and not (self.method == "st-knn" and self.loss_budget_db > 0
+                                        and self.loss_signal == "probe"):
+            raise ValueError(f"compaction.loss_reference {self.loss_reference!r}: a reference run is the damage "
+                             "budget's, so it needs method st-knn, loss_budget_db > 0 and loss_signal probe")
         if self.probe_views < 1:
             raise ValueError(f"compaction.probe_views {self.probe_views}: must be >= 1")
         if not (0.0 <= self.ema_decay < 1.0):
@@ -176,6 +194,10 @@ class PruningSchedule:
 
     def is_pruning_iteration(self, iteration: int) -> bool:
         return self.start <= iteration < self.end and (iteration - self.start) % self.interval == 0
+
+    def iterations(self) -> range:
+        """Every pruning iteration, in order."""
+        return range(self.start, max(self.start, self.end), self.interval)
 
     @property
     def num_steps(self) -> int:

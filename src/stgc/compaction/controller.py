@@ -17,7 +17,10 @@ outruns the training's gain; then it steps down too slowly to undo it (benchmark
 budget the signal is compared with the lowest value seen so far instead: the ratio halves while the signal exceeds
 that best by more than `budget` (relative), and rises one step otherwise (additive increase, multiplicative decrease:
 the damage shows some steps after the prunes that caused it). So the accumulated damage, not its change, is held.
-`budget_for_psnr_drop` turns a PSNR drop into it.
+`budget_for_psnr_drop` turns a PSNR drop into it. The best seen so far understates the damage: once pruning takes
+the model's capacity its loss stops falling, while an unpruned model's keeps falling to the end (issue #17 measured
+1.8 dB lost on a test view with the probe held within 0.3 dB's worth of its own best). Given a `reference` loss at
+each step, the unpruned model's at the same iteration (compaction.loss_reference), the budget is held against it.
 """
 
 from __future__ import annotations
@@ -87,13 +90,15 @@ class AdaptiveRatio:
         self.previous_loss: float | None = None
         self.best_loss: float | None = None
 
-    def update(self, loss: float | None) -> int:
-        """Feed this step's smoothed loss; returns the direction taken (-1, 0, +1). `self.ratio` is the new ratio."""
+    def update(self, loss: float | None, reference: float | None = None) -> int:
+        """Feed this step's smoothed loss; returns the direction taken (-1, 0, +1). `self.ratio` is the new ratio.
+        `reference` (budget only): the unpruned model's loss at this step, held against instead of the best so far."""
         direction = 0
         proposed = self.ratio
         if loss is not None and self.budget > 0:
-            if self.best_loss is not None:
-                direction = -1 if loss > self.best_loss * (1.0 + self.budget) else 1
+            against = self.best_loss if reference is None else reference
+            if against is not None:
+                direction = -1 if loss > against * (1.0 + self.budget) else 1
                 # Additive increase, multiplicative decrease: the damage shows some steps after the prunes that
                 # caused it, so a ratio that only stepped down would keep pruning at nearly the rate that overshot.
                 proposed = self.ratio / 2.0 if direction < 0 else self.ratio + self.step

@@ -18,7 +18,7 @@ def read_compaction_log(run_dir_or_jsonl: str | Path) -> list[dict[str, Any]]:
     if path.is_dir():
         path = path / LOG_NAME
     if not path.is_file():
-        raise DataError(path, "no compaction log (was the run trained with compaction.method st-knn?)")
+        raise DataError(path, "no compaction log (was the run trained with compaction.method st-knn or reference?)")
     records = []
     with open(path, encoding="utf-8") as f:
         lines = f.readlines()
@@ -67,7 +67,11 @@ def plot_compaction(run_dir_or_jsonl: str | Path, out_png: str | Path) -> Path:
     fig, axes = plt.subplots(3, 1, figsize=(7, 7.5), sharex=True)
     axes[0].step(iterations, series("ratio"), where="post", color="tab:blue")
     axes[0].set_ylabel("pruning ratio\n(of matched pairs)")
-    axes[1].plot(iterations, series("smoothed_loss"), marker=".", color="tab:red")
+    axes[1].plot(iterations, series("smoothed_loss"), marker=".", color="tab:red", label="this run")
+    if any(r.get("reference_loss") is not None for r in records):
+        axes[1].plot(iterations, series("reference_loss"), color="black", linestyle="--",
+                     label="the unpruned reference run")
+        axes[1].legend(loc="upper right", fontsize="small")
     axes[1].set_ylabel(loss_label(records))
     axes[2].plot(iterations, series("gaussians_left"), marker=".", color="tab:green")
     axes[2].set_ylabel("Gaussians")

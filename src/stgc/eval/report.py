@@ -324,7 +324,7 @@ def describe_run(run_dir: Path, config: Mapping[str, Any] | None) -> tuple[str, 
     comp = cfg.get("compaction") or {}
     data = cfg.get("data") or {}
     preprocess = data.get("preprocess") or "none"
-    if comp.get("method", "none") not in (None, "none"):
+    if comp.get("method", "none") not in (None, "none", "reference"):  # a reference run prunes nothing
         family = f"ST-KNN ({comp.get('criterion', 'timestamp')})"
         setting = f"Case {comp['case']}" if comp.get("case") else run_dir.name
     else:

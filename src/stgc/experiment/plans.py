@@ -21,6 +21,10 @@ PLAN.toml:
     iterations = 1000          # ... for this many more iterations (stgc finetune); overrides: train.* only
     overrides = { "train.quantization_aware.iterations" = 1000, "train.quantization_aware.rate_weight" = 1e-3 }
     codec_qualities = [2]      # this run's .stgc rate points (default: the experiment's --codec-quality)
+    [[runs]]
+    name = "st-knn-budget"
+    loss_reference = "stg"     # an earlier run with compaction.method=reference: this run's damage budget holds
+                               # its probe loss against that one's (sets compaction.loss_reference; trains after it)
 """
 
 from __future__ import annotations
@@ -49,6 +53,9 @@ class RunSpec:
     source: str | None = None  # a run of the same plan whose finished model this one fine-tunes (stgc finetune)
     iterations: int = 0  # with `source`: the iterations trained beyond it
     codec_qualities: tuple[int, ...] | None = None  # this run's .stgc rate points (default: the experiment's)
+    # A run of the same plan trained with compaction.method=reference: this run's damage budget holds its probe
+    # loss against that one's (compaction.loss_reference = its folder); it trains after it.
+    reference: str | None = None
 
 
 @dataclass(frozen=True)
@@ -162,6 +169,16 @@ def load_plan_toml(path: str | Path) -> Plan:
         elif iterations is not None:
             raise FormatError(path, f"run {name!r}: 'iterations' counts the fine-tuning of a 'from' run; set the "
                                     "training length of a run of its own with train.iterations")
+        reference = r.get("loss_reference")
+        if reference is not None:
+            if reference not in seen - {name}:
+                raise FormatError(path, f"run {name!r}: loss_reference = {reference!r} must name a run listed before it")
+            if source is not None:
+                raise FormatError(path, f"run {name!r}: a fine-tuning run ('from') keeps its source's compaction; "
+                                        "loss_reference belongs to a run trained from scratch")
+            if "compaction.loss_reference" in overrides:
+                raise FormatError(path, f"run {name!r}: set the reference run with loss_reference = NAME, not with "
+                                        "the compaction.loss_reference override")
         qualities = r.get("codec_qualities")
         if qualities is not None and (not isinstance(qualities, list) or not all(
                 isinstance(q, int) and not isinstance(q, bool) and q in QUALITY_LEVELS for q in qualities)):
@@ -169,7 +186,8 @@ def load_plan_toml(path: str | Path) -> Plan:
                                     f"({', '.join(map(str, QUALITY_LEVELS))})")
         runs.append(RunSpec(name, overrides, str(r.get("family", name)), str(r.get("label", name)),
                             None if source is None else str(source), int(iterations or 0),
-                            None if qualities is None else tuple(qualities)))
+                            None if qualities is None else tuple(qualities),
+                            None if reference is None else str(reference)))
     baseline = data.get("baseline")
     plan_name = str(data.get("name", path.stem))
     if not _NAME.match(plan_name):  # it names OUT/results-<plan>.csv and OUT/report-<plan>/

@@ -88,21 +88,23 @@ def build_finetune_command(source_dir: str | Path, run_dir: str | Path, iteratio
     return cmd
 
 
-def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str]) -> dict[str, str]:
+def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str], out_dir: Path) -> dict[str, str]:
     """The options that make `spec`'s run: its own over the plan's and --set's; a fine-tuning run's start from
-    its source's (which it inherits) and change only train.* ones (its own)."""
+    its source's (which it inherits) and change only train.* ones (its own). A run with a loss reference gets
+    compaction.loss_reference = that run's folder under `out_dir`."""
     if spec.source is None:
-        return {**spec.overrides, **extra}
+        reference = {} if spec.reference is None else {"compaction.loss_reference": str(out_dir / spec.reference)}
+        return {**spec.overrides, **extra, **reference}
     source = next(s for s in plan.runs if s.name == spec.source)
-    return {**run_overrides(plan, source, extra), **spec.overrides}
+    return {**run_overrides(plan, source, extra, out_dir), **spec.overrides}
 
 
-def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str]) -> None:
+def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str], out_dir: Path) -> None:
     """Resolve and validate every run's options before the first training starts: a typo in the plan's last run
     must not surface hours later. Raises ConfigError naming the run."""
     for spec in plan.runs:
         try:
-            resolve_configs(preset or "cpu", {}, {}, run_overrides(plan, spec, extra))
+            resolve_configs(preset or "cpu", {}, {}, run_overrides(plan, spec, extra, out_dir))
         except ConfigError as exc:
             raise ConfigError(f"plan {plan.name!r}, run {spec.name!r}: {exc}") from None
 
@@ -114,10 +116,12 @@ def _failed(outcomes: Sequence[RunOutcome]) -> bool:
 
 def _waves(plan: Plan) -> list[list[int]]:
     """The plan's run indices in waves: runs trained from scratch first, then each fine-tuning run in the wave
-    after its source's (a source is always listed before the runs that start from it)."""
+    after its source's, and each run with a loss reference in the wave after the reference's (both are always
+    listed before the runs that need them)."""
     depth: dict[str, int] = {}
     for spec in plan.runs:
-        depth[spec.name] = 0 if spec.source is None else depth[spec.source] + 1
+        needs = [name for name in (spec.source, spec.reference) if name is not None]
+        depth[spec.name] = max((depth[name] + 1 for name in needs), default=0)
     waves: list[list[int]] = [[] for _ in range(max(depth.values(), default=0) + 1)]
     for index, spec in enumerate(plan.runs):
         waves[depth[spec.name]].append(index)
@@ -295,7 +299,7 @@ def run_plan(
     result = PlanResult(plan, out_dir, results_csv=results_csv)
     qualities = [int(q) for q in codec_qualities]
     if check_options:  # off only for a stand-in trainer with options of its own (tests)
-        check_plan_options(plan, preset, extra)
+        check_plan_options(plan, preset, extra, out_dir)
 
     per_spec: list[list[RunOutcome]] = [[] for _ in plan.runs]
     index_of = {spec.name: index for index, spec in enumerate(plan.runs)}
@@ -304,7 +308,7 @@ def run_plan(
         for index in wave:
             spec = plan.runs[index]
             run_dir = out_dir / spec.name
-            overrides = run_overrides(plan, spec, extra)
+            overrides = run_overrides(plan, spec, extra, out_dir)
             if dry_run:
                 outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
                 if not run_is_finished(run_dir):
@@ -315,9 +319,12 @@ def run_plan(
                                                     python=python))
                 per_spec[index] = [outcome]
                 continue
-            if spec.source is not None and _failed(per_spec[index_of[spec.source]]):
+            needed = [(what, name) for what, name in (("source", spec.source), ("loss reference", spec.reference))
+                      if name is not None and _failed(per_spec[index_of[name]])]
+            if needed:
+                what, name = needed[0]
                 per_spec[index] = [RunOutcome(spec.name, spec.family, spec.label, "failed", run_dir, overrides,
-                                              message=f"its source run {spec.source!r} failed")]
+                                              message=f"its {what} run {name!r} failed")]
                 continue
             tasks.append(Task(name=spec.name, function=run_spec,
                               args=(spec, run_dir, data_path, preset, overrides,

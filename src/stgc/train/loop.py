@@ -190,6 +190,9 @@ class Trainer:
         train_cfg = dataclasses.replace(train_cfg, densify=train_cfg.densify.resolved(sparse_cloud))
         self.dataset, self.data_cfg, self.model_cfg = dataset, data_cfg, model_cfg
         self.cfg, self.compaction_cfg = train_cfg, compaction_cfg
+        self.schedule: Schedule = resolve_schedule(train_cfg)
+        # Before the run's folder is touched: the compactor reads and checks a loss reference run's log.
+        self.compactor = self._make_compactor()
         self.out_run = Run(out_dir)
         resuming = resume and self.out_run.checkpoint_path.exists()
         if not resuming:
@@ -199,7 +202,6 @@ class Trainer:
         self.evaluator = evaluator
         if evaluator is None and (train_cfg.eval_every or train_cfg.eval_at_end):
             log.info("no test evaluator handed to the trainer: the test views are not scored during or after training")
-        self.schedule: Schedule = resolve_schedule(train_cfg)
         if train_cfg.threads > 0:  # torch's and the numba rasterizer's threads: a task asking for k CPUs uses k
             torch.set_num_threads(train_cfg.threads)
             numba.set_num_threads(min(train_cfg.threads, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
@@ -238,7 +240,6 @@ class Trainer:
         )
         # After the optimizer step, in this order: density control, error-guided points, compaction.
         self.strategies: list[Strategy] = [DensityStrategy(self.density), ErrorGuidedStrategy(self.ems, self.density)]
-        self.compactor = self._make_compactor()
         self.quantization = QuantizationSimulation(train_cfg.quantization_aware) if (
             train_cfg.quantization_aware.iterations > 0 and train_cfg.quantization_aware.simulate) else None
         if self.quantization is not None and train_cfg.quantization_aware.mask:
@@ -272,7 +273,7 @@ class Trainer:
         first = sched.iterations - cfg.quantization_aware.iterations + 1
         step = sched.first_densify_step(first)  # density control acts only at densification steps
         overlapping = []
-        if self.compaction_cfg is not None and self.compaction_cfg.method != "none":
+        if self.compaction_cfg is not None and self.compaction_cfg.method == "st-knn":
             overlapping.append("ST-KNN compaction (compaction.method)")
         if cfg.ems.enabled:
             overlapping.append("error-guided sampling (train.ems.enabled)")
