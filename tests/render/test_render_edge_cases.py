@@ -196,3 +196,45 @@ def test_depth_order_sorts_depths_over_every_bit_of_the_key(dtype):
     radii = np.ones((5000, 2), dtype=np.int32)
     want = torch.argsort(torch.from_numpy(depths), stable=True).numpy()
     assert np.array_equal(numba_backend.depth_order(depths, radii), want)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_numba_tile_lists_are_the_torch_binning_less_the_tiles_a_gaussian_cannot_reach(threads):
+    """bin_tiles (numba; its counting sort by tile runs in one chunk of pairs per thread) against bin_tiles_torch (a
+    sort of (tile, depth rank) keys): every tile's list is the torch list, in the same order, without the Gaussians
+    whose alpha >= 1/255 ellipse misses the tile (_reaches_tile, exact)."""
+    import numba
+
+    from stgc.render import _numba_kernels as kernels
+    from stgc.render.projection import bin_tiles_torch, sigma_cutoff, tile_grid, tile_rects
+
+    if threads > numba.config.NUMBA_NUM_THREADS:
+        pytest.skip("needs two numba threads")
+    width, height, tile = 70, 45, 8
+    scene = make_scene(2000, width, height, channels=3, sigma_px=(0.5, 12.0), seed=4)
+    means, quats, scales, opacities = scene.params()[:4]
+    proj = numba_backend.project_numba(means, quats, scales, opacities, scene.K, scene.viewmat, width, height,
+                                       eps2d=0.3, near_plane=0.01)
+    gdata = numba_backend._pack(proj.means2d, proj.conics, opacities, sigma_cutoff(opacities).to(torch.float32),
+                                proj.depths, np.float32)
+    radii = proj.radii.numpy()
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(threads)
+        offsets, flat = kernels.bin_tiles(gdata, radii, numba_backend.depth_order(proj.depths.numpy(), radii),
+                                          width, height, tile, numba.get_num_threads())
+    finally:
+        numba.set_num_threads(before)
+    want_offsets, want_flat = bin_tiles_torch(tile_rects(proj.radii, proj.means2d, width, height, tile), proj.depths,
+                                              proj.visible, width, height, tile)
+    tiles_x, tiles_y = tile_grid(width, height, tile)
+    assert offsets.shape[0] == tiles_x * tiles_y + 1 and flat.shape[0] == offsets[-1] > 5000
+    dropped = 0
+    for t in range(tiles_x * tiles_y):
+        x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
+        x1, y1 = min(x0 + tile, width) - 0.5, min(y0 + tile, height) - 0.5
+        candidates = want_flat[want_offsets[t]:want_offsets[t + 1]].tolist()
+        want = [g for g in candidates if kernels._reaches_tile(gdata, g, x0 + 0.5, x1, y0 + 0.5, y1)]
+        dropped += len(candidates) - len(want)
+        assert flat[offsets[t]:offsets[t + 1]].tolist() == want, t
+    assert dropped > 0  # the ellipse test did cull some box tiles

@@ -53,14 +53,14 @@ def _reaches_tile(gdata, g, x0, x1, y0, y1):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def bin_tiles(gdata, radii, order, width, height, tile_size):
+def bin_tiles(gdata, radii, order, width, height, tile_size, n_chunks):
     """Tile binning: returns (offsets [T+1] int64, flat_ids [M] int32), each tile's list sorted by depth.
 
     A Gaussian's candidate tiles are its screen box [floor((m - r) / ts), ceil((m + r) / ts)) (gsplat's rule); of
     those, only tiles its alpha >= 1/255 ellipse actually reaches are kept (_reaches_tile). `order` lists the ids
     of every Gaussian with radii > 0 (it may leave out the others) by increasing depth. The (tile, Gaussian) pairs
     are laid out in depth order (parallel over Gaussians), then a stable counting sort by tile makes every tile's
-    list depth-sorted without sorting the M pairs."""
+    list depth-sorted without sorting the M pairs, in `n_chunks` (the thread count) chunks of pairs at a time."""
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     n_tiles = tiles_x * tiles_y
@@ -111,18 +111,43 @@ def bin_tiles(gdata, radii, order, width, height, tile_size):
                     pair_tile[i] = ty * tiles_x + tx
                     pair_gaussian[i] = g
                     i += 1
+    # The counting sort by tile, in one chunk of pairs per thread: each chunk counts its pairs per tile, a chunk's
+    # pairs of a tile go after the earlier chunks' (so the sort stays stable: depth order within each tile).
+    n_chunks = max(1, min(n_chunks, total))
+    per_chunk = (total + n_chunks - 1) // n_chunks if total else 0
+    cursor = np.zeros((n_chunks, n_tiles), dtype=np.int64)
+    for c in prange(n_chunks):
+        for i in range(c * per_chunk, min(total, (c + 1) * per_chunk)):
+            cursor[c, pair_tile[i]] += 1
     offsets = np.zeros(n_tiles + 1, dtype=np.int64)
-    for i in range(total):
-        offsets[pair_tile[i] + 1] += 1
     for t in range(n_tiles):
-        offsets[t + 1] += offsets[t]
-    cursor = offsets[:n_tiles].copy()
+        at = offsets[t]
+        for c in range(n_chunks):
+            count = cursor[c, t]
+            cursor[c, t] = at
+            at += count
+        offsets[t + 1] = at
     flat = np.empty(total, dtype=np.int32)
-    for i in range(total):
-        t = pair_tile[i]
-        flat[cursor[t]] = pair_gaussian[i]
-        cursor[t] += 1
+    for c in prange(n_chunks):
+        for i in range(c * per_chunk, min(total, (c + 1) * per_chunk)):
+            t = pair_tile[i]
+            flat[cursor[c, t]] = pair_gaussian[i]
+            cursor[c, t] += 1
     return offsets, flat
+
+
+@njit(cache=True, nogil=True)
+def ids_with_a_tile(radii):
+    """Ids of the Gaussians with radii > 0 on some axis (those bin_tiles bins), ascending. One pass; numpy's
+    (radii > 0).any(axis=1) takes 0.8 ms at 50k, serial time the second thread cannot share."""
+    n = radii.shape[0]
+    ids = np.empty(n, dtype=np.int64)
+    count = 0
+    for g in range(n):
+        if radii[g, 0] > 0 or radii[g, 1] > 0:
+            ids[count] = g
+            count += 1
+    return ids[:count].copy()
 
 
 RADIX_BITS = 11

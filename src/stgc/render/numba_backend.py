@@ -43,7 +43,7 @@ def depth_order(depths: np.ndarray, radii: np.ndarray) -> np.ndarray:
     positive finite floats, whose bit patterns sort as unsigned integers in the same order, which a radix sort
     orders in a few linear passes (stable; a tenth of numpy's stable argsort at 50k: the sort is serial work that
     the second thread cannot share)."""
-    visible = np.flatnonzero((radii > 0).any(axis=1))
+    visible = kernels.ids_with_a_tile(np.ascontiguousarray(radii))
     keys = depths[visible]
     if keys.size and not keys.min() > 0:
         raise ValueError("depth_order: a Gaussian with a tile has a depth <= 0; the projection should have culled it")
@@ -200,7 +200,7 @@ def composite_numba(
     gdata = _pack(means2d, conics, opacities, sigma_cut, depths, np_dtype)
     radii_np = radii.numpy()
     order = depth_order(depths.detach().numpy(), radii_np)
-    offsets, flat = kernels.bin_tiles(gdata, radii_np, order, width, height, tile_size)
+    offsets, flat = kernels.bin_tiles(gdata, radii_np, order, width, height, tile_size, numba.get_num_threads())
     consts = _consts(np_dtype, alpha_max, alpha_min, t_min)
     color, trans, depth, weights = _NumbaComposite.apply(  # type: ignore[no-untyped-call]
         means2d, conics, opacities, colors, gdata, offsets, flat, width, height, tile_size, consts,
