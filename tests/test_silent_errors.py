@@ -207,8 +207,10 @@ def test_a_run_saved_before_the_real_capture_options_resumes_as_it_trained(train
                          ("train", "colour_correction")):
         del saved[section][key]
     del saved["train"]["densify"]["stats_views"]
+    del saved["train"]["floaters"]["scale_min_opacity"]
     (run / "config.json").write_text(json.dumps(saved))
     configs = configs_from_run(run)
+    assert configs["train"].floaters.scale_min_opacity == 0.0  # the scale rule took any opacity before the gate
     assert configs["data"].near_plane == 0.2 and configs["data"].mask_points_per_frame == 0
     assert configs["model"].decoder_ray_origin == "on" and configs["train"].colour_correction == "off"
     assert configs["train"].densify.stats_views == "last"

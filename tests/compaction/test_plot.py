@@ -66,3 +66,19 @@ def test_the_loss_panel_names_the_signal_the_controller_compared():
     assert loss_label([{"iteration": 1}]) == "smoothed training loss"  # logs written before the probe signal existed
     mixed = loss_label([{"iteration": 1, "loss_signal": "training"}, {"iteration": 2, "loss_signal": "probe"}])
     assert "probe" in mixed and "training" in mixed
+
+
+def test_a_run_with_a_loss_reference_gets_a_panel_of_its_loss_above_the_reference(tmp_path):
+    base = {"ratio": 0.01, "loss_signal": "probe", "removed": 3, "gaussians_left": 100, "loss_budget": 0.035}
+    records = [{**base, "iteration": it, "smoothed_loss": 0.02 * (1 + 0.01 * k), "reference_loss": 0.02}
+               for k, it in enumerate(range(10, 110, 10))]
+    log = tmp_path / "compaction.jsonl"
+    log.write_text("".join(json.dumps(r) + "\n" for r in records))
+    with Image.open(plot_compaction(log, tmp_path / "with.png")) as img:
+        referenced = img.height
+    for r in records:
+        del r["reference_loss"]
+    log.write_text("".join(json.dumps(r) + "\n" for r in records))
+    with Image.open(plot_compaction(log, tmp_path / "without.png")) as img:
+        plain = img.height
+    assert referenced == pytest.approx(plain * 4 / 3, rel=0.02)  # a fourth panel of the same height

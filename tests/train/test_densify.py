@@ -171,7 +171,7 @@ def test_scale_rule_removes_gaussians_larger_than_the_scene_around_the_cameras()
 
 def test_scale_rule_with_an_opacity_gate_keeps_large_translucent_gaussians():
     # Two Gaussians larger than the scene: an opaque one (a haze over a held-out view) and a translucent one;
-    # with scale_min_opacity 0.5 only the opaque one goes, with 0 both do.
+    # with the default scale_min_opacity (0.5) only the opaque one goes, with 0 both do.
     rng = np.random.default_rng(3)
     model = _scene(rng.uniform(-1, 1, size=(200, 3)))
     cameras = _camera_ring()
@@ -179,7 +179,8 @@ def test_scale_rule_with_an_opacity_gate_keeps_large_translucent_gaussians():
         model.params["scaling"][[0, 1]] = np.log(2.0)
         model.params["opacity"][0] = torch.logit(torch.tensor(0.9))
         model.params["opacity"][1] = torch.logit(torch.tensor(0.1))
-    gated = prune_mask_floaters(model, cameras, near_camera=0.0, max_world_scale=1.0, scale_min_opacity=0.5)
+    gated = prune_mask_floaters(model, cameras, near_camera=0.0, max_world_scale=1.0,
+                                scale_min_opacity=FloaterConfig().scale_min_opacity)
     assert gated.nonzero().ravel().tolist() == [0]
     ungated = prune_mask_floaters(model, cameras, near_camera=0.0, max_world_scale=1.0)
     assert ungated.nonzero().ravel().tolist() == [0, 1]

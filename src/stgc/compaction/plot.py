@@ -52,7 +52,8 @@ def loss_label(records: list[dict[str, Any]]) -> str:
 
 
 def plot_compaction(run_dir_or_jsonl: str | Path, out_png: str | Path) -> Path:
-    """Write a 3-panel PNG (ratio, smoothed loss, #Gaussians against iteration); returns its path."""
+    """Write a PNG of ratio, smoothed loss and #Gaussians against iteration (with a loss reference, also the loss
+    above the reference's against the budget); returns its path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -64,23 +65,36 @@ def plot_compaction(run_dir_or_jsonl: str | Path, out_png: str | Path) -> Path:
     def series(key: str) -> list[float]:
         return [float("nan") if r.get(key) is None else float(r[key]) for r in records]
 
-    fig, axes = plt.subplots(3, 1, figsize=(7, 7.5), sharex=True)
+    referenced = any(r.get("reference_loss") is not None for r in records)
+    rows = 4 if referenced else 3
+    fig, axes = plt.subplots(rows, 1, figsize=(7, 2.5 * rows), sharex=True)
     axes[0].step(iterations, series("ratio"), where="post", color="tab:blue")
     axes[0].set_ylabel("pruning ratio\n(of matched pairs)")
     axes[1].plot(iterations, series("smoothed_loss"), marker=".", color="tab:red", label="this run")
-    if any(r.get("reference_loss") is not None for r in records):
+    if referenced:
         axes[1].plot(iterations, series("reference_loss"), color="black", linestyle="--",
                      label="the unpruned reference run")
         axes[1].legend(loc="upper right", fontsize="small")
+        axes[1].set_yscale("log")
+        # What the budget holds: the loss above the unpruned run's at the same iteration, as a fraction.
+        damage = [float("nan") if r.get("reference_loss") in (None, 0) or r.get("smoothed_loss") is None
+                  else float(r["smoothed_loss"]) / float(r["reference_loss"]) - 1.0 for r in records]
+        axes[2].plot(iterations, damage, marker=".", color="tab:purple")
+        budgets = {float(r["loss_budget"]) for r in records if r.get("loss_budget")}
+        for budget in budgets:
+            axes[2].axhline(budget, color="black", linestyle=":", label=f"budget {budget:.3f}")
+        if budgets:
+            axes[2].legend(loc="upper left", fontsize="small")
+        axes[2].set_ylabel("loss / reference - 1")
     axes[1].set_ylabel(loss_label(records))
-    axes[2].plot(iterations, series("gaussians_left"), marker=".", color="tab:green")
-    axes[2].set_ylabel("Gaussians")
-    axes[2].set_xlabel("iteration")
+    axes[-1].plot(iterations, series("gaussians_left"), marker=".", color="tab:green")
+    axes[-1].set_ylabel("Gaussians")
+    axes[-1].set_xlabel("iteration")
     for ax in axes:
         ax.grid(True, alpha=0.3)
     source = Path(run_dir_or_jsonl)
     removed = sum(int(r.get("removed", 0)) for r in records)
-    axes[0].set_title(f"ST-KNN compaction: {source.name}, {len(records)} steps, {removed} removed")
+    axes[0].set_title(f"ST-KNN compaction: {source.name}\n{len(records)} steps, {removed} removed", fontsize="medium")
     fig.tight_layout()
     out_png = Path(out_png)
     try:
