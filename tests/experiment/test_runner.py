@@ -302,8 +302,11 @@ def test_a_failed_source_fails_its_fine_tuning_runs_without_launching_them(tmp_p
     ('name = "x"\nfrom = "stg"\niterations = 5\noverrides = { "data.downscale" = 2 }', "train.* options only"),
     ('name = "x"\niterations = 5', "counts the fine-tuning of a 'from' run"),
     ('name = "x"\ncodec_qualities = [0]', "codec_qualities must be a list"),
+    ('name = "x"\nloss_reference = "later"', "must name a run listed before it"),
+    ('name = "x"\nfrom = "stg"\niterations = 5\nloss_reference = "stg"', "keeps its source's compaction"),
+    ('name = "x"\nloss_reference = "stg"\noverrides = { "compaction.loss_reference" = "y" }', "not with the"),
 ])
-def test_fine_tuning_runs_in_a_plan_are_checked(tmp_path: Path, run: str, problem: str) -> None:
+def test_fine_tuning_runs_and_loss_references_in_a_plan_are_checked(tmp_path: Path, run: str, problem: str) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text(f'[[runs]]\nname = "stg"\n[[runs]]\n{run}\n[[runs]]\nname = "later"\n')
     with pytest.raises(FormatError, match=problem):
@@ -342,15 +345,3 @@ def test_a_run_with_a_loss_reference_trains_after_it_and_is_pointed_at_its_folde
     failed = run_plan("DATA", failing, tmp_path / "exp2", runner=fake_runner, check_options=False,
                       python=sys.executable, log=lambda m: None)
     assert failed.outcomes[-1].status == "failed" and "loss reference run 'ref' failed" in failed.outcomes[-1].message
-
-
-@pytest.mark.parametrize("run, problem", [
-    ('name = "x"\nloss_reference = "later"', "must name a run listed before it"),
-    ('name = "x"\nfrom = "stg"\niterations = 5\nloss_reference = "stg"', "keeps its source's compaction"),
-    ('name = "x"\nloss_reference = "stg"\noverrides = { "compaction.loss_reference" = "y" }', "not with the"),
-])
-def test_loss_references_in_a_plan_are_checked(tmp_path: Path, run: str, problem: str) -> None:
-    bad = tmp_path / "bad.toml"
-    bad.write_text(f'[[runs]]\nname = "stg"\n[[runs]]\n{run}\n[[runs]]\nname = "later"\n')
-    with pytest.raises(FormatError, match=problem):
-        load_plan_toml(bad)
