@@ -214,6 +214,27 @@ def test_the_cli_names_an_unreachable_cluster(video_scene, tmp_path, capsys):
     assert "give --segment-frames" in capsys.readouterr().err
 
 
+def test_a_local_ray_runs_its_tasks_at_the_drivers_priority(tmp_path):
+    """Ray starts workers 15 steps nicer than the driver; the local Ray stgc starts keeps them at the driver's
+    priority, so a training task does not starve beside other work. In a child process (its own niceness, its own
+    local Ray), while no other Ray is attached to it."""
+    temp = tempfile.mkdtemp(prefix="stgcnice", dir="/tmp")
+    script = (
+        "import os\n"
+        "os.nice(3)\n"
+        "from stgc.distributed import Task, run_tasks\n"
+        "print('driver', os.nice(0), 'tasks', run_tasks([Task('a', os.nice, (0,))], use_ray=True, show_progress=False))\n"
+    )
+    try:
+        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=240,
+                             env={**os.environ, "RAY_TMPDIR": temp})
+    finally:
+        _kill_all(temp)
+        shutil.rmtree(temp, ignore_errors=True)
+    driver = os.nice(0) + 3
+    assert f"driver {driver} tasks [{driver}]" in out.stdout, out.stdout + out.stderr[-2000:]
+
+
 @pytest.fixture(scope="module")
 def cluster():
     """Two one-CPU Ray nodes on 127.0.0.1 with this test's own temp folder (short: Ray's sockets live there)."""
