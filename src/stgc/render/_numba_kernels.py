@@ -52,6 +52,12 @@ def _reaches_tile(gdata, g, x0, x1, y0, y1):
     return False
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _has_a_tile(radii, g):
+    """Whether Gaussian g gets tiles at all: the one rule of bin_tiles and of the depth order it is given."""
+    return radii[g, 0] > 0 or radii[g, 1] > 0
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def bin_tiles(gdata, radii, order, width, height, tile_size, n_chunks):
     """Tile binning: returns (offsets [T+1] int64, flat_ids [M] int32), each tile's list sorted by depth.
@@ -68,10 +74,10 @@ def bin_tiles(gdata, radii, order, width, height, tile_size, n_chunks):
     rect = np.zeros((n, 4), dtype=np.int64)
     per_gaussian = np.zeros(n, dtype=np.int64)
     for g in prange(n):
+        if not _has_a_tile(radii, g):
+            continue
         rx = radii[g, 0]
         ry = radii[g, 1]
-        if rx <= 0 and ry <= 0:
-            continue
         mx = gdata[g, GX] / tile_size
         my = gdata[g, GY] / tile_size
         rect[g, 0] = min(max(np.floor(mx - rx / tile_size), 0), tiles_x)
@@ -144,7 +150,7 @@ def ids_with_a_tile(radii):
     ids = np.empty(n, dtype=np.int64)
     count = 0
     for g in range(n):
-        if radii[g, 0] > 0 or radii[g, 1] > 0:
+        if _has_a_tile(radii, g):
             ids[count] = g
             count += 1
     return ids[:count].copy()
