@@ -17,12 +17,14 @@ from .helpers import look_at_camera, point_cloud
 
 
 def _scene(variant: str) -> STGModel:
-    """Gaussians spread over time with narrow temporal support, so that at t=0.5 many are culled."""
+    """Gaussians spread over time with narrow temporal support, so that at t=0.5 many are culled; anisotropic, so
+    that their rotations matter (an isotropic Gaussian's rotation gradient is rounding noise)."""
     model = STGModel.from_points(point_cloud(60, seed=1), variant=variant, trbf_scale_init=float(np.log(0.15)))
     generator = torch.Generator().manual_seed(2)
     with torch.no_grad():
         model.params["motion"].copy_(torch.randn(60, 9, generator=generator) * 0.2)
         model.params["omega"].copy_(torch.randn(60, 4, generator=generator) * 0.5)
+        model.params["scaling"].add_(torch.randn(60, 3, generator=generator) * 0.7)
         model.params["opacity"].copy_(torch.randn(60, 1, generator=generator) + 1.0)
         if variant == "full":
             model.params["features_t"].copy_(torch.randn(60, 3, generator=generator))
@@ -59,7 +61,8 @@ def test_render_culls_by_temporal_opacity_and_passes_time_evaluated_gaussians(mo
     assert torch.equal(out.index, expected_index)
     call = fake.calls[0]
     torch.testing.assert_close(call["means"], model.means_at(0.5)[expected_index])
-    torch.testing.assert_close(call["quats"], model.rotations_at(0.5)[expected_index])
+    # Passed unnormalised (every backend normalises): the same rotation, a positive multiple of rotations_at's.
+    torch.testing.assert_close(torch.nn.functional.normalize(call["quats"], dim=1), model.rotations_at(0.5)[expected_index])
     torch.testing.assert_close(call["scales"], model.scales[expected_index])
     torch.testing.assert_close(call["opacities"], opacity[expected_index])
     torch.testing.assert_close(call["features"], model.features_at(0.5)[expected_index])
@@ -128,7 +131,9 @@ def test_temporal_culling_is_exact_against_rasterizing_everything(variant, backe
     torch.testing.assert_close(out.rgb.detach(), rgb.detach(), rtol=0, atol=1e-6)
     for key, param in model.params.items():
         assert culled_grads[key].abs().sum() > 0, key
-        torch.testing.assert_close(culled_grads[key], param.grad, rtol=1e-5, atol=1e-7, msg=key)
+        # Float32 rounding of the same sums in another order, relative to the largest entry.
+        scale = float(param.grad.abs().max())
+        torch.testing.assert_close(culled_grads[key], param.grad, rtol=1e-5, atol=1e-6 * scale, msg=key)
 
 
 @pytest.mark.parametrize("variant", ["full", "lite"])
@@ -196,4 +201,6 @@ def test_gaussians_below_the_cut_at_their_peak_never_show_so_leaving_them_out_ch
     pruned.prune(keep)
     for t in (0.0, 0.13, 0.5, 0.97, 1.0):
         camera = look_at_camera(time=t)
-        assert torch.equal(model.render(camera).rgb, pruned.render(camera).rgb), t
+        # Equal up to float32 rounding: the temporal opacities are computed over all rows, and torch's vectorised
+        # loops round an element differently depending on where it falls in a tensor of another length.
+        torch.testing.assert_close(model.render(camera).rgb, pruned.render(camera).rgb, rtol=0, atol=1e-6, msg=str(t))

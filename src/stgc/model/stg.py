@@ -338,12 +338,15 @@ class STGModel:
         else:
             rows, visible_opacity = {key: value[index] for key, value in self.params.items()}, opacity[index]
         cached = self._camera_tensors(camera)
+        delta = _detached_delta(rows, t)
         raster = _render.rasterize(
-            _means_at(rows, t),
-            _rotations_at(rows, t),
+            _means_at(rows, t, delta),
+            # Unnormalised: every rasterizer backend normalises the quaternion itself (as rotations_at does), so
+            # normalising here too would only add its forward and backward to every render.
+            rows["rotation"] + delta * rows["omega"],
             torch.exp(rows["scaling"]),
             visible_opacity,
-            _features_at(rows, t),
+            _features_at(rows, t, delta),
             cached["K"],
             cached["viewmat"],
             int(camera.width),
@@ -590,8 +593,8 @@ def _detached_delta(params: Mapping[str, torch.Tensor], t: float) -> torch.Tenso
     return (t - params["trbf_center"]).detach()
 
 
-def _means_at(params: Mapping[str, torch.Tensor], t: float) -> torch.Tensor:
-    d = _detached_delta(params, t)
+def _means_at(params: Mapping[str, torch.Tensor], t: float, delta: torch.Tensor | None = None) -> torch.Tensor:
+    d = _detached_delta(params, t) if delta is None else delta
     motion = params["motion"]
     return params["xyz"] + motion[:, 0:3] * d + motion[:, 3:6] * (d * d) + motion[:, 6:9] * (d * d * d)
 
@@ -601,10 +604,11 @@ def _rotations_at(params: Mapping[str, torch.Tensor], t: float) -> torch.Tensor:
     return torch.nn.functional.normalize(params["rotation"] + d * params["omega"], dim=1)
 
 
-def _features_at(params: Mapping[str, torch.Tensor], t: float) -> torch.Tensor:
+def _features_at(params: Mapping[str, torch.Tensor], t: float, delta: torch.Tensor | None = None) -> torch.Tensor:
     if "features_t" not in params:
         return params["features_dc"]
-    return torch.cat([params["features_dc"], _detached_delta(params, t) * params["features_t"]], dim=1)
+    d = _detached_delta(params, t) if delta is None else delta
+    return torch.cat([params["features_dc"], d * params["features_t"]], dim=1)
 
 
 def _cloud_arrays(cloud: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
