@@ -341,9 +341,7 @@ class STGModel:
         delta = _detached_delta(rows, t)
         raster = _render.rasterize(
             _means_at(rows, t, delta),
-            # Unnormalised: every rasterizer backend normalises the quaternion itself (as rotations_at does), so
-            # normalising here too would only add its forward and backward to every render.
-            rows["rotation"] + delta * rows["omega"],
+            _quaternions_at(rows, t, delta),
             torch.exp(rows["scaling"]),
             visible_opacity,
             _features_at(rows, t, delta),
@@ -599,9 +597,15 @@ def _means_at(params: Mapping[str, torch.Tensor], t: float, delta: torch.Tensor 
     return params["xyz"] + motion[:, 0:3] * d + motion[:, 3:6] * (d * d) + motion[:, 6:9] * (d * d * d)
 
 
+def _quaternions_at(params: Mapping[str, torch.Tensor], t: float, delta: torch.Tensor | None = None) -> torch.Tensor:
+    """The rotation at time t as an unnormalised quaternion: what the rasterizer takes, since every backend
+    normalises it itself (normalising here too would only add its forward and backward to every render)."""
+    d = _detached_delta(params, t) if delta is None else delta
+    return params["rotation"] + d * params["omega"]
+
+
 def _rotations_at(params: Mapping[str, torch.Tensor], t: float) -> torch.Tensor:
-    d = _detached_delta(params, t)
-    return torch.nn.functional.normalize(params["rotation"] + d * params["omega"], dim=1)
+    return torch.nn.functional.normalize(_quaternions_at(params, t), dim=1)
 
 
 def _features_at(params: Mapping[str, torch.Tensor], t: float, delta: torch.Tensor | None = None) -> torch.Tensor:
