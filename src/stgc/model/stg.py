@@ -281,13 +281,13 @@ class STGModel:
         return _temporal_opacity({k: v.detach() for k, v in self.params.items()}, nearest)
 
     def means_at(self, t: float) -> torch.Tensor:
-        return _means_at(self.params, t)
+        return _means_at(self.params, _detached_delta(self.params, t))
 
     def rotations_at(self, t: float) -> torch.Tensor:
-        return _rotations_at(self.params, t)
+        return torch.nn.functional.normalize(_quaternions_at(self.params, _detached_delta(self.params, t)), dim=1)
 
     def features_at(self, t: float) -> torch.Tensor:
-        return _features_at(self.params, t)
+        return _features_at(self.params, _detached_delta(self.params, t))
 
     # ------------------------------------------------------------------ rendering
     @contextlib.contextmanager
@@ -340,11 +340,11 @@ class STGModel:
         cached = self._camera_tensors(camera)
         delta = _detached_delta(rows, t)
         raster = _render.rasterize(
-            _means_at(rows, t, delta),
-            _quaternions_at(rows, t, delta),
+            _means_at(rows, delta),
+            _quaternions_at(rows, delta),
             torch.exp(rows["scaling"]),
             visible_opacity,
-            _features_at(rows, t, delta),
+            _features_at(rows, delta),
             cached["K"],
             cached["viewmat"],
             int(camera.width),
@@ -591,27 +591,21 @@ def _detached_delta(params: Mapping[str, torch.Tensor], t: float) -> torch.Tenso
     return (t - params["trbf_center"]).detach()
 
 
-def _means_at(params: Mapping[str, torch.Tensor], t: float, delta: torch.Tensor | None = None) -> torch.Tensor:
-    d = _detached_delta(params, t) if delta is None else delta
+# The state at time t from Delta' = (t - mu_t).detach() (`_detached_delta`), computed once per render.
+def _means_at(params: Mapping[str, torch.Tensor], d: torch.Tensor) -> torch.Tensor:
     motion = params["motion"]
     return params["xyz"] + motion[:, 0:3] * d + motion[:, 3:6] * (d * d) + motion[:, 6:9] * (d * d * d)
 
 
-def _quaternions_at(params: Mapping[str, torch.Tensor], t: float, delta: torch.Tensor | None = None) -> torch.Tensor:
+def _quaternions_at(params: Mapping[str, torch.Tensor], d: torch.Tensor) -> torch.Tensor:
     """The rotation at time t as an unnormalised quaternion: what the rasterizer takes, since every backend
     normalises it itself (normalising here too would only add its forward and backward to every render)."""
-    d = _detached_delta(params, t) if delta is None else delta
     return params["rotation"] + d * params["omega"]
 
 
-def _rotations_at(params: Mapping[str, torch.Tensor], t: float) -> torch.Tensor:
-    return torch.nn.functional.normalize(_quaternions_at(params, t), dim=1)
-
-
-def _features_at(params: Mapping[str, torch.Tensor], t: float, delta: torch.Tensor | None = None) -> torch.Tensor:
+def _features_at(params: Mapping[str, torch.Tensor], d: torch.Tensor) -> torch.Tensor:
     if "features_t" not in params:
         return params["features_dc"]
-    d = _detached_delta(params, t) if delta is None else delta
     return torch.cat([params["features_dc"], d * params["features_t"]], dim=1)
 
 
