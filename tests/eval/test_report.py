@@ -132,3 +132,43 @@ def test_rate_points_name_four_points_per_curve_spread_over_log_rate(tmp_path):
     rows = [ReportRow("a", "A", 1.0, 30.0, extra={"psnr_yuv": 33.25}), ReportRow("b", "A", 2.0, 31.0)]
     md = make_report(rows, tmp_path, baseline="A").markdown.read_text()
     assert "| A | a | rp01 | – | – | 1.00 | 30.00 | 33.25 |" in md and "|  | b | rp02 | – | – | 2.00 | 31.00 | – |" in md
+
+
+def test_rd_plot_labels_points_and_keeps_the_legend_off_the_curves_only_while_they_fit(tmp_path):
+    """A few curves: every point labelled, the legend inside the axes. Many: no point labels (they would overlap;
+    the table names them) and the legend beside the axes, not over the curves."""
+    import matplotlib.pyplot as plt
+
+    from stgc.eval.report import LABELLED_POINTS_MAX, LEGEND_INSIDE_MAX, rd_figure
+
+    def rows(families: int, points: int) -> list[ReportRow]:
+        return [ReportRow(name=f"f{f} p{p}", family=f"family {f}", mbps=1.0 + p + 0.1 * f, psnr=30.0 + p - 0.2 * f)
+                for f in range(families) for p in range(points)]
+
+    def legend_is_beside_axes(fig) -> bool:
+        fig.canvas.draw()
+        ax = fig.axes[0]
+        return bool(ax.get_legend().get_window_extent().x0 >= ax.get_window_extent().x1)
+
+    few = rows(2, 3)
+    fig = rd_figure(few, "few", baseline="family 0")
+    assert sorted(t.get_text() for t in fig.axes[0].texts) == sorted(r.name for r in few)
+    assert not legend_is_beside_axes(fig)
+    plt.close(fig)
+
+    many = rows(LEGEND_INSIDE_MAX + 2, 4)
+    assert len(many) > LABELLED_POINTS_MAX
+    fig = rd_figure(many, "many", baseline="family 0")
+    assert len(fig.axes[0].texts) == 0
+    assert legend_is_beside_axes(fig)
+    assert len(fig.axes[0].get_legend().get_texts()) == LEGEND_INSIDE_MAX + 2
+    plt.close(fig)
+    # Fourteen curves (as the learned-mask plan draws): fourteen colours, none repeated.
+    fig = rd_figure(rows(14, 2), "fourteen", baseline=None)
+    assert len({line.get_color() for line in fig.axes[0].get_lines()}) == 14
+    plt.close(fig)
+    # The saved PNG holds the legend beside the axes too (bbox_inches="tight" widens it).
+    report = make_report(many, tmp_path / "r")
+    assert report.plot_png is not None
+    with Image.open(report.plot_png) as png:
+        assert png.width > 1.5 * png.height

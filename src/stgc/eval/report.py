@@ -234,30 +234,44 @@ def rate_axis_is_log(rows: Sequence[ReportRow], metric: str = "psnr") -> bool:
     return bool(rates) and max(rates) > LOG_RATE_SPAN * min(rates)
 
 
-def rd_plot(rows: Sequence[ReportRow], png: Path, svg: Path | None, title: str, baseline: str | None,
-            metric: str = "psnr") -> None:
-    """Mbps vs PSNR, one line per family (points in rate order), each point labelled by its setting. The rate
-    axis is logarithmic when the plotted rates span more than LOG_RATE_SPAN (codec points at a tenth of the
-    uncompressed rate would otherwise crowd its left edge)."""
+# Beyond this many plotted points, point labels would overlap one another; the legend and the report's table name
+# them instead. Beyond LEGEND_INSIDE_MAX families the legend would cover the curves, so it goes beside the axes.
+LABELLED_POINTS_MAX = 16
+LEGEND_INSIDE_MAX = 4
+
+
+def rd_figure(rows: Sequence[ReportRow], title: str, baseline: str | None, metric: str = "psnr") -> Any:
+    """The RD plot as a matplotlib Figure (the caller saves and closes it): Mbps vs PSNR, one line per family
+    (points in rate order). The rate axis is logarithmic when the plotted rates span more than LOG_RATE_SPAN (codec
+    points at a tenth of the uncompressed rate would otherwise crowd its left edge); each point is labelled by its
+    setting while the plot has at most LABELLED_POINTS_MAX points."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     markers = ["o", "s", "^", "D", "v", "P", "X", "*"]
-    fig, ax = plt.subplots(figsize=(6.4, 4.6), dpi=100)
+    curves: list[tuple[str, list[ReportRow]]] = []
+    for family, members in _families(rows).items():
+        curve = [r for r in _curve(members) if getattr(r, metric) is not None]
+        if curve:
+            curves.append((family, curve))
+    legend_beside = len(curves) > LEGEND_INSIDE_MAX
+    label_points = sum(len(c) for _, c in curves) <= LABELLED_POINTS_MAX
+    # tab10 repeats its colours after ten families; tab20 (its hues light and dark) keeps twenty apart.
+    palette = 10 if len(curves) <= 10 else 20
+    colours = [plt.get_cmap(f"tab{palette}")(k) for k in range(palette)]
+    fig, ax = plt.subplots(figsize=(9.6 if legend_beside else 6.4, 4.6), dpi=100)
     if rate_axis_is_log(rows, metric):
         ax.set_xscale("log")
-    for i, (family, members) in enumerate(_families(rows).items()):
-        curve = [r for r in _curve(members) if getattr(r, metric) is not None]
-        if not curve:
-            continue
+    for i, (family, curve) in enumerate(curves):
         xs = np.array([r.mbps for r in curve], dtype=float)
         ys = np.array([getattr(r, metric) for r in curve], dtype=float)
         label = f"{family} (baseline)" if family == baseline else family
-        ax.plot(xs, ys, marker=markers[i % len(markers)], linewidth=1.8 if family == baseline else 1.4,
+        ax.plot(xs, ys, marker=markers[i % len(markers)], color=colours[i % len(colours)],
+                linewidth=1.8 if family == baseline else 1.4,
                 linestyle="--" if family == baseline else "-", markersize=6, label=label)
-        if len(curve) <= 8:
+        if label_points:
             for r, x, y in zip(curve, xs, ys):
                 ax.annotate(r.name, (x, y), textcoords="offset points", xytext=(4, -11), fontsize=7, alpha=0.75)
     ax.set_xlabel("Bitrate (Mbps)")
@@ -265,14 +279,28 @@ def rd_plot(rows: Sequence[ReportRow], png: Path, svg: Path | None, title: str, 
     ax.set_title(textwrap.fill(title, 60, break_on_hyphens=False), fontsize=11)  # long plan titles would run past the figure
     ax.margins(x=0.1, y=0.08)
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="lower right", fontsize=8, frameon=True)
+    if legend_beside:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=True)
+    else:
+        ax.legend(loc="lower right", fontsize=8, frameon=True)
     fig.tight_layout()
-    with atomic_path(png) as tmp:
-        fig.savefig(tmp, format="png", dpi=200)
-    if svg is not None:
-        with atomic_path(svg) as tmp:
-            fig.savefig(tmp, format="svg")
-    plt.close(fig)
+    return fig
+
+
+def rd_plot(rows: Sequence[ReportRow], png: Path, svg: Path | None, title: str, baseline: str | None,
+            metric: str = "psnr") -> None:
+    """rd_figure written to `png` (and `svg`), each atomically."""
+    import matplotlib.pyplot as plt
+
+    fig = rd_figure(rows, title, baseline, metric)
+    try:
+        with atomic_path(png) as tmp:
+            fig.savefig(tmp, format="png", dpi=200, bbox_inches="tight")
+        if svg is not None:
+            with atomic_path(svg) as tmp:
+                fig.savefig(tmp, format="svg", bbox_inches="tight")
+    finally:
+        plt.close(fig)
 
 
 def make_report(
