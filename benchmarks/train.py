@@ -34,6 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", default="cpu", choices=["cpu", "paper"])
     ap.add_argument("--variant", default="full", choices=["full", "lite"])
     ap.add_argument("--downscale", type=float, default=1.0)
+    ap.add_argument("--duration", type=int, default=None, help="train on the first N frames (default: all)")
     ap.add_argument("--init-every", type=int, default=None,
                     help="initial points from every k-th frame (default: the preset's, as `stgc train`)")
     ap.add_argument("--points-per-frame", type=int, default=None, help="default: the preset's, as `stgc train`")
@@ -50,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     init_every = args.init_every or int(preset_data.get("init_frames_every", 1))
     points_per_frame = args.points_per_frame or (int(preset_data["max_points_per_frame"])
                                                  if "max_points_per_frame" in preset_data else None)
-    data_cfg = DataConfig(downscale=args.downscale, init_frames_every=init_every,
+    data_cfg = DataConfig(downscale=args.downscale, duration=args.duration, init_frames_every=init_every,
                           max_points_per_frame=points_per_frame)
     dataset = data_cfg.open(args.data)
     model_cfg = ModelConfig(variant=args.variant)
