@@ -204,7 +204,7 @@ def test_a_run_saved_before_the_real_capture_options_resumes_as_it_trained(train
     shutil.copytree(trained_run, run)
     saved = json.loads((run / "config.json").read_text())
     for section, key in (("data", "near_plane"), ("data", "mask_points_per_frame"), ("model", "decoder_ray_origin"),
-                         ("train", "colour_correction")):
+                         ("model", "decoder_ray_direction"), ("train", "colour_correction")):
         del saved[section][key]
     del saved["train"]["densify"]["stats_views"]
     del saved["train"]["floaters"]["scale_min_opacity"]
@@ -213,6 +213,7 @@ def test_a_run_saved_before_the_real_capture_options_resumes_as_it_trained(train
     assert configs["train"].floaters.scale_min_opacity == 0.0  # the scale rule took any opacity before the gate
     assert configs["data"].near_plane == 0.2 and configs["data"].mask_points_per_frame == 0
     assert configs["model"].decoder_ray_origin == "on" and configs["train"].colour_correction == "off"
+    assert configs["model"].decoder_ray_direction == "on"
     assert configs["train"].densify.stats_views == "last"
 
 

@@ -55,9 +55,16 @@ class ModelConfig:
                           "that held-out cameras do not share; the colour correction takes that role), on for "
                           "synthetic renders (docs/model.md)"},
     )
+    decoder_ray_direction: Literal["auto", "on", "off"] = field(
+        default="on",
+        metadata={"help": "let the decoder see the viewing direction (official STG: on). Off, its weights on the "
+                          "direction are zero and stay zero: the colour of a point at a time is the same from every "
+                          "camera, and the files stay official. auto: off for real captures, on for synthetic "
+                          "renders, as decoder_ray_origin (docs/model.md)"},
+    )
 
     # How a run saved before these options existed was trained (stgc.config.from_saved).
-    SAVED_BEFORE: ClassVar[dict[str, Any]] = {"decoder_ray_origin": "on"}
+    SAVED_BEFORE: ClassVar[dict[str, Any]] = {"decoder_ray_origin": "on", "decoder_ray_direction": "on"}
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:

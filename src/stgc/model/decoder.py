@@ -22,8 +22,9 @@ FEATURE_CHANNELS = 9
 RAY_CHANNELS = 6
 HIDDEN_CHANNELS = 6
 # Columns of the first layer's input [specular(3), time feature(3), ray origin(3), ray direction(3)] that carry the
-# ray origin.
+# ray origin and the ray direction.
 RAY_ORIGIN_INPUTS = slice(6, 9)
+RAY_DIRECTION_INPUTS = slice(9, 12)
 
 
 class SandwichDecoder(nn.Module):
@@ -37,24 +38,37 @@ class SandwichDecoder(nn.Module):
         in_channels = 3 + 3 + RAY_CHANNELS
         self.mlp1 = _Conv1x1Weight(_conv_default_init(HIDDEN_CHANNELS, in_channels, generator))
         self.mlp2 = _Conv1x1Weight(_conv_default_init(3, HIDDEN_CHANNELS, generator))
-        self._origin_hook: Any = None  # set by ignore_ray_origin
+        self._ignored: list[slice] = []  # ray-input columns held at zero (ignore_ray_inputs)
+        self._ignore_hook: Any = None
 
     def extra_repr(self) -> str:
         return f"activation={self.activation!r}"
 
-    def ignore_ray_origin(self) -> None:
-        """Zero the first layer's weights on the ray origin and keep them zero while training (their gradient is
-        masked), so the colour no longer depends on the camera's position. Idempotent."""
+    def ignore_ray_inputs(self, *, origin: bool = False, direction: bool = False) -> None:
+        """Zero the first layer's weights on the ray origin and/or direction and keep them zero while training
+        (their gradient is masked), so the colour no longer depends on the camera's position (origin) or on the
+        viewing direction (direction). Idempotent; inputs ignored once stay ignored."""
+        wanted = [cols for cols, on in ((RAY_ORIGIN_INPUTS, origin), (RAY_DIRECTION_INPUTS, direction))
+                  if on and cols not in self._ignored]
+        if not wanted:
+            return
+        self._ignored.extend(wanted)
+        mask = torch.ones_like(self.mlp1.weight)
+        for cols in self._ignored:
+            mask[:, cols] = 0.0
         with torch.no_grad():
-            self.mlp1.weight[:, RAY_ORIGIN_INPUTS] = 0.0
-        if self._origin_hook is None:
-            mask = torch.ones_like(self.mlp1.weight)
-            mask[:, RAY_ORIGIN_INPUTS] = 0.0
-            self._origin_hook = self.mlp1.weight.register_hook(lambda grad: grad * mask)  # type: ignore[no-untyped-call]
+            self.mlp1.weight.mul_(mask)
+        if self._ignore_hook is not None:
+            self._ignore_hook.remove()
+        self._ignore_hook = self.mlp1.weight.register_hook(lambda grad: grad * mask)  # type: ignore[no-untyped-call]
 
     @property
     def uses_ray_origin(self) -> bool:
         return bool(self.mlp1.weight.detach()[:, RAY_ORIGIN_INPUTS].abs().sum() > 0)
+
+    @property
+    def uses_ray_direction(self) -> bool:
+        return bool(self.mlp1.weight.detach()[:, RAY_DIRECTION_INPUTS].abs().sum() > 0)
 
     def forward(self, features: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
         if features.shape[-1] != FEATURE_CHANNELS:

@@ -224,9 +224,12 @@ class Trainer:
             self.metrics_log.clear()
             self.compaction_log.clear()
             self._write_config()
-        self.decoder_ray_origin = _chosen((model_cfg or ModelConfig()).decoder_ray_origin, dataset.synthetic)
-        if self.model.decoder is not None and not self.decoder_ray_origin:
-            self.model.decoder.ignore_ray_origin()
+        model_options = model_cfg or ModelConfig()
+        self.decoder_ray_origin = _chosen(model_options.decoder_ray_origin, dataset.synthetic)
+        self.decoder_ray_direction = _chosen(model_options.decoder_ray_direction, dataset.synthetic)
+        if self.model.decoder is not None:
+            self.model.decoder.ignore_ray_inputs(origin=not self.decoder_ray_origin,
+                                                 direction=not self.decoder_ray_direction)
         self.extent = float(self.model.scene_extent)
         self.optimizer = self.model.make_optimizer(
             learning_rates(train_cfg, self.extent, self.model.params), train_cfg.lr.decoder
