@@ -32,6 +32,8 @@ def test_the_near_plane_follows_the_format_and_an_override_wins(scene):
     assert PANOPTIC_NEAR_PLANE == 1.0 and DEFAULT_NEAR_PLANE == 0.2
     assert {c.near for c in panoptic.cameras} == {1.0} and panoptic.near_plane == 1.0
     assert {c.near for c in blender.cameras} == {0.2}
+    # Panoptic's reference (Dynamic 3D Gaussians) keeps one colour per Gaussian; STG's sources are view-dependent.
+    assert not panoptic.view_dependent_colour and blender.view_dependent_colour
     for fmt in ("panoptic", "blender"):
         override = open_dataset(scene.root, format=fmt, near_plane=0.5)
         assert {c.near for c in override.cameras} == {0.5}

@@ -124,6 +124,7 @@ def test_n3dv_mp4_round_trip(toys, blender_toys, tmp_path):
                 writer.append_data(frame)
     data = open_dataset(tmp_path)
     assert data.format == "n3dv" and data.test_views == ["cam00"] and data.fps == pytest.approx(30)
+    assert data.view_dependent_colour and not data.synthetic  # a real rig, STG's own: the decoder sees directions
     assert data.frames == FRAMES
     for cam in data.cameras:
         _same_cameras(cam, cams[(cam.name, cam.frame)], tol=1e-5)
@@ -218,6 +219,7 @@ def test_technicolor_round_trip(toys, blender_toys, tmp_path):
     (tmp_path / "cameras_parameters.txt").write_text("\n".join(lines) + "\n")
     data = open_dataset(tmp_path)
     assert data.format == "technicolor" and data.test_views == ["cam10"] and data.frames == [151, 152]
+    assert data.view_dependent_colour and not data.synthetic
     assert data.time_of(152) == pytest.approx(0.5)
     for cam in data.cameras:
         ref = next(c for c in full.cameras if c.name == cam.name and c.frame == cam.frame - 151)

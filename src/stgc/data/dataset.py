@@ -85,6 +85,8 @@ class SourceScene:
     points: frame -> (xyz float [M,3], rgb float [M,3] in [0,1]) of points shipped with the data, or None.
     near_plane: the culling depth this source's reference renderer is used with (see cameras.DEFAULT_NEAR_PLANE).
     synthetic: rendered images (every camera has the same response), not a real rig's.
+    view_dependent_colour: whether this source's reference method lets colour change with the viewing direction
+        (official STG: yes; Dynamic 3D Gaussians, Panoptic's reference, keeps one colour per Gaussian and time).
     masks: camera -> path of its foreground mask (0 background, 255 foreground), or None where it has none.
     """
 
@@ -101,6 +103,7 @@ class SourceScene:
     default_start: int | None = None
     near_plane: float = DEFAULT_NEAR_PLANE
     synthetic: bool = False
+    view_dependent_colour: bool = True
     masks: Callable[[Camera], Path | None] | None = None
     notes: list[str] = field(default_factory=list)
 
@@ -179,6 +182,11 @@ class Dataset:
     def synthetic(self) -> bool:
         """Rendered images (identical camera responses), not a real capture."""
         return self._scene.synthetic
+
+    @property
+    def view_dependent_colour(self) -> bool:
+        """Whether this source's reference method models colour that changes with the viewing direction."""
+        return self._scene.view_dependent_colour
 
     @property
     def near_plane(self) -> float:

@@ -59,8 +59,8 @@ class ModelConfig:
         default="on",
         metadata={"help": "let the decoder see the viewing direction (official STG: on). Off, its weights on the "
                           "direction are zero and stay zero: the colour of a point at a time is the same from every "
-                          "camera, and the files stay official. auto: off for real captures, on for synthetic "
-                          "renders, as decoder_ray_origin (docs/model.md)"},
+                          "camera, and the files stay official. auto: off where the source's reference method has "
+                          "no view-dependent colour (Panoptic), on for every other format (docs/model.md)"},
     )
 
     # How a run saved before these options existed was trained (stgc.config.from_saved).

@@ -226,7 +226,7 @@ class Trainer:
             self._write_config()
         model_options = model_cfg or ModelConfig()
         self.decoder_ray_origin = _chosen(model_options.decoder_ray_origin, dataset.synthetic)
-        self.decoder_ray_direction = _chosen(model_options.decoder_ray_direction, dataset.synthetic)
+        self.decoder_ray_direction = _chosen(model_options.decoder_ray_direction, dataset.view_dependent_colour)
         if self.model.decoder is not None:
             self.model.decoder.ignore_ray_inputs(origin=not self.decoder_ray_origin,
                                                  direction=not self.decoder_ray_direction)

@@ -67,7 +67,8 @@ def read_panoptic(path: Path, options: ReaderOptions) -> SourceScene:
         description = f"{npz.name} (static cloud, tagged with the first frame)"
     return SourceScene(name=root.name, format="panoptic", root=root, cameras=cameras, default_test=test_names,
                        meta_file=meta_files[0], fps=30.0, points=points, points_description=description,
-                       near_plane=PANOPTIC_NEAR_PLANE, masks=_panoptic_masks(root))
+                       near_plane=PANOPTIC_NEAR_PLANE, view_dependent_colour=False,
+                       masks=_panoptic_masks(root))
 
 
 # Dynamic 3D Gaussians sets up every Panoptic camera with near = 1.0 (its rasterizer still culls at 0.2; the 1.0
