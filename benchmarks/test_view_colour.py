@@ -24,11 +24,8 @@ import numpy as np
 import torch
 
 from stgc.eval.evaluate import open_run_dataset
+from stgc.metrics.image import psnr
 from stgc.model import STGModel
-
-
-def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    return float(-10.0 * np.log10(max(np.mean((a - b) ** 2), 1e-12)))
 
 
 def fit_affine(render: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -68,8 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for name, views in sorted(halves.items()):
         gains, offsets = fit_affine(np.concatenate([v[0] for v in views]), np.concatenate([v[1] for v in views]))
-        raw = float(np.mean([_psnr(v[2], v[3]) for v in views]))
-        fitted = float(np.mean([_psnr(np.clip(v[2] * gains + offsets, 0.0, 1.0), v[3]) for v in views]))
+        raw = float(np.mean([float(psnr(v[2], v[3])) for v in views]))
+        fitted = float(np.mean([float(psnr(np.clip(v[2] * gains + offsets, 0.0, 1.0), v[3])) for v in views]))
         rows.append({"camera": name, "views": len(views), "psnr_right_half": round(raw, 2),
                      "psnr_right_half_colour_fitted": round(fitted, 2), "colour_share_db": round(fitted - raw, 2),
                      "gain": [round(float(g), 3) for g in gains], "offset": [round(float(o), 3) for o in offsets],
