@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import shutil
 import tempfile
 import time
 from pathlib import Path
 
+from stgc import machine
 from stgc.options import resolve_configs
 from stgc.run import Run
 from stgc.train.video import train_video
@@ -64,7 +64,7 @@ def main() -> None:
           f"({100 * overhead / walls['in-process']:.1f} % of this run's in-process wall)")
     print(f"per segment of {CPU_PRESET_ITERATIONS} iterations at {it_per_s:.2f} it/s ({real_segment_s / 60:.0f} min): "
           f"{100 * per_segment / real_segment_s:.2f} %")
-    print(f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
+    print(f"machine: {machine.one_line()}")
     if not args.out:
         shutil.rmtree(work, ignore_errors=True)
 

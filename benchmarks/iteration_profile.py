@@ -26,6 +26,7 @@ from torch.profiler import ProfilerActivity, profile, record_function
 
 import stgc.render.api as render_api
 import stgc.render.numba_backend as numba_backend
+from stgc import machine
 from stgc.options import default_configs
 from stgc.config import apply_overrides, parse_set_arguments
 from stgc.model import STGModel
@@ -126,6 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     parts, other_nodes = split(prof, args.iterations)
     parts["everything else (python, loop, bookkeeping)"] = wall_ms - sum(parts.values())
     view = dataset.train[0]
+    print(f"machine: {machine.one_line()}")
     print(f"{dataset.name} {view.width}x{view.height}, {model.num_gaussians} Gaussians, batch {train_cfg.batch}, "
           f"{args.threads} threads, load {os.getloadavg()[0]:.2f}: {wall_ms:.1f} ms per iteration (profiled)")
     print("| part | ms per iteration | share |\n|---|---:|---:|")

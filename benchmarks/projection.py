@@ -27,6 +27,7 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from render.scenes import make_scene  # noqa: E402
 
+from stgc import machine  # noqa: E402
 from stgc.render.numba_backend import project_numba  # noqa: E402
 from stgc.render.projection import project_gaussians  # noqa: E402
 
@@ -56,7 +57,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
-    print(f"threads {args.threads}, load average {os.getloadavg()[0]:.2f}")
+    print(f"threads {args.threads}, machine: {machine.one_line()}")
     print(f"{'N':>7} {'torch ms':>9} {'torch CPU ms':>13} {'numba ms':>9} {'numba CPU ms':>13} {'CPU ratio':>10}")
     for n in args.n:
         scene = make_scene(n, width=320, height=180, channels=9, seed=1)

@@ -206,6 +206,9 @@ def main(argv: list[str] | None = None) -> int:
         from stgc.render import numba_backend
 
         numba_backend.TILE_SIZE = args.tile_size
+    from stgc import machine
+
+    print(f"# machine: {machine.one_line()}")
     print(f"# load average before: {os.getloadavg()}, threads: {args.threads}, torch {torch.__version__}, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, numba tile {args.tile_size or 'default'}")
     rows, skipped = [], []

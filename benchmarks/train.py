@@ -18,6 +18,7 @@ from pathlib import Path
 
 import torch
 
+from stgc import machine
 from stgc.options import PRESET_DATA_OVERRIDES
 from stgc.config import apply_overrides, parse_set_arguments
 from stgc.data import DataConfig
@@ -73,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         "it_per_s": round(summary["it_per_s"], 3), "gaussians_init": n0, "gaussians": summary["num_gaussians"],
         "test_psnr": summary.get("test_psnr"), "test_ssim": summary.get("test_ssim"), "setup_s": round(setup_s, 1),
         "load_avg_1min": os.getloadavg()[0],
+        "machine": machine.one_line(summary["machine"]),
     }
     width = max(len(k) for k in row)
     for k, v in row.items():

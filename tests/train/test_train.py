@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 import torch
@@ -98,6 +99,9 @@ def test_without_an_evaluator_training_scores_no_test_view(tiny_toys, make_model
     cfg = _short_config(iterations=3, save_iterations=(3,), checkpoint_every=0, eval_every=1)
     summary = train(tiny_toys, None, None, cfg, None, tmp_path / "run", model=make_model(tiny_toys, 100))
     assert summary["finished"] and "test_psnr" not in summary
+    # Its times come with what they were measured on.
+    saved = json.loads((tmp_path / "run" / "train_summary.json").read_text())
+    assert saved["threads"] == torch.get_num_threads() and saved["machine"]["cpus"] == os.cpu_count()
     assert not (tmp_path / "run" / "eval.json").exists()
     assert (tmp_path / "run" / "point_cloud" / "iteration_3" / "point_cloud.ply").exists()
 

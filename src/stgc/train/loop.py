@@ -31,6 +31,7 @@ from stgc.data import DataConfig
 from stgc.data.cameras import Camera
 from stgc.data.config import initial_points_from_config
 from stgc.data.dataset import Dataset
+from stgc import machine
 from stgc.fileio import write_json
 from stgc.metrics import ssim
 from stgc.model import ModelConfig, STGModel
@@ -555,6 +556,8 @@ class Trainer:
             "variant": self.model.variant,
             "finished": finished,
             "started_from_iteration": start,  # > 0: this session resumed from a checkpoint
+            "threads": torch.get_num_threads(),
+            "machine": machine.describe(),  # the times above mean little without it
         }
         if self.colour is not None:
             summary["colour_correction"] = self.colour.summary()

@@ -1,0 +1,56 @@
+"""What a timing was measured on: the CPU as numba compiles for it, its widest vector instructions, the cores.
+
+Two machines of the same kind can differ by 2x in the rasterizer's kernels: numba compiles them for the host CPU,
+and a CPU with AVX-512 runs their float32 loops twice as wide as one with AVX2 only. A wall time or an it/s without
+the machine it came from cannot be compared with another, so training summaries and the benchmarks record this.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import llvmlite.binding as llvm
+
+# Widest first: the first feature the host has names its vector width.
+_VECTOR_ISAS = (("avx512f", "avx512"), ("avx2", "avx2"), ("avx", "avx"), ("sse4.2", "sse4.2"),
+                ("sve", "sve"), ("neon", "neon"))  # fmt: skip
+
+
+def vector_isa(features: Mapping[str, bool]) -> str:
+    """The widest vector instruction set among LLVM's host features ({"avx2": True, ...}); "scalar" if none."""
+    for feature, name in _VECTOR_ISAS:
+        if features.get(feature):
+            return name
+    return "scalar"
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def describe() -> dict[str, Any]:
+    """{cpu_model, cpu_target (LLVM's name for the host, what numba compiles for), vector_isa, cpus}."""
+    features = llvm.get_host_cpu_features()
+    return {
+        "cpu_model": _cpu_model(),
+        "cpu_target": str(llvm.get_host_cpu_name()),
+        "vector_isa": vector_isa({name: bool(features[name]) for name in features}),
+        "cpus": os.cpu_count(),
+    }
+
+
+def one_line(machine: Mapping[str, Any] | None = None) -> str:
+    """'AMD EPYC (znver3, avx2), 2 CPUs, load 1.23': the header line of a benchmark's output."""
+    m = describe() if machine is None else machine
+    return (f"{m['cpu_model']} ({m['cpu_target']}, {m['vector_isa']}), {m['cpus']} CPUs, "
+            f"load {os.getloadavg()[0]:.2f}")
