@@ -56,11 +56,12 @@ class ModelConfig:
                           "synthetic renders (docs/model.md)"},
     )
     decoder_ray_direction: Literal["auto", "on", "off"] = field(
-        default="on",
+        default="auto",
         metadata={"help": "let the decoder see the viewing direction (official STG: on). Off, its weights on the "
                           "direction are zero and stay zero: the colour of a point at a time is the same from every "
                           "camera, and the files stay official. auto: off where the source's reference method has "
-                          "no view-dependent colour (Panoptic), on for every other format (docs/model.md)"},
+                          "no view-dependent colour (Panoptic: there the direction becomes a per-camera colour "
+                          "guess for held-out cameras), on for every other format (docs/model.md)"},
     )
 
     # How a run saved before these options existed was trained (stgc.config.from_saved).
