@@ -42,6 +42,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 sys.path.insert(0, str(REPO / "tests"))
 
+from stgc import machine
 from stgc.render import rasterize
 
 # The gsplat reference's tile intersection is a Python loop (~85 us per Gaussian): above this many Gaussians a single
@@ -206,8 +207,6 @@ def main(argv: list[str] | None = None) -> int:
         from stgc.render import numba_backend
 
         numba_backend.TILE_SIZE = args.tile_size
-    from stgc import machine
-
     print(f"# machine: {machine.one_line()}")
     print(f"# load average before: {os.getloadavg()}, threads: {args.threads}, torch {torch.__version__}, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, numba tile {args.tile_size or 'default'}")

@@ -9,7 +9,7 @@ from stgc import machine
     ("features", "expected"),
     [
         ({"avx512f": True, "avx2": True, "avx": True}, "avx512"),
-        ({"avx512f": False, "avx2": True, "avx": True}, "avx2"),  # an AMD Zen 3: half the float32 lanes of Zen 4
+        ({"avx512f": False, "avx2": True, "avx": True}, "avx2"),  # an AMD Zen 3 (session 22's host)
         ({"avx": True, "sse4.2": True}, "avx"),
         ({"neon": True}, "neon"),
         ({}, "scalar"),

@@ -1,8 +1,9 @@
 """What a timing was measured on: the CPU as numba compiles for it, its widest vector instructions, the cores.
 
-Two machines of the same kind can differ by 2x in the rasterizer's kernels: numba compiles them for the host CPU,
-and a CPU with AVX-512 runs their float32 loops twice as wide as one with AVX2 only. A wall time or an it/s without
-the machine it came from cannot be compared with another, so training summaries and the benchmarks record this.
+Two hosts of the project's one machine kind differed by 2x in the rasterizer's kernels (session 22: an AVX2-only
+Zen 3 against an unrecorded earlier host). Numba compiles for the host CPU, so its model, LLVM target and vector
+width belong with every timing. A wall time or an it/s without the machine it came from cannot be compared with
+another, so training summaries and the benchmarks record this.
 """
 
 from __future__ import annotations

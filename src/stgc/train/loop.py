@@ -25,13 +25,13 @@ import numba
 import numpy as np
 import torch
 
+from stgc import machine
 from stgc.compaction import CompactionConfig, STKNNCompactor
 from stgc.config import validate_config
 from stgc.data import DataConfig
 from stgc.data.cameras import Camera
 from stgc.data.config import initial_points_from_config
 from stgc.data.dataset import Dataset
-from stgc import machine
 from stgc.fileio import write_json
 from stgc.metrics import ssim
 from stgc.model import ModelConfig, STGModel
