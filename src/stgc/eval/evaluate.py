@@ -322,10 +322,14 @@ class RunEvaluator:
 
 def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstream: Path | None = None) -> Any:
     """The dataset a run was trained on, opened with the run's own data options: RUN/config.json, or for a
-    `.stgc` file away from its run, the run config the encoder embedded in it."""
-    if Run(run_dir).has_config() or bitstream is None:
-        return open_saved_run_dataset(run_dir, data_path)
-    return open_embedded_dataset(read_stgc(bitstream).metadata, bitstream, data_path)
+    `.stgc` file the run config the encoder embedded in it (the folder the file lies in may hold another run: a
+    segment's file written into its whole video's folder), else its folder's."""
+    if bitstream is not None:
+        metadata = read_stgc(bitstream).metadata
+        embedded = metadata.get("run_config")
+        if (isinstance(embedded, dict) and isinstance(embedded.get("data"), dict)) or not Run(run_dir).has_config():
+            return open_embedded_dataset(metadata, bitstream, data_path)
+    return open_saved_run_dataset(run_dir, data_path)
 
 
 def open_embedded_dataset(metadata: Mapping[str, Any], source: str | Path, data_path: str | Path | None = None) -> Any:
@@ -426,8 +430,9 @@ def evaluate_run(
     else:
         info = size_of_saved_model(target, duration_s)
     result = _score_model(model, dataset, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
-    return write_eval(run_dir, result, info, target=target, other_data=_other_data(run_dir, data_path),
-                      extra={"data": str(dataset.root)})
+    other_data = _other_data(run_dir, data_path)
+    extra = {"data": str(dataset.root), **({"other_data": other_data} if other_data else {})}
+    return write_eval(run_dir, result, info, target=target, other_data=other_data, extra=extra)
 
 
 def _score_model(model: Any, dataset: Dataset, *, lpips_net: str | None, warmup: int, measure_fps: bool) -> EvalResult:
