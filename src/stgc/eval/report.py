@@ -380,13 +380,24 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
     if include_codec:
         for path in sorted(run_dir.glob("eval_*.json")):
             rec = read_json_object(path)
-            if rec is None:
+            if rec is None or _on_other_data(rec, config):
                 continue
             point = path.stem.removeprefix("eval_")
             rows.append(ReportRow.from_mapping({**record_fields(rec), "name": f"{setting} {point}",
                                                 "family": f"{family} + codec", "run": run_dir.name,
                                                 "run_dir": str(run_dir), "bitstream": f"{point}.stgc"}))
     return rows
+
+
+def _on_other_data(record: Mapping[str, Any], config: Mapping[str, Any] | None) -> bool:
+    """An evaluation on data other than the run's own (`stgc eval RUN --data OTHER`: eval_on_<name>.json,
+    eval_<stem>_on_<name>.json): not a rate point of the run. Records written before `other_data` existed are
+    told by the data folder they name."""
+    if record.get("other_data"):
+        return True
+    saved = ((config or {}).get("data") or {}).get("path")
+    scored = record.get("data")
+    return bool(saved and scored) and Path(str(scored)).resolve() != Path(str(saved)).resolve()
 
 
 RECORD_FIELDS = ("num_gaussians", "size_mb", "mbps", "psnr", "psnr_yuv", "ssim", "lpips", "fps", "train_seconds")
