@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import pytest
 
@@ -171,15 +172,65 @@ def test_run_plan_is_resumable(tmp_path: Path) -> None:
     assert len(_results(out)) == 9
 
 
+MINI_PLAN = """
+name = "mini"
+[[runs]]
+name = "stg"
+family = "STG"
+overrides = { "compaction.method" = "none" }
+"""
+
+
+def _run_mini(out: Path, plan_path: Path, *overrides: str, preset: str = "cpu", data: str = "DATA") -> dict[str, Any]:
+    result = run_plan(data, plan_path, out, preset=preset, extra_overrides=list(overrides), codec_qualities=[],
+                      runner=fake_runner, check_options=False, python=sys.executable, log=lambda m: None)
+    (outcome,) = result.outcomes
+    return {"status": outcome.status, "message": outcome.message}
+
+
+def test_a_finished_run_made_with_other_settings_is_not_reused_as_this_plans(tmp_path: Path) -> None:
+    plan_path = tmp_path / "PLAN.toml"
+    plan_path.write_text(MINI_PLAN)
+    out = tmp_path / "exp"
+    assert _run_mini(out, plan_path, "train.iterations=10")["status"] == "finished"
+    trained = len(_invocations(out))
+    # The same plan again, or with only how it runs changed: the finished run is this plan's run.
+    assert _run_mini(out, plan_path, "train.iterations=10", "train.threads=1")["status"] == "skipped"
+    for changed in (dict(overrides=("train.iterations=20",)), dict(overrides=("train.iterations=10",), preset="paper"),
+                    dict(overrides=("train.iterations=10",), data="OTHER")):
+        outcome = _run_mini(out, plan_path, *changed["overrides"], preset=changed.get("preset", "cpu"),
+                            data=changed.get("data", "DATA"))
+        assert outcome["status"] == "failed" and "other settings" in outcome["message"], changed
+    assert "train.iterations: 10 then, 20 now" in _run_mini(out, plan_path, "train.iterations=20")["message"]
+    assert len(_invocations(out)) == trained  # nothing trained, resumed or evaluated under the new settings
+    rows = _results(out)
+    assert [r["status"] for r in rows] == ["failed"] and rows[0]["psnr"] == ""
+
+
+def test_a_run_copied_in_by_hand_is_checked_against_its_config(tmp_path: Path) -> None:
+    plan_path = tmp_path / "PLAN.toml"
+    plan_path.write_text(MINI_PLAN)
+    out = tmp_path / "exp"
+    run = out / "stg"
+    run.mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps({"compaction": {"method": "st-knn"}}))  # a pruned model, not "stg"
+    outcome = _run_mini(out, plan_path)
+    assert outcome["status"] == "failed" and "compaction.method: st-knn in its config.json, none in the plan" in \
+        outcome["message"]
+    assert not _invocations(out)
+
+
 def test_interrupted_run_is_resumed(tmp_path: Path) -> None:
     out = tmp_path / "exp"
     run = out / "stg"
     run.mkdir(parents=True)
-    # What a killed trainer leaves: a config and a checkpoint, no summary, no evaluation.
-    (run / "config.json").write_text("{}")
-    (run / "checkpoint.pt").write_bytes(b"x")
+    # What a killed trainer leaves: the runner's experiment.json, a config and a checkpoint, no summary, no evaluation.
     plan = load_plan("table2")
     one = type(plan)(plan.name, plan.runs[:1], plan.baseline)
+    (run / "experiment.json").write_text(json.dumps({"name": "stg", "overrides": one.runs[0].overrides,
+                                                     "preset": "paper"}))
+    (run / "config.json").write_text("{}")
+    (run / "checkpoint.pt").write_bytes(b"x")
     result = run_plan("DATA", one, out, preset="paper", runner=fake_runner, check_options=False, python=sys.executable,
                       log=lambda m: None)
     (call,) = _invocations(out)

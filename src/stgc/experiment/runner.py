@@ -34,11 +34,11 @@ from typing import Any
 
 from stgc.config import ConfigError
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
-from stgc.errors import FormatError
+from stgc.errors import FormatError, StgcError
 from stgc.eval.report import Report, ReportRow, make_report, rate_points, record_fields
 from stgc.experiment.plans import Plan, RunSpec, load_plan
 from stgc.fileio import atomic_open, read_json_object, write_json
-from stgc.options import resolve_configs
+from stgc.options import configs_from_run, resolve_configs
 from stgc.run import Run
 
 _log = logging.getLogger(__name__)
@@ -107,6 +107,60 @@ def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str],
             resolve_configs(preset or "cpu", {}, {}, run_overrides(plan, spec, extra, out_dir))
         except ConfigError as exc:
             raise ConfigError(f"plan {plan.name!r}, run {spec.name!r}: {exc}") from None
+
+
+# Options that change how a run executes or what it logs, not what it trains: a run made with other values of
+# these is still the plan's run (a model copied in from a 2-thread training serves a plan run at 1 thread).
+EXECUTION_OPTIONS = frozenset({"train.threads", "train.backend", "train.eval_every", "train.log_every",
+                               "train.checkpoint_every", "train.progress", "train.tensorboard", "train.stop_after",
+                               "data.image_cache_mb"})
+
+
+def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, overrides: Mapping[str, str]) -> str | None:
+    """Why the run already in `run_dir` is not the one the plan asks for now (other options, preset or data), or
+    None when it is, or when nothing is there yet. A finished run is skipped and an interrupted one resumed with
+    its own saved config, so a mismatch would put one run's numbers under another's options in the results.
+
+    Runs this runner started are checked against their experiment.json; a run copied in by hand (no
+    experiment.json) against its config.json, for each option the plan sets."""
+    run = Run(run_dir)
+    recorded = read_json_object(run.experiment_path, strict=False)
+    wanted = {k: str(v) for k, v in overrides.items() if k not in EXECUTION_OPTIONS}
+    if recorded is not None:
+        differences = []
+        before = {str(k): str(v) for k, v in (recorded.get("overrides") or {}).items() if k not in EXECUTION_OPTIONS}
+        for key in sorted(set(before) | set(wanted)):
+            if before.get(key) != wanted.get(key):
+                differences.append(f"{key}: {before.get(key, 'unset')} then, {wanted.get(key, 'unset')} now")
+        if recorded.get("preset") not in (None, preset or "cpu"):
+            differences.append(f"preset: {recorded['preset']} then, {preset or 'cpu'} now")
+        if recorded.get("data") is not None and Path(str(recorded["data"])).resolve() != Path(data_path).resolve():
+            differences.append(f"data: {recorded['data']} then, {Path(data_path).resolve()} now")
+        return "; ".join(differences) or None
+    if not run.has_config():
+        return None
+    try:
+        asked = resolve_configs(preset or "cpu", {}, {}, wanted)
+        saved = configs_from_run(run_dir)
+    except (ConfigError, StgcError):  # options only a stand-in trainer knows, or a config it wrote: nothing to compare
+        return None
+    differences = []
+    for key in sorted(wanted):
+        ours, theirs = _option_value(asked, key), _option_value(saved, key)
+        if ours != theirs:
+            differences.append(f"{key}: {theirs} in its config.json, {ours} in the plan")
+    saved_data = saved.get("data_path")
+    if saved_data is not None and Path(str(saved_data)).resolve() != Path(data_path).resolve():
+        differences.append(f"data: {saved_data} in its config.json, {Path(data_path).resolve()} in the plan")
+    return "; ".join(differences) or None
+
+
+def _option_value(configs: Mapping[str, Any], key: str) -> Any:
+    section, *path = key.split(".")
+    value = configs[section]
+    for name in path:
+        value = getattr(value, name)
+    return value
 
 
 def _failed(outcomes: Sequence[RunOutcome]) -> bool:
@@ -359,6 +413,13 @@ def run_spec(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | 
              log_path: Path, say: Callable[[str], None]) -> list[RunOutcome]:
     """One run of a plan, as a task: train (or resume, or skip when finished), evaluate, and each codec point."""
     outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
+    mismatch = reuse_mismatch(run_dir, data_path, preset, overrides)
+    if mismatch is not None:
+        outcome.status = "failed"
+        outcome.message = (f"{run_dir} holds a run made with other settings ({mismatch}); give another --out, or "
+                           "remove that run to train it again")
+        say(f"[{spec.name}] FAILED: {outcome.message}")
+        return [outcome]
     start = time.perf_counter()
     if run_is_finished(run_dir):
         say(f"[{spec.name}] finished earlier: skipped")
@@ -386,7 +447,8 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
                     python: str, log_path: Path, say: Callable[[str], None], outcome: RunOutcome) -> str:
     run_dir.mkdir(parents=True, exist_ok=True)
     write_json(Run(run_dir).experiment_path, {"name": spec.name, "family": spec.family, "label": spec.label,
-                                            "overrides": overrides})
+                                            "overrides": overrides, "preset": preset or "cpu",
+                                            "data": str(Path(data_path).resolve())})
     run = Run(run_dir)
     if not run.training_finished():
         resume = run.checkpoint_path.is_file() and run.has_config()
