@@ -57,8 +57,8 @@ SECTION_TITLES = {
 
 
 def _resumed_data_path(run: Path, given: str | None, saved: str | None) -> str | None:
-    """The data a resumed run continues on: the saved path; DATA may only name it again, or replace it when the
-    saved path is gone (the data moved). Continuing on other data would mix two trainings in one model."""
+    """The data a resumed or fine-tuned run continues on: the saved path; DATA may only name it again, or replace
+    it when the saved path is gone (the data moved). Continuing on other data would mix two trainings in one model."""
     if given is None or saved is None:
         return given or saved
 
@@ -67,8 +67,8 @@ def _resumed_data_path(run: Path, given: str | None, saved: str | None) -> str |
         return resolved.parent if resolved.is_file() else resolved
 
     if folder(given) != folder(saved) and Path(saved).exists():
-        raise StgcError(f"{run}: the run trains on {saved}, not {given}; resume it without DATA, or train the other "
-                        "data into a new --out")
+        raise StgcError(f"{run}: the run trains on {saved}, not {given}; continue it without DATA, or train the "
+                        "other data into a new --out")
     return given
 
 
@@ -84,7 +84,7 @@ def add_ray_arguments(p: argparse.ArgumentParser, unit: str) -> None:
 def cmd_train(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if args.resume and Run(out).has_config():
-        given = [k for k in ("variant", "compaction", "case", "criterion", "set") if getattr(args, k)]
+        given = [k for k in ("preset", "variant", "compaction", "case", "criterion", "set") if getattr(args, k, None)]
         given += [f"{section}.{k}" for section, opts in collect_overrides(args).items() for k in opts]
         if given:
             raise StgcError(f"{out}: a resumed run keeps its saved config.json; drop {', '.join(given)}")
@@ -101,7 +101,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             shortcuts.setdefault("compaction", {})["case"] = str(args.case)
         if args.criterion:
             shortcuts.setdefault("compaction", {})["criterion"] = args.criterion
-        configs = resolve_configs(args.preset, shortcuts, collect_overrides(args), parse_set_arguments(args.set))
+        configs = resolve_configs(getattr(args, "preset", "cpu"), shortcuts, collect_overrides(args), parse_set_arguments(args.set))
         data_path = args.data
     if data_path is None:
         raise StgcError("no DATA given and the run has no saved data path")
@@ -135,7 +135,7 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     check_continuable(args.run)
     configs = continuation_configs(configs_from_run(Path(args.run)), args.run, args.iterations, overrides)
     data_path = start_continuation(args.run, out, args.iterations, configs, overrides, overwrite=args.overwrite,
-                                   data_path=args.data)
+                                   data_path=_resumed_data_path(Path(args.run), args.data, configs["data_path"]))
     dataset = configs["data"].open(data_path)
     train(dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=True,
           evaluator=RunEvaluator())
@@ -264,7 +264,8 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("data", nargs="?", help="dataset directory (any supported layout; see `stgc data inspect`)")
     p.add_argument("--out", required=True, help="run directory to write (or to resume)")
 
-    p.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="training schedule preset")
+    p.add_argument("--preset", default=argparse.SUPPRESS, choices=sorted(PRESETS),
+                   help="training schedule preset (default: cpu; a resumed run keeps its own)")
     p.add_argument("--variant", choices=list(VARIANTS), help="STG variant (shortcut for --model.variant)")
     p.add_argument("--compaction", choices=list(METHODS), help="compaction method (default none)")
     p.add_argument("--case", type=int, choices=sorted(CASE_WINDOWS), help="paper pruning window case (compaction.case)")
