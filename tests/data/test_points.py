@@ -146,3 +146,24 @@ def test_triangulated_points_lie_on_the_true_surfaces(blender_toys):
     assert np.median(distance) < 0.2
     assert np.mean(distance > 0.5) < 0.02
     assert result.median_error < 0.5
+
+
+def test_the_triangulation_cache_key_changes_with_how_images_decode(tmp_path):
+    """Two runs that decode the same files differently (RGBA over another background, a YUV file read as another
+    range) must not share a cached triangulation."""
+    from stgc.data.cameras import Camera
+    from stgc.data.dataset import YuvFrame
+    from stgc.data.triangulate import _cache_key
+
+    png = tmp_path / "a.png"
+    png.write_bytes(b"x")
+    yuv = tmp_path / "a.yuv"
+    yuv.write_bytes(b"x")
+
+    def key(image, background=(0.0, 0.0, 0.0)):
+        cams = [Camera("a", 0, 0.0, np.eye(3), np.eye(4), 4, 4, image=image)]
+        return _cache_key(cams, 2.0, 3, background)
+
+    assert key(png) == key(png) and key(png) != key(png, (1.0, 1.0, 1.0))
+    limited, full = YuvFrame(yuv, 0, 4, 4, 8, "limited"), YuvFrame(yuv, 0, 4, 4, 8, "full")
+    assert key(limited) != key(full) and key(limited) != key(YuvFrame(yuv, 1, 4, 4, 8, "limited"))

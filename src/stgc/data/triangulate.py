@@ -60,9 +60,11 @@ def cache_dir() -> Path:
     return base / "stgc" / "triangulation"
 
 
-def _cache_key(cameras: list[Camera], upsample: float, min_track_length: int) -> str:
-    """Digest of everything the result depends on: cameras, image files (path, size, mtime) and options."""
-    h = hashlib.sha256(f"v1 {upsample} {min_track_length}".encode())
+def _cache_key(cameras: list[Camera], upsample: float, min_track_length: int,
+               background: tuple[float, float, float]) -> str:
+    """Digest of everything the result depends on: cameras, image files (path, size, mtime), how they decode (the
+    background RGBA images are composited on, a YUV file's range and depth) and options."""
+    h = hashlib.sha256(f"v2 {upsample} {min_track_length} {tuple(background)}".encode())
     for cam in cameras:
         h.update(cam.name.encode())
         h.update(np.ascontiguousarray(cam.K).tobytes() + np.ascontiguousarray(cam.w2c).tobytes())
@@ -72,7 +74,8 @@ def _cache_key(cameras: list[Camera], upsample: float, min_track_length: int) ->
         if path is None:
             return ""  # an in-memory image source: nothing stable to key on
         stat = Path(path).stat()
-        h.update(f"{Path(path).resolve()} {stat.st_size} {stat.st_mtime_ns} {getattr(source, 'index', '')}".encode())
+        decoding = "" if isinstance(source, (str, Path)) else repr(source)  # frozen dataclasses: frame, range, depth
+        h.update(f"{Path(path).resolve()} {stat.st_size} {stat.st_mtime_ns} {decoding}".encode())
     return h.hexdigest()[:32]
 
 
@@ -89,7 +92,7 @@ def triangulate_frame(dataset: Dataset, frame: int, *, views: list[str] | None =
         cameras = [c for c in cameras if c.name in set(views)]
     if len(cameras) < 2:
         raise DataError(dataset.root, f"frame {frame}: triangulation needs at least 2 views, got {len(cameras)}")
-    key = _cache_key(cameras, upsample, min_track_length) if use_cache else ""
+    key = _cache_key(cameras, upsample, min_track_length, dataset.background) if use_cache else ""
     cached = cache_dir() / f"{key}.npz"
     if key and cached.is_file():
         try:
