@@ -330,6 +330,18 @@ def test_resuming_on_other_data_is_refused(scene, trained_run, tmp_path, capsys)
     shutil.copytree(scene.root, other)
     assert main(["train", str(other), "--out", str(run), "--resume"]) == 2
     assert "not " + str(other) in capsys.readouterr().err
+    assert main(["finetune", str(run), "--out", str(tmp_path / "tuned"), "--iterations", "2", "--data", str(other)]) == 2
+    assert "not " + str(other) in capsys.readouterr().err
+    assert not (tmp_path / "tuned").exists()
+
+
+def test_resuming_with_another_preset_is_refused(trained_run, tmp_path, capsys):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    assert main(["train", "--out", str(run), "--resume", "--preset", "paper"]) == 2
+    assert "drop preset" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("verb", [
@@ -380,3 +392,60 @@ def test_output_errors_name_the_file_and_the_cause(tmp_path, monkeypatch, code, 
         write_json(target, {"a": 1})
     assert str(target) in str(info.value)
     assert list(tmp_path.iterdir()) == []  # the temporary file is gone too
+
+
+def _per_view_frames(csv_path):
+    import csv
+
+    with open(csv_path, newline="") as f:
+        return sorted({int(row["frame"]) for row in csv.DictReader(f)})
+
+
+def test_a_run_keeps_its_frame_window_when_the_data_grows(tmp_path):
+    root = tmp_path / "scene"
+    write_panoptic_scene(root, views=5, frames=2, width=32, height=24)
+    run = tmp_path / "run"
+    assert main(_train_args(SimpleNamespace(root=root), run)) == 0
+    saved = json.loads((run / "config.json").read_text())["data"]
+    assert (saved["start"], saved["duration"]) == (0, 2)  # resolved, though no option set them
+    write_panoptic_scene(root, views=5, frames=3, width=32, height=24)  # the capture's next frame, added later
+    assert main(["eval", str(run), "--no-fps"]) == 0
+    assert _per_view_frames(run / "eval_per_view.csv") == [0, 1]  # the frames it trained on, not the folder's
+
+
+def test_a_bitstream_is_scored_on_its_own_frames_in_another_runs_folder(trained_run, tmp_path):
+    # A segment's file written into its whole video's folder: the folder's config.json is not the file's run.
+    stgc_file = tmp_path / "m.stgc"
+    assert main(["compress", str(trained_run), "--out", str(stgc_file), "--set", "codec.allocation=ladder"]) == 0
+    whole = tmp_path / "whole"
+    whole.mkdir()
+    config = json.loads((trained_run / "config.json").read_text())
+    config["data"]["duration"] = 1
+    (whole / "config.json").write_text(json.dumps(config))
+    stgc_file.rename(whole / "m.stgc")
+    assert main(["eval", str(whole / "m.stgc"), "--no-fps"]) == 0
+    assert _per_view_frames(whole / "eval_m_per_view.csv") == [0, 1]
+
+
+def test_an_evaluation_on_other_data_is_not_a_rate_point_of_the_report(scene, trained_run, tmp_path):
+    import shutil
+
+    from stgc.eval.report import rows_from_run
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    other = tmp_path / "other_scene"
+    shutil.copytree(scene.root, other)
+    assert main(["compress", str(run), "--out", str(run / "model_q3.stgc"), "--set", "codec.allocation=ladder"]) == 0
+    for target in (run, run / "model_q3.stgc"):
+        assert main(["eval", str(target), "--no-fps"]) == 0
+        assert main(["eval", str(target), "--data", str(other), "--no-fps"]) == 0
+    assert {p.name for p in run.glob("eval*.json")} == {"eval.json", "eval_on_other_scene.json", "eval_model_q3.json",
+                                                         "eval_model_q3_on_other_scene.json"}
+    assert sorted(row.extra.get("bitstream", "") for row in rows_from_run(run)) == ["", "model_q3.stgc"]
+    # Records written before they said so are told by the data folder they name.
+    for path in run.glob("eval*_on_other_scene.json"):
+        record = json.loads(path.read_text())
+        del record["other_data"]
+        path.write_text(json.dumps(record))
+    assert sorted(row.extra.get("bitstream", "") for row in rows_from_run(run)) == ["", "model_q3.stgc"]
