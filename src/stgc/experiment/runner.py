@@ -14,7 +14,8 @@ table3) can share one folder and train their common runs once.
 
 A run counts as finished when RUN/eval.json exists and RUN/train_summary.json says finished; finished runs are
 skipped, an interrupted run with a checkpoint is continued with `--resume`, a failed run is reported and the
-others still run.
+others still run. A run already in OUT that was made with other options, preset or data fails instead of being
+reused (`reuse_mismatch`).
 """
 
 from __future__ import annotations
