@@ -101,7 +101,8 @@ def cmd_train(args: argparse.Namespace) -> int:
             shortcuts.setdefault("compaction", {})["case"] = str(args.case)
         if args.criterion:
             shortcuts.setdefault("compaction", {})["criterion"] = args.criterion
-        configs = resolve_configs(getattr(args, "preset", "cpu"), shortcuts, collect_overrides(args), parse_set_arguments(args.set))
+        configs = resolve_configs(getattr(args, "preset", "cpu"), shortcuts, collect_overrides(args),
+                                  parse_set_arguments(args.set))
         data_path = args.data
     if data_path is None:
         raise StgcError("no DATA given and the run has no saved data path")
