@@ -577,17 +577,18 @@ class Trainer:
 
 def run_config(dataset: Dataset, configs: dict[str, Any], schedule: Schedule | None = None,
                data_path: str | Path | None = None) -> dict[str, Any]:
-    """A run's config.json: the data section (the data options as given, with the dataset's format, downscale and
-    frame window where the options leave them unset or `auto`, the near plane as resolved, and the data's absolute
+    """A run's config.json: the data section (the dataset's format and downscale where the data options leave them
+    unset, then the data options as given, the frame window and the near plane as resolved, and the data's absolute
     path: `data_path` as the user gave it, else the dataset's folder), each other config section as given, and the
     training schedule in real iterations when there is one (a whole video's shared config has none: each segment
     resolves its own)."""
-    data = _config_dict(configs["data"]) or {}
+    data = {"format": dataset.format, "downscale": dataset.downscale}
+    data.update(_config_dict(configs["data"]) or {})
     # The frame window as resolved, never an unset option: reopened with the options alone, a reader's own default
     # (STG's colmap_<t> folder names its start) or frames added to the folder later would move it silently.
-    resolved = {"format": dataset.format, "downscale": dataset.downscale, "start": dataset.start,
-                "duration": dataset.duration}
-    data.update({key: value for key, value in resolved.items() if data.get(key) in (None, "auto")})
+    for key, resolved in (("start", dataset.start), ("duration", dataset.duration)):
+        if data.get(key) is None:
+            data[key] = resolved
     data["near_plane"] = dataset.near_plane  # resolved: what every later verb must render with
     data["path"] = str(Path(dataset.root if data_path is None else data_path).resolve())
     train = _config_dict(configs["train"])
