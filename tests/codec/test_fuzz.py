@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from stgc.codec import decode, encode
-from stgc.codec.format import DecodedModel
+from stgc.codec.format import DecodedModel, decode_metadata
 from stgc.codec.synthetic import synthetic_model
 from stgc.errors import FormatError
 
@@ -120,6 +120,10 @@ def test_random_mutations_end_in_format_error_or_a_valid_model(valid_file):
             if case % 2:
                 mutated = reseal(mutated)
             tracemalloc.reset_peak()
+            try:  # the metadata alone (how a file names its run): a FormatError at worst, like the whole decode
+                metadata = decode_metadata(bytes(mutated))
+            except FormatError:
+                metadata = None
             try:
                 model = decode(bytes(mutated))
             except FormatError as exc:
@@ -128,6 +132,7 @@ def test_random_mutations_end_in_format_error_or_a_valid_model(valid_file):
             else:
                 outcomes["valid"] += 1
                 _check_valid(model)
+                assert metadata == model.metadata
             peak = tracemalloc.get_traced_memory()[1]
             assert peak < MEMORY_LIMIT, f"case {case}: decoding allocated {peak} bytes"
     finally:

@@ -13,7 +13,7 @@ from stgc.codec import (
     decode,
     encode,
 )
-from stgc.codec.format import GROUPS, HEADER_SIZE, SPAN_SIGMAS, groups_for, time_span
+from stgc.codec.format import GROUPS, HEADER_SIZE, SPAN_SIGMAS, decode_metadata, groups_for, time_span
 from stgc.codec.synthetic import synthetic_model
 from stgc.errors import DataError
 from stgc.model.layout import bytes_per_gaussian, ply_fields
@@ -209,6 +209,8 @@ def test_encoding_is_deterministic_and_metadata_round_trips(models):
     a = encode(arrays, "lite", None, 2, metadata=meta)
     assert a == encode(arrays, "lite", None, 2, metadata=meta)
     assert decode(a).metadata == meta
+    assert decode_metadata(a) == meta  # read alone, without the Gaussians
+    assert decode_metadata(encode(arrays, "lite", None, 2)) == {}
 
 
 def test_tiny_and_degenerate_models_round_trip():

@@ -27,6 +27,7 @@ from .format import (
     DecodedModel,
     StgcHeader,
     decode,
+    decode_metadata,
     encode,
     read_capped,
     read_header,
@@ -154,6 +155,11 @@ def write_stgc(path: str | Path, data: bytes) -> Path:
 def read_stgc(path: str | os.PathLike) -> DecodedModel:
     """Decode a .stgc file; any defect raises FormatError naming the file."""
     return decode(read_capped(path), source=str(path))
+
+
+def read_stgc_metadata(path: str | Path) -> dict[str, Any]:
+    """The metadata a .stgc file embeds (its run config, allocation, source), without decoding its Gaussians."""
+    return decode_metadata(read_capped(path), source=str(path))
 
 
 def read_stgc_header(path: str | Path) -> StgcHeader:

@@ -903,6 +903,29 @@ def _unpack_decoder(raw: bytes, source: str | None) -> dict[str, np.ndarray]:
     return state
 
 
+def _parse_metadata(raw: bytes, source: str | None) -> dict[str, Any]:
+    try:
+        metadata = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise _fail("metadata section is not UTF-8 JSON", source) from None
+    if not isinstance(metadata, dict):
+        raise _fail("metadata section is not a JSON object", source)
+    return metadata
+
+
+def decode_metadata(data: bytes, source: str | None = None) -> dict[str, Any]:
+    """The JSON metadata of a bitstream ({} without one), unpacking no other section: what a caller needs to find
+    the run a file belongs to before (or without) decoding its Gaussians."""
+    header = read_header(data, source)
+    offset = HEADER_SIZE + sum(s.table_bytes for s in header.sections)
+    for sec in header.sections:
+        if sec.tag == _META:
+            _check_section(sec, source)
+            return _parse_metadata(_unpack_payload(data, offset, sec, source), source)
+        offset += sec.payload_size
+    return {}
+
+
 def decode(data: bytes | str | os.PathLike, source: str | None = None) -> DecodedModel:
     """Decode a .stgc bitstream (bytes, or a file path). Raises FormatError naming `source` for any invalid input.
 
@@ -956,12 +979,7 @@ def decode(data: bytes | str | os.PathLike, source: str | None = None) -> Decode
         elif sec.tag == _DECO:
             decoder_state = _unpack_decoder(raw, source)
         else:
-            try:
-                metadata = json.loads(raw.decode("utf-8"))
-            except (UnicodeDecodeError, json.JSONDecodeError):
-                raise _fail("metadata section is not UTF-8 JSON", source) from None
-            if not isinstance(metadata, dict):
-                raise _fail("metadata section is not a JSON object", source)
+            metadata = _parse_metadata(raw, source)
 
     # In GROUPS order, whatever the file order: the TIME_SPAN groups need the decoded trbf_center/trbf_scale.
     span = None

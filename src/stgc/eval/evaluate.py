@@ -24,7 +24,7 @@ from stgc.codec import (
     is_video_stgc,
     load_model,
     load_video_segment,
-    read_stgc,
+    read_stgc_metadata,
     read_video_index,
 )
 from stgc.data.cameras import Camera
@@ -325,7 +325,7 @@ def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstre
     `.stgc` file the run config the encoder embedded in it (the folder the file lies in may hold another run: a
     segment's file written into its whole video's folder), else its folder's."""
     if bitstream is not None:
-        metadata = read_stgc(bitstream).metadata
+        metadata = read_stgc_metadata(bitstream)
         embedded = metadata.get("run_config")
         if (isinstance(embedded, dict) and isinstance(embedded.get("data"), dict)) or not Run(run_dir).has_config():
             return open_embedded_dataset(metadata, bitstream, data_path)
