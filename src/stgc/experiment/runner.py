@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from stgc.config import ConfigError
+from stgc.config import ConfigError, iter_fields
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.errors import FormatError, StgcError
 from stgc.eval.report import Report, ReportRow, make_report, rate_points, record_fields
@@ -157,11 +157,8 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
 
 
 def _option_value(configs: Mapping[str, Any], key: str) -> Any:
-    section, *path = key.split(".")
-    value = configs[section]
-    for name in path:
-        value = getattr(value, name)
-    return value
+    section, _, name = key.partition(".")
+    return next(f.default for f in iter_fields(configs[section]) if f.dotted == name)  # an instance: its values
 
 
 def _failed(outcomes: Sequence[RunOutcome]) -> bool:
