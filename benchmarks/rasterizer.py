@@ -15,6 +15,11 @@ length equal to the image width.
     .venv/bin/python benchmarks/rasterizer.py            # everything: N 10k/50k/200k x 256x256, 320x180 x C 3/9
     .venv/bin/python benchmarks/rasterizer.py --quick    # 10k/50k, 256x256, C 9, numba + torch + reference
     .venv/bin/python benchmarks/rasterizer.py --n 50000 --size 256x256 --channels 9 --backends numba --json
+    .venv/bin/python benchmarks/rasterizer.py --n 50000 --size 256x256 --channels 9 --backends numba --stages
+
+--stages splits the numba fwd+bwd into its kernel calls (each entry point of stgc.render._numba_kernels and
+_numba_projection wrapped with a wall-clock timer; "glue" is the rest of the call: packing, torch's autograd, the
+input checks), medians per stage over the timed repeats.
 """
 
 from __future__ import annotations
@@ -156,6 +161,62 @@ def measure(backend: str, n: int, width: int, height: int, channels: int, repeat
     return row
 
 
+# The numba backend's kernel entry points, as the stage names of --stages. numba_backend reaches them through their
+# modules' attributes at call time, so wrapping the attributes times every call.
+STAGES = {
+    "projection fwd": ("_numba_projection", "project_forward"),
+    "projection bwd": ("_numba_projection", "project_backward"),
+    "depth order": ("_numba_kernels", "ids_with_a_tile", "radix_argsort"),
+    "binning": ("_numba_kernels", "bin_tiles"),
+    "compositing fwd": ("_numba_kernels", "composite_forward"),
+    "compositing bwd": ("_numba_kernels", "composite_backward"),
+    "sum rows": ("_numba_kernels", "sum_rows"),
+}
+
+
+def measure_stages(n: int, width: int, height: int, channels: int, repeats: int) -> dict:
+    """Per-stage wall time of the numba fwd+bwd (medians over `repeats` calls after a warm-up)."""
+    import importlib
+
+    spent: dict[str, float] = {}
+    originals = []
+
+    def timed(stage, fn):
+        def wrapper(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                spent[stage] = spent.get(stage, 0.0) + (time.perf_counter() - t0) * 1e3
+
+        return wrapper
+
+    for stage, (module_name, *names) in STAGES.items():
+        module = importlib.import_module(f"stgc.render.{module_name}")
+        for name in names:
+            originals.append((module, name, getattr(module, name)))
+            setattr(module, name, timed(stage, getattr(module, name)))
+    try:
+        scene = make_scene(n, width, height, channels)
+        render = _render_fn("numba", width, height)
+        weights = torch.rand(height, width, channels, generator=torch.Generator().manual_seed(1))
+        grad_keys = ("means", "quats", "scales", "opacities", "features")
+        per_call: list[dict[str, float]] = []
+        for i in range(repeats + 1):
+            params = {k: (v.clone().requires_grad_(True) if k in grad_keys else v) for k, v in scene.items()}
+            spent.clear()
+            t0 = time.perf_counter()
+            (render(params) * weights).sum().backward()
+            total = (time.perf_counter() - t0) * 1e3
+            if i:  # the first call is the warm-up
+                per_call.append({**spent, "glue": total - sum(spent.values()), "total": total})
+    finally:
+        for module, name, fn in originals:
+            setattr(module, name, fn)
+    stages = [*STAGES, "glue", "total"]
+    return {s: round(statistics.median(c.get(s, 0.0) for c in per_call), 1) for s in stages}
+
+
 def _fmt_ratio(ref: float | None, x: float) -> str:
     return "-" if ref is None else f"{ref / x:.1f}x"
 
@@ -195,6 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=2, help="torch and numba threads")
     parser.add_argument("--tile-size", type=int, default=None, help="numba tile edge in pixels (default: the library's)")
     parser.add_argument("--json", action="store_true", help="also print one JSON object per measurement")
+    parser.add_argument("--stages", action="store_true", help="numba only: per-stage split of fwd+bwd (see above)")
     args = parser.parse_args(argv)
     if args.quick:
         args.n, args.size, args.channels = [10_000, 50_000], ["256x256"], [9]
@@ -210,6 +272,20 @@ def main(argv: list[str] | None = None) -> int:
     print(f"# machine: {machine.one_line()}")
     print(f"# load average before: {os.getloadavg()}, threads: {args.threads}, torch {torch.__version__}, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, numba tile {args.tile_size or 'default'}")
+    if args.stages:
+        print("| N | C | size | threads | " + " | ".join(f"{s} ms" for s in [*STAGES, "glue", "total"]) + " |")
+        print("|" + "---|" * (len(STAGES) + 6))
+        for size in args.size:
+            width, height = (int(v) for v in size.lower().split("x"))
+            for channels in args.channels:
+                for n in args.n:
+                    split = measure_stages(n, width, height, channels, args.repeats)
+                    if args.json:
+                        print(json.dumps({"n": n, "channels": channels, "size": size, **split}), flush=True)
+                    print(f"| {n // 1000}k | {channels} | {size} | {args.threads} | "
+                          + " | ".join(f"{v:.1f}" for v in split.values()) + " |", flush=True)  # fmt: skip
+        print(f"# load average after: {os.getloadavg()}")
+        return 0
     rows, skipped = [], []
     for size in args.size:
         width, height = (int(v) for v in size.lower().split("x"))
