@@ -449,3 +449,59 @@ def test_an_evaluation_on_other_data_is_not_a_rate_point_of_the_report(scene, tr
         del record["other_data"]
         path.write_text(json.dumps(record))
     assert sorted(row.extra.get("bitstream", "") for row in rows_from_run(run)) == ["", "model_q3.stgc"]
+
+
+def _write_monocular(root, train_times, test_times, size=(20, 16)):
+    """D-NeRF layout: one view per image, each with its own time (tests/data/test_formats.py has the format's test)."""
+    import numpy as np
+    from PIL import Image
+
+    from stgc.data.cameras import w2c_to_opengl_c2w
+
+    for split, times in (("train", train_times), ("test", test_times)):
+        (root / split).mkdir(parents=True, exist_ok=True)
+        frames = []
+        for i, t in enumerate(times):
+            image = np.full((size[1], size[0], 4), 80, np.uint8)
+            image[..., 3] = 255
+            column = int(2 + (size[0] - 6) * t)  # a block that moves with time
+            image[4:12, column:column + 4, :3] = [220, 60, 30]
+            Image.fromarray(image).save(root / split / f"r_{i:03d}.png")
+            angle = 0.3 * i + (1.0 if split == "test" else 0.0)
+            w2c = np.eye(4)
+            w2c[:3, :3] = [[np.cos(angle), 0, -np.sin(angle)], [0, 1, 0], [np.sin(angle), 0, np.cos(angle)]]
+            w2c[:3, 3] = [0, 0, 4]
+            frames.append({"file_path": f"./{split}/r_{i:03d}", "time": float(t),
+                           "transform_matrix": w2c_to_opengl_c2w(w2c).tolist()})
+        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
+    return root
+
+
+def test_monocular_images_are_rendered_at_the_time_their_file_names(tmp_path):
+    from stgc.data import open_dataset
+
+    # Test times between training times: their frames are ranks 1, 3 of 6 distinct times, which used to place
+    # every image at rank / 6 instead of at its time.
+    root = _write_monocular(tmp_path / "dnerf", [0.0, 0.25, 0.5, 1.0], [0.05, 0.3])
+    data = open_dataset(root)
+    assert data.frames == [0, 1, 2, 3, 4, 5] and data.train_frames == [0, 2, 4, 5]
+    times = {c.name: c.time for c in data.train + data.test}
+    scale = 5 / 6  # the last of 6 frames is at t = 5/6, as every frame-based format has it
+    expected = {"train_r_000": 0.0, "test_r_000": 0.05, "train_r_001": 0.25, "test_r_001": 0.3, "train_r_002": 0.5,
+                "train_r_003": 1.0}
+    assert times == pytest.approx({name: t * scale for name, t in expected.items()})
+    assert data.time_of(1) == pytest.approx(0.05 * scale)
+    # Evenly spaced times keep frame = rank exactly.
+    even = open_dataset(_write_monocular(tmp_path / "even", [0.0, 0.5, 1.0], [0.25, 0.75]))
+    assert [c.time for c in sorted(even.train + even.test, key=lambda c: c.frame)] == [0, 0.2, 0.4, 0.6, 0.8]
+
+
+def test_monocular_training_never_draws_a_frame_only_a_test_image_holds(tmp_path):
+    root = _write_monocular(tmp_path / "dnerf", [0.0, 0.25, 0.5, 0.75, 1.0], [0.1, 0.6])
+    run = tmp_path / "run"
+    # Every frame gets initial points (init_frames_every=1), and with init_source=auto: the frames that hold only a
+    # test image used to give NaN colours ("non-finite rgb"), triangulation of one view, or a crash in the sampler.
+    assert main(["train", str(root), "--out", str(run), "--set", "train.iterations=12", "--set",
+                 "train.schedule_scale=1", "--set", "data.init_frames_every=1", "--set", "train.progress=false",
+                 "--set", "train.tensorboard=false", "--set", "train.save_iterations=[12]"]) == 0
+    assert json.loads((run / "eval.json").read_text())["num_views"] == 2

@@ -120,7 +120,7 @@ class DataConfig:
         the rule kept by the factor the cap would have applied to the raw frame, min(1, cap / raw count). So a
         capped run keeps the rule's selection and its reduction ratio, at the capped scale. (Capping first would make
         the rule pick points isolated by the sampling, not by the scene.)"""
-        frames = dataset.frames[:: max(1, self.init_frames_every)]
+        frames = dataset.train_frames[:: max(1, self.init_frames_every)]
         kwargs = {} if self.max_points_per_frame is None else {"random_points_per_frame": self.max_points_per_frame}
         raw = initial_points(dataset, source=self.init_source, frames=frames, seed=self.seed,
                              triangulation_upsample=self.triangulation_upsample,

@@ -88,6 +88,10 @@ class SourceScene:
     view_dependent_colour: whether this source's reference method lets colour change with the viewing direction
         (official STG: yes; Dynamic 3D Gaussians, Panoptic's reference, keeps one colour per Gaussian and time).
     masks: camera -> path of its foreground mask (0 background, 255 foreground), or None where it has none.
+    frame_positions: frame -> where it lies on the frame axis, for sources whose frames are ranks of times that are
+        not evenly spaced (monocular D-NeRF, whose test images' times fall between the training images'); None:
+        frame f lies at f. Time is then t = (position - start) / duration, so that every image is rendered at the
+        moment its file names, not at its rank.
     """
 
     name: str
@@ -106,6 +110,12 @@ class SourceScene:
     view_dependent_colour: bool = True
     masks: Callable[[Camera], Path | None] | None = None
     notes: list[str] = field(default_factory=list)
+    frame_positions: dict[int, float] | None = None
+
+    def time_of(self, frame: int, start: int, duration: int) -> float:
+        """Normalised time of `frame` in the segment [start, start + duration) (the one rule; see Dataset)."""
+        position = frame if self.frame_positions is None else self.frame_positions.get(frame, frame)
+        return (position - start) / duration
 
 
 def segments(total_frames: int, duration: int, first: int = 0) -> list[tuple[int, int]]:
@@ -119,7 +129,8 @@ def segments(total_frames: int, duration: int, first: int = 0) -> list[tuple[int
 class Dataset:
     """A segment of a multi-view video: cameras per (view, frame), lazily loaded images.
 
-    Time convention (STG): t = (frame − start) / duration for frame in [start, start + duration).
+    Time convention (STG): t = (frame − start) / duration for frame in [start, start + duration); where the
+    source's frames are ranks of unevenly spaced times, `frame` is the frame's position (SourceScene.frame_positions).
     """
 
     def __init__(self, scene: SourceScene, *, start: int, duration: int, frames: list[int], train: list[Camera],
@@ -151,7 +162,12 @@ class Dataset:
         return [self.time_of(f) for f in self.frames]
 
     def time_of(self, frame: int) -> float:
-        return (frame - self.start) / self.duration
+        return self._scene.time_of(frame, self.start, self.duration)
+
+    @property
+    def train_frames(self) -> list[int]:
+        """The frames some training camera sees (monocular data also has frames that only a test image holds)."""
+        return [f for f in self.frames if self._train_by_frame.get(f)]
 
     def train_at(self, frame: int) -> list[Camera]:
         return self._train_by_frame.get(frame, [])
@@ -394,7 +410,7 @@ def assemble(scene: SourceScene, *, downscale: float = 1, start: int | None = No
     train: list[Camera] = []
     test: list[Camera] = []
     for cam in in_segment:
-        out = replace(cam, time=(cam.frame - start) / duration, near=near)
+        out = replace(cam, time=scene.time_of(cam.frame, start, duration), near=near)
         if downscale != 1:
             out = out.scaled(1.0 / downscale)
         native_size[id(out)] = (cam.width, cam.height)

@@ -104,9 +104,18 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
                                       f"{dataset.start + dataset.duration})")
     if not frames:
         raise DataError(dataset.root, "empty frame list for initial points")
+    if source in ("triangulate", "random"):
+        unseen = [f for f in frames if not dataset.train_at(f)]
+        if unseen:
+            raise DataError(dataset.root, f"frames {unseen} have no training camera: {source} points need one "
+                                          f"(Dataset.train_frames lists the frames that have)")
     if source == "auto":
         if dataset.has_points:
             source = "data"
+        elif any(len(dataset.train_at(f)) < 2 for f in frames):
+            # Monocular data: one view per frame, nothing to triangulate.
+            log.info("%s: fewer than 2 training views in some frame; random initial points", dataset.name)
+            source = "random"
         else:
             try:
                 import pycolmap  # noqa: F401
@@ -210,6 +219,8 @@ def random_points(dataset: Dataset, frame: int, count: int,
                   "triangulation); expect slower, worse training", stacklevel=3)
     focus, radius = viewing_region(dataset)
     cams = dataset.train_at(frame)
+    if not cams:
+        raise DataError(dataset.root, f"frame {frame} has no training camera to place random points for")
     xyz_out, rgb_out = [], []
     got = 0
     for _ in range(50):

@@ -210,7 +210,7 @@ class Trainer:
         self.compaction_log = JsonLines(self.out_run.path / Run.COMPACTION_LOG)
         self.images = ImageCache(dataset)
         self.masks = self._make_foreground_masks()
-        self.frames = list(dataset.frames)
+        self.frames = dataset.train_frames  # frames only a test image holds (monocular data) are never drawn
         self.train_centers = np.array([c.center for c in dataset.train], dtype=np.float64).reshape(-1, 3)
         self.background = torch.tensor(dataset.background, dtype=torch.float32)
         self.elapsed_before = 0.0

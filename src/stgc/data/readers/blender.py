@@ -26,7 +26,8 @@ def _is_blender(path: Path) -> bool:
 def read_blender(path: Path, options: ReaderOptions) -> SourceScene:
     """transforms_{train,test}.json with per-frame `time` and c2w in OpenGL axes. Frames with a
     `camera` key are grouped into views (multi-view); otherwise every image is its own view
-    (monocular D-NeRF) and frame indices are the ranks of the distinct times."""
+    (monocular D-NeRF) and frame indices are the ranks of the distinct times, placed on the frame axis where their
+    times lie (test times fall between training times: `_positions_of_ranks`)."""
     root = path.parent if path.is_file() else path
     splits = {}
     for split in ("train", "test"):
@@ -96,9 +97,23 @@ def read_blender(path: Path, options: ReaderOptions) -> SourceScene:
         points = lambda frame: _npy_points(points_dir, frame)
         description = "points3d/NNNN.npy (x, y, z, r, g, b) per frame"
     notes = [] if multiview else ["monocular: each image is its own view"]
+    ranked = not multiview or not any("frame_index" in e[3] for e in entries)
     return SourceScene(name=root.name, format="blender", root=root, cameras=cameras, default_test=test_names,
                        meta_file=meta_file, fps=float(fps) if fps else None, multiview=multiview, points=points,
-                       points_description=description, notes=notes, synthetic=True)
+                       points_description=description, notes=notes, synthetic=True,
+                       frame_positions=_positions_of_ranks(all_times) if ranked else None)
+
+
+def _positions_of_ranks(times: list[float]) -> dict[int, float] | None:
+    """Where each rank of the sorted distinct `times` lies on the frame axis: the times mapped linearly so that the
+    first is at 0 and the last at len - 1. None when the times are evenly spaced (every rank is its position)."""
+    if len(times) < 2:
+        return None
+    first, last = times[0], times[-1]
+    positions = {rank: (t - first) / (last - first) * (len(times) - 1) for rank, t in enumerate(times)}
+    if all(abs(position - rank) <= 1e-6 for rank, position in positions.items()):
+        return None
+    return positions
 
 
 def _check_duplicates(cameras: list[Camera], meta: Path) -> None:
