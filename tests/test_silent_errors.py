@@ -451,6 +451,71 @@ def test_an_evaluation_on_other_data_is_not_a_rate_point_of_the_report(scene, tr
     assert sorted(row.extra.get("bitstream", "") for row in rows_from_run(run)) == ["", "model_q3.stgc"]
 
 
+
+def test_bitstreams_whose_names_hold_a_dot_keep_their_own_evaluations(trained_run, tmp_path):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    for quality in ("5", "1"):
+        stgc_file = run / f"model.q{quality}.stgc"
+        assert main(["compress", str(run), "--out", str(stgc_file), "--quality", quality,
+                     "--set", "codec.allocation=ladder"]) == 0
+        assert main(["eval", str(stgc_file), "--no-fps"]) == 0
+    records = {p.name: json.loads(p.read_text()) for p in run.glob("eval_model*.json")}
+    assert set(records) == {"eval_model.q5.json", "eval_model.q1.json"}  # was one eval_model.json for both
+    for quality in ("5", "1"):
+        assert records[f"eval_model.q{quality}.json"]["size_bytes"] == (run / f"model.q{quality}.stgc").stat().st_size
+        assert (run / f"eval_model.q{quality}_per_view.csv").is_file()
+
+
+def test_a_bitstream_written_again_after_its_evaluation_is_not_reported_with_the_old_numbers(trained_run, tmp_path):
+    import shutil
+
+    from stgc.eval.report import rows_from_run
+    from stgc.experiment.plans import RunSpec
+    from stgc.experiment.runner import _codec_point
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    stgc_file = run / "model_q5.stgc"
+    assert main(["compress", str(run), "--out", str(stgc_file), "--quality", "5", "--set", "codec.allocation=ladder"]) == 0
+    assert main(["eval", str(stgc_file), "--no-fps"]) == 0
+    assert [row.extra.get("bitstream") for row in rows_from_run(run)] == [None, "model_q5.stgc"]
+    # The same name again at another quality: the record on disk scored the earlier file.
+    assert main(["compress", str(run), "--out", str(stgc_file), "--quality", "1", "--set", "codec.allocation=ladder"]) == 0
+    assert [row.extra.get("bitstream") for row in rows_from_run(run)] == [None]
+    # The experiment runner evaluates it again rather than reusing the stale record.
+    commands = []
+
+    def runner(cmd, log_path):
+        commands.append(cmd)
+        return main([*cmd[cmd.index("eval"):], "--no-fps"])
+
+    spec = RunSpec(name="stg", overrides={}, family="STG", label="trained")
+    outcome = _codec_point(spec, run, 5, runner, "python", tmp_path / "log.txt", lambda message: None, {})
+    assert outcome.status == "finished" and len(commands) == 1 and "eval" in commands[0]
+    assert outcome.record["size_bytes"] == stgc_file.stat().st_size
+    assert [row.extra.get("bitstream") for row in rows_from_run(run)] == [None, "model_q5.stgc"]
+
+
+def test_a_bitstream_is_filed_under_its_own_data_by_the_config_it_embeds(scene, trained_run, tmp_path):
+    import shutil
+
+    other = tmp_path / "other_scene"
+    shutil.copytree(scene.root, other)
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    config = json.loads((trained_run / "config.json").read_text())
+    config["data"]["path"] = str(other)  # the folder's run trained on other data than the file's
+    (folder / "config.json").write_text(json.dumps(config))
+    stgc_file = folder / "m.stgc"
+    assert main(["compress", str(trained_run), "--out", str(stgc_file), "--set", "codec.allocation=ladder"]) == 0
+    assert main(["eval", str(stgc_file), "--data", str(scene.root), "--no-fps"]) == 0  # the file's own data
+    assert main(["eval", str(stgc_file), "--data", str(other), "--no-fps"]) == 0
+    assert {p.name for p in folder.glob("eval_*.json")} == {"eval_m.json", "eval_m_on_other_scene.json"}
+    assert not json.loads((folder / "eval_m.json").read_text()).get("other_data")
+
 def _write_monocular(root, train_times, test_times, size=(20, 16)):
     """D-NeRF layout: one view per image, each with its own time (tests/data/test_formats.py has the format's test)."""
     import numpy as np

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from stgc.errors import StgcError
-from stgc.fileio import read_json_object, write_json
+from stgc.fileio import file_sha256, read_json_object, write_json
 
 # Everything a training writes into its run directory (docs/training.md lists them): their presence means the
 # folder holds a run.
@@ -159,9 +159,22 @@ class Run:
         suffix = f"_on_{other_data}" if other_data else ""
         if bitstream is not None:
             bitstream = Path(bitstream)
-            base = bitstream.parent / f"eval_{bitstream.stem}{suffix}"
-            return base.with_suffix(".json"), bitstream.parent / f"{base.name}_per_view.csv"
+            # Not with_suffix: a stem with a dot (model.q5) would lose what follows it, and two files share a record.
+            base = f"eval_{bitstream.stem}{suffix}"
+            return bitstream.parent / f"{base}.json", bitstream.parent / f"{base}_per_view.csv"
         return self.path / f"eval{suffix}.json", self.path / f"eval{suffix}_per_view.csv"
+
+    @staticmethod
+    def scored_this_bitstream(record: dict[str, Any], bitstream: str | Path) -> bool:
+        """Whether an evaluation record of `bitstream` scored the file as it is now: the SHA-256 the record kept
+        equals the file's (records written before it was kept: the file still has the record's size). A file
+        written again after its evaluation (`stgc compress` to the same name) makes the record stale."""
+        bitstream = Path(bitstream)
+        if not bitstream.is_file():
+            return False
+        if record.get("bitstream_sha256"):
+            return bool(record["bitstream_sha256"] == file_sha256(bitstream))
+        return bool(record.get("size_bytes") == bitstream.stat().st_size)
 
     # ------------------------------------------------------------------ contents
     def has_config(self) -> bool:

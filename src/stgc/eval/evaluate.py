@@ -42,7 +42,7 @@ from stgc.eval.accounting import (
     speed_from_times,
     training_seconds,
 )
-from stgc.fileio import atomic_open, atomic_path, write_json
+from stgc.fileio import atomic_open, atomic_path, file_sha256, write_json
 from stgc.metrics import LPIPS, psnr, ssim, yuv_psnr
 from stgc.model import STGModel
 from stgc.run import Run
@@ -230,9 +230,11 @@ def write_eval(
     bitstream = target if target is not None and Path(target).suffix == ".stgc" else None
     json_path, csv_path = run.eval_paths(other_data, bitstream)
     summary = run.read_summary() if run.path.is_dir() else None
-    more = {"train_seconds": training_seconds(summary)}
+    more: dict[str, Any] = {"train_seconds": training_seconds(summary)}
     if summary and "iterations" in summary:
         more["iterations"] = summary["iterations"]
+    if bitstream is not None:
+        more.update(bitstream=Path(bitstream).name, bitstream_sha256=file_sha256(bitstream))
     more.update(extra or {})
     record = eval_record(result, model_info, more)
     write_json(json_path, record)
@@ -430,7 +432,7 @@ def evaluate_run(
     else:
         info = size_of_saved_model(target, duration_s)
     result = _score_model(model, dataset, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
-    other_data = _other_data(run_dir, data_path)
+    other_data = _other_data(run_dir, data_path, target if target.suffix == ".stgc" else None)
     extra = {"data": str(dataset.root), **({"other_data": other_data} if other_data else {})}
     return write_eval(run_dir, result, info, target=target, other_data=other_data, extra=extra)
 
@@ -445,12 +447,17 @@ def _score_model(model: Any, dataset: Dataset, *, lpips_net: str | None, warmup:
     return result
 
 
-def _other_data(run_dir: Path, data_path: str | Path | None) -> str | None:
-    """The name evaluations on `data_path` are filed under: None for the run's own data (where its config points)."""
+def _other_data(run_dir: Path, data_path: str | Path | None, bitstream: Path | None = None) -> str | None:
+    """The name evaluations on `data_path` are filed under: None for the run's own data (where its config points:
+    for a `.stgc`, the run config it embeds, as `open_run_dataset` reads it)."""
     if data_path is None:
         return None
-    saved = saved_run_data(run_dir)
-    saved_path = saved[1] if saved is not None else None
+    embedded = read_stgc_metadata(bitstream).get("run_config") if bitstream is not None else None
+    if isinstance(embedded, dict) and isinstance(embedded.get("data"), dict):
+        saved_path = embedded["data"].get("path")
+    else:
+        saved = saved_run_data(run_dir)
+        saved_path = saved[1] if saved is not None else None
     if saved_path is None or Path(data_path).resolve() != Path(saved_path).resolve():
         return Path(data_path).resolve().name
     return None
@@ -474,10 +481,11 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
     record.update({"size_bytes": index.file_bytes, "size_mb": index.file_bytes / 2**20,
                    "mbps": index.file_bytes * 8 / record["duration_s"] / 1e6 if record["duration_s"] else None,
                    "container_overhead_bytes": index.overhead_bytes, "target": str(target),
+                   "bitstream": target.name, "bitstream_sha256": file_sha256(target),
                    "data": str(data_path) if data_path is not None else None})
     seams = [seam_of(name, curve) for name, curve in curves]
     record["seams"] = [{k: v for k, v in seam.items() if k != "frames"} for seam in seams if seam]
-    json_path, csv_path = Run(target.parent).eval_paths(_other_data(target.parent, data_path), target)
+    json_path, csv_path = Run(target.parent).eval_paths(_other_data(target.parent, data_path, target), target)
     write_json(json_path, record)
     _write_per_view(csv_path, rows)
     if record["seams"]:

@@ -8,6 +8,7 @@ experiment.json naming the run's family and label).
 
 from __future__ import annotations
 
+import logging
 import math
 import textwrap
 from collections.abc import Iterable, Mapping, Sequence
@@ -21,6 +22,8 @@ from stgc.errors import DataError
 from stgc.eval.bjontegaard import BDError, Method, bd_psnr, bd_rate
 from stgc.fileio import atomic_open, atomic_path, read_json_object, write_json
 from stgc.run import Run
+
+log = logging.getLogger(__name__)
 
 SIZE_NOTE = ("Size (MB) is MiB (2^20 bytes) of raw float32 PLY rows (152 B per full Gaussian, normals included) "
              "plus float32 decoder weights, as in the paper; for .stgc rows it is the file size. "
@@ -383,9 +386,14 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
             if rec is None or _on_other_data(rec, config):
                 continue
             point = path.stem.removeprefix("eval_")
+            bitstream = str(rec.get("bitstream") or f"{point}.stgc")
+            if not Run.scored_this_bitstream(rec, run_dir / bitstream):
+                log.warning("%s: left out of the report: %s is missing or was written again after this "
+                            "evaluation (stgc eval it again)", path, bitstream)
+                continue
             rows.append(ReportRow.from_mapping({**record_fields(rec), "name": f"{setting} {point}",
                                                 "family": f"{family} + codec", "run": run_dir.name,
-                                                "run_dir": str(run_dir), "bitstream": f"{point}.stgc"}))
+                                                "run_dir": str(run_dir), "bitstream": bitstream}))
     return rows
 
 

@@ -479,7 +479,10 @@ def _codec_point(spec: RunSpec, run_dir: Path, quality: int, runner: Runner, pyt
     json_path, _ = Run(run_dir).eval_paths(bitstream=stgc)
     outcome = RunOutcome(f"{spec.name}-q{quality}", f"{spec.family} + codec", f"{spec.label} q{quality}",
                          "skipped", run_dir, overrides, bitstream=stgc.name)
-    if not json_path.is_file():
+    stale = json_path.is_file() and not Run.scored_this_bitstream(_read_json(json_path) or {}, stgc)
+    if stale:
+        say(f"[{spec.name}] {json_path.name} scored an earlier {stgc.name}: evaluating it again")
+    if stale or not json_path.is_file():
         if not stgc.is_file():
             code = runner(build_compress_command(run_dir, stgc, quality, python=python), log_path)
             if code != 0 or not stgc.is_file():
