@@ -93,7 +93,8 @@ def test_report_from_runs(tmp_path: Path) -> None:
                   {"psnr": 29.5, "mbps": 6.0, "num_gaussians": 5000})
     c = _fake_run(runs, "c1", {"data": {}, "compaction": {"method": "st-knn", "case": 1, "criterion": "scale"}},
                   {"psnr": 29.4, "mbps": 4.0})
-    (c / "eval_model_q5.json").write_text(json.dumps({"psnr": 29.0, "mbps": 0.5}))
+    (c / "model_q5.stgc").write_bytes(b"0123456789")
+    (c / "eval_model_q5.json").write_text(json.dumps({"psnr": 29.0, "mbps": 0.5, "size_bytes": 10}))
     d = _fake_run(runs, "named", {}, {"psnr": 29.0, "mbps": 3.0}, {"family": "Custom", "label": "mine"})
     empty = runs / "unfinished"
     empty.mkdir()
@@ -172,3 +173,16 @@ def test_rd_plot_labels_points_and_keeps_the_legend_off_the_curves_only_while_th
     assert report.plot_png is not None
     with Image.open(report.plot_png) as png:
         assert png.width > 1.5 * png.height
+
+
+def test_bd_deltas_use_each_familys_pareto_front(tmp_path):
+    base = [(1.0, 30.0), (2.0, 32.0), (4.0, 34.0), (8.0, 36.0)]
+    test = [(0.8, 30.0), (1.6, 32.0), (3.2, 34.0), (6.4, 36.0)]  # the same curve at 0.8x the rate: BD-rate -20 %
+    # A cloud: a second run's codec points that other points beat (lower PSNR at a higher rate), one in each family.
+    rows = [ReportRow(f"b{i}", "base", m, p) for i, (m, p) in enumerate(base + [(5.0, 33.0)])]
+    rows += [ReportRow(f"t{i}", "test", m, p) for i, (m, p) in enumerate(test + [(4.0, 33.5)])]
+    (bd,) = make_report(rows, tmp_path, baseline="base").bd
+    assert bd.bd_rate == pytest.approx(-20.0, abs=1e-6)  # through every point it zigzags: about -15 %
+    assert bd.points == 4
+    assert "1 dominated point(s) of this curve left out" in bd.note
+    assert "1 dominated point(s) of the baseline left out" in bd.note

@@ -107,6 +107,20 @@ def _curve(rows: Sequence[ReportRow]) -> list[ReportRow]:
                   key=lambda r: r.mbps)  # type: ignore[arg-type, return-value]
 
 
+def _front(curve: Sequence[ReportRow]) -> list[ReportRow]:
+    """The points of a rate-sorted curve that no other point beats: each has a higher PSNR than every point of
+    lower or equal rate. A family that gathers several runs at several codec qualities is a cloud, not a curve;
+    interpolating through its dominated points zigzags, and the BD deltas then depend on points the family would
+    never choose."""
+    front: list[ReportRow] = []
+    for r in curve:
+        while front and float(front[-1].mbps) == float(r.mbps) and float(front[-1].psnr) <= float(r.psnr):  # type: ignore[arg-type]
+            front.pop()
+        if not front or float(r.psnr) > float(front[-1].psnr):  # type: ignore[arg-type]
+            front.append(r)
+    return front
+
+
 RATE_POINTS = 4  # rp01..rp04, as the MPEG Gaussian-splat-coding test conditions name a curve's points
 
 
@@ -144,17 +158,22 @@ def resolve_baseline(rows: Sequence[ReportRow], baseline: str | None) -> str | N
 
 
 def bd_table(rows: Sequence[ReportRow], baseline: str | None, method: Method = "pchip") -> list[BDResult]:
-    """BD-rate / BD-PSNR of every other family's curve against the baseline family's curve."""
+    """BD-rate / BD-PSNR of every other family's curve against the baseline family's curve, each curve reduced to
+    its Pareto front (`_front`; the note says how many points were left out)."""
     if baseline is None:
         return []
     families = _families(rows)
-    base = _curve(families.get(baseline, []))
+    base_all = _curve(families.get(baseline, []))
+    base = _front(base_all)
     results = []
     for name, members in families.items():
         if name == baseline:
             continue
-        curve = _curve(members)
+        curve_all = _curve(members)
+        curve = _front(curve_all)
         result = BDResult(name, baseline, len(curve), None, None)
+        dropped = [f"{n} dominated point(s) of {what} left out" for n, what in
+                   ((len(curve_all) - len(curve), "this curve"), (len(base_all) - len(base), "the baseline")) if n]
         try:
             if len(base) < 2 or len(curve) < 2:
                 raise BDError(f"needs >= 2 rate points per curve (baseline {len(base)}, this {len(curve)})")
@@ -169,6 +188,7 @@ def bd_table(rows: Sequence[ReportRow], baseline: str | None, method: Method = "
                 result.note = (result.note + "; " if result.note else "") + f"BD-PSNR n/a: {exc}"
         except BDError as exc:
             result.note = f"n/a: {exc}"
+        result.note = "; ".join([*dropped, *([result.note] if result.note else [])])
         results.append(result)
     return results
 
@@ -271,9 +291,15 @@ def rd_figure(rows: Sequence[ReportRow], title: str, baseline: str | None, metri
         xs = np.array([r.mbps for r in curve], dtype=float)
         ys = np.array([getattr(r, metric) for r in curve], dtype=float)
         label = f"{family} (baseline)" if family == baseline else family
-        ax.plot(xs, ys, marker=markers[i % len(markers)], color=colours[i % len(colours)],
+        # The line joins the Pareto front, which the BD deltas use; dominated points are markers alone.
+        line = _front(curve) if metric == "psnr" else curve
+        colour, marker = colours[i % len(colours)], markers[i % len(markers)]
+        ax.plot(np.array([r.mbps for r in line], dtype=float), np.array([getattr(r, metric) for r in line], dtype=float),
+                marker=marker, color=colour,
                 linewidth=1.8 if family == baseline else 1.4,
                 linestyle="--" if family == baseline else "-", markersize=6, label=label)
+        if len(line) < len(curve):
+            ax.plot(xs, ys, marker=marker, color=colour, linestyle="none", markersize=6, fillstyle="none")
         if label_points:
             for r, x, y in zip(curve, xs, ys):
                 ax.annotate(r.name, (x, y), textcoords="offset points", xytext=(4, -11), fontsize=7, alpha=0.75)
