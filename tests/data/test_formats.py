@@ -87,6 +87,15 @@ def test_miv_round_trip(toys, tmp_path, bit_depth, named):
         assert detect_bit_depth(tmp_path / "v00.yuv", 160, 120) == 8
 
 
+def test_a_declared_bit_depth_wins_over_a_name_that_reads_otherwise(tmp_path, caplog):
+    path = tmp_path / "A_10_texture.yuv"  # the name's pattern reads "_10_" as 10-bit
+    write_yuv420(path, [np.zeros((8, 8, 3), np.uint8)], bit_depth=8)
+    assert detect_bit_depth(path, 8, 8) == 10
+    with caplog.at_level("WARNING"):
+        assert detect_bit_depth(path, 8, 8, declared=8) == 8
+    assert "declares BitDepthColor 8" in caplog.text
+
+
 def test_yuv_luma_survives_on_real_edges(toys, tmp_path):
     """Without 2x2-constant colour, chroma is lossy at colour edges but luma is kept to 10-bit precision."""
     from stgc.data.yuv import KB, KG, KR, read_frame

@@ -37,7 +37,8 @@ def test_orbit_video_and_path(tiny_toys, model, tmp_path):
     ends = [np.linalg.norm(train_centres - cams[i].center, axis=1).min() for i in (0, -1)]
     assert max(ends) < 1e-6
     assert all(abs(np.linalg.det(c.w2c[:3, :3]) - 1) < 1e-9 for c in cams)
-    assert [c.time for c in cams] == pytest.approx([0, 0.25, 0.5, 0.75, 1.0])
+    # tiny_toys holds frames 0-2 (t = 0, 1/3, 2/3): the sweep ends at the last frame's time, not past the data.
+    assert [c.time for c in cams] == pytest.approx([0, 1 / 6, 1 / 3, 1 / 2, 2 / 3])
     gif = render_video(model, tmp_path / "orbit.gif", dataset=tiny_toys, orbit=True, num_frames=4, fps=8)
     assert iio.imread(gif).shape[0] == 4
     mp4 = render_video(model, tmp_path / "orbit.mp4", dataset=tiny_toys, orbit=True, num_frames=6)

@@ -9,6 +9,7 @@ sample over its 2×2 block (exact for images whose colour is constant over 2×2 
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 
@@ -16,6 +17,8 @@ import numpy as np
 
 from ..errors import DataError
 from ..fileio import atomic_open
+
+log = logging.getLogger(__name__)
 
 KR, KB = 0.2126, 0.0722
 KG = 1.0 - KR - KB
@@ -90,16 +93,21 @@ def bit_depth_from_name(path: Path) -> int | None:
 
 def detect_bit_depth(path: Path, width: int, height: int, declared: int | None = None,
                      frames: int | None = None) -> int:
-    """Bit depth of a 4:2:0 file: its name, else `declared` (the sequence JSON), else its size and content.
+    """Bit depth of a 4:2:0 file: `declared` (the sequence JSON's BitDepthColor), else its name, else its size and
+    content. The declaration wins over the name, whose pattern can misread a name ("A_10_texture.yuv"); where the
+    two disagree a warning says so.
 
     From the size alone, a file of 2n 8-bit frames looks like n 10-bit frames; then the content
     decides: 10-bit little-endian samples never have a high byte above 3, which random 8-bit
     video bytes almost always do."""
     from_name = bit_depth_from_name(path)
+    if declared is not None:
+        if from_name is not None and from_name != int(declared):
+            log.warning("%s: the name reads as %d-bit but the sequence declares BitDepthColor %d; using %d",
+                        path, from_name, int(declared), int(declared))
+        return int(declared)
     if from_name is not None:
         return from_name
-    if declared is not None:
-        return int(declared)
     size = path.stat().st_size
     fits = [d for d in (8, 10) if size > 0 and size % frame_bytes(width, height, d) == 0]
     if frames is not None:

@@ -150,8 +150,8 @@ def orbit_cameras(dataset: Dataset, num_frames: int) -> list[Camera]:
     """`num_frames` cameras on a smooth path through the training cameras (one per view, frame 0 poses).
 
     Centres follow a cubic spline parameterised by chord length, orientations are slerped between neighbouring
-    cameras at the same parameter, intrinsics and size are those of the first training camera; time sweeps
-    [0, 1] along the path."""
+    cameras at the same parameter, intrinsics and size are those of the first training camera; time sweeps from
+    the first frame's time to the last frame's along the path (t = 1 lies one frame past the data)."""
     if num_frames < 1:
         raise ValueError("an orbit needs at least one frame")
     by_name: dict[str, Any] = {}
@@ -174,13 +174,14 @@ def orbit_cameras(dataset: Dataset, num_frames: int) -> list[Camera]:
     path_centers = spline(s) if spline is not None else np.outer(1 - s, centers[0]) + np.outer(s, centers[1])
     path_rot = slerp(s).as_matrix()
     ref = views[0]
+    first_time, last_time = dataset.time_of(min(dataset.frames)), dataset.time_of(max(dataset.frames))
     cams = []
     for i in range(num_frames):
         R_w2c = path_rot[i].T
         w2c = np.eye(4)
         w2c[:3, :3] = R_w2c
         w2c[:3, 3] = -R_w2c @ path_centers[i]
-        t = float(s[i])
+        t = float(first_time + s[i] * (last_time - first_time))
         cams.append(dataclasses.replace(ref, name=f"orbit{i:04d}", frame=i, time=t, w2c=w2c, image=None))
     return cams
 
