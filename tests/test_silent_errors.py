@@ -556,6 +556,17 @@ def test_monocular_images_are_rendered_at_the_time_their_file_names(tmp_path):
                 "train_r_003": 1.0}
     assert times == pytest.approx({name: t * scale for name, t in expected.items()})
     assert data.time_of(1) == pytest.approx(0.05 * scale)
+    # Cut into segments, each segment's times stay in [0, 1) and keep the files' spacing (ranks 0-2 lie at times
+    # 0, .05, .25; the next segment starts at .3).
+    first, second = data.segment(0, 3), data.segment(3, 3)
+    assert [first.time_of(f) for f in (0, 1, 2)] == pytest.approx([0, 0.05 / 0.3, 0.25 / 0.3])
+    assert [second.time_of(f) for f in (3, 4, 5)] == pytest.approx([0, 0.2 / (0.7 * 3 / 2), 0.7 / (0.7 * 3 / 2)])
+    # The viewer shows and scores a frame at the dataset's time, fractional frames in between.
+    from stgc.viewer import Segment
+
+    shown = Segment(model=None, dataset=data, frames=data.frames, size=None)  # type: ignore[arg-type]
+    assert [shown.time_of(f) for f in data.frames] == pytest.approx([data.time_of(f) for f in data.frames])
+    assert shown.time_of(1.5) == pytest.approx((data.time_of(1) + data.time_of(2)) / 2)
     # Evenly spaced times keep frame = rank exactly.
     even = open_dataset(_write_monocular(tmp_path / "even", [0.0, 0.5, 1.0], [0.25, 0.75]))
     assert [c.time for c in sorted(even.train + even.test, key=lambda c: c.frame)] == [0, 0.2, 0.4, 0.6, 0.8]

@@ -63,8 +63,14 @@ class Segment:
         return self.frames[0]
 
     def time_of(self, frame: float) -> float:
-        """The segment's normalised time of (fractional) absolute `frame`: (frame - start) / duration."""
-        return min(max((frame - self.start) / len(self.frames), 0.0), 1.0)
+        """The segment's normalised time of (fractional) absolute `frame`: the dataset's time of the frames on
+        either side (`Dataset.time_of`, which places unevenly timed frames where their times lie), interpolated."""
+        below = math.floor(frame)
+        t_below = self.dataset.time_of(below)
+        if frame == below:
+            return min(max(t_below, 0.0), 1.0)
+        t_above = self.dataset.time_of(below + 1)
+        return min(max(t_below + (frame - below) * (t_above - t_below), 0.0), 1.0)
 
 
 class ViewerScene:

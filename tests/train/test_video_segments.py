@@ -73,14 +73,17 @@ def test_a_video_trains_as_segment_runs_and_evaluates_as_one(scene, tmp_path, ca
     assert again["psnr"] == pytest.approx(record["psnr"]) and again["num_gaussians"] == record["num_gaussians"]
 
 
-def test_resume_trains_only_what_is_unfinished(scene, tmp_path):
+def test_resume_trains_only_what_is_unfinished(scene, tmp_path, capsys):
     out = tmp_path / "video"
     assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "3", *QUICK]) == 0
     run = Run(out)
     first, second = run.segments()
     kept = (first.summary_path.stat().st_mtime_ns, (first.latest_model_dir() / "point_cloud.ply").read_bytes())
-    # The second segment "was killed": its summary is gone, its checkpoint stays.
+    # The second segment "was killed": its summary is gone, its checkpoint and saved model stay.
     second.summary_path.unlink()
+    # Its saved model is not the video's: compress refuses to pack it (it used to, silently).
+    assert main(["compress", str(out), "--out", str(out / "v.stgc"), "--set", "codec.allocation=ladder"]) == 2
+    assert "segment_001" in capsys.readouterr().err and not (out / "v.stgc").exists()
     assert main(["train", "--out", str(out), "--resume", "--no-ray"]) == 0
     assert second.training_finished()
     assert (first.summary_path.stat().st_mtime_ns, (first.latest_model_dir() / "point_cloud.ply").read_bytes()) == kept

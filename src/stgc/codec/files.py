@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +45,8 @@ from .views import optimise_on_views
 AllocationMode = Literal["auto", "optimised", "ladder"]
 ALLOCATION_MODES = get_args(AllocationMode)
 RESTORED_CONFIG_SECTIONS = ("data", "model")
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -191,6 +194,9 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
     source = Path(run_or_model_path)
     if source.is_dir() and Run(source).is_video():
         return _compress_video(Run(source), out_path, config)
+    if source.is_dir() and Run(source).has_config() and not Run(source).training_finished():
+        log.warning("%s has not finished training: compressing its latest saved model, %s", source,
+                    Run(source).latest_model_dir())
     data, result = _encode_model(source, out_path, config)
     write_stgc(out_path, data)
     return result
@@ -231,8 +237,9 @@ def _compress_video(run: Run, out_path: Path, config: CodecConfig) -> VideoCompr
     payloads, results = [], []
     for entry in tqdm(plan, desc="compressing segments", unit="segment", leave=False, disable=len(plan) < 2):
         segment = Run(run.path / str(entry["name"]))
-        if segment.latest_model_dir() is None:
-            raise DataError(segment.path, "segment has no trained model yet (finish it with stgc train --resume)")
+        if segment.latest_model_dir() is None or not segment.training_finished():
+            # A killed or failed segment still holds the models save_iterations wrote: half-trained, not the video.
+            raise DataError(segment.path, "segment has not finished training (finish it with stgc train --resume)")
         data, result = _encode_model(segment.path, out_path, config)
         payloads.append((int(entry["start"]), int(entry["duration"]), data))
         results.append(result)

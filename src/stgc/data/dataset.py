@@ -113,9 +113,21 @@ class SourceScene:
     frame_positions: dict[int, float] | None = None
 
     def time_of(self, frame: int, start: int, duration: int) -> float:
-        """Normalised time of `frame` in the segment [start, start + duration) (the one rule; see Dataset)."""
-        position = frame if self.frame_positions is None else self.frame_positions.get(frame, frame)
-        return (position - start) / duration
+        """Normalised time of `frame` in the segment [start, start + duration) (the one rule; see Dataset).
+
+        With frame positions the segment spans from its first frame's position to the next segment's first (the
+        last segment: its own frames' spacing carried one frame on), so its frames' times stay in [0, 1)."""
+        if self.frame_positions is None:
+            return (frame - start) / duration
+        positions = self.frame_positions
+        origin = positions.get(start, start)
+        end = start + duration
+        if end in positions:
+            span = positions[end] - origin
+        else:
+            last = max((k for k in positions if start <= k < end), default=start)
+            span = (positions[last] - origin) * duration / (last - start) if last > start else duration
+        return (positions.get(frame, frame) - origin) / span
 
 
 def segments(total_frames: int, duration: int, first: int = 0) -> list[tuple[int, int]]:
