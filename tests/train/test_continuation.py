@@ -92,3 +92,18 @@ def test_a_killed_finetune_resumes_like_any_run(source, tmp_path):
     assert not Run(new).training_finished()
     assert main(["train", "--out", str(new), "--resume"]) == 0
     assert Run(new).training_finished() and Run(new).latest_model_dir().name == "iteration_30"
+
+
+def test_finetune_takes_its_own_colour_correction_learning_rate(source, tmp_path):
+    import torch
+
+    def colour_lr(run):
+        state = torch.load(run / Run.CHECKPOINT, weights_only=False)["colour_correction"]
+        return state["optimizer"]["param_groups"][0]["lr"]
+
+    assert colour_lr(source) == pytest.approx(Run(source).read_config()["train"]["lr"]["colour_correction"])
+    new = tmp_path / "new"
+    # The checkpoint's optimizer state carried the source's rate, which silently won over the new option.
+    assert main(["finetune", str(source), "--out", str(new), "--iterations", "4",
+                 "--set", "train.lr.colour_correction=0.5"]) == 0
+    assert colour_lr(new) == pytest.approx(0.5)

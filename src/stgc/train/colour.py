@@ -41,6 +41,7 @@ class ColourCorrection:
         # Columns 0-2: log gain per channel, 3-5: offset per channel; zero = identity.
         self.table = nn.Embedding(len(self.names), 6, sparse=True)
         nn.init.zeros_(self.table.weight)
+        self.lr = lr
         self.optimizer = torch.optim.SparseAdam(self.table.parameters(), lr=lr, eps=1e-15)
 
     def __contains__(self, name: str) -> bool:
@@ -50,6 +51,11 @@ class ColourCorrection:
         """The corrected render [H, W, 3] of a training camera (differentiable in both)."""
         row = self.table(torch.tensor([self._index[str(camera_name)]]))[0]
         return rgb * torch.exp(row[:3]) + row[3:]
+
+    def scale_learning_rate(self, scale: float) -> None:
+        """This run's configured rate times `scale` (the rate-aware window's lr_scale; 1 outside it)."""
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.lr * scale
 
     def step(self) -> None:
         """One Adam step on the rows that received gradients, then re-centre the gauge."""
@@ -98,6 +104,8 @@ class ColourCorrection:
         with torch.no_grad():
             self.table.weight.copy_(state["table"])
         self.optimizer.load_state_dict(state["optimizer"])
+        # The optimizer's saved state carries the rate it was trained with; a continuation may set another.
+        self.scale_learning_rate(1.0)
 
 
 def saved_corrections(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:

@@ -343,14 +343,16 @@ class Trainer:
 
     # ------------------------------------------------------------------------------------------- one step
     def _set_learning_rates(self, iteration: int) -> float:
-        """The iteration's learning rates: xyz on its decay, the others constant, all times
-        quantization_aware.lr_scale inside the rate-aware window. Returns the xyz rate."""
+        """The iteration's learning rates: xyz on its decay, the others (the colour correction's too) constant, all
+        times quantization_aware.lr_scale inside the rate-aware window. Returns the xyz rate."""
         scale = self.cfg.quantization_aware.lr_scale if self.in_quantization_window(iteration) else 1.0
         base = {**learning_rates(self.cfg, self.extent), "decoder": self.cfg.lr.decoder,
                 "xyz": xyz_learning_rate(self.cfg, self.extent, iteration, self.schedule.iterations)}
         for group in self.optimizer.param_groups:
             if group.get("name") in base:
                 group["lr"] = base[group["name"]] * scale
+        if self.colour is not None:
+            self.colour.scale_learning_rate(scale)
         return base["xyz"] * scale
 
     def in_quantization_window(self, iteration: int) -> bool:
