@@ -20,6 +20,13 @@ from typing import Any, Literal, get_args, get_origin
 from stgc.errors import StgcError
 
 
+# Options that change how a run executes or what it logs, not what it trains: a run made with other values of
+# these is still the same run (a model trained with 2 threads serves a plan run at 1 thread).
+EXECUTION_OPTIONS = frozenset({"train.threads", "train.backend", "train.eval_every", "train.log_every",
+                               "train.checkpoint_every", "train.progress", "train.tensorboard", "train.stop_after",
+                               "data.image_cache_mb"})
+
+
 class ConfigError(StgcError, ValueError):
     """An override names an unknown field or gives a value of the wrong type."""
 

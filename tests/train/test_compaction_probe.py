@@ -86,3 +86,8 @@ def test_a_budget_run_reads_its_unpruned_reference_run_at_the_same_iterations(sc
     with pytest.raises(DataError, match="compaction.method is 'none'"):
         Trainer(dataset, None, None, _config(80), dataclasses.replace(budgeted, loss_reference=str(tmp_path / "plain")),
                 tmp_path / "other", model=start())
+    # A reference of another configuration: its losses would say nothing about this run's damage.
+    with pytest.raises(DataError, match=r"train.seed: this run 2, the reference 1"):
+        Trainer(dataset, None, None, dataclasses.replace(_config(80), seed=2), budgeted, tmp_path / "other",
+                model=start())
+    assert not (tmp_path / "other").exists()

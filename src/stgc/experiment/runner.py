@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from stgc.config import ConfigError, iter_fields
+from stgc.config import EXECUTION_OPTIONS, ConfigError, iter_fields
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.errors import FormatError, StgcError
 from stgc.eval.report import Report, ReportRow, make_report, rate_points, record_fields
@@ -110,11 +110,6 @@ def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str],
             raise ConfigError(f"plan {plan.name!r}, run {spec.name!r}: {exc}") from None
 
 
-# Options that change how a run executes or what it logs, not what it trains: a run made with other values of
-# these is still the plan's run (a model copied in from a 2-thread training serves a plan run at 1 thread).
-EXECUTION_OPTIONS = frozenset({"train.threads", "train.backend", "train.eval_every", "train.log_every",
-                               "train.checkpoint_every", "train.progress", "train.tensorboard", "train.stop_after",
-                               "data.image_cache_mb"})
 
 
 def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, overrides: Mapping[str, str]) -> str | None:

@@ -13,6 +13,7 @@ from RUN/checkpoint.pt makes exactly the draws an uninterrupted run would have m
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 import random
@@ -27,11 +28,12 @@ import torch
 
 from stgc import machine
 from stgc.compaction import CompactionConfig, STKNNCompactor
-from stgc.config import validate_config
+from stgc.config import EXECUTION_OPTIONS, validate_config
 from stgc.data import DataConfig
 from stgc.data.cameras import Camera
 from stgc.data.config import initial_points_from_config
 from stgc.data.dataset import Dataset
+from stgc.errors import DataError
 from stgc.fileio import write_json
 from stgc.metrics import ssim
 from stgc.model import ModelConfig, STGModel
@@ -194,6 +196,7 @@ class Trainer:
         self.schedule: Schedule = resolve_schedule(train_cfg)
         # Before the run's folder is touched: the compactor reads and checks a loss reference run's log.
         self.compactor = self._make_compactor()
+        self._check_loss_reference()
         self.out_run = Run(out_dir)
         resuming = resume and self.out_run.checkpoint_path.exists()
         if not resuming:
@@ -260,9 +263,41 @@ class Trainer:
             self._restore(checkpoint)
 
     # ------------------------------------------------------------------------------------------- setup
-    def _write_config(self) -> None:
+    def _run_config(self) -> dict[str, Any]:
         configs = {"data": self.data_cfg, "model": self.model_cfg, "train": self.cfg, "compaction": self.compaction_cfg}
-        self.out_run.write_config(run_config(self.dataset, configs, self.schedule))
+        return run_config(self.dataset, configs, self.schedule)
+
+    def _write_config(self) -> None:
+        self.out_run.write_config(self._run_config())
+
+    def _check_loss_reference(self) -> None:
+        """A damage budget held against a reference run is only meaningful when that run is this run unpruned: the
+        same data, model and training options (all but how it executes) and the same pruning schedule and probe.
+        Refuse, naming the differences, before anything is trained (the log's own checks cannot see them)."""
+        cfg = self.compaction_cfg
+        if cfg is None or not cfg.loss_reference:
+            return
+        reference = Path(cfg.loss_reference)
+        reference_dir = reference if reference.is_dir() else reference.parent
+        theirs = Run(reference_dir).read_config()
+        if theirs is None:
+            raise DataError(reference_dir, "the loss reference has no config.json to check it against this run")
+        mine = json.loads(json.dumps(self._run_config()))  # as config.json holds it: tuples read back as lists
+        differences = []
+        for section in ("data", "model", "train", "compaction"):
+            ours, saved = _flat(mine.get(section) or {}), _flat(theirs.get(section) or {})
+            for key in sorted(set(ours) | set(saved)):
+                name = f"{section}.{key}"
+                if name in EXECUTION_OPTIONS or name in _PRUNED_RUN_ONLY or key.startswith("resolved_schedule"):
+                    continue
+                if key == "path" and ours.get(key) and saved.get(key):
+                    if Path(str(ours[key])).resolve() == Path(str(saved[key])).resolve():
+                        continue
+                if ours.get(key) != saved.get(key):
+                    differences.append(f"{name}: this run {ours.get(key)!r}, the reference {saved.get(key)!r}")
+        if differences:
+            raise DataError(reference_dir / Run.CONFIG, "the loss reference is not this run's configuration "
+                            "trained unpruned: " + "; ".join(differences))
 
     def _make_compactor(self) -> STKNNCompactor | None:
         cfg = self.compaction_cfg
@@ -575,6 +610,24 @@ class Trainer:
             summary["eval_seconds"] = round(time.perf_counter() - e0, 3)
             self.out_run.write_summary(summary)
         return summary
+
+
+# Compaction options that act only in the pruned run (the reference trains as `none` and only probes).
+_PRUNED_RUN_ONLY = frozenset(f"compaction.{k}" for k in (
+    "method", "criterion", "ratio_init", "ratio_step", "ratio_min", "ratio_max", "loss_tolerance", "loss_budget_db",
+    "loss_reference", "loss_smoothing", "ema_decay", "loss_signal", "rotation_weight", "sample_times",
+    "min_gaussians"))
+
+
+def _flat(section: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """{"densify.interval": 100, ...}: a config section's nested options by dotted name."""
+    out: dict[str, Any] = {}
+    for key, value in section.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
 
 
 def run_config(dataset: Dataset, configs: dict[str, Any], schedule: Schedule | None = None,
