@@ -37,6 +37,7 @@ from stgc.viewer import (  # noqa: E402  (after the skip: the module needs viser
 def _write_run(root, model, data_root, iteration: int = 1):
     model.save(root / "point_cloud" / f"iteration_{iteration}")
     (root / "config.json").write_text(json.dumps({"data": {"path": str(data_root)}}))
+    (root / "train_summary.json").write_text(json.dumps({"iterations": iteration, "finished": True}))
     return root
 
 
