@@ -110,8 +110,6 @@ def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str],
             raise ConfigError(f"plan {plan.name!r}, run {spec.name!r}: {exc}") from None
 
 
-
-
 def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, overrides: Mapping[str, str]) -> str | None:
     """Why the run already in `run_dir` is not the one the plan asks for now (other options, preset or data), or
     None when it is, or when nothing is there yet. A finished run is skipped and an interrupted one resumed with
