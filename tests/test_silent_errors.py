@@ -55,13 +55,22 @@ def test_training_into_an_existing_run_is_refused_and_overwrite_replaces_it(scen
 def test_eval_on_other_data_keeps_the_runs_own_record(scene, trained_run, tmp_path):
     import shutil
 
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
     other = tmp_path / "other_scene"
     shutil.copytree(scene.root, other)
-    own = json.loads((trained_run / "eval.json").read_text())
-    assert main(["eval", str(trained_run), "--data", str(other), "--no-fps"]) == 0
-    assert json.loads((trained_run / "eval.json").read_text()) == own
-    record = json.loads((trained_run / "eval_on_other_scene.json").read_text())
+    own = json.loads((run / "eval.json").read_text())
+    assert main(["eval", str(run), "--data", str(other), "--no-fps"]) == 0
+    assert json.loads((run / "eval.json").read_text()) == own
+    record = json.loads((run / "eval_on_other_scene.json").read_text())
     assert record["data"] == str(other.resolve())
+    # Another dataset whose folder has the same name gets a record of its own, not the first one's overwritten.
+    namesake = tmp_path / "elsewhere" / "other_scene"
+    shutil.copytree(scene.root, namesake)
+    assert main(["eval", str(run), "--data", str(namesake), "--no-fps"]) == 0
+    assert json.loads((run / "eval_on_other_scene.json").read_text())["data"] == str(other.resolve())
+    (second,) = [p for p in run.glob("eval_on_other_scene-*.json") if not p.name.endswith("_per_view.csv")]
+    assert json.loads(second.read_text())["data"] == str(namesake.resolve())
 
 
 @pytest.mark.parametrize("setting, field", [("train.iterations=0", "train.iterations"),

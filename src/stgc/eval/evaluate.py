@@ -7,6 +7,7 @@ over all test images (cameras x frames); FPS is 1 / mean render time after warm-
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import math
 import time
@@ -42,7 +43,7 @@ from stgc.eval.accounting import (
     speed_from_times,
     training_seconds,
 )
-from stgc.fileio import atomic_open, atomic_path, file_sha256, write_json
+from stgc.fileio import atomic_open, atomic_path, file_sha256, read_json_object, write_json
 from stgc.metrics import LPIPS, psnr, ssim, yuv_psnr
 from stgc.model import STGModel
 from stgc.run import Run
@@ -458,9 +459,14 @@ def _other_data(run_dir: Path, data_path: str | Path | None, bitstream: Path | N
     else:
         saved = saved_run_data(run_dir)
         saved_path = saved[1] if saved is not None else None
-    if saved_path is None or Path(data_path).resolve() != Path(saved_path).resolve():
-        return Path(data_path).resolve().name
-    return None
+    if saved_path is not None and Path(data_path).resolve() == Path(saved_path).resolve():
+        return None
+    other = Path(data_path).resolve()
+    # Two datasets with one folder name must not share (and overwrite) one record: the second gets its path's hash.
+    earlier = read_json_object(Run(run_dir).eval_paths(other.name, bitstream)[0], strict=False)
+    if earlier is not None and earlier.get("data") and Path(str(earlier["data"])).resolve() != other:
+        return f"{other.name}-{hashlib.sha256(str(other).encode()).hexdigest()[:8]}"
+    return other.name
 
 
 def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpips_net: str | None, warmup: int,
