@@ -54,3 +54,18 @@ def test_mask_of_the_wrong_size_is_an_error_naming_the_file(masked_scene, tmp_pa
     bad.write_bytes(b"not a png")
     with pytest.raises(DataError, match="unreadable mask"):
         dataset.load_mask(camera)
+
+
+def test_a_static_cloud_for_the_first_frame_leaves_every_frame_its_hull_points(masked_scene, tmp_path):
+    import shutil
+
+    root = tmp_path / "scene"
+    shutil.copytree(masked_scene.root, root)
+    # Dynamic 3D Gaussians' release: init_pt_cld.npz holds one static cloud (x, y, z, r, g, b, seg).
+    static = np.random.default_rng(0).uniform(-1, 1, (300, 7))
+    np.savez(root / "init_pt_cld.npz", data=static)
+    dataset = open_dataset(root)
+    cloud = initial_points(dataset, source="data", mask_points_per_frame=80)
+    counts = cloud.counts_per_time()
+    # Frame 1 has no shipped points, but still its hull points (they were skipped with its missing cloud).
+    assert counts == {0.0: 300 + 80, 0.5: 80}

@@ -137,10 +137,9 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
             if not dataset.has_points:
                 raise DataError(dataset.root, "no initial points ship with this dataset (use source='triangulate' "
                                               "or 'random')")
+            # None: e.g. a static cloud given for the first frame only; the frame still gets its hull points.
             got = dataset.data_points(frame)
-            if got is None:
-                continue  # e.g. a static cloud given for the first frame only
-            xyz, rgb = got
+            xyz, rgb = got if got is not None else (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
         elif source == "triangulate":
 
             result = triangulate_frame(dataset, frame, upsample=triangulation_upsample,
