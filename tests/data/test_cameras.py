@@ -91,6 +91,12 @@ def test_colmap_pose_and_models():
     assert np.allclose(K, intrinsics(100, 110, 50, 40)) and not distorted
     _, distorted = colmap_intrinsics("OPENCV", [100, 110, 50, 40, 0.1, 0, 0, 0])
     assert distorted
+    # A fisheye stays a fisheye with zero coefficients (equidistant mapping), and FOV stores fx, fy, cx, cy.
+    for model, params in (("OPENCV_FISHEYE", [100, 110, 50, 40, 0, 0, 0, 0]), ("SIMPLE_RADIAL_FISHEYE", [100, 50, 40, 0]),
+                          ("RADIAL_FISHEYE", [100, 50, 40, 0, 0])):
+        assert colmap_intrinsics(model, params)[1], model
+    K, distorted = colmap_intrinsics("FOV", [100, 110, 50, 40, 0])
+    assert np.allclose(K, intrinsics(100, 110, 50, 40)) and not distorted
 
 
 def test_omaf_projection_formula():

@@ -224,16 +224,19 @@ COLMAP_MODELS: dict[str, tuple[int, int]] = {
 def colmap_intrinsics(model: str, params: np.ndarray) -> tuple[np.ndarray, bool]:
     """K (corner convention, as COLMAP uses) from COLMAP camera params, and whether it has distortion.
 
-    SIMPLE_* models share one focal f; PINHOLE/OPENCV-family store fx, fy, cx, cy first."""
+    SIMPLE_* models share one focal f; PINHOLE/OPENCV-family and FOV store fx, fy, cx, cy first. The fisheye models
+    are distorted whatever their coefficients: with all of them zero they still map by the equidistant angle
+    theta = atan(r), which a pinhole K cannot express."""
     params = np.asarray(params, dtype=np.float64)
-    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "FOV"):
+    fisheye = model.endswith("FISHEYE")
+    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"):
         f, cx, cy = params[:3]
         K = intrinsics(f, f, cx, cy)
-        distorted = model != "SIMPLE_PINHOLE" and bool(np.any(params[3:] != 0))
-    elif model in ("PINHOLE", "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV", "THIN_PRISM_FISHEYE"):
+        distorted = fisheye or (model != "SIMPLE_PINHOLE" and bool(np.any(params[3:] != 0)))
+    elif model in ("PINHOLE", "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV", "THIN_PRISM_FISHEYE", "FOV"):
         fx, fy, cx, cy = params[:4]
         K = intrinsics(fx, fy, cx, cy)
-        distorted = bool(np.any(params[4:] != 0))
+        distorted = fisheye or bool(np.any(params[4:] != 0))
     else:
         raise ValueError(f"unknown COLMAP camera model {model!r}")
     return K, distorted
