@@ -590,3 +590,11 @@ def test_monocular_training_never_draws_a_frame_only_a_test_image_holds(tmp_path
                  "train.schedule_scale=1", "--set", "data.init_frames_every=1", "--set", "train.progress=false",
                  "--set", "train.tensorboard=false", "--set", "train.save_iterations=[12]"]) == 0
     assert json.loads((run / "eval.json").read_text())["num_views"] == 2
+
+
+
+@pytest.mark.parametrize("options", [["--time", "0.5"], ["--orbit", "--camera", "0"], ["--orbit", "--frames", "0:1"]])
+def test_render_refuses_video_options_it_would_ignore(trained_run, tmp_path, options, capsys):
+    out = tmp_path / "v.mp4"
+    assert main(["render", str(trained_run), "--out", str(out), *options]) == 2
+    assert "v.mp4" in capsys.readouterr().err and not out.exists()

@@ -173,6 +173,10 @@ def cmd_render(args: argparse.Namespace) -> int:
         camera = args.camera or dataset.test[0].name
         render_still(model, camera, 0.0 if args.time is None else args.time, out, dataset=dataset)
     elif out.suffix.lower() in (".mp4", ".gif"):
+        if args.time is not None:
+            raise StgcError(f"{out}: --time is a still's; a video's frames give its times (use --frames)")
+        if args.orbit and (args.camera or args.frames):
+            raise StgcError(f"{out}: an --orbit follows its own path over all frames (not --camera/--frames)")
         render_video(args.run, out, camera_name=args.camera, frames=args.frames, orbit=args.orbit)
     else:
         raise StgcError(f"{out}: output must end in .png or .mp4")
