@@ -145,20 +145,20 @@ def test_n3dv_mp4_round_trip(toys, blender_toys, tmp_path):
         assert int(np.argmin(errors)) == cam.frame
 
 
-@pytest.mark.parametrize("ext", ["txt", "bin"])
-def test_stg_colmap_round_trip(toys, tmp_path, ext):
-    cams = _cams(toys)
+def _write_stg_colmap(toys, root, ext, views=VIEWS):
+    """STG's layout (colmap_<t>/images + sparse/0) of `views` of toys; returns {frame: (xyz, rgb)} written."""
+    cams = {(c.name, c.frame): c for c in toys.cameras if c.name in views}
     model = ColmapModel()
-    for i, view in enumerate(VIEWS, start=1):
+    for i, view in enumerate(views, start=1):
         cam = cams[(view, 0)]
         K = cam.K
         model.cameras[i] = ColmapCamera(i, "PINHOLE", cam.width, cam.height, np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]))
         model.images[i] = ColmapImage(i, rotmat_to_qvec(cam.w2c[:3, :3]), cam.w2c[:3, 3].copy(), i, f"{view}.png")
     points = {}
     for f in FRAMES:
-        folder = tmp_path / f"colmap_{f}"
+        folder = root / f"colmap_{f}"
         (folder / "images").mkdir(parents=True)
-        for view in VIEWS:
+        for view in views:
             shutil.copy(cams[(view, f)].image, folder / "images" / f"{view}.png")
         xyz, rgb = toys.data_points(f)
         model.xyz = xyz[:100].astype(np.float64)
@@ -166,6 +166,13 @@ def test_stg_colmap_round_trip(toys, tmp_path, ext):
         model.error = np.zeros(100)
         points[f] = (model.xyz.copy(), model.rgb.copy())
         write_model(folder / "sparse" / "0", model, ext)
+    return points
+
+
+@pytest.mark.parametrize("ext", ["txt", "bin"])
+def test_stg_colmap_round_trip(toys, tmp_path, ext):
+    cams = _cams(toys)
+    points = _write_stg_colmap(toys, tmp_path, ext)
     data = open_dataset(tmp_path)
     assert data.format == "stg-colmap" and data.test_views == ["cam00"] and data.frames == FRAMES
     for cam in data.cameras:
@@ -176,6 +183,15 @@ def test_stg_colmap_round_trip(toys, tmp_path, ext):
         assert np.allclose(xyz, points[f][0], atol=1e-6) and np.allclose(rgb * 255, points[f][1])
     # STG passes one colmap_<t> folder: that sets the default start frame.
     assert open_dataset(tmp_path / "colmap_1").frames == [1, 2]
+
+
+def test_stg_colmap_holds_out_cam10_of_a_prepared_technicolor_scene(toys, tmp_path):
+    # STG's pre_technicolor.py writes colmap_<t> beside the source's cameras_parameters.txt; STG holds out cam10 there.
+    _write_stg_colmap(toys, tmp_path, "txt", views=[*VIEWS, "cam10"])
+    assert open_dataset(tmp_path).test_views == ["cam00"]  # Neural 3D Video's
+    (tmp_path / "cameras_parameters.txt").write_text("header\n")
+    data = open_dataset(tmp_path)
+    assert data.format == "stg-colmap" and data.test_views == ["cam10"]
 
 
 @pytest.mark.parametrize("ext", ["txt", "bin"])

@@ -77,7 +77,11 @@ def read_stg_colmap(path: Path, options: ReaderOptions) -> SourceScene:
                 raise DataError(image, f"image file is missing (camera {name}, frame {frame})")
             cameras.append(Camera(name, frame, 0.0, K, w2c, width, height, image))
     names = [v[0] for v in views]
-    test = ["cam00"] if "cam00" in names else [sorted(names)[0]]
+    # STG holds out cam00 (Neural 3D Video), but cam10 for Technicolor, whose prepared folder keeps the source's
+    # cameras_parameters.txt beside the colmap_<t> folders (STG's readColmapSceneInfoTechnicolor).
+    technicolor = (root / "cameras_parameters.txt").is_file()
+    held_out = "cam10" if technicolor else "cam00"
+    test = [held_out] if held_out in names else [sorted(names)[0]]
     points = lambda frame: _colmap_points(dirs.get(frame))
     return SourceScene(name=root.name, format="stg-colmap", root=root, cameras=cameras, default_test=test,
                        meta_file=meta_file, fps=30.0, points=points,
