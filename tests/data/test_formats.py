@@ -279,3 +279,21 @@ def test_dnerf_monocular(tmp_path):
     assert cam.K[0, 0] == pytest.approx(fov_to_focal(0.8, 10)) and cam.K[0, 2] == 5 and cam.K[1, 2] == 4
     image = data.load_image(cam)
     assert (image[:, :5] == [200, 100, 50]).all() and (image[:, 5:] == 255).all()
+
+
+def test_images_txt_reads_pose_lines_with_and_without_their_keypoint_lines(tmp_path):
+    from stgc.data.colmap_io import _read_images_txt
+
+    pose = "{} 1 0 0 0 0.{} 0 0 1 cam{:02d}.png"
+    keypoints = "10.5 20.5 -1 30.0 40.0 7 1.0 2.0 -1 3.0 4.0 5"  # all numbers, 12 tokens
+    cases = {
+        "with keypoint lines": [pose.format(i, i, i) + "\n" + keypoints for i in range(1, 5)],
+        "with empty keypoint lines": [pose.format(i, i, i) + "\n" for i in range(1, 5)],
+        "without keypoint lines": [pose.format(i, i, i) for i in range(1, 5)],  # every second image was lost
+    }
+    for case, records in cases.items():
+        path = tmp_path / f"{case}.txt"
+        path.write_text("# Image list\n" + "\n".join(records) + "\n")
+        images = _read_images_txt(path)
+        assert [images[i].name for i in sorted(images)] == [f"cam{i:02d}.png" for i in range(1, 5)], case
+        assert images[3].tvec[0] == pytest.approx(0.3), case

@@ -229,28 +229,42 @@ def _read_cameras_txt(path: Path) -> dict[int, ColmapCamera]:
 
 def _read_images_txt(path: Path) -> dict[int, ColmapImage]:
     images = {}
-    # Records are two lines: the pose line and a (possibly empty) keypoint line. Empty keypoint lines
-    # are easy to lose in hand-written files, so pose lines are recognised by their shape instead.
+    # Records are two lines: the pose line and a (possibly empty) keypoint line. Empty keypoint lines are easy to
+    # lose in hand-written files, so a line shaped like a pose line (IMAGE_ID, seven numbers, CAMERA_ID, a name that
+    # is not a number) is a pose line even where a keypoint line was due; keypoint lines are all numbers.
     expect_pose = True
     for number, line in _data_lines(path):
         parts = line.split()
-        if expect_pose:
-            if not parts:
-                continue
-            if len(parts) < 10:
-                raise DataError(path, f"line {number}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME")
-            try:
-                image_id = int(parts[0])
-                values = [float(p) for p in parts[1:8]]
-                cam_id = int(parts[8])
-            except ValueError:
-                raise DataError(path, f"line {number}: bad number in image pose line") from None
-            name = " ".join(parts[9:])
-            images[image_id] = ColmapImage(image_id, np.array(values[:4]), np.array(values[4:]), cam_id, name)
-            expect_pose = False
-        else:
+        if not parts:
             expect_pose = True
+            continue
+        pose = _image_pose(parts)
+        if pose is None:
+            if expect_pose:
+                raise DataError(path, f"line {number}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME")
+            expect_pose = True  # the keypoint line
+            continue
+        images[pose.image_id] = pose
+        expect_pose = False
     return images
+
+
+def _image_pose(parts: list[str]) -> ColmapImage | None:
+    """The image record of a pose line's tokens, or None when they are not one."""
+    if len(parts) < 10:
+        return None
+    try:
+        image_id = int(parts[0])
+        values = [float(p) for p in parts[1:8]]
+        cam_id = int(parts[8])
+    except ValueError:
+        return None
+    try:
+        float(parts[9])
+        return None  # a keypoint line: X Y POINT3D_ID triples, all numbers
+    except ValueError:
+        pass
+    return ColmapImage(image_id, np.array(values[:4]), np.array(values[4:]), cam_id, " ".join(parts[9:]))
 
 
 def _read_points_txt(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
