@@ -119,6 +119,24 @@ def test_canonical_rotation_changes_no_rotation_at_any_time():
         assert np.allclose(np.abs(np.sum(a * b, axis=1)), 1.0)  # same rotation (q and -q are the same)
 
 
+
+def test_a_zero_quaternion_with_a_spin_keeps_its_rotation():
+    # The official error-guided sampling writes q = 0; with omega != 0 it renders normalize(omega * dt), which a unit
+    # q must reproduce at every dt != 0 (it used to decode as the identity).
+    rng = np.random.default_rng(4)
+    rot, omega = np.zeros((50, 4)), rng.normal(0, 0.5, (50, 4))
+    rot_c, omega_c = canonical_rotation(rot, omega)
+    assert np.allclose(np.linalg.norm(rot_c, axis=1), 1.0)
+    for dt in (-1.0, -0.3, 0.2, 1.0):
+        a = omega * dt
+        b = rot_c + omega_c * dt
+        a /= np.linalg.norm(a, axis=1, keepdims=True)
+        b /= np.linalg.norm(b, axis=1, keepdims=True)
+        assert np.allclose(np.abs(np.sum(a * b, axis=1)), 1.0)
+    untouched, _ = canonical_rotation(np.zeros((1, 4)), np.zeros((1, 4)))
+    assert not untouched.any()
+
+
 def test_rendered_quantities_stay_close_at_the_default_quality(models, round_trips):
     arrays, _ = models["full"]
     _, decoded, index = round_trips["full", DEFAULT_QUALITY]

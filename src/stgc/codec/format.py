@@ -257,7 +257,18 @@ def canonical_rotation(rot: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, 
 
     STG rotates by normalize(q + omega * dt), which is invariant to any positive common factor of q and omega, and
     maps to the same rotation under a common sign flip; so this changes nothing rendered while bounding q to
-    [-1, 1]. A zero quaternion (the official error-guided sampling creates them) is left as is."""
+    [-1, 1]. A zero quaternion (the official error-guided sampling creates them) cannot be stored as a unit one:
+    with omega != 0 it rotates by normalize(omega * dt) = +-omega/|omega| at every dt != 0, which q = omega/|omega|,
+    omega' = omega / (2 |omega|) renders too (q + omega' dt = q (1 + dt/2) keeps its direction for |dt| < 2). With
+    omega = 0 as well it is left as is."""
+    rot = np.asarray(rot, dtype=np.float64)
+    omega = np.asarray(omega, dtype=np.float64)
+    omega_norm = np.linalg.norm(omega, axis=1, keepdims=True)
+    still = (np.linalg.norm(rot, axis=1, keepdims=True) == 0) & (omega_norm > 0)
+    if still.any():
+        direction = omega / np.where(omega_norm > 0, omega_norm, 1.0)
+        rot = np.where(still, direction, rot)
+        omega = np.where(still, direction / 2, omega)
     norm = np.linalg.norm(rot, axis=1, keepdims=True)
     largest = np.take_along_axis(rot, np.argmax(np.abs(rot), axis=1)[:, None], axis=1)
     sign = np.where(largest < 0, -1.0, 1.0)
