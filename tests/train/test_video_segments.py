@@ -166,6 +166,10 @@ def test_a_whole_video_is_one_bitstream_that_evaluates_renders_and_restores(scen
     assert [r["segment"] for r in rows].count("segment_002") == 1 and len(rows) == 5
     assert [s["segment"] for s in record["seams"]] == ["segment_000", "segment_001", "segment_002"]
     assert (out / "seams_video.png").stat().st_size > 1000
+    # Named with --data, the video's own data files the record under its own name (a container embeds no run
+    # config of its own: the folder's is the video's).
+    assert main(["eval", str(bitstream), "--data", str(scene.root), "--no-fps"]) == 0
+    assert sorted(p.name for p in out.glob("eval_video*.json")) == ["eval_video.json"]
 
     # Away from its run: the configs the segments embed name the same data; the same numbers come out.
     away = tmp_path / "away"

@@ -329,18 +329,23 @@ def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstre
     segment's file written into its whole video's folder), else its folder's."""
     if bitstream is not None:
         metadata = read_stgc_metadata(bitstream)
-        embedded = metadata.get("run_config")
-        if (isinstance(embedded, dict) and isinstance(embedded.get("data"), dict)) or not Run(run_dir).has_config():
+        if embedded_data_section(metadata) is not None or not Run(run_dir).has_config():
             return open_embedded_dataset(metadata, bitstream, data_path)
     return open_saved_run_dataset(run_dir, data_path)
+
+
+def embedded_data_section(metadata: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The `data` section of the run config a bitstream's metadata embeds, or None without one."""
+    embedded = metadata.get("run_config")
+    section = embedded.get("data") if isinstance(embedded, dict) else None
+    return section if isinstance(section, dict) else None
 
 
 def open_embedded_dataset(metadata: Mapping[str, Any], source: str | Path, data_path: str | Path | None = None) -> Any:
     """The dataset named by the run config a bitstream embeds (its `run_config` metadata); `data_path` replaces
     the saved location."""
-    embedded = metadata.get("run_config")
-    section = embedded.get("data") if isinstance(embedded, dict) else None
-    if not isinstance(section, dict):
+    section = embedded_data_section(metadata)
+    if section is None:
         raise DataError(source, "no run config found beside or inside the bitstream; pass the dataset with --data")
     config, path = data_config_from_saved(section, source)
     target = data_path if data_path is not None else path
@@ -453,9 +458,9 @@ def _other_data(run_dir: Path, data_path: str | Path | None, bitstream: Path | N
     for a `.stgc`, the run config it embeds, as `open_run_dataset` reads it)."""
     if data_path is None:
         return None
-    embedded = read_stgc_metadata(bitstream).get("run_config") if bitstream is not None else None
-    if isinstance(embedded, dict) and isinstance(embedded.get("data"), dict):
-        saved_path = embedded["data"].get("path")
+    embedded = embedded_data_section(read_stgc_metadata(bitstream)) if bitstream is not None else None
+    if embedded is not None:
+        saved_path = embedded.get("path")
     else:
         saved = saved_run_data(run_dir)
         saved_path = saved[1] if saved is not None else None
@@ -491,7 +496,8 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
                    "data": str(data_path) if data_path is not None else None})
     seams = [seam_of(name, curve) for name, curve in curves]
     record["seams"] = [{k: v for k, v in seam.items() if k != "frames"} for seam in seams if seam]
-    json_path, csv_path = Run(target.parent).eval_paths(_other_data(target.parent, data_path, target), target)
+    # A whole-video container embeds no run config of its own (its segments do): the folder's is the video's.
+    json_path, csv_path = Run(target.parent).eval_paths(_other_data(target.parent, data_path), target)
     write_json(json_path, record)
     _write_per_view(csv_path, rows)
     if record["seams"]:
