@@ -559,6 +559,11 @@ def test_monocular_images_are_rendered_at_the_time_their_file_names(tmp_path):
     root = _write_monocular(tmp_path / "dnerf", [0.0, 0.25, 0.5, 1.0], [0.05, 0.3])
     data = open_dataset(root)
     assert data.frames == [0, 1, 2, 3, 4, 5] and data.train_frames == [0, 2, 4, 5]
+    from stgc.data.points import initial_points
+    from stgc.errors import DataError
+
+    with pytest.raises(DataError, match=r"frames \[1\] have no training camera"):  # only a test image: no points
+        initial_points(data, "random", frames=[0, 1])
     times = {c.name: c.time for c in data.train + data.test}
     scale = 5 / 6  # the last of 6 frames is at t = 5/6, as every frame-based format has it
     expected = {"train_r_000": 0.0, "test_r_000": 0.05, "train_r_001": 0.25, "test_r_001": 0.3, "train_r_002": 0.5,

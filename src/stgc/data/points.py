@@ -218,8 +218,6 @@ def random_points(dataset: Dataset, frame: int, count: int,
                   "triangulation); expect slower, worse training", stacklevel=3)
     focus, radius = viewing_region(dataset)
     cams = dataset.train_at(frame)
-    if not cams:
-        raise DataError(dataset.root, f"frame {frame} has no training camera to place random points for")
     xyz_out, rgb_out = [], []
     got = 0
     for _ in range(50):
