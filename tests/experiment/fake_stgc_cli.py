@@ -44,10 +44,13 @@ def main(argv: list[str]) -> int:
             return 3
         case = int(sets.get("compaction.case", 0)) if sets.get("compaction.method") == "st-knn" else 0
         preprocess = sets.get("data.preprocess", "none")
-        (out / "config.json").write_text(json.dumps({
-            "data": {"path": argv[1], "preprocess": preprocess},
-            "compaction": {"method": sets.get("compaction.method", "none"), "case": case,
-                           "criterion": sets.get("compaction.criterion", "timestamp")}, "sets": sets}))
+        # The options it was given, as a real config.json records them (the runner compares those it holds).
+        compaction = {"method": sets.get("compaction.method", "none"),
+                      "criterion": sets.get("compaction.criterion", "timestamp")}
+        if "compaction.case" in sets:
+            compaction["case"] = int(sets["compaction.case"])
+        (out / "config.json").write_text(json.dumps({"data": {"path": argv[1], "preprocess": preprocess},
+                                                     "compaction": compaction, "sets": sets}))
         (out / "checkpoint.pt").write_bytes(b"fake")
         if "--resume" not in argv:
             time.sleep(float(sets.get("fake.sleep", 0)))
@@ -66,6 +69,8 @@ def main(argv: list[str]) -> int:
             return 2
         config = json.loads((source / "config.json").read_text())
         (out / "config.json").write_text(json.dumps({**config, "from": str(source)}))
+        iterations = int(argv[argv.index("--iterations") + 1])
+        (out / "continued_from.json").write_text(json.dumps({"run": str(source.resolve()), "iterations": iterations}))
         (out / "checkpoint.pt").write_bytes(b"fake")
         (out / "train_summary.json").write_text(json.dumps({"finished": True, "wall_seconds": 0.5, "iterations": 20}))
         record = json.loads((source / "eval.json").read_text())
@@ -77,7 +82,9 @@ def main(argv: list[str]) -> int:
         run = target.parent if target.suffix == ".stgc" else target
         _record(run, argv)
         cfg = json.loads((run / "config.json").read_text())
-        rec = _eval_record(cfg["compaction"]["case"], cfg["data"]["preprocess"])
+        compaction = cfg["compaction"]
+        case = compaction.get("case", 0) if compaction["method"] == "st-knn" else 0
+        rec = _eval_record(case, cfg["data"]["preprocess"])
         if target.suffix == ".stgc":
             rec["mbps"] = target.stat().st_size * 8 / 1e6
             rec["psnr"] -= 0.05

@@ -324,7 +324,8 @@ def test_fine_tuning_runs_start_from_their_finished_source(tmp_path: Path) -> No
     calls = [c for c in _invocations(out) if not c.startswith(("compress", "eval"))]
     assert [c.split()[0] for c in calls] == ["train", "finetune", "finetune"]  # each after its source
     assert calls[1].startswith(f"finetune {out / 'stg'} --out {out / 'rate-a'} --iterations 100 --overwrite")
-    assert "train.quantization_aware.rate_weight=0.001" in calls[1] and "train.threads" not in calls[1]
+    # --set wins over the plan in every run: its train.* options reach the fine-tuning runs too.
+    assert "train.quantization_aware.rate_weight=0.001" in calls[1] and "--set train.threads=1" in calls[1]
     assert calls[2].startswith(f"finetune {out / 'rate-a'} --out {out / 'rate-b'} --iterations 50")
     # The checked options are the source's with the run's own on top (train.threads came from --set).
     rows = {r["name"]: r for r in _results(out, "rate")}
@@ -334,6 +335,70 @@ def test_fine_tuning_runs_start_from_their_finished_source(tmp_path: Path) -> No
     again = run_plan("DATA", plan_path, out, preset="cpu", extra_overrides=["train.threads=1"], runner=fake_runner,
                      python=sys.executable, log=lambda m: None)
     assert {o.status for o in again.outcomes} == {"skipped"} and len(_invocations(out)) == 3 + 2 * 5
+
+
+def test_set_options_win_over_the_plan_in_fine_tuning_runs_too(tmp_path: Path) -> None:
+    plan_path = tmp_path / "rate.toml"
+    plan_path.write_text(FINETUNE_TOML)
+    out = tmp_path / "exp"
+    run_plan("DATA", plan_path, out, preset="cpu", extra_overrides=["train.quantization_aware.rate_weight=0.05"],
+             runner=fake_runner, python=sys.executable, log=lambda m: None)
+    finetunes = [c for c in _invocations(out) if c.startswith("finetune")]
+    assert len(finetunes) == 2
+    for call in finetunes:  # not the plan's 0.001 and 0.01
+        assert call.count("rate_weight=") == 1 and call.endswith("rate_weight=0.05"), call
+
+
+@pytest.mark.parametrize("change, reported", [
+    (('iterations = 50', 'iterations = 500'), "50 fine-tuning iterations then, 500 now"),
+    (('from = "rate-a"', 'from = "stg"'), "fine-tuned from"),
+])
+def test_a_finished_fine_tuning_run_with_another_source_or_length_is_not_reused(
+        tmp_path: Path, change: tuple[str, str], reported: str) -> None:
+    plan_path = tmp_path / "rate.toml"
+    plan_path.write_text(FINETUNE_TOML)
+    out = tmp_path / "exp"
+    run_plan("DATA", plan_path, out, preset="cpu", runner=fake_runner, python=sys.executable, log=lambda m: None)
+    # rate-b's own options hide what its source added, so only its recorded source and length can tell.
+    plan_path.write_text(FINETUNE_TOML.replace(*change))
+    calls = len(_invocations(out))
+    result = run_plan("DATA", plan_path, out, preset="cpu", runner=fake_runner, python=sys.executable,
+                      log=lambda m: None)
+    outcome = next(o for o in result.outcomes if o.name == "rate-b")
+    assert outcome.status == "failed" and reported in outcome.message, outcome.message
+    assert len(_invocations(out)) == calls
+
+
+def _trained_config(run: Path, preset: str, sets: dict[str, str]) -> None:
+    """A config.json as `stgc train` writes it (every option of every section), for these options."""
+    from stgc.options import resolve_configs
+    from stgc.train.loop import _config_dict
+
+    configs = resolve_configs(preset, {}, {}, sets)
+    run.mkdir(parents=True)
+    saved = {name: _config_dict(configs[name]) for name in ("data", "model", "train", "compaction")}
+    saved["data"]["path"] = str(Path("DATA").resolve())
+    (run / "config.json").write_text(json.dumps(saved))
+
+
+def test_a_run_whose_preset_defaults_moved_is_not_reused(tmp_path: Path) -> None:
+    from stgc.experiment.runner import reuse_mismatch
+
+    sets = {"compaction.method": "none", "data.preprocess": "none"}
+    run = tmp_path / "exp" / "stg"
+    _trained_config(run, "cpu", sets)
+    assert reuse_mismatch(run, "DATA", "cpu", sets) is None
+    # The same plan entry and recorded options, but the run was trained when the preset meant something else.
+    (run / "experiment.json").write_text(json.dumps({"name": "stg", "overrides": sets, "preset": "cpu",
+                                                     "data": str(Path("DATA").resolve())}))
+    saved = json.loads((run / "config.json").read_text())
+    saved["train"]["iterations"] += 3000
+    (run / "config.json").write_text(json.dumps(saved))
+    assert "train.iterations" in (reuse_mismatch(run, "DATA", "cpu", sets) or "")
+    # A run copied in by hand from another preset (no experiment.json), options equal to the plan's.
+    other = tmp_path / "exp2" / "stg"
+    _trained_config(other, "paper", sets)
+    assert "train.iterations" in (reuse_mismatch(other, "DATA", "cpu", sets) or "")
 
 
 def test_a_failed_source_fails_its_fine_tuning_runs_without_launching_them(tmp_path: Path) -> None:

@@ -41,6 +41,7 @@ from stgc.experiment.plans import Plan, RunSpec, load_plan
 from stgc.fileio import atomic_open, read_json_object, write_json
 from stgc.options import configs_from_run, resolve_configs
 from stgc.run import Run
+from stgc.train.continuation import continuation_configs
 
 _log = logging.getLogger(__name__)
 
@@ -89,6 +90,12 @@ def build_finetune_command(source_dir: str | Path, run_dir: str | Path, iteratio
     return cmd
 
 
+def finetune_overrides(spec: RunSpec, extra: Mapping[str, str]) -> dict[str, str]:
+    """The options `stgc finetune` gets for a fine-tuning run: its plan entry's, and --set's train.* ones over them
+    (--set wins over the plan in every run; the other sections and the length come from the source)."""
+    return {**spec.overrides, **{k: v for k, v in extra.items() if k.startswith("train.") and k != "train.iterations"}}
+
+
 def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str], out_dir: Path) -> dict[str, str]:
     """The options that make `spec`'s run: its own over the plan's and --set's; a fine-tuning run's start from
     its source's (which it inherits) and change only train.* ones (its own). A run with a loss reference gets
@@ -97,7 +104,7 @@ def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str], out_dir: 
         reference = {} if spec.reference is None else {"compaction.loss_reference": str(out_dir / spec.reference)}
         return {**spec.overrides, **extra, **reference}
     source = next(s for s in plan.runs if s.name == spec.source)
-    return {**run_overrides(plan, source, extra, out_dir), **spec.overrides}
+    return {**run_overrides(plan, source, extra, out_dir), **finetune_overrides(spec, extra)}
 
 
 def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str], out_dir: Path) -> None:
@@ -110,18 +117,27 @@ def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str],
             raise ConfigError(f"plan {plan.name!r}, run {spec.name!r}: {exc}") from None
 
 
-def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, overrides: Mapping[str, str]) -> str | None:
-    """Why the run already in `run_dir` is not the one the plan asks for now (other options, preset or data), or
-    None when it is, or when nothing is there yet. A finished run is skipped and an interrupted one resumed with
-    its own saved config, so a mismatch would put one run's numbers under another's options in the results.
+def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, overrides: Mapping[str, str],
+                   spec: RunSpec | None = None, extra: Mapping[str, str] | None = None, *,
+                   check_config: bool = True) -> str | None:
+    """Why the run already in `run_dir` is not the one the plan asks for now, or None when it is, or when nothing is
+    there yet. A finished run is skipped and an interrupted one resumed with its own saved config, so a mismatch
+    would put one run's numbers under another's options in the results.
 
-    Runs this runner started are checked against their experiment.json; a run copied in by hand (no
-    experiment.json) against its config.json, for each option the plan sets."""
+    Checked: the plan entry this runner recorded (experiment.json: options, preset, data), a fine-tuning run's
+    source and length (continued_from.json against `source`, the plan entry's `from` and `iterations`), and the
+    whole saved config.json against the config the plan resolves to today, execution options left out. The last
+    catches what the recorded options cannot: a preset whose defaults moved, a run copied in by hand, a
+    fine-tuning run whose source's options changed. `spec` is the run's plan entry and `extra` the --set options
+    (needed for a fine-tuning run); `check_config` off (a stand-in trainer with options of its own, in tests)
+    compares only the options the plan sets, and only for a run copied in by hand."""
     run = Run(run_dir)
+    if not run.has_config() and not run.experiment_path.is_file():
+        return None
+    differences = []
     recorded = read_json_object(run.experiment_path, strict=False)
     wanted = {k: str(v) for k, v in overrides.items() if k not in EXECUTION_OPTIONS}
     if recorded is not None:
-        differences = []
         before = {str(k): str(v) for k, v in (recorded.get("overrides") or {}).items() if k not in EXECUTION_OPTIONS}
         for key in sorted(set(before) | set(wanted)):
             if before.get(key) != wanted.get(key):
@@ -130,23 +146,75 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
             differences.append(f"preset: {recorded['preset']} then, {preset or 'cpu'} now")
         if recorded.get("data") is not None and Path(str(recorded["data"])).resolve() != Path(data_path).resolve():
             differences.append(f"data: {recorded['data']} then, {Path(data_path).resolve()} now")
-        return "; ".join(differences) or None
-    if not run.has_config():
-        return None
-    try:
-        asked = resolve_configs(preset or "cpu", {}, {}, wanted)
-        saved = configs_from_run(run_dir)
-    except (ConfigError, StgcError):  # options only a stand-in trainer knows, or a config it wrote: nothing to compare
-        return None
+    finetune = spec if spec is not None and spec.source is not None else None
+    if finetune is not None:
+        differences += _continuation_mismatch(run, finetune)
+    if run.has_config() and (check_config or recorded is None):
+        differences += _config_mismatch(run_dir, data_path, preset, wanted,
+                                        None if finetune is None else (finetune, dict(extra or {})), check_config)
+    return "; ".join(dict.fromkeys(differences)) or None
+
+
+def _continuation_mismatch(run: Run, spec: RunSpec) -> list[str]:
+    """A fine-tuning run's recorded source and length against its plan entry (`spec`, with its `source`)."""
+    continued = read_json_object(run.path / Run.CONTINUED_FROM, strict=False)
+    if continued is None:
+        return []
     differences = []
-    for key in sorted(wanted):
-        ours, theirs = _option_value(asked, key), _option_value(saved, key)
-        if ours != theirs:
-            differences.append(f"{key}: {theirs} in its config.json, {ours} in the plan")
+    wanted_source = (run.path.parent / str(spec.source)).resolve()
+    if continued.get("run") is not None and Path(str(continued["run"])).resolve() != wanted_source:
+        differences.append(f"fine-tuned from {continued['run']} then, from {wanted_source} now")
+    if continued.get("iterations") is not None and int(continued["iterations"]) != spec.iterations:
+        differences.append(f"{continued['iterations']} fine-tuning iterations then, {spec.iterations} now")
+    return differences
+
+
+def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, wanted: Mapping[str, str],
+                     finetune: tuple[RunSpec, dict[str, str]] | None, every_option: bool = True) -> list[str]:
+    """Every option of RUN/config.json (or only those in `wanted`) against the config the plan resolves to now (a
+    fine-tuning run, given as its plan entry and the --set options: its source's saved config continued as the
+    plan says). Options the training resolves from the data (None or 'auto' in the plan's config) and options the
+    config.json does not hold are not compared."""
+    try:
+        saved = configs_from_run(run_dir)
+        if finetune is None:
+            asked = resolve_configs(preset or "cpu", {}, {}, dict(wanted))
+        else:
+            spec, extra = finetune
+            source_dir = run_dir.parent / str(spec.source)
+            if not Run(source_dir).has_config():
+                return []
+            asked = continuation_configs(configs_from_run(source_dir), source_dir, spec.iterations,
+                                         finetune_overrides(spec, extra))
+    except (ConfigError, StgcError):  # options only a stand-in trainer knows, or a config it wrote: nothing to compare
+        return []
+    recorded = Run(run_dir).read_config() or {}
+    differences = []
+    for section in ("data", "model", "train", "compaction"):
+        present = _dotted_keys(recorded.get(section))
+        theirs = {f.dotted: f.default for f in iter_fields(saved[section])}
+        for f in iter_fields(asked[section]):
+            key = f"{section}.{f.dotted}"
+            if (f.dotted not in present or key in EXECUTION_OPTIONS or f.default is None or f.default == "auto"
+                    or not (every_option or key in wanted)):
+                continue
+            if theirs.get(f.dotted) != f.default:
+                differences.append(f"{key}: {theirs.get(f.dotted)} in its config.json, {f.default} in the plan")
     saved_data = saved.get("data_path")
     if saved_data is not None and Path(str(saved_data)).resolve() != Path(data_path).resolve():
         differences.append(f"data: {saved_data} in its config.json, {Path(data_path).resolve()} in the plan")
-    return "; ".join(differences) or None
+    return differences
+
+
+def _dotted_keys(section: Any, prefix: str = "") -> set[str]:
+    """The dotted option names a saved config section holds (a config.json of an older stgc lacks newer options:
+    those are not compared)."""
+    if not isinstance(section, Mapping):
+        return set()
+    keys: set[str] = set()
+    for name, value in section.items():
+        keys |= _dotted_keys(value, f"{prefix}{name}.") if isinstance(value, Mapping) else {f"{prefix}{name}"}
+    return keys
 
 
 def _option_value(configs: Mapping[str, Any], key: str) -> Any:
@@ -360,8 +428,8 @@ def run_plan(
                     outcome.status = "dry-run"
                     outcome.message = " ".join(
                         command_builder(data_path, run_dir, preset, overrides, python=python) if spec.source is None
-                        else build_finetune_command(out_dir / spec.source, run_dir, spec.iterations, spec.overrides,
-                                                    python=python))
+                        else build_finetune_command(out_dir / spec.source, run_dir, spec.iterations,
+                                                    finetune_overrides(spec, extra), python=python))
                 per_spec[index] = [outcome]
                 continue
             needed = [(what, name) for what, name in (("source", spec.source), ("loss reference", spec.reference))
@@ -375,7 +443,7 @@ def run_plan(
                               args=(spec, run_dir, data_path, preset, overrides,
                                     qualities if spec.codec_qualities is None else list(spec.codec_qualities),
                                     runner, command_builder,
-                                    python, out_dir / "logs" / f"{spec.name}.log", say),
+                                    python, out_dir / "logs" / f"{spec.name}.log", say, extra, check_options),
                               num_cpus=_run_cpus(preset, overrides), progress=Run(run_dir).progress,
                               log_file=Run(run_dir).task_log_path))
             indices.append(index)
@@ -401,10 +469,12 @@ def run_plan(
 
 def run_spec(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | None, overrides: dict[str, str],
              qualities: Sequence[int], runner: Runner, command_builder: Callable[..., list[str]], python: str,
-             log_path: Path, say: Callable[[str], None]) -> list[RunOutcome]:
+             log_path: Path, say: Callable[[str], None], extra: Mapping[str, str] | None = None,
+             check_config: bool = True) -> list[RunOutcome]:
     """One run of a plan, as a task: train (or resume, or skip when finished), evaluate, and each codec point."""
     outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
-    mismatch = reuse_mismatch(run_dir, data_path, preset, overrides)
+    extra = dict(extra or {})
+    mismatch = reuse_mismatch(run_dir, data_path, preset, overrides, spec, extra, check_config=check_config)
     if mismatch is not None:
         outcome.status = "failed"
         outcome.message = (f"{run_dir} holds a run made with other settings ({mismatch}); give another --out, or "
@@ -415,8 +485,8 @@ def run_spec(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | 
     if run_is_finished(run_dir):
         say(f"[{spec.name}] finished earlier: skipped")
     else:
-        outcome.status = _train_and_eval(spec, run_dir, data_path, preset, overrides, runner, command_builder,
-                                         python, log_path, say, outcome)
+        outcome.status = _train_and_eval(spec, run_dir, data_path, preset, overrides, extra, runner,
+                                         command_builder, python, log_path, say, outcome)
     outcome.seconds = time.perf_counter() - start
     outcome.record = Run(run_dir).read_eval(strict=False)
     outcomes = [outcome]
@@ -434,8 +504,8 @@ def _run_cpus(preset: str | None, overrides: Mapping[str, str]) -> int:
 
 
 def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | None,
-                    overrides: dict[str, str], runner: Runner, command_builder: Callable[..., list[str]],
-                    python: str, log_path: Path, say: Callable[[str], None], outcome: RunOutcome) -> str:
+                    overrides: dict[str, str], extra: Mapping[str, str], runner: Runner,
+                    command_builder: Callable[..., list[str]], python: str, log_path: Path, say: Callable[[str], None], outcome: RunOutcome) -> str:
     run_dir.mkdir(parents=True, exist_ok=True)
     write_json(Run(run_dir).experiment_path, {"name": spec.name, "family": spec.family, "label": spec.label,
                                             "overrides": overrides, "preset": preset or "cpu",
@@ -444,7 +514,8 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
     if not run.training_finished():
         resume = run.checkpoint_path.is_file() and run.has_config()
         if spec.source is not None and not resume:
-            cmd = build_finetune_command(run_dir.parent / spec.source, run_dir, spec.iterations, spec.overrides,
+            cmd = build_finetune_command(run_dir.parent / spec.source, run_dir, spec.iterations,
+                                         finetune_overrides(spec, extra),
                                          python=python)
         else:
             cmd = command_builder(data_path, run_dir, preset, overrides, resume=resume, python=python)
