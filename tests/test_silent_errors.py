@@ -603,3 +603,23 @@ def test_render_refuses_video_options_it_would_ignore(trained_run, tmp_path, opt
     out = tmp_path / "v.mp4"
     assert main(["render", str(trained_run), "--out", str(out), *options]) == 2
     assert "v.mp4" in capsys.readouterr().err and not out.exists()
+
+
+def test_a_saved_iteration_is_scored_with_its_runs_data_options(tmp_path):
+    # Trained on frames 1-2 of 3 on white: the iteration folder's own evaluation must use that window and background,
+    # with or without --data naming the run's data (it once opened the data with default options).
+    root = tmp_path / "scene"
+    write_panoptic_scene(root, views=5, frames=3, width=32, height=24)
+    run = tmp_path / "run"
+    assert main(_train_args(SimpleNamespace(root=root), run, "10", "--set", "data.start=1",
+                            "--set", "data.duration=2", "--set", "data.background=white")) == 0
+    assert main(["eval", str(run), "--no-fps"]) == 0
+    whole = json.loads((run / "eval.json").read_text())
+    iteration = run / "point_cloud" / "iteration_10"
+    for extra in ([], ["--data", str(root)]):
+        assert main(["eval", str(iteration), "--no-fps", *extra]) == 0
+        record = json.loads((iteration / "eval.json").read_text())  # the run's own data: no _on_<name>
+        assert record["frames"] == whole["frames"] == [1, 2]
+        assert record["psnr"] == pytest.approx(whole["psnr"], abs=1e-9)
+        assert record["duration_s"] == pytest.approx(whole["duration_s"])
+        (iteration / "eval.json").unlink()

@@ -427,8 +427,12 @@ def evaluate_run(
             raise DataError(target, "a whole-video bitstream is evaluated segment by segment on its own data")
         return _evaluate_video_bitstream(target, data_path, lpips_net=lpips_net, warmup=warmup,
                                          measure_fps=measure_fps)
+    # A saved model inside a run (RUN/point_cloud/iteration_<N>) is scored on its run's data, with its run's options;
+    # its record stays beside it.
+    owner = Run.of(target) if target.suffix != ".stgc" and not Run(target).has_config() else None
+    config_dir = owner.path if owner is not None else run_dir
     dataset = open_dataset(run_dir) if open_dataset else open_run_dataset(
-        run_dir, data_path, target if target.suffix == ".stgc" else None)
+        config_dir, data_path, target if target.suffix == ".stgc" else None)
     if load_model is None:
         load_model = _default_model_loader
     model = load_model(target)
@@ -438,7 +442,7 @@ def evaluate_run(
     else:
         info = size_of_saved_model(target, duration_s)
     result = _score_model(model, dataset, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
-    other_data = _other_data(run_dir, data_path, target if target.suffix == ".stgc" else None)
+    other_data = _other_data(run_dir, data_path, target if target.suffix == ".stgc" else None, config_dir)
     extra = {"data": str(dataset.root), **({"other_data": other_data} if other_data else {})}
     return write_eval(run_dir, result, info, target=target, other_data=other_data, extra=extra)
 
@@ -453,16 +457,18 @@ def _score_model(model: Any, dataset: Dataset, *, lpips_net: str | None, warmup:
     return result
 
 
-def _other_data(run_dir: Path, data_path: str | Path | None, bitstream: Path | None = None) -> str | None:
+def _other_data(run_dir: Path, data_path: str | Path | None, bitstream: Path | None = None,
+                config_dir: Path | None = None) -> str | None:
     """The name evaluations on `data_path` are filed under: None for the run's own data (where its config points:
-    for a `.stgc`, the run config it embeds, as `open_run_dataset` reads it)."""
+    for a `.stgc`, the run config it embeds, as `open_run_dataset` reads it; else `config_dir`'s, by default
+    `run_dir`'s)."""
     if data_path is None:
         return None
     embedded = embedded_data_section(read_stgc_metadata(bitstream)) if bitstream is not None else None
     if embedded is not None:
         saved_path = embedded.get("path")
     else:
-        saved = saved_run_data(run_dir)
+        saved = saved_run_data(config_dir or run_dir)
         saved_path = saved[1] if saved is not None else None
     if saved_path is not None and Path(data_path).resolve() == Path(saved_path).resolve():
         return None
