@@ -69,3 +69,16 @@ def test_a_static_cloud_for_the_first_frame_leaves_every_frame_its_hull_points(m
     counts = cloud.counts_per_time()
     # Frame 1 has no shipped points, but still its hull points (they were skipped with its missing cloud).
     assert counts == {0.0: 300 + 80, 0.5: 80}
+
+
+def test_every_segment_of_a_video_starts_from_the_static_cloud(masked_scene, tmp_path):
+    import shutil
+
+    root = tmp_path / "scene"
+    shutil.copytree(masked_scene.root, root)
+    static = np.random.default_rng(0).uniform(-1, 1, (300, 7))
+    np.savez(root / "init_pt_cld.npz", data=static)
+    # The second segment (frame 1 on): the capture's cloud at its own first frame, not only its hull points.
+    segment = open_dataset(root, start=1, duration=1)
+    cloud = initial_points(segment, source="data", mask_points_per_frame=80)
+    assert cloud.counts_per_time() == {0.0: 300 + 80}

@@ -88,6 +88,8 @@ class SourceScene:
     view_dependent_colour: whether this source's reference method lets colour change with the viewing direction
         (official STG: yes; Dynamic 3D Gaussians, Panoptic's reference, keeps one colour per Gaussian and time).
     masks: camera -> path of its foreground mask (0 background, 255 foreground), or None where it has none.
+    static_points: `points` is one cloud for the whole capture (not one per frame): it is given to the first frame
+        of whichever segment is opened, so that every segment of a video starts from it.
     frame_positions: frame -> where it lies on the frame axis, for sources whose frames are ranks of times that are
         not evenly spaced (monocular D-NeRF, whose test images' times fall between the training images'); None:
         frame f lies at f. Time is then t = (position - start) / duration, so that every image is rendered at the
@@ -111,6 +113,7 @@ class SourceScene:
     masks: Callable[[Camera], Path | None] | None = None
     notes: list[str] = field(default_factory=list)
     frame_positions: dict[int, float] | None = None
+    static_points: bool = False
 
     def time_of(self, frame: int, start: int, duration: int) -> float:
         """Normalised time of `frame` in the segment [start, start + duration) (the one rule; see Dataset).
@@ -318,8 +321,9 @@ class Dataset:
         return self._scene.points is not None
 
     def data_points(self, frame: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """Points shipped with the data for `frame` (xyz, rgb in [0,1]), or None."""
-        if self._scene.points is None:
+        """Points shipped with the data for `frame` (xyz, rgb in [0,1]), or None. A static cloud (one for the whole
+        capture) belongs to the segment's first frame."""
+        if self._scene.points is None or (self._scene.static_points and frame != self.start):
             return None
         return self._scene.points(frame)
 

@@ -24,7 +24,7 @@ def _is_panoptic(path: Path) -> bool:
                  aliases=("d3dgs", "dynamic3dgaussians", "panopticsports"))
 def read_panoptic(path: Path, options: ReaderOptions) -> SourceScene:
     """Dynamic3DGaussians layout: train_meta.json / test_meta.json {w, h, k[t][c], w2c[t][c], fn[t][c],
-    cam_id[t][c]} and ims/<fn>. Optional init_pt_cld.npz (static points, used for the first frame)."""
+    cam_id[t][c]} and ims/<fn>. Optional init_pt_cld.npz (static points, used for the first frame of each segment)."""
     root = path.parent if path.is_file() else path
     cameras: list[Camera] = []
     test_names: list[str] = []
@@ -62,13 +62,12 @@ def read_panoptic(path: Path, options: ReaderOptions) -> SourceScene:
     points, description = None, None
     npz = root / "init_pt_cld.npz"
     if npz.is_file():
-        first = min(c.frame for c in cameras)
-        points = lambda frame: _panoptic_points(npz) if frame == first else None
-        description = f"{npz.name} (static cloud, tagged with the first frame)"
+        points = lambda frame: _panoptic_points(npz)
+        description = f"{npz.name} (static cloud, tagged with the segment's first frame)"
     return SourceScene(name=root.name, format="panoptic", root=root, cameras=cameras, default_test=test_names,
                        meta_file=meta_files[0], fps=30.0, points=points, points_description=description,
                        near_plane=PANOPTIC_NEAR_PLANE, view_dependent_colour=False,
-                       masks=_panoptic_masks(root))
+                       masks=_panoptic_masks(root), static_points=points is not None)
 
 
 # Dynamic 3D Gaussians sets up every Panoptic camera with near = 1.0 (its rasterizer still culls at 0.2; the 1.0
