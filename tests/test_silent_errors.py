@@ -623,3 +623,19 @@ def test_a_saved_iteration_is_scored_with_its_runs_data_options(tmp_path):
         assert record["psnr"] == pytest.approx(whole["psnr"], abs=1e-9)
         assert record["duration_s"] == pytest.approx(whole["duration_s"])
         (iteration / "eval.json").unlink()
+
+
+def test_a_case_or_criterion_alone_means_st_knn(scene, tmp_path):
+    run = tmp_path / "run"
+    assert main(_train_args(scene, run, "10", "--case", "2", "--criterion", "scale")) == 0
+    compaction = json.loads((run / "config.json").read_text())["compaction"]
+    assert (compaction["method"], compaction["case"], compaction["criterion"]) == ("st-knn", 2, "scale")
+    assert (run / "compaction.jsonl").is_file()
+
+
+@pytest.mark.parametrize("options", [["--compaction", "none", "--case", "2"], ["--set", "compaction.criterion=scale"],
+                                     ["--compaction.case", "3"]])
+def test_compaction_options_for_a_run_that_prunes_nothing_are_refused(scene, tmp_path, options, capsys):
+    run = tmp_path / "run"
+    assert main(_train_args(scene, run, "10", *options)) == 2
+    assert "compaction.method is none" in capsys.readouterr().err and not run.exists()

@@ -20,6 +20,7 @@ from stgc.compaction import plot_compaction
 from stgc.compaction.config import CASE_WINDOWS, METHODS
 from stgc.compaction.criteria import CRITERIA
 from stgc.config import (
+    ConfigError,
     add_config_arguments,
     apply_overrides,
     collect_overrides,
@@ -54,6 +55,18 @@ SECTION_TITLES = {
     "train": "training options (stgc.train.TrainConfig; defaults shown are the preset's)",
     "compaction": "compaction options (stgc.compaction.CompactionConfig)",
 }
+
+
+def _refuse_unused_compaction_options(compaction: Any, shortcuts: dict[str, dict[str, Any]],
+                                      options: dict[str, dict[str, str]], sets: dict[str, str]) -> None:
+    """A compaction option given for a run that prunes nothing would be recorded and silently ignored."""
+    if compaction.method != "none":
+        return
+    given = sorted({*shortcuts.get("compaction", {}), *options.get("compaction", {}),
+                    *(key.split(".", 1)[1] for key in sets if key.startswith("compaction."))} - {"method"})
+    if given:
+        raise ConfigError(f"compaction.{', compaction.'.join(given)}: given for a run whose compaction.method is none, "
+                          "where nothing is pruned; choose a method (--compaction st-knn) or drop them")
 
 
 def _resumed_data_path(run: Path, given: str | None, saved: str | None) -> str | None:
@@ -101,8 +114,12 @@ def cmd_train(args: argparse.Namespace) -> int:
             shortcuts.setdefault("compaction", {})["case"] = str(args.case)
         if args.criterion:
             shortcuts.setdefault("compaction", {})["criterion"] = args.criterion
-        configs = resolve_configs(getattr(args, "preset", "cpu"), shortcuts, collect_overrides(args),
-                                  parse_set_arguments(args.set))
+        options, sets = collect_overrides(args), parse_set_arguments(args.set)
+        if (args.case is not None or args.criterion) and not args.compaction \
+                and "method" not in options.get("compaction", {}) and "compaction.method" not in sets:
+            shortcuts["compaction"]["method"] = "st-knn"  # a case or a criterion is ST-KNN's (README's table)
+        configs = resolve_configs(getattr(args, "preset", "cpu"), shortcuts, options, sets)
+        _refuse_unused_compaction_options(configs["compaction"], shortcuts, options, sets)
         data_path = args.data
     if data_path is None:
         raise StgcError("no DATA given and the run has no saved data path")
@@ -273,8 +290,10 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
                    help="training schedule preset (default: cpu; a resumed run keeps its own)")
     p.add_argument("--variant", choices=list(VARIANTS), help="STG variant (shortcut for --model.variant)")
     p.add_argument("--compaction", choices=list(METHODS), help="compaction method (default none)")
-    p.add_argument("--case", type=int, choices=sorted(CASE_WINDOWS), help="paper pruning window case (compaction.case)")
-    p.add_argument("--criterion", choices=list(CRITERIA), help="which member of a pair is removed")
+    p.add_argument("--case", type=int, choices=sorted(CASE_WINDOWS),
+                   help="paper pruning window case (compaction.case); without --compaction: st-knn")
+    p.add_argument("--criterion", choices=list(CRITERIA),
+                   help="which member of a pair is removed; without --compaction: st-knn")
     p.add_argument("--resume", action="store_true", help="continue RUN from its last checkpoint")
     p.add_argument("--segment-frames", type=int, metavar="N",
                    help="train the video as consecutive N-frame segments (STG: 50), one run each in RUN/segment_<k>/; "
