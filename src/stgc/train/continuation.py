@@ -57,6 +57,11 @@ def continuation_configs(saved: Mapping[str, Any], source: str | Path, iteration
                                 sections.get("train", {}), "train")
     if train_cfg.iterations != base + iterations:
         raise ConfigError("train.iterations: give the continuation's length as its iterations, not as an override")
+    window = train_cfg.quantization_aware.iterations
+    if window > iterations:
+        # The window would start inside the source's finished training: fewer steps run than config.json records.
+        raise ConfigError(f"train.quantization_aware.iterations {window}: longer than the continuation's {iterations} "
+                          f"iterations (set it to at most {iterations}, or 0 for none)")
     configs["train"] = validate_config(train_cfg, "train")
     configs["compaction"] = dataclasses.replace(saved["compaction"], method="none")
     return configs
