@@ -143,3 +143,13 @@ def test_lite_variant_trains_and_densifies(tiny_toys, make_model, tmp_path):
     summary = trainer.run()
     assert {g["name"] for g in trainer.optimizer.param_groups} == set(trainer.model.params)
     assert "features_t" not in trainer.model.params and summary["iterations"] == 12
+
+
+def test_the_test_views_are_scored_every_eval_every_iterations_whatever_log_every(tiny_toys, make_model, tmp_path):
+    cfg = _short_config(iterations=12, save_iterations=(), checkpoint_every=0, log_every=5, eval_every=3)
+    train(tiny_toys, None, None, cfg, None, tmp_path / "run", model=make_model(tiny_toys, 100),
+          evaluator=RunEvaluator())
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    # 3, 6 and 9 (12 is the end, scored once by eval_at_end); rows at 5 and 10 are logging ones.
+    assert [r["iteration"] for r in rows if "test_psnr" in r] == [3, 6, 9]
+    assert [r["iteration"] for r in rows] == [3, 5, 6, 9, 10, 12]

@@ -549,7 +549,10 @@ class Trainer:
                 progress.update(step["loss"], step["psnr"], self.model.num_gaussians)
                 if self.callback is not None:
                     self.callback(iteration, {**step, **control})
-                if cfg.log_every and (iteration % cfg.log_every == 0 or iteration == end):
+                # An evaluation writes its metrics row whether or not the iteration is a logging one.
+                evaluate_now = bool(self.evaluator is not None and cfg.eval_every and iteration % cfg.eval_every == 0
+                                    and iteration != sched.iterations)
+                if evaluate_now or (cfg.log_every and (iteration % cfg.log_every == 0 or iteration == end)):
                     now = time.perf_counter()
                     row = {
                         "iteration": iteration,
@@ -564,8 +567,8 @@ class Trainer:
                         **control,
                     }
                     last_log_time, last_log_it = now, iteration
-                    if (self.evaluator is not None and cfg.eval_every and iteration % cfg.eval_every == 0
-                            and iteration != sched.iterations):
+                    if evaluate_now:
+                        assert self.evaluator is not None
                         e0 = time.perf_counter()
                         ev = self.evaluator.score(self.render_view, self.dataset)
                         row["test_psnr"], row["test_ssim"] = ev.psnr, ev.ssim
