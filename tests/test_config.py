@@ -48,12 +48,14 @@ def test_overrides_are_coerced_to_the_field_type():
     assert cfg.iterations == 5000 and cfg.criterion == "scale" and cfg.enabled is False
     assert cfg.limit is None and cfg.times == (0.1, 0.9) and cfg.inner.threshold == pytest.approx(1e-3)
     assert cfg.inner.rounds == 6
+    assert apply_overrides(Outer(), {"iterations": "3e4"}).iterations == 30000  # an integer written as a float
 
 
 @pytest.mark.parametrize(
     "key,value,message",
     [("iterations", "abc", "cannot read"), ("criterion", "size", "not one of"), ("enabled", "maybe", "boolean"),
-     ("inner.thresold", "1", "did you mean inner.threshold"), ("nope", "1", "unknown option")],
+     ("inner.thresold", "1", "did you mean inner.threshold"), ("nope", "1", "unknown option"),
+     ("iterations", "1e-4", "not an integer"), ("iterations", "2.5e0", "not an integer")],
 )
 def test_bad_overrides_name_the_field(key, value, message):
     with pytest.raises(ConfigError, match=message):

@@ -117,7 +117,12 @@ def coerce(value: Any, tp: Any, name: str) -> Any:
         if inner is int:
             if isinstance(value, float) and not value.is_integer():
                 raise ConfigError(f"{name}: {value!r} is not an integer")
-            return int(float(value)) if isinstance(value, str) and "e" in value.lower() else int(value)
+            if isinstance(value, str) and "e" in value.lower():  # 3e4 = 30000, but 1e-4 is no integer
+                number = float(value)
+                if not number.is_integer():
+                    raise ConfigError(f"{name}: {value!r} is not an integer")
+                return int(number)
+            return int(value)
         if inner is float:
             return float(value)
         if inner is str:
