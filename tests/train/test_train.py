@@ -153,3 +153,13 @@ def test_the_test_views_are_scored_every_eval_every_iterations_whatever_log_ever
     # 3, 6 and 9 (12 is the end, scored once by eval_at_end); rows at 5 and 10 are logging ones.
     assert [r["iteration"] for r in rows if "test_psnr" in r] == [3, 6, 9]
     assert [r["iteration"] for r in rows] == [3, 5, 6, 9, 10, 12]
+
+
+def test_error_guided_sampling_acts_without_the_ssim_loss(tiny_toys, make_model, tmp_path):
+    from stgc.train.checkpoint import load_checkpoint
+
+    # Every view is a candidate and triggers: with lambda_dssim = 0 the views once had no SSIM (NaN) and none did.
+    ems = EMSConfig(enabled=True, start=1, min_gap=1, select_ssim=1.0, trigger_ssim=1.0, max_events=1)
+    cfg = _short_config(iterations=20, save_iterations=(), checkpoint_every=0, lambda_dssim=0.0, ems=ems)
+    train(tiny_toys, None, None, cfg, None, tmp_path / "run", model=make_model(tiny_toys, 100))
+    assert load_checkpoint(tmp_path / "run")["ems"]["events"] == 1

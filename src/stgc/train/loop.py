@@ -404,6 +404,9 @@ class Trainer:
         if lam > 0:
             s = ssim(render_rgb, gt)
             loss, ssim_value = (1.0 - lam) * loss + lam * (1.0 - s), float(s.detach())
+        elif self.cfg.ems.enabled:  # error-guided sampling picks its views by their SSIM
+            with torch.no_grad():
+                ssim_value = float(ssim(render_rgb, gt))
         foreground = None if self.masks is None else self.masks.get(camera)
         if foreground is not None and bool(foreground.any()):
             loss = loss + self.cfg.mask_loss * error[foreground].mean()
