@@ -138,3 +138,14 @@ def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
                           measure_fps=False)
     assert record["size_bytes"] == 500 and record["fps"] is None
     assert (tmp_path / "eval_model_q3.json").is_file()
+
+
+def test_a_whole_videos_render_rate_is_all_renders_over_all_their_time() -> None:
+    from stgc.eval.evaluate import aggregate_video_records
+
+    fast = {"psnr": 30.0, "num_views": 50, "fps": 100.0, "duration_s": 1.0, "size_bytes": 10}
+    slow = {"psnr": 20.0, "num_views": 50, "fps": 10.0, "duration_s": 1.0, "size_bytes": 10}
+    video = aggregate_video_records([("segment_0", fast), ("segment_1", slow)])
+    # 100 renders in 0.5 s + 5 s: 18.2 per second, not the mean of the rates (55).
+    assert video["fps"] == pytest.approx(100 / 5.5)
+    assert video["psnr"] == pytest.approx(25.0)

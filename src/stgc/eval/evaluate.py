@@ -521,6 +521,14 @@ def _weighted(records: Sequence[Mapping[str, Any]], key: str, weight: str = "num
     return sum(v * w for v, w in pairs) / total if total > 0 else None
 
 
+def _rate_over_all(records: Sequence[Mapping[str, Any]], key: str, weight: str = "num_views") -> float | None:
+    """A per-second rate of the whole (renders per second): all events over all their time, i.e. the harmonic mean
+    of the parts' rates weighted by their event counts; the arithmetic mean would overstate it."""
+    pairs = [(float(r[key]), float(r.get(weight) or 0)) for r in records if r.get(key)]
+    seconds = sum(w / v for v, w in pairs)
+    return sum(w for _, w in pairs) / seconds if seconds > 0 else None
+
+
 def video_record(run_dir: str | Path) -> dict[str, Any]:
     """The whole video's evaluation from its segments' own records (RUN/segment_<k>/eval.json): PSNR, SSIM and
     YUV-PSNR over all test views x all frames, total Gaussians and bytes, Mbps over the whole duration, and a row
@@ -549,7 +557,7 @@ def aggregate_video_records(records: Sequence[tuple[str, Mapping[str, Any]]]) ->
         "size_mb": size_bytes / 2**20,
         "duration_s": duration,
         "mbps": size_bytes * 8 / duration / 1e6 if duration > 0 else None,
-        "fps": _weighted(rows, "fps"),
+        "fps": _rate_over_all(rows, "fps"),
         "num_views": sum(int(r.get("num_views") or 0) for r in rows),
         "segments": len(rows),
         "train_seconds": sum(float(r.get("train_seconds") or 0.0) for r in rows),
