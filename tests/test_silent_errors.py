@@ -639,3 +639,17 @@ def test_compaction_options_for_a_run_that_prunes_nothing_are_refused(scene, tmp
     run = tmp_path / "run"
     assert main(_train_args(scene, run, "10", *options)) == 2
     assert "compaction.method is none" in capsys.readouterr().err and not run.exists()
+
+
+def test_an_evaluation_times_renders_with_the_threads_its_run_trained_with(scene, tmp_path):
+    import torch
+
+    from stgc import machine
+
+    run = tmp_path / "run"
+    assert main(_train_args(scene, run, "10", "--set", "train.threads=1")) == 0
+    with machine.threads(2):  # what a fresh `stgc eval` process has on two cores
+        assert main(["eval", str(run)]) == 0
+        assert torch.get_num_threads() == 2  # given back after the evaluation
+    speed = json.loads((run / "eval.json").read_text())["render_speed"]
+    assert speed["threads"] == 1  # as the trainer's own evaluation timed it: FPS in one table compare

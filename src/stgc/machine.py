@@ -10,11 +10,14 @@ from __future__ import annotations
 
 import os
 import platform
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import llvmlite.binding as llvm
+import numba
+import torch
 
 # Widest first: the first feature the host has names its vector width.
 _VECTOR_ISAS = (("avx512f", "avx512"), ("avx2", "avx2"), ("avx", "avx"), ("sse4.2", "sse4.2"),
@@ -55,3 +58,22 @@ def one_line(machine: Mapping[str, Any] | None = None) -> str:
     m = describe() if machine is None else machine
     return (f"{m['cpu_model']} ({m['cpu_target']}, {m['vector_isa']}), {m['cpus']} CPUs, "
             f"load {os.getloadavg()[0]:.2f}")
+
+
+def use_threads(count: int) -> None:
+    """torch's and the numba rasterizer's threads (count > 0; 0 leaves them as they are): a run's `train.threads`."""
+    if count > 0:
+        torch.set_num_threads(count)
+        numba.set_num_threads(min(count, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
+
+
+@contextmanager
+def threads(count: int) -> Iterator[None]:
+    """`use_threads(count)` for a block, then the earlier counts again."""
+    before = torch.get_num_threads(), numba.get_num_threads()
+    use_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before[0])
+        numba.set_num_threads(before[1])

@@ -265,13 +265,14 @@ def training_seconds(summary: Mapping[str, Any] | None) -> float | None:
 
 @dataclass
 class RenderSpeed:
-    """Render timing after warm-up: fps = 1 / mean seconds per frame."""
+    """Render timing after warm-up: fps = 1 / mean seconds per frame, rendering with `threads` torch threads."""
 
     fps: float
     mean_ms: float
     median_ms: float
     frames_timed: int
     warmup: int
+    threads: int = 0
 
     def as_dict(self) -> dict[str, float | int]:
         return asdict(self)
@@ -289,6 +290,7 @@ def speed_from_times(seconds: Sequence[float], warmup: int = 0) -> RenderSpeed |
         median_ms=1e3 * float(np.median(timed)),
         frames_timed=int(timed.size),
         warmup=int(warmup),
+        threads=torch.get_num_threads(),
     )
 
 

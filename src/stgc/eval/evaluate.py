@@ -21,6 +21,7 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
+from stgc import machine
 from stgc.codec import (
     is_video_stgc,
     load_model,
@@ -441,10 +442,19 @@ def evaluate_run(
         info = bitstream_size(target, model.num_gaussians, model.variant, duration_s)
     else:
         info = size_of_saved_model(target, duration_s)
-    result = _score_model(model, dataset, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
+    # With the threads the run trained with, as its trainer's own evaluation: one table's FPS are then comparable.
+    with machine.threads(_run_threads(config_dir)):
+        result = _score_model(model, dataset, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
     other_data = _other_data(run_dir, data_path, target if target.suffix == ".stgc" else None, config_dir)
     extra = {"data": str(dataset.root), **({"other_data": other_data} if other_data else {})}
     return write_eval(run_dir, result, info, target=target, other_data=other_data, extra=extra)
+
+
+def _run_threads(run_dir: Path) -> int:
+    """The run's `train.threads` (0: none saved, or the machine's default)."""
+    saved = Run(run_dir).read_config(strict=False) or {}
+    threads = (saved.get("train") or {}).get("threads")
+    return threads if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0 else 0
 
 
 def _score_model(model: Any, dataset: Dataset, *, lpips_net: str | None, warmup: int, measure_fps: bool) -> EvalResult:

@@ -22,7 +22,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
-import numba
 import numpy as np
 import torch
 
@@ -206,9 +205,7 @@ class Trainer:
         self.evaluator = evaluator
         if evaluator is None and (train_cfg.eval_every or train_cfg.eval_at_end):
             log.info("no test evaluator handed to the trainer: the test views are not scored during or after training")
-        if train_cfg.threads > 0:  # torch's and the numba rasterizer's threads: a task asking for k CPUs uses k
-            torch.set_num_threads(train_cfg.threads)
-            numba.set_num_threads(min(train_cfg.threads, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
+        machine.use_threads(train_cfg.threads)  # a task asking for k CPUs uses k
         self.metrics_log = JsonLines(self.out_run.path / Run.METRICS)
         self.compaction_log = JsonLines(self.out_run.path / Run.COMPACTION_LOG)
         self.images = ImageCache(dataset)
