@@ -186,3 +186,15 @@ def test_bd_deltas_use_each_familys_pareto_front(tmp_path):
     assert bd.points == 4
     assert "1 dominated point(s) of this curve left out" in bd.note
     assert "1 dominated point(s) of the baseline left out" in bd.note
+
+
+def test_a_rate_aware_run_without_experiment_json_is_not_reported_as_stg(tmp_path) -> None:
+    from stgc.eval.report import describe_run
+
+    plain = {"data": {"preprocess": "none"}, "compaction": {"method": "none"}}
+    assert describe_run(tmp_path / "stg", plain) == ("STG", "no preprocessing")
+    window = {"iterations": 500, "mask": True, "rate_weight": 3e-4}
+    masked = {**plain, "train": {"quantization_aware": window}}
+    assert describe_run(tmp_path / "mask-3e-4", masked) == ("learned mask", "mask-3e-4")
+    rate_aware = {**plain, "train": {"quantization_aware": {**window, "mask": False}}}
+    assert describe_run(tmp_path / "rate-1e-3", rate_aware) == ("rate-aware", "rate-1e-3")

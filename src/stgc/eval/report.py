@@ -381,7 +381,11 @@ def describe_run(run_dir: Path, config: Mapping[str, Any] | None) -> tuple[str, 
     comp = cfg.get("compaction") or {}
     data = cfg.get("data") or {}
     preprocess = data.get("preprocess") or "none"
-    if comp.get("method", "none") not in (None, "none", "reference"):  # a reference run prunes nothing
+    window = (cfg.get("train") or {}).get("quantization_aware") or {}
+    if window.get("iterations"):  # a rate-aware window (fine-tuning or not) makes another method than STG's
+        family = "learned mask" if window.get("mask") else "rate-aware"
+        setting = run_dir.name
+    elif comp.get("method", "none") not in (None, "none", "reference"):  # a reference run prunes nothing
         family = f"ST-KNN ({comp.get('criterion', 'timestamp')})"
         setting = f"Case {comp['case']}" if comp.get("case") else run_dir.name
     else:
