@@ -653,3 +653,19 @@ def test_an_evaluation_times_renders_with_the_threads_its_run_trained_with(scene
         assert torch.get_num_threads() == 2  # given back after the evaluation
     speed = json.loads((run / "eval.json").read_text())["render_speed"]
     assert speed["threads"] == 1  # as the trainer's own evaluation timed it: FPS in one table compare
+
+
+def test_lpips_is_computed_when_asked_or_the_record_says_why_not(trained_run, tmp_path):
+    import shutil
+
+    from stgc.metrics.image import lpips_status
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    assert main(["eval", str(run), "--no-fps", "--lpips", "alex"]) == 0
+    record = json.loads((run / "eval.json").read_text())
+    available, reason = lpips_status("alex")
+    if available:
+        assert record["lpips"] is not None
+    else:
+        assert record["lpips"] is None and record["lpips_note"] == reason  # not "not requested"

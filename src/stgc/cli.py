@@ -165,7 +165,7 @@ def cmd_finetune(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    record = evaluate_run(args.target, data_path=args.data, measure_fps=not args.no_fps)
+    record = evaluate_run(args.target, data_path=args.data, measure_fps=not args.no_fps, lpips_net=args.lpips)
     if args.json:
         print(json.dumps(record))
     else:
@@ -345,6 +345,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", help="dataset directory (default: the one recorded in the run)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--no-fps", action="store_true", help="skip the render-speed measurement")
+    p.add_argument("--lpips", choices=("alex", "vgg"),
+                   help="also LPIPS with this backbone, where it runs without downloading (else its note says why)")
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("render", help="render a still or a video from a run")
