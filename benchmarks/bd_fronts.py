@@ -25,15 +25,16 @@ def main() -> int:
     print("| report | curve | baseline | BD-rate written | now | BD-PSNR written | now | note |")
     print("|---|---|---|---:|---:|---:|---:|---|")
     for path in sorted((REPO / "benchmarks" / "results").glob("*/*/results-*.csv")):
-        reports = sorted(path.parent.glob("report-*/report.json"))
-        if not reports:
+        # results-<plan>.csv and report-<plan>/: several plans may share one folder.
+        report = path.parent / f"report-{path.stem.removeprefix('results-')}" / "report.json"
+        if not report.is_file():
             continue
         with path.open(newline="") as f:
             rows = [ReportRow(name=r["label"], family=r["family"], mbps=float(r["mbps"]), psnr=float(r["psnr"]))
                     for r in csv.DictReader(f) if r.get("status") != "failed" and r.get("mbps") and r.get("psnr")]
-        written = json.loads(reports[0].read_text())
+        written = json.loads(report.read_text())
         baseline = written.get("baseline")
-        now = {b.family: b for b in bd_table(rows, baseline)}
+        now = {b.family: b for b in bd_table(rows, baseline, written.get("bd_method", "pchip"))}
         for old in written.get("bd", []):
             new = now.get(old["family"])
             if new is None:
