@@ -55,3 +55,25 @@ def test_sampler_picks_two_worst_cameras_after_seeing_all():
     assert not ems.observe(13, cam["b"], 0.5)  # not a candidate
     assert not ems.observe(13, cam["a"], 0.90)  # candidate, but SSIM above the trigger 0.88
     assert ems.observe(14, cam["c"], 0.87)
+
+
+def test_new_gaussians_start_as_the_official_code_adds_them():
+    from stgc.model import STGModel
+    from stgc.train.ems import new_gaussians
+
+    rng = np.random.default_rng(0)
+    cloud = SimpleNamespace(xyz=rng.normal(size=(200, 3)).astype(np.float32),
+                            rgb=rng.uniform(size=(200, 3)).astype(np.float32), time=rng.uniform(size=200).astype(np.float32))
+    model = STGModel.from_points(cloud, variant="full")
+    xyz = np.array([[0.0, 0, 0], [0.5, 0, 0], [0, 0.5, 0], [0, 0, 0.5]])  # 0.5 apart; the cloud is denser
+    rgb = np.array([[0.9, 0.2, 0.1]] * 4)
+    new = new_gaussians(model, xyz, rgb, 0.0, torch.Generator().manual_seed(0))
+    # The colour and a zero specular feature (full variant).
+    assert np.allclose(new["features_dc"].numpy(), [[0.9, 0.2, 0.1, 0.0, 0.0, 0.0]] * 4)
+    # The scale is the 3-NN distance among the new and the existing points, computed independently here.
+    everything = np.concatenate([xyz, cloud.xyz])
+    squared = ((everything[:4, None, :] - everything[None, :, :]) ** 2).sum(-1)
+    nearest = np.sort(squared, axis=1)[:, 1:4]
+    expected = np.log(np.sqrt(nearest.mean(axis=1)))
+    assert np.allclose(new["scaling"][:, 0].numpy(), expected, atol=1e-5)
+    assert (new["scaling"][:, 0].numpy() < np.log(0.5)).all()  # closer than the new points' own spacing

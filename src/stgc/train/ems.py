@@ -7,8 +7,8 @@ and its SSIM is below `trigger_ssim`, error pixels are found (brightness-normali
 `error_quantile`), 16x16 patches with more than 85 % error pixels are kept (a 10 % border of patches ignored), 3 of
 every 4 pixels inside them (even-even positions skipped) each get 2 Gaussians on their ray at depths
 `D·(1 ± 5 %)·{depth_near, depth_far}`, with D the camera's largest median depth. At most `max_events` insertions.
-New Gaussians: colour = ground-truth pixel, opacity 0.1, mu_t ~ U[0,1], motion/omega/time features 0, scale from
-the 3-NN distance among the new points.
+New Gaussians: colour = ground-truth pixel (full variant: with a zero specular feature), opacity 0.1, mu_t ~ U[0,1],
+motion/omega/time features 0, scale from the 3-NN distance among the new and the existing points.
 
 Deviations (documented in docs/training.md): the camera depth D is measured when EMS starts (the official code
 renders frame 0 before training, from the untrained initial points), and new rotations are the identity quaternion
@@ -74,7 +74,10 @@ def new_gaussians(
 ) -> dict[str, torch.Tensor]:
     """Pre-activation parameters of fresh EMS Gaussians (see the module docstring)."""
     n = len(xyz)
-    log_scale = torch.as_tensor(initial_log_scales(xyz.astype(np.float32), 3), dtype=torch.float32)
+    # The 3-NN among the new and the existing Gaussians (the official code's distCUDA2 of both, first n rows).
+    existing = model.params["xyz"].detach().cpu().numpy()
+    log_scale = torch.as_tensor(initial_log_scales(np.concatenate([xyz, existing]).astype(np.float32), 3)[:n],
+                                dtype=torch.float32)
     rgb_t = torch.as_tensor(rgb, dtype=torch.float32)
     new = {
         "xyz": torch.as_tensor(xyz, dtype=torch.float32),
@@ -85,7 +88,9 @@ def new_gaussians(
         "trbf_center": torch.rand(n, 1, generator=generator),
         "trbf_scale": torch.full((n, 1), float(trbf_scale_init)),
         "motion": torch.zeros(n, 9),
-        "features_dc": torch.cat([rgb_t, rgb_t], dim=1) if model.params["features_dc"].shape[1] == 6 else rgb_t,
+        # Full: the base colour and a zero specular feature, as the official addgaussians; lite: the colour.
+        "features_dc": torch.cat([rgb_t, torch.zeros_like(rgb_t)], dim=1) if model.params["features_dc"].shape[1] == 6
+        else rgb_t,
     }
     if "features_t" in model.params:
         new["features_t"] = torch.zeros(n, 3)
