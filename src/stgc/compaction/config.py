@@ -3,7 +3,10 @@
 The paper (30k iterations, pruning every 100) defines four pruning windows that all start at 6k and end at 12k, 16k,
 20k or 24k. They are stored here as fractions of the total so that a shorter CPU schedule scales them, and the
 interval is scaled by the same factor (100/30000 of the total), so every case keeps the paper's number of pruning
-steps (60, 100, 140, 180) and the adaptive ratio controller sees the same number of decisions at any schedule length.
+steps (60, 100, 140, 180) and the adaptive ratio controller sees the same number of decisions. That is exact when
+the total is a multiple of 300, as in both presets (9,000 and 30,000). Otherwise the interval is rounded to whole
+iterations and the count moves by a few percent: 5,000 iterations give 59/99/138/177 steps, 1,000 give
+67/111/156/200, and very short runs, whose interval cannot drop below 1, give fewer.
 """
 
 from __future__ import annotations
