@@ -11,7 +11,8 @@ unit quaternion with its sign made canonical (w >= 0, since q and -q are one rot
 difference (quaternion chord 2 sin(7.5 deg) = 0.26) weighs as much as 0.26 % of the scene extent, the order of the
 nearest-neighbour spacing of a few 100k Gaussians on the scene's surfaces, so rotation separates neighbours that are
 about equally close without overriding position. The sign rule is discontinuous at w = 0 (rotations near 180
-degrees): there two close rotations can lie up to 2w apart, so a near-duplicate may lose to a farther neighbour;
+degrees): there two close rotations can lie up to 2 x rotation_weight apart (one of them flipped), so a
+near-duplicate may lose to a farther neighbour;
 0.03-0.05 % of the Gaussians of trained panoptic models have |w| < 0.05 (session 25), so this is left as is. A pair's *distance*, used to sort pairs for pruning, is the mean of
 its Euclidean 7-D distances over all the searched times (canonical, t and any extra sampled times): both members
 must be close along the whole trajectory, not only at t, and the mean is symmetric in the pair, so the two
