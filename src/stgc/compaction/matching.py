@@ -10,10 +10,11 @@ unit quaternion with its sign made canonical (w >= 0, since q and -q are one rot
 (0 = position only, a 3-D search). Dividing by E makes w scene independent: with w = 0.01 a 30 degree rotation
 difference (quaternion chord 2 sin(7.5 deg) = 0.26) weighs as much as 0.26 % of the scene extent, the order of the
 nearest-neighbour spacing of a few 100k Gaussians on the scene's surfaces, so rotation separates neighbours that are
-about equally close without overriding position. The sign rule is discontinuous at w = 0 (rotations near 180
-degrees): there two close rotations can lie up to 2 x rotation_weight apart (one of them flipped), so a
-near-duplicate may lose to a farther neighbour;
-0.03-0.05 % of the Gaussians of trained panoptic models have |w| < 0.05 (session 25), so this is left as is. A pair's *distance*, used to sort pairs for pruning, is the mean of
+about equally close without overriding position. The sign rule is discontinuous where the quaternion's scalar
+part is 0 (rotations near 180 degrees): two close rotations on either side lie up to 2 x `rotation_weight` apart,
+so a near-duplicate there may lose to a farther neighbour. 0.03-0.05 % of the Gaussians of trained panoptic models
+have a scalar part below 0.05 (session 25), so this is left as is. A pair's *distance*, used to sort pairs for
+pruning, is the mean of
 its Euclidean 7-D distances over all the searched times (canonical, t and any extra sampled times): both members
 must be close along the whole trajectory, not only at t, and the mean is symmetric in the pair, so the two
 directions of a mutual pair get the same distance.
