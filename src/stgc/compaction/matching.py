@@ -13,11 +13,11 @@ nearest-neighbour spacing of a few 100k Gaussians on the scene's surfaces, so ro
 about equally close without overriding position. The sign rule is discontinuous where the quaternion's scalar
 part is 0 (rotations near 180 degrees): two close rotations on either side lie up to 2 x `rotation_weight` apart,
 so a near-duplicate there may lose to a farther neighbour. 0.03-0.05 % of the Gaussians of trained panoptic models
-have a scalar part below 0.05 (session 25), so this is left as is. A pair's *distance*, used to sort pairs for
-pruning, is the mean of
-its Euclidean 7-D distances over all the searched times (canonical, t and any extra sampled times): both members
-must be close along the whole trajectory, not only at t, and the mean is symmetric in the pair, so the two
-directions of a mutual pair get the same distance.
+have a scalar part below 0.05 (session 25), so this is left as is.
+
+A pair's *distance*, used to sort pairs for pruning, is the mean of its Euclidean 7-D distances over all the
+searched times (canonical, t and any extra sampled times): both members must be close along the whole trajectory,
+not only at t, and the mean is symmetric in the pair, so the two directions of a mutual pair get the same distance.
 
 Ties. The nearest neighbour of i is the closest j != i; among exactly equal distances the smallest index wins (what
 `argmin` does in the brute-force reference). Exact ties arise from duplicates (a clone is an exact copy of its source
