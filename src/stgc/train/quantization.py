@@ -107,11 +107,14 @@ class QuantizationSimulation:
                 rate = RateTerm.bits_per_gaussian(model, keep, groups)
             else:
                 rate = RateTerm.masked_bits(model, keep, groups, self.mask)
+        frame = _parameter_frame(arrays, keep)
         out = {}
         for key, names in ply_columns(model.variant).items():
             param = model.params[key]
             values = np.stack([arrays[name] for name in names], axis=1)
             values[keep] = np.stack([stored[name] for name in names], axis=1)
+            if key in ("rotation", "omega"):
+                values[keep] *= frame[:, None]
             out[key] = param + (torch.from_numpy(values).to(param) - param).detach()
         return out, rate
 
@@ -141,6 +144,20 @@ class QuantizationSimulation:
         if state and state.get("mask") is not None:
             self.mask = GaussianMask.from_state_dict(state["mask"], self.cfg.mask_lr)
         self.mask_settled = bool(state and state.get("mask_settled"))
+
+
+def _parameter_frame(arrays: Mapping[str, np.ndarray], keep: np.ndarray) -> np.ndarray:
+    """Per kept Gaussian, the factor s |q| that takes the codec's canonical (q, omega) (`canonical_rotation`:
+    divided by s |q|, s the sign of q's largest-magnitude component) back to the parameter's own scale and sign.
+
+    Both render the same rotation, but the straight-through estimator hands the gradient of what the forward pass
+    used to the parameter unchanged: with the canonical pair it would point against the parameter's true gradient
+    wherever s = -1 (every step uphill there) and be |q| times too large. A zero quaternion, which the codec stores
+    as the direction of its omega, keeps the codec's pair (factor 1)."""
+    rotation = np.stack([arrays[f"rot_{i}"] for i in range(4)], axis=1)[keep].astype(np.float64)
+    norm = np.linalg.norm(rotation, axis=1)
+    largest = np.take_along_axis(rotation, np.argmax(np.abs(rotation), axis=1)[:, None], axis=1)[:, 0]
+    return np.where(norm > 0, np.where(largest < 0, -norm, norm), 1.0)
 
 
 class RateTerm:
