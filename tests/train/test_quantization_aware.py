@@ -358,3 +358,32 @@ def test_the_straight_through_gradient_of_a_rotation_stored_with_its_sign_flippe
         cosine = torch.nn.functional.cosine_similarity(exact[key], through[key], dim=1)
         # Once -0.98 on the flipped rows: every step went uphill there.
         assert cosine[has & flipped].mean() > 0.9 and cosine[has & ~flipped].mean() > 0.9, key
+
+
+def test_a_fine_tuning_of_a_rate_aware_run_opens_its_own_window(scene, tmp_path, monkeypatch):
+    import stgc.train.quantization as quantization
+    from stgc.cli import main
+
+    qualities = []
+    real = quantization.optimise_on_views
+    monkeypatch.setattr(quantization, "optimise_on_views", lambda *a, **k: qualities.append(a[2]) or real(*a, **k))
+    common = ["--set", "train.progress=false", "--set", "train.tensorboard=false", "--set", "train.eval_at_end=false"]
+    assert main(["train", str(scene.root), "--out", str(tmp_path / "a"), "--set", "train.iterations=20",
+                 "--set", "train.schedule_scale=0.01", "--set", "data.init_source=random",
+                 "--set", "train.densify.enabled=false", "--set", "train.densify.prune_until=0", *common]) == 0
+
+    def finetune(source: str, out: str, quality: int) -> dict:
+        assert main(["finetune", str(tmp_path / source), "--out", str(tmp_path / out), "--iterations", "6",
+                     "--set", "train.quantization_aware.iterations=6",
+                     "--set", f"train.quantization_aware.quality={quality}",
+                     "--set", "train.quantization_aware.rate_weight=0.001",
+                     "--set", "train.quantization_aware.mask=true", *common]) == 0
+        return torch.load(tmp_path / out / "checkpoint.pt", weights_only=False)["quantization_aware"]
+
+    first = finetune("a", "b", 2)
+    second = finetune("b", "c", 1)
+    # Each window measured its own depths at its own quality (the second once reused the first's, for q2), and each
+    # learned and settled its own mask (the second once had none).
+    assert qualities == [2, 1]
+    assert first["mask_settled"] and second["mask_settled"]
+    assert second["allocation"] != first["allocation"]

@@ -354,7 +354,9 @@ class Trainer:
         self.elapsed_before = float(ckpt["elapsed_s"])
         if self.colour is not None and ckpt.get("colour_correction") is not None:
             self.colour.load_state_dict(ckpt["colour_correction"])
-        if self.quantization is not None:
+        if self.quantization is not None and self.in_quantization_window(self.start_iteration):
+            # Only a resume inside this run's window continues its bit depths and mask; a fine-tuning's checkpoint
+            # (its source's end, before the window) may hold another window's, at another quality and options.
             self.quantization.load_state_dict(ckpt.get("quantization_aware"))
         restore_rng_states(ckpt["rng"])
         self.metrics_log.truncate_after(self.start_iteration)
