@@ -127,7 +127,12 @@ def test_letterbox_keeps_every_pixel_at_whole_scale():
     # scale min(30 // 8, 20 // 6) = 3: 24 x 18 in the middle, offsets (3, 1)
     assert np.array_equal(canvas[1:19, 3:27][::3, ::3], image)
     assert np.array_equal(canvas[0, 0], [0, 0, 255]) and np.array_equal(canvas[19, 29], [0, 0, 255])
-    assert letterbox(image, 7, 5, (0, 0, 0)) is image  # smaller canvas: the image itself
+    # A smaller canvas: shrunk by a whole factor (here 2: 4 x 3), still the canvas's shape, so that the browser,
+    # which stretches any image over its canvas, shows it undistorted.
+    small = letterbox(image, 7, 5, (0, 0, 0))
+    assert small.shape == (5, 7, 3)
+    assert np.array_equal(small[1:4, 1:5], np.floor(image.reshape(3, 2, 4, 2, 3).mean(axis=(1, 3)) + 0.5).astype(np.uint8))
+    assert not small[0].any() and not small[:, 0].any()
 
 
 def test_a_port_in_use_gives_a_clear_error_with_a_free_port():

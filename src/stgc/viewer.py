@@ -6,7 +6,7 @@ rendered at a quarter of the pixels; once it rests for `REST_SECONDS`, at full r
 
 Snapped to a dataset camera (the `camera` dropdown), the view is that camera exactly: its intrinsics, its image
 size, at whole-pixel scale in the middle of the canvas (never resampled), so what the page shows is what `stgc
-render --camera C --time T` writes. At a dataset frame the panel gives this view's PSNR against its ground truth,
+render --camera C --time T` writes. A canvas smaller than that image shows it shrunk by a whole factor, undistorted. At a dataset frame the panel gives this view's PSNR against its ground truth,
 and `ground truth` puts the ground truth beside the render. Moving the camera leaves the snapped view.
 
 A whole-video run (`stgc train --segment-frames`) plays as one timeline: the frame picks the segment that holds
@@ -216,18 +216,33 @@ def view_of_camera(camera: Camera) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 def letterbox(image: np.ndarray, width: int, height: int, fill: tuple[float, float, float]) -> np.ndarray:
-    """`image` at the largest whole-pixel scale (>= 1) that fits `width` x `height`, in the middle of a canvas of
-    that size: never resampled, so each image pixel stays exact. A canvas smaller than the image gets the image."""
+    """`image` in the middle of a `width` x `height` canvas of the fill colour: at the largest whole-pixel scale
+    (>= 1) that fits, never resampled, so each image pixel stays exact; in a canvas smaller than the image, shrunk
+    by the smallest whole factor k that fits (means of k x k pixels). Always the canvas's shape: viser stretches
+    whatever image it gets over the whole canvas, so any other shape would show the picture distorted."""
     h, w = image.shape[:2]
     scale = min(width // w, height // h)
-    if scale < 1:
-        return image
-    big = np.repeat(np.repeat(image, scale, axis=0), scale, axis=1)
+    if scale >= 1:
+        fitted = np.repeat(np.repeat(image, scale, axis=0), scale, axis=1)
+    else:
+        fitted = _shrink(image, math.ceil(max(w / width, h / height)))
     canvas = np.empty((height, width, 3), dtype=np.uint8)
     canvas[:] = (np.asarray(fill) * 255.0 + 0.5).astype(np.uint8)
-    top, left = (height - big.shape[0]) // 2, (width - big.shape[1]) // 2
-    canvas[top:top + big.shape[0], left:left + big.shape[1]] = big
+    top, left = (height - fitted.shape[0]) // 2, (width - fitted.shape[1]) // 2
+    canvas[top:top + fitted.shape[0], left:left + fitted.shape[1]] = fitted
     return canvas
+
+
+def _shrink(image: np.ndarray, factor: int) -> np.ndarray:
+    """`image` made `factor` times smaller in each direction by the mean of each factor x factor block (the last
+    row and column of blocks average what they hold)."""
+    h, w = image.shape[:2]
+    rows, cols = -(-h // factor), -(-w // factor)
+    padded = np.pad(image.astype(np.float64), ((0, rows * factor - h), (0, cols * factor - w), (0, 0)))
+    weights = np.pad(np.ones((h, w, 1)), ((0, rows * factor - h), (0, cols * factor - w), (0, 0)))
+    sums = padded.reshape(rows, factor, cols, factor, -1).sum(axis=(1, 3))
+    counts = weights.reshape(rows, factor, cols, factor, 1).sum(axis=(1, 3))
+    return np.clip(sums / counts + 0.5, 0, 255).astype(np.uint8)
 
 
 # ---------------------------------------------------------------------------------------------- server
@@ -328,7 +343,7 @@ class _ClientView:
                 gt = scene.ground_truth(name, frame)
                 if gt is not None and gt.shape == rendered.shape:
                     picture = np.concatenate([rendered, gt], axis=1)
-            image = letterbox(picture, width, height, scene.background) if still else picture
+            image = letterbox(picture, width, height, scene.background)
         else:
             scale = min(1.0, viewer.max_side / max(width, height)) * (1.0 if still else MOVING_PIXEL_SCALE)
             w, h = max(1, round(width * scale)), max(1, round(height * scale))
