@@ -167,3 +167,11 @@ def test_the_triangulation_cache_key_changes_with_how_images_decode(tmp_path):
     assert key(png) == key(png) and key(png) != key(png, (1.0, 1.0, 1.0))
     limited, full = YuvFrame(yuv, 0, 4, 4, 8, "limited"), YuvFrame(yuv, 0, 4, 4, 8, "full")
     assert key(limited) != key(full) and key(limited) != key(YuvFrame(yuv, 1, 4, 4, 8, "limited"))
+
+
+def test_shipped_colours_slightly_over_one_are_clipped_not_read_as_0_to_255():
+    from stgc.data.readers._common import _rgb01
+
+    renderer = np.array([[0.5, 0.25, 1.003], [0.2, 0.4, 0.6]])
+    assert np.allclose(_rgb01(renderer), [[0.5, 0.25, 1.0], [0.2, 0.4, 0.6]])
+    assert np.allclose(_rgb01(np.array([[255.0, 51.0, 0.0]])), [[1.0, 0.2, 0.0]])

@@ -41,9 +41,11 @@ def _find_image(base: Path) -> Path | None:
 
 
 def _rgb01(rgb: np.ndarray) -> np.ndarray:
-    """Colours as float32 in [0, 1], whether stored as [0, 1] floats or 0..255 values."""
+    """Colours as float32 in [0, 1], whether stored as [0, 1] values or 0..255 ones (one array holds both the
+    coordinates and the colours, so its dtype cannot tell). Above 2 they are 0..255: a [0, 1] colour a renderer left
+    slightly over 1 is clipped, not read as a nearly black 0..255 one."""
     rgb = np.asarray(rgb, dtype=np.float32)
-    if rgb.size and rgb.max() > 1.0 + 1e-6:
+    if rgb.size and rgb.max() > 2.0:
         rgb = rgb / 255.0
     return np.clip(rgb, 0.0, 1.0)
 
