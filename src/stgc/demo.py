@@ -20,6 +20,7 @@ from stgc.codec import DEFAULT_QUALITY
 from stgc.errors import StgcError
 from stgc.eval.video import render_video
 from stgc.experiment import Plan, RunSpec, run_plan
+from stgc.run import Run
 
 _log = logging.getLogger(__name__)
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -103,8 +104,9 @@ def run_demo(out_dir: Path, data: Path | None = None) -> int:
     by_name = {o.name: o for o in result.outcomes}
     compacted_run = out_dir / "st-knn"
     video = out_dir / "test_view.mp4"
-    if not video.is_file():
-        render_video(compacted_run, video)
+    trained = Run(compacted_run).summary_path
+    if not video.is_file() or (trained.is_file() and video.stat().st_mtime < trained.stat().st_mtime):
+        render_video(compacted_run, video)  # again after a new training: the video must show what is reported
 
     rows = [
         ("uncompacted", by_name.get("stg")),

@@ -461,3 +461,18 @@ def test_a_run_with_a_loss_reference_trains_after_it_and_is_pointed_at_its_folde
     failed = run_plan("DATA", failing, tmp_path / "exp2", runner=fake_runner, check_options=False,
                       python=sys.executable, log=lambda m: None)
     assert failed.outcomes[-1].status == "failed" and "loss reference run 'ref' failed" in failed.outcomes[-1].message
+
+
+def test_plan_tasks_get_absolute_paths_whatever_the_user_typed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # A Ray worker on another node reads a relative path against its own working directory.
+    import stgc.experiment.runner as runner
+
+    tasks: list[Any] = []
+    monkeypatch.setattr(runner, "run_tasks", lambda given, **kw: tasks.extend(given))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "PLAN.toml").write_text(MINI_PLAN)
+    run_plan("DATA", "PLAN.toml", "exp", make_report_files=False, check_options=False, log=lambda m: None)
+    (task,) = tasks
+    spec, run_dir, data_path = task.args[:3]
+    assert run_dir == tmp_path / "exp" / "stg" and Path(data_path) == tmp_path / "DATA"
+

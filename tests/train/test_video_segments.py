@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+from pathlib import Path
 
 import imageio.v2 as imageio
 import numpy as np
@@ -200,3 +201,25 @@ def test_a_whole_video_is_one_bitstream_that_evaluates_renders_and_restores(scen
     damaged.write_bytes(bytes(data))
     assert main(["decompress", str(damaged), "--out", str(tmp_path / "nothing")]) == 2
     assert not (tmp_path / "nothing").exists()
+
+
+def test_segment_tasks_get_absolute_paths_whatever_the_user_typed(scene, tmp_path, monkeypatch):
+    # A Ray worker on another node reads a relative path against its own working directory.
+    import stgc.train.video as video
+    from stgc.options import resolve_configs
+
+    tasks = []
+    monkeypatch.setattr(video, "run_tasks", lambda given, **kw: tasks.extend(given))
+    monkeypatch.chdir(scene.root.parent)
+    video.train_video(scene.root.name, resolve_configs("cpu", {}, {}, {}), "runs/vid", segment_frames=1)
+    assert tasks and all(Path(t.args[0]).is_absolute() and Path(t.args[2]).is_absolute() for t in tasks)
+    assert Path(tasks[0].args[2]) == scene.root.parent / "runs" / "vid" / "segment_000"
+
+
+def test_a_video_whose_start_was_killed_before_saving_its_options_is_not_resumed_with_others(scene, tmp_path, capsys):
+    run = tmp_path / "vid"
+    run.mkdir()
+    Run(run).write_video({"segment_frames": 1, "data_path": str(scene.root), "segments": plan_segments([0, 1], 1)})
+    assert main(["train", str(scene.root), "--out", str(run), "--resume"]) == 2
+    assert "before it saved its options" in capsys.readouterr().err
+    assert not (run / "segment_000").exists()

@@ -404,7 +404,8 @@ def run_plan(
     if use_ray and ray_address is not None:
         check_reachable(ray_address)  # refused in seconds, before anything is written
     plan = load_plan(plan, preprocess)
-    out_dir = Path(out_dir)
+    # Absolute: a worker on another node reads relative paths against its own working directory.
+    data_path, out_dir = Path(data_path).resolve(), Path(out_dir).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
     extra = parse_overrides(extra_overrides)
     say = log or _log.info  # stgc's one channel for messages: stderr, silenced by -q

@@ -51,8 +51,13 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
     `train`'s, for every segment."""
     if use_ray and ray_address is not None:
         check_reachable(ray_address)  # refused in seconds, before anything is written
+    # Absolute: a worker on another node reads relative paths against its own working directory.
+    data_path, out_dir = Path(data_path).resolve(), Path(out_dir).resolve()
     run = Run(out_dir)
     if resume and run.is_video():
+        if not run.has_config():
+            raise StgcError(f"{run.path}: its start was killed before it saved its options (config.json), so resuming "
+                            "would train its segments with other ones; start it again with --overwrite")
         video = run.read_video()
         if segment_frames is not None and int(segment_frames) != int(video["segment_frames"]):
             raise StgcError(f"{run.path}: the video was cut into {video['segment_frames']}-frame segments; a resumed "
