@@ -669,3 +669,15 @@ def test_lpips_is_computed_when_asked_or_the_record_says_why_not(trained_run, tm
         assert record["lpips"] is not None
     else:
         assert record["lpips"] is None and record["lpips_note"] == reason  # not "not requested"
+
+
+def test_a_run_the_trainer_wrote_is_this_plans_run_however_its_data_is_named(scene, trained_run):
+    # Every option of a real config.json against the plan's: nothing may differ for the very options it trained with,
+    # whether DATA names the folder or its metadata file, and whatever its execution-only options were.
+    from stgc.experiment.runner import reuse_mismatch
+
+    options = {"train.iterations": "10", "train.schedule_scale": "1", "data.init_source": "random"}
+    for data in (scene.root, scene.root / "train_meta.json"):
+        assert reuse_mismatch(trained_run, data, "cpu", options) is None
+    assert "train.iterations" in (reuse_mismatch(trained_run, scene.root, "cpu", {**options, "train.iterations": "12"})
+                                  or "")

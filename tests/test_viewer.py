@@ -131,8 +131,19 @@ def test_letterbox_keeps_every_pixel_at_whole_scale():
     # which stretches any image over its canvas, shows it undistorted.
     small = letterbox(image, 7, 5, (0, 0, 0))
     assert small.shape == (5, 7, 3)
-    assert np.array_equal(small[1:4, 1:5], np.floor(image.reshape(3, 2, 4, 2, 3).mean(axis=(1, 3)) + 0.5).astype(np.uint8))
+    block_means = np.floor(image.reshape(3, 2, 4, 2, 3).mean(axis=(1, 3)) + 0.5).astype(np.uint8)
+    assert np.array_equal(small[1:4, 1:5], block_means)
     assert not small[0].any() and not small[:, 0].any()
+
+
+def test_the_moving_image_is_padded_to_the_canvas_shape_without_scaling():
+    from stgc.viewer import pad_to_aspect
+
+    image = np.full((6, 8, 3), 200, dtype=np.uint8)
+    wide = pad_to_aspect(image, 400, 200, (0.0, 0.0, 0.0))  # 2:1 canvas: 12 x 6
+    assert wide.shape == (6, 12, 3) and np.array_equal(wide[:, 2:10], image)
+    tall = pad_to_aspect(image, 100, 200, (0.0, 0.0, 0.0))  # 1:2 canvas: 8 x 16
+    assert tall.shape == (16, 8, 3) and np.array_equal(tall[5:11], image)
 
 
 def test_a_port_in_use_gives_a_clear_error_with_a_free_port():

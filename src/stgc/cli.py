@@ -20,7 +20,6 @@ from stgc.compaction import plot_compaction
 from stgc.compaction.config import CASE_WINDOWS, METHODS
 from stgc.compaction.criteria import CRITERIA
 from stgc.config import (
-    ConfigError,
     add_config_arguments,
     apply_overrides,
     collect_overrides,
@@ -29,6 +28,7 @@ from stgc.config import (
     validate_config,
 )
 from stgc.data import inspect_text
+from stgc.data.config import dataset_folder
 from stgc.data.preprocess import MODES as PREPROCESS_MODES
 from stgc.demo import run_demo
 from stgc.errors import StgcError
@@ -40,7 +40,7 @@ from stgc.eval.report import report_from_runs
 from stgc.eval.video import contact_sheet, load_model_and_dataset, render_still, render_video
 from stgc.experiment import run_plan
 from stgc.model.layout import VARIANTS
-from stgc.options import configs_from_run, default_configs, resolve_configs
+from stgc.options import configs_from_run, default_configs, refuse_unused_compaction_options, resolve_configs
 from stgc.run import Run
 from stgc.train import train
 from stgc.train.config import PRESETS
@@ -57,29 +57,13 @@ SECTION_TITLES = {
 }
 
 
-def _refuse_unused_compaction_options(compaction: Any, shortcuts: dict[str, dict[str, Any]],
-                                      options: dict[str, dict[str, str]], sets: dict[str, str]) -> None:
-    """A compaction option given for a run that prunes nothing would be recorded and silently ignored."""
-    if compaction.method != "none":
-        return
-    given = sorted({*shortcuts.get("compaction", {}), *options.get("compaction", {}),
-                    *(key.split(".", 1)[1] for key in sets if key.startswith("compaction."))} - {"method"})
-    if given:
-        raise ConfigError(f"compaction.{', compaction.'.join(given)}: given for a run whose compaction.method is none, "
-                          "where nothing is pruned; choose a method (--compaction st-knn) or drop them")
-
-
 def _resumed_data_path(run: Path, given: str | None, saved: str | None) -> str | None:
     """The data a resumed or fine-tuned run continues on: the saved path; DATA may only name it again, or replace
     it when the saved path is gone (the data moved). Continuing on other data would mix two trainings in one model."""
     if given is None or saved is None:
         return given or saved
 
-    def folder(path: str) -> Path:  # DATA may name a dataset's folder or its metadata file (saved: the folder)
-        resolved = Path(path).resolve()
-        return resolved.parent if resolved.is_file() else resolved
-
-    if folder(given) != folder(saved) and Path(saved).exists():
+    if dataset_folder(given) != dataset_folder(saved) and Path(saved).exists():
         raise StgcError(f"{run}: the run trains on {saved}, not {given}; continue it without DATA, or train the "
                         "other data into a new --out")
     return given
@@ -117,9 +101,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         options, sets = collect_overrides(args), parse_set_arguments(args.set)
         if (args.case is not None or args.criterion) and not args.compaction \
                 and "method" not in options.get("compaction", {}) and "compaction.method" not in sets:
-            shortcuts["compaction"]["method"] = "st-knn"  # a case or a criterion is ST-KNN's (README's table)
+            shortcuts["compaction"]["method"] = "st-knn"  # a case or a criterion is ST-KNN's
         configs = resolve_configs(getattr(args, "preset", "cpu"), shortcuts, options, sets)
-        _refuse_unused_compaction_options(configs["compaction"], shortcuts, options, sets)
+        refuse_unused_compaction_options(configs["compaction"], [
+            *(f"compaction.{key}" for key in {**shortcuts.get("compaction", {}), **options.get("compaction", {})}),
+            *sets])
         data_path = args.data
     if data_path is None:
         raise StgcError("no DATA given and the run has no saved data path")

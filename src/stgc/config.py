@@ -22,9 +22,9 @@ from stgc.errors import StgcError
 
 # Options that change how a run executes or what it logs, not what it trains: a run made with other values of
 # these is still the same run (a model trained with 2 threads serves a plan run at 1 thread).
-EXECUTION_OPTIONS = frozenset({"train.threads", "train.backend", "train.eval_every", "train.log_every",
-                               "train.checkpoint_every", "train.progress", "train.tensorboard", "train.stop_after",
-                               "data.image_cache_mb"})
+EXECUTION_OPTIONS = frozenset({"train.threads", "train.backend", "train.eval_every", "train.eval_at_end",
+                               "train.log_every", "train.checkpoint_every", "train.save_iterations", "train.progress",
+                               "train.tensorboard", "train.stop_after", "data.image_cache_mb"})
 
 
 class ConfigError(StgcError, ValueError):

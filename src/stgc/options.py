@@ -4,12 +4,13 @@ first training)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from stgc.compaction import CompactionConfig
-from stgc.config import apply_overrides, from_saved, split_sections, validate_config
+from stgc.config import ConfigError, apply_overrides, from_saved, split_sections, validate_config
 from stgc.data import DataConfig
 from stgc.data.config import data_config_from_saved
 from stgc.errors import StgcError
@@ -82,3 +83,14 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
         out[name] = validate_config(from_saved(cls, section), name)
     out["data_path"] = (saved.get("data") or {}).get("path")
     return out
+
+
+def refuse_unused_compaction_options(compaction: CompactionConfig, given: Iterable[str]) -> None:
+    """Raise ConfigError when compaction options (`given`: dotted names such as "compaction.case") are set for a run
+    whose compaction.method is none: they would be recorded in its config.json and silently ignored."""
+    if compaction.method != "none":
+        return
+    unused = sorted({key for key in given if key.startswith("compaction.")} - {"compaction.method"})
+    if unused:
+        raise ConfigError(f"{', '.join(unused)}: given for a run whose compaction.method is none, where nothing is "
+                          "pruned; choose a method (--compaction st-knn) or drop them")

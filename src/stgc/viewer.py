@@ -5,9 +5,10 @@ timeline's time: the exact STG colour, decoder and viewing direction included. W
 rendered at a quarter of the pixels; once it rests for `REST_SECONDS`, at full resolution.
 
 Snapped to a dataset camera (the `camera` dropdown), the view is that camera exactly: its intrinsics, its image
-size, at whole-pixel scale in the middle of the canvas (never resampled), so what the page shows is what `stgc
-render --camera C --time T` writes. A canvas smaller than that image shows it shrunk by a whole factor, undistorted. At a dataset frame the panel gives this view's PSNR against its ground truth,
-and `ground truth` puts the ground truth beside the render. Moving the camera leaves the snapped view.
+size, at whole-pixel scale in the middle of the canvas, so what the page shows is what `stgc render --camera C
+--time T` writes; a canvas smaller than that image shows it shrunk by a whole factor, undistorted. At a dataset
+frame the panel gives this view's PSNR against its ground truth, and `ground truth` puts the ground truth beside the
+render. Moving the camera leaves the snapped view.
 
 A whole-video run (`stgc train --segment-frames`) plays as one timeline: the frame picks the segment that holds
 it, and its model renders at the segment's own time. A `.stgc` bitstream is decoded first, so the viewer shows
@@ -233,6 +234,15 @@ def letterbox(image: np.ndarray, width: int, height: int, fill: tuple[float, flo
     return canvas
 
 
+def pad_to_aspect(image: np.ndarray, width: int, height: int, fill: tuple[float, float, float]) -> np.ndarray:
+    """`image`, not scaled, in the middle of the smallest canvas of the fill colour that holds it and has the
+    `width` x `height` canvas's aspect ratio (the browser then stretches it uniformly)."""
+    h, w = image.shape[:2]
+    if w * height >= h * width:
+        return letterbox(image, w, max(h, round(w * height / width)), fill)
+    return letterbox(image, max(w, round(h * width / height)), h, fill)
+
+
 def _shrink(image: np.ndarray, factor: int) -> np.ndarray:
     """`image` made `factor` times smaller in each direction by the mean of each factor x factor block (the last
     row and column of blocks average what they hold)."""
@@ -343,7 +353,10 @@ class _ClientView:
                 gt = scene.ground_truth(name, frame)
                 if gt is not None and gt.shape == rendered.shape:
                     picture = np.concatenate([rendered, gt], axis=1)
-            image = letterbox(picture, width, height, scene.background)
+            # At rest every pixel exact; while moving only padded to the canvas's shape (an upscaled coarse image
+            # would cost the encoding time the coarse render saves).
+            image = (letterbox(picture, width, height, scene.background) if still
+                     else pad_to_aspect(picture, width, height, scene.background))
         else:
             scale = min(1.0, viewer.max_side / max(width, height)) * (1.0 if still else MOVING_PIXEL_SCALE)
             w, h = max(1, round(width * scale)), max(1, round(height * scale))

@@ -143,8 +143,11 @@ def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
 def test_a_whole_videos_render_rate_is_all_renders_over_all_their_time() -> None:
     from stgc.eval.evaluate import aggregate_video_records
 
-    fast = {"psnr": 30.0, "num_views": 50, "fps": 100.0, "duration_s": 1.0, "size_bytes": 10}
-    slow = {"psnr": 20.0, "num_views": 50, "fps": 10.0, "duration_s": 1.0, "size_bytes": 10}
+    # Each segment timed its renders after 2 warm-up ones.
+    fast = {"psnr": 30.0, "num_views": 52, "fps": 100.0, "duration_s": 1.0, "size_bytes": 10,
+            "render_speed": {"frames_timed": 50}}
+    slow = {"psnr": 20.0, "num_views": 52, "fps": 10.0, "duration_s": 1.0, "size_bytes": 10,
+            "render_speed": {"frames_timed": 50}}
     video = aggregate_video_records([("segment_0", fast), ("segment_1", slow)])
     # 100 renders in 0.5 s + 5 s: 18.2 per second, not the mean of the rates (55).
     assert video["fps"] == pytest.approx(100 / 5.5)

@@ -241,7 +241,7 @@ def test_interrupted_run_is_resumed(tmp_path: Path) -> None:
 def test_dry_run_launches_nothing(tmp_path: Path) -> None:
     result = run_plan("DATA", "table3", tmp_path, runner=fake_runner, check_options=False, dry_run=True, log=lambda m: None)
     assert all(o.status == "dry-run" for o in result.outcomes) and len(result.outcomes) == 9
-    assert "stgc.cli train DATA" in result.outcomes[1].message and not _invocations(tmp_path)
+    assert f"stgc.cli train {Path('DATA').resolve()}" in result.outcomes[1].message and not _invocations(tmp_path)
 
 
 @pytest.mark.parametrize("plan_name", ["table2", "table3", "demo"])
@@ -280,7 +280,8 @@ def test_plan_options_are_checked_before_the_first_run(tmp_path: Path) -> None:
     from stgc.config import ConfigError
 
     plan_path = tmp_path / "p.toml"
-    plan_path.write_text("name = 'p'\n[[runs]]\nname = 'good'\n[runs.overrides]\n'compaction.case' = '2'\n"
+    plan_path.write_text("name = 'p'\n[[runs]]\nname = 'good'\n[runs.overrides]\n'compaction.method' = 'st-knn'\n"
+                         "'compaction.case' = '2'\n"
                          "[[runs]]\nname = 'typo'\n[runs.overrides]\n'train.iteratons' = '10'\n")
     calls = []
     with pytest.raises(ConfigError, match="run 'typo'.*did you mean train.iterations"):
@@ -476,3 +477,58 @@ def test_plan_tasks_get_absolute_paths_whatever_the_user_typed(tmp_path: Path, m
     spec, run_dir, data_path = task.args[:3]
     assert run_dir == tmp_path / "exp" / "stg" and Path(data_path) == tmp_path / "DATA"
 
+
+
+def test_a_moved_experiment_folder_keeps_its_fine_tuning_runs(tmp_path: Path) -> None:
+    plan_path = tmp_path / "rate.toml"
+    plan_path.write_text(FINETUNE_TOML)
+    run_plan("DATA", plan_path, tmp_path / "exp", preset="cpu", runner=fake_runner, python=sys.executable,
+             log=lambda m: None)
+    (tmp_path / "exp").rename(tmp_path / "moved")
+    again = run_plan("DATA", plan_path, tmp_path / "moved", preset="cpu", runner=fake_runner, python=sys.executable,
+                     log=lambda m: None)
+    assert {o.status for o in again.outcomes} == {"skipped"}, [o.message for o in again.outcomes]
+
+
+def test_a_loss_reference_is_the_same_folder_however_spelled(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from stgc.experiment.runner import reuse_mismatch
+
+    monkeypatch.chdir(tmp_path)
+    run = tmp_path / "exp" / "budget"
+    run.mkdir(parents=True)
+    # Recorded when the experiment was run with a relative --out; today's runner passes absolute paths.
+    then = {"compaction.method": "reference", "compaction.loss_reference": "exp/stg"}
+    (run / "experiment.json").write_text(json.dumps({"name": "budget", "overrides": then, "preset": "cpu",
+                                                     "data": str(tmp_path / "DATA")}))
+    now = {**then, "compaction.loss_reference": str(tmp_path / "exp" / "stg")}
+    assert reuse_mismatch(run, tmp_path / "DATA", "cpu", now) is None
+    other = {**then, "compaction.loss_reference": str(tmp_path / "exp" / "other")}
+    assert "compaction.loss_reference" in (reuse_mismatch(run, tmp_path / "DATA", "cpu", other) or "")
+
+
+def test_set_compaction_options_skip_the_runs_that_prune_nothing_and_a_plan_that_sets_them_there_is_refused(
+        tmp_path: Path) -> None:
+    from stgc.config import ConfigError
+    from stgc.experiment.runner import check_plan_options, run_overrides
+
+    plan = load_plan_toml_text(tmp_path, MINI_PLAN + '[[runs]]\nname = "c2"\nfamily = "ST-KNN"\n'
+                               'overrides = { "compaction.method" = "st-knn", "compaction.case" = 2 }\n')
+    extra = {"compaction.criterion": "scale"}
+    stg, c2 = plan.runs
+    assert "compaction.criterion" not in run_overrides(plan, stg, extra, tmp_path)  # `stgc train` would refuse it
+    assert run_overrides(plan, c2, extra, tmp_path)["compaction.criterion"] == "scale"
+    check_plan_options(plan, "cpu", extra, tmp_path)
+    wrong = load_plan_toml_text(tmp_path, MINI_PLAN.replace('"compaction.method" = "none" }',
+                                                            '"compaction.method" = "none", "compaction.case" = 3 }'))
+    with pytest.raises(ConfigError, match="run 'stg'.*compaction.method is none"):
+        check_plan_options(wrong, "cpu", {}, tmp_path)
+    too_long = load_plan_toml_text(tmp_path, FINETUNE_TOML.replace(
+        '"train.quantization_aware.iterations" = 50', '"train.quantization_aware.iterations" = 80'))
+    with pytest.raises(ConfigError, match="run 'rate-b'.*longer than the continuation's 50"):
+        check_plan_options(too_long, "cpu", {}, tmp_path)
+
+
+def load_plan_toml_text(folder: Path, text: str) -> Any:
+    path = folder / "plan.toml"
+    path.write_text(text)
+    return load_plan_toml(path)

@@ -63,7 +63,8 @@ def test_new_gaussians_start_as_the_official_code_adds_them():
 
     rng = np.random.default_rng(0)
     cloud = SimpleNamespace(xyz=rng.normal(size=(200, 3)).astype(np.float32),
-                            rgb=rng.uniform(size=(200, 3)).astype(np.float32), time=rng.uniform(size=200).astype(np.float32))
+                            rgb=rng.uniform(size=(200, 3)).astype(np.float32),
+                            time=rng.uniform(size=200).astype(np.float32))
     model = STGModel.from_points(cloud, variant="full")
     xyz = np.array([[0.0, 0, 0], [0.5, 0, 0], [0, 0.5, 0], [0, 0, 0.5]])  # 0.5 apart; the cloud is denser
     rgb = np.array([[0.9, 0.2, 0.1]] * 4)

@@ -497,8 +497,9 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
     of all segments in eval_<stem>_per_view.csv, and the seam figure seams_<stem>.png beside the file."""
     records, curves, rows = [], [], []
     for segment in video_bitstream_segments(target, data_path):
-        result = _score_model(segment.model, segment.dataset, lpips_net=lpips_net, warmup=warmup,
-                              measure_fps=measure_fps)
+        with machine.threads(_run_threads(target.parent)):  # the video's folder holds its run's config
+            result = _score_model(segment.model, segment.dataset, lpips_net=lpips_net, warmup=warmup,
+                                  measure_fps=measure_fps)
         summary = segment.run.read_summary(strict=False) if segment.run else None
         records.append((segment.name, eval_record(result, segment.size, {"train_seconds": training_seconds(summary)})))
         curves.append((segment.name, [(v.frame, v.psnr) for v in result.views]))
@@ -531,10 +532,13 @@ def _weighted(records: Sequence[Mapping[str, Any]], key: str, weight: str = "num
     return sum(v * w for v, w in pairs) / total if total > 0 else None
 
 
-def _rate_over_all(records: Sequence[Mapping[str, Any]], key: str, weight: str = "num_views") -> float | None:
-    """A per-second rate of the whole (renders per second): all events over all their time, i.e. the harmonic mean
-    of the parts' rates weighted by their event counts; the arithmetic mean would overstate it."""
-    pairs = [(float(r[key]), float(r.get(weight) or 0)) for r in records if r.get(key)]
+def _renders_per_second(records: Sequence[Mapping[str, Any]]) -> float | None:
+    """The whole's FPS: all timed renders over all their time, i.e. the harmonic mean of the parts' FPS weighted by
+    the renders each timed (`render_speed.frames_timed`, else its views); the arithmetic mean would overstate it."""
+    def timed(r: Mapping[str, Any]) -> float:
+        return float((r.get("render_speed") or {}).get("frames_timed") or r.get("num_views") or 0)
+
+    pairs = [(float(r["fps"]), timed(r)) for r in records if r.get("fps")]
     seconds = sum(w / v for v, w in pairs)
     return sum(w for _, w in pairs) / seconds if seconds > 0 else None
 
@@ -567,7 +571,7 @@ def aggregate_video_records(records: Sequence[tuple[str, Mapping[str, Any]]]) ->
         "size_mb": size_bytes / 2**20,
         "duration_s": duration,
         "mbps": size_bytes * 8 / duration / 1e6 if duration > 0 else None,
-        "fps": _rate_over_all(rows, "fps"),
+        "fps": _renders_per_second(rows),
         "num_views": sum(int(r.get("num_views") or 0) for r in rows),
         "segments": len(rows),
         "train_seconds": sum(float(r.get("train_seconds") or 0.0) for r in rows),

@@ -34,14 +34,15 @@ from pathlib import Path
 from typing import Any
 
 from stgc.config import EXECUTION_OPTIONS, ConfigError, iter_fields
+from stgc.data.config import dataset_folder
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.errors import FormatError, StgcError
 from stgc.eval.report import Report, ReportRow, make_report, rate_points, record_fields
 from stgc.experiment.plans import Plan, RunSpec, load_plan
 from stgc.fileio import atomic_open, read_json_object, write_json
-from stgc.options import configs_from_run, resolve_configs
+from stgc.options import configs_from_run, refuse_unused_compaction_options, resolve_configs
 from stgc.run import Run
-from stgc.train.continuation import continuation_configs
+from stgc.train.continuation import check_window_fits, continuation_configs
 
 _log = logging.getLogger(__name__)
 
@@ -97,12 +98,17 @@ def finetune_overrides(spec: RunSpec, extra: Mapping[str, str]) -> dict[str, str
 
 
 def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str], out_dir: Path) -> dict[str, str]:
-    """The options that make `spec`'s run: its own over the plan's and --set's; a fine-tuning run's start from
-    its source's (which it inherits) and change only train.* ones (its own). A run with a loss reference gets
+    """The options that make `spec`'s run: its plan entry's with --set's over them, except --set's compaction
+    options in a run that prunes nothing (a plan's `stg` baseline; `stgc train` refuses them there); a
+    fine-tuning run's are its source's with `finetune_overrides` over them. A run with a loss reference gets
     compaction.loss_reference = that run's folder under `out_dir`."""
     if spec.source is None:
         reference = {} if spec.reference is None else {"compaction.loss_reference": str(out_dir / spec.reference)}
-        return {**spec.overrides, **extra, **reference}
+        merged = {**spec.overrides, **extra, **reference}
+        if merged.get("compaction.method", "none") == "none":
+            merged = {k: v for k, v in merged.items()
+                      if not k.startswith("compaction.") or k == "compaction.method" or k in spec.overrides}
+        return merged
     source = next(s for s in plan.runs if s.name == spec.source)
     return {**run_overrides(plan, source, extra, out_dir), **finetune_overrides(spec, extra)}
 
@@ -112,7 +118,12 @@ def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str],
     must not surface hours later. Raises ConfigError naming the run."""
     for spec in plan.runs:
         try:
-            resolve_configs(preset or "cpu", {}, {}, run_overrides(plan, spec, extra, out_dir))
+            overrides = run_overrides(plan, spec, extra, out_dir)
+            configs = resolve_configs(preset or "cpu", {}, {}, overrides)
+            if spec.source is None:
+                refuse_unused_compaction_options(configs["compaction"], overrides)
+            else:
+                check_window_fits(configs["train"].quantization_aware.iterations, spec.iterations)
         except ConfigError as exc:
             raise ConfigError(f"plan {plan.name!r}, run {spec.name!r}: {exc}") from None
 
@@ -140,19 +151,19 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
     if recorded is not None:
         before = {str(k): str(v) for k, v in (recorded.get("overrides") or {}).items() if k not in EXECUTION_OPTIONS}
         for key in sorted(set(before) | set(wanted)):
-            if before.get(key) != wanted.get(key):
+            if not _same_option(key, before.get(key), wanted.get(key)):
                 differences.append(f"{key}: {before.get(key, 'unset')} then, {wanted.get(key, 'unset')} now")
         if recorded.get("preset") not in (None, preset or "cpu"):
             differences.append(f"preset: {recorded['preset']} then, {preset or 'cpu'} now")
-        if recorded.get("data") is not None and Path(str(recorded["data"])).resolve() != Path(data_path).resolve():
+        if recorded.get("data") is not None and dataset_folder(recorded["data"]) != dataset_folder(data_path):
             differences.append(f"data: {recorded['data']} then, {Path(data_path).resolve()} now")
     finetune = spec if spec is not None and spec.source is not None else None
     if finetune is not None:
         differences += _continuation_mismatch(run, finetune)
-    if run.has_config() and (check_config or recorded is None):
+    if run.has_config() and (check_config or recorded is None) and not differences:  # each difference said once
         differences += _config_mismatch(run_dir, data_path, preset, wanted,
                                         None if finetune is None else (finetune, dict(extra or {})), check_config)
-    return "; ".join(dict.fromkeys(differences)) or None
+    return "; ".join(differences) or None
 
 
 def _continuation_mismatch(run: Run, spec: RunSpec) -> list[str]:
@@ -161,9 +172,9 @@ def _continuation_mismatch(run: Run, spec: RunSpec) -> list[str]:
     if continued is None:
         return []
     differences = []
-    wanted_source = (run.path.parent / str(spec.source)).resolve()
-    if continued.get("run") is not None and Path(str(continued["run"])).resolve() != wanted_source:
-        differences.append(f"fine-tuned from {continued['run']} then, from {wanted_source} now")
+    # By name in the experiment folder: the folder itself may have moved since.
+    if continued.get("run") is not None and Path(str(continued["run"])).name != spec.source:
+        differences.append(f"fine-tuned from {Path(str(continued['run'])).name} then, from {spec.source} now")
     if continued.get("iterations") is not None and int(continued["iterations"]) != spec.iterations:
         differences.append(f"{continued['iterations']} fine-tuning iterations then, {spec.iterations} now")
     return differences
@@ -198,10 +209,10 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
             if (f.dotted not in present or key in EXECUTION_OPTIONS or f.default is None or f.default == "auto"
                     or not (every_option or key in wanted)):
                 continue
-            if theirs.get(f.dotted) != f.default:
+            if not _same_option(key, theirs.get(f.dotted), f.default):
                 differences.append(f"{key}: {theirs.get(f.dotted)} in its config.json, {f.default} in the plan")
     saved_data = saved.get("data_path")
-    if saved_data is not None and Path(str(saved_data)).resolve() != Path(data_path).resolve():
+    if saved_data is not None and dataset_folder(saved_data) != dataset_folder(data_path):
         differences.append(f"data: {saved_data} in its config.json, {Path(data_path).resolve()} in the plan")
     return differences
 
@@ -217,9 +228,14 @@ def _dotted_keys(section: Any, prefix: str = "") -> set[str]:
     return keys
 
 
-def _option_value(configs: Mapping[str, Any], key: str) -> Any:
-    section, _, name = key.partition(".")
-    return next(f.default for f in iter_fields(configs[section]) if f.dotted == name)  # an instance: its values
+# Options that name a file or folder: the same one however spelled (relative or absolute).
+_PATH_OPTIONS = frozenset({"compaction.loss_reference"})
+
+
+def _same_option(key: str, before: Any, now: Any) -> bool:
+    if key in _PATH_OPTIONS and before and now:
+        return bool(Path(str(before)).resolve() == Path(str(now)).resolve())
+    return bool(before == now)
 
 
 def _failed(outcomes: Sequence[RunOutcome]) -> bool:
@@ -506,7 +522,8 @@ def _run_cpus(preset: str | None, overrides: Mapping[str, str]) -> int:
 
 def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | None,
                     overrides: dict[str, str], extra: Mapping[str, str], runner: Runner,
-                    command_builder: Callable[..., list[str]], python: str, log_path: Path, say: Callable[[str], None], outcome: RunOutcome) -> str:
+                    command_builder: Callable[..., list[str]], python: str, log_path: Path,
+                    say: Callable[[str], None], outcome: RunOutcome) -> str:
     run_dir.mkdir(parents=True, exist_ok=True)
     write_json(Run(run_dir).experiment_path, {"name": spec.name, "family": spec.family, "label": spec.label,
                                             "overrides": overrides, "preset": preset or "cpu",

@@ -38,6 +38,14 @@ def check_continuable(source: str | Path) -> None:
         raise StgcError(f"{source}: its training is not finished; finish it first (stgc train --out {source} --resume)")
 
 
+def check_window_fits(window: int, iterations: int) -> None:
+    """A continuation's rate-aware window must lie inside it: a longer one would start inside the source's finished
+    training, and config.json would record steps that never ran."""
+    if window > iterations:
+        raise ConfigError(f"train.quantization_aware.iterations {window}: longer than the continuation's {iterations} "
+                          f"iterations (set it to at most {iterations}, or 0 for none)")
+
+
 def continuation_configs(saved: Mapping[str, Any], source: str | Path, iterations: int,
                          overrides: Mapping[str, str] | None = None) -> dict[str, Any]:
     """The configs (data, model, train, compaction, data_path) a continuation of `source` by `iterations` trains
@@ -57,11 +65,7 @@ def continuation_configs(saved: Mapping[str, Any], source: str | Path, iteration
                                 sections.get("train", {}), "train")
     if train_cfg.iterations != base + iterations:
         raise ConfigError("train.iterations: give the continuation's length as its iterations, not as an override")
-    window = train_cfg.quantization_aware.iterations
-    if window > iterations:
-        # The window would start inside the source's finished training: fewer steps run than config.json records.
-        raise ConfigError(f"train.quantization_aware.iterations {window}: longer than the continuation's {iterations} "
-                          f"iterations (set it to at most {iterations}, or 0 for none)")
+    check_window_fits(train_cfg.quantization_aware.iterations, iterations)
     configs["train"] = validate_config(train_cfg, "train")
     configs["compaction"] = dataclasses.replace(saved["compaction"], method="none")
     return configs

@@ -106,10 +106,14 @@ class ErrorGuidedSampler:
         self.trbf_scale_init = trbf_scale_init
         self.state: dict[str, Any] = {"ssim": {}, "depth": {}, "candidates": None, "events": 0, "last": -10**9}
 
+    def listening(self, iteration: int) -> bool:
+        """Whether `observe` uses the views' SSIM at `iteration`."""
+        return bool(self.cfg.enabled and iteration >= self.start and self.state["events"] < self.cfg.max_events)
+
     def observe(self, iteration: int, camera: Camera, ssim_value: float) -> bool:
         """Record a rendered training view; True when this view should trigger an insertion."""
         st, cfg = self.state, self.cfg
-        if not cfg.enabled or iteration < self.start or st["events"] >= cfg.max_events:
+        if not self.listening(iteration):
             return False
         name = str(camera.name)
         st["ssim"].setdefault(name, float(ssim_value))

@@ -394,8 +394,10 @@ class Trainer:
         window = self.cfg.quantization_aware.iterations
         return window > 0 and iteration > self.schedule.iterations - window
 
-    def view_loss(self, render_rgb: torch.Tensor, gt: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, float]:
-        """(loss, SSIM value) of one training view."""
+    def view_loss(self, render_rgb: torch.Tensor, gt: torch.Tensor, camera: Camera,
+                  need_ssim: bool = False) -> tuple[torch.Tensor, float]:
+        """(loss, SSIM value) of one training view; the SSIM is NaN when the loss has no SSIM term, unless
+        `need_ssim`."""
         lam = self.cfg.lambda_dssim
         error = (render_rgb - gt).abs()
         loss = error.mean()
@@ -403,7 +405,7 @@ class Trainer:
         if lam > 0:
             s = ssim(render_rgb, gt)
             loss, ssim_value = (1.0 - lam) * loss + lam * (1.0 - s), float(s.detach())
-        elif self.cfg.ems.enabled:  # error-guided sampling picks its views by their SSIM
+        elif need_ssim:
             with torch.no_grad():
                 ssim_value = float(ssim(render_rgb, gt))
         foreground = None if self.masks is None else self.masks.get(camera)
@@ -432,7 +434,8 @@ class Trainer:
                 out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend,
                                         opacity_scale=None if mask is None else mask.keep_factor())
             rgb = out.rgb if self.colour is None else self.colour.apply(out.rgb, cam.name)
-            loss, ssim_value = self.view_loss(rgb, gt, cam)
+            # Error-guided sampling picks its views by their SSIM, whether or not the loss has an SSIM term.
+            loss, ssim_value = self.view_loss(rgb, gt, cam, need_ssim=self.ems.listening(iteration))
             (loss / batch).backward()
             if self.ems.observe(iteration, cam, ssim_value) and ems_view is None:
                 ems_view = (cam, rgb.detach(), gt)

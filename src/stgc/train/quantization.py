@@ -4,7 +4,9 @@ During the run's last `train.quantization_aware.iterations` iterations every Gau
 forward pass, by what `decode(encode(model))` gives (`stgc.codec.simulate_quantization`: the codec's own domains,
 quantizer fitting, outlier guard and time-span scaling, without the entropy coding), and the gradient passes
 straight through to the float parameters (x + (q(x) - x).detach()). The model so learns values that survive the
-quantization. Rotation and omega are seen canonicalized (unit quaternion), which renders the same. As `compress_run`
+quantization. Rotation and omega are quantized as the codec stores them (canonical: unit quaternion, largest component
+positive) and seen scaled back to the parameter's own sign and norm, which renders the same and keeps the straight-
+through gradient pointing the parameter's way (`_parameter_frame`). As `compress_run`
 does by default, Gaussians that no frame shows are left out of the quantizer fits (and pass through unchanged: they
 are never rendered). The decoder MLP is not simulated: the codec stores it in float16 (relative error 2^-11).
 
