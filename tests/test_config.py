@@ -14,6 +14,7 @@ from stgc.config import (
     from_dict,
     iter_fields,
     parse_set_arguments,
+    same_option_value,
     to_dict,
 )
 
@@ -75,3 +76,20 @@ def test_argparse_options_are_generated_with_defaults_in_help():
     ns = parser.parse_args(["--train.iterations", "10", "--train.inner.rounds", "2"])
     assert collect_overrides(ns) == {"train": {"iterations": "10", "inner.rounds": "2"}}
     assert parse_set_arguments(["a.b=1", "c=x=y"]) == {"a.b": "1", "c": "x=y"}
+
+
+def test_path_options_agree_when_they_name_one_place_however_spelled(tmp_path, monkeypatch):
+    run = tmp_path / "reference"
+    run.mkdir()
+    (run / "compaction_log.jsonl").write_text("")
+    other = tmp_path / "other"
+    other.mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert same_option_value("compaction.loss_reference", "reference", str(run))
+    assert same_option_value("compaction.loss_reference", str(run / "compaction_log.jsonl"), "reference")
+    assert same_option_value("data.path", "./reference/../reference", str(run))
+    assert not same_option_value("compaction.loss_reference", "reference", str(other))
+    assert not same_option_value("compaction.loss_reference", "", str(run))
+    # Other options compare as values: a string that happens to name a folder is not a place.
+    assert not same_option_value("train.backend", "reference", str(run))
+    assert same_option_value("train.iterations", 9000, 9000)

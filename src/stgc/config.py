@@ -15,6 +15,7 @@ import json
 import types
 import typing
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any, Literal, get_args, get_origin
 
 from stgc.errors import StgcError
@@ -25,6 +26,24 @@ from stgc.errors import StgcError
 EXECUTION_OPTIONS = frozenset({"train.threads", "train.backend", "train.eval_every", "train.eval_at_end",
                                "train.log_every", "train.checkpoint_every", "train.save_iterations", "train.progress",
                                "train.tensorboard", "train.stop_after", "data.image_cache_mb"})
+
+
+# Options that name a file or folder: two configs agree on one when they name the same place, however spelled
+# (relative or absolute, the folder or a file in it: a dataset's metadata file, a reference run's log).
+PATH_OPTIONS = frozenset({"data.path", "compaction.loss_reference"})
+
+
+def same_option_value(name: str, first: Any, second: Any) -> bool:
+    """Whether the option `name` (dotted, with its section: "compaction.loss_reference") has one value in two
+    configs."""
+    if name in PATH_OPTIONS and first and second:
+        return bool(_named_folder(first) == _named_folder(second))
+    return bool(first == second)
+
+
+def _named_folder(value: Any) -> Path:
+    resolved = Path(str(value)).resolve()
+    return resolved.parent if resolved.is_file() else resolved
 
 
 class ConfigError(StgcError, ValueError):

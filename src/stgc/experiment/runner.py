@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from stgc.config import EXECUTION_OPTIONS, ConfigError, iter_fields
+from stgc.config import EXECUTION_OPTIONS, ConfigError, iter_fields, same_option_value
 from stgc.data.config import dataset_folder
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.errors import FormatError, StgcError
@@ -151,7 +151,7 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
     if recorded is not None:
         before = {str(k): str(v) for k, v in (recorded.get("overrides") or {}).items() if k not in EXECUTION_OPTIONS}
         for key in sorted(set(before) | set(wanted)):
-            if not _same_option(key, before.get(key), wanted.get(key)):
+            if not same_option_value(key, before.get(key), wanted.get(key)):
                 differences.append(f"{key}: {before.get(key, 'unset')} then, {wanted.get(key, 'unset')} now")
         if recorded.get("preset") not in (None, preset or "cpu"):
             differences.append(f"preset: {recorded['preset']} then, {preset or 'cpu'} now")
@@ -209,7 +209,7 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
             if (f.dotted not in present or key in EXECUTION_OPTIONS or f.default is None or f.default == "auto"
                     or not (every_option or key in wanted)):
                 continue
-            if not _same_option(key, theirs.get(f.dotted), f.default):
+            if not same_option_value(key, theirs.get(f.dotted), f.default):
                 differences.append(f"{key}: {theirs.get(f.dotted)} in its config.json, {f.default} in the plan")
     saved_data = saved.get("data_path")
     if saved_data is not None and dataset_folder(saved_data) != dataset_folder(data_path):
@@ -226,16 +226,6 @@ def _dotted_keys(section: Any, prefix: str = "") -> set[str]:
     for name, value in section.items():
         keys |= _dotted_keys(value, f"{prefix}{name}.") if isinstance(value, Mapping) else {f"{prefix}{name}"}
     return keys
-
-
-# Options that name a file or folder: the same one however spelled (relative or absolute).
-_PATH_OPTIONS = frozenset({"compaction.loss_reference"})
-
-
-def _same_option(key: str, before: Any, now: Any) -> bool:
-    if key in _PATH_OPTIONS and before and now:
-        return bool(Path(str(before)).resolve() == Path(str(now)).resolve())
-    return bool(before == now)
 
 
 def _failed(outcomes: Sequence[RunOutcome]) -> bool:

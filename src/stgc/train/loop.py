@@ -27,7 +27,7 @@ import torch
 
 from stgc import machine
 from stgc.compaction import CompactionConfig, STKNNCompactor
-from stgc.config import EXECUTION_OPTIONS, validate_config
+from stgc.config import EXECUTION_OPTIONS, same_option_value, validate_config
 from stgc.data import DataConfig
 from stgc.data.cameras import Camera
 from stgc.data.config import initial_points_from_config
@@ -287,10 +287,7 @@ class Trainer:
                 name = f"{section}.{key}"
                 if name in EXECUTION_OPTIONS or name in _PRUNED_RUN_ONLY or key.startswith("resolved_schedule"):
                     continue
-                if key == "path" and ours.get(key) and saved.get(key):
-                    if Path(str(ours[key])).resolve() == Path(str(saved[key])).resolve():
-                        continue
-                if ours.get(key) != saved.get(key):
+                if not same_option_value(name, ours.get(key), saved.get(key)):
                     differences.append(f"{name}: this run {ours.get(key)!r}, the reference {saved.get(key)!r}")
         if differences:
             raise DataError(reference_dir / Run.CONFIG, "the loss reference is not this run's configuration "
