@@ -91,3 +91,19 @@ def test_a_budget_run_reads_its_unpruned_reference_run_at_the_same_iterations(sc
         Trainer(dataset, None, None, dataclasses.replace(_config(80), seed=2), budgeted, tmp_path / "other",
                 model=start())
     assert not (tmp_path / "other").exists()
+    # Nor of another thread count or backend: the same options round differently and drift apart (the numba
+    # rasterizer sums per-thread rows), so the budget would count the drift as damage.
+    trained_with = json.loads((tmp_path / "ref" / "train_summary.json").read_text())["threads"]
+    with pytest.raises(DataError, match=rf"train.threads: this run trains with {trained_with + 1}, the reference "
+                                        rf"trained with {trained_with}"):
+        Trainer(dataset, None, None, dataclasses.replace(_config(80), threads=trained_with + 1), budgeted,
+                tmp_path / "other", model=start())
+    with pytest.raises(DataError, match=r"train.backend: this run 'torch', the reference 'auto'"):
+        Trainer(dataset, None, None, dataclasses.replace(_config(80), backend="torch"), budgeted, tmp_path / "other",
+                model=start())
+    assert not (tmp_path / "other").exists()
+    Trainer(dataset, None, None, dataclasses.replace(_config(80), backend="numba", threads=trained_with), budgeted,
+            tmp_path / "numba", model=start())  # what "auto" means on CPU, and the count it trained with
+    # A continuation (stgc finetune) of the budgeted run prunes nothing: the loss reference it keeps is not checked.
+    Trainer(dataset, None, None, _config(90), dataclasses.replace(budgeted, method="none"), tmp_path / "longer",
+            model=start())

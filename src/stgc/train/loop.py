@@ -36,6 +36,7 @@ from stgc.errors import DataError
 from stgc.fileio import write_json
 from stgc.metrics import ssim
 from stgc.model import ModelConfig, STGModel
+from stgc.render import BACKENDS, select_backend
 from stgc.run import Run
 from stgc.train.checkpoint import (
     load_checkpoint,
@@ -272,7 +273,9 @@ class Trainer:
         same data, model and training options (all but how it executes) and the same pruning schedule and probe.
         Refuse, naming the differences, before anything is trained (the log's own checks cannot see them)."""
         cfg = self.compaction_cfg
-        if cfg is None or not cfg.loss_reference:
+        # A run that prunes nothing holds no budget: a continuation of a budgeted run keeps its compaction section
+        # (method switched off), loss reference and all.
+        if cfg is None or cfg.method == "none" or not cfg.loss_reference:
             return
         reference = Path(cfg.loss_reference)
         reference_dir = reference if reference.is_dir() else reference.parent
@@ -289,9 +292,30 @@ class Trainer:
                     continue
                 if not same_option_value(name, ours.get(key), saved.get(key)):
                     differences.append(f"{name}: this run {ours.get(key)!r}, the reference {saved.get(key)!r}")
+        differences += self._rounding_differences(reference_dir, theirs)
         if differences:
             raise DataError(reference_dir / Run.CONFIG, "the loss reference is not this run's configuration "
                             "trained unpruned: " + "; ".join(differences))
+
+    def _rounding_differences(self, reference_dir: Path, theirs: dict[str, Any]) -> list[str]:
+        """How this run and its loss reference would execute differently enough to round differently: the numba
+        rasterizer sums per-thread partial rows, so other thread counts (or another backend) drift apart within a
+        few hundred iterations, and the budget would count that drift as pruning damage. The reference's threads
+        are the count it trained with (its train_summary.json), else its config's when that names one."""
+        differences = []
+        summary = Run(reference_dir).read_summary() or {}
+        saved_threads = (theirs.get("train") or {}).get("threads")
+        their_threads = summary.get("threads") or saved_threads or None
+        my_threads = self.cfg.threads or torch.get_num_threads()
+        if isinstance(their_threads, int) and their_threads != my_threads:
+            differences.append(f"train.threads: this run trains with {my_threads}, the reference trained with "
+                               f"{their_threads} (other thread counts round differently and drift apart)")
+        their_backend = (theirs.get("train") or {}).get("backend")
+        cpu = torch.device("cpu")
+        if isinstance(their_backend, str) and their_backend in BACKENDS and (
+                select_backend(their_backend, cpu) != select_backend(self.cfg.backend, cpu)):
+            differences.append(f"train.backend: this run {self.cfg.backend!r}, the reference {their_backend!r}")
+        return differences
 
     def _make_compactor(self) -> STKNNCompactor | None:
         cfg = self.compaction_cfg
