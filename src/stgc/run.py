@@ -202,6 +202,16 @@ class Run:
     def read_eval(self, other_data: str | None = None, *, strict: bool = True) -> dict[str, Any] | None:
         return read_json_object(self.eval_paths(other_data)[0], strict=strict)
 
+    def evaluated_finished_model(self) -> bool:
+        """Whether the run's own evaluation record (eval.json) scored the model its finished training left: the
+        record's iterations are the summary's. A record made while the run still trained (`stgc eval` of a
+        half-trained run) names none, and the run may have finished without scoring itself (train.eval_at_end
+        off): that record is stale."""
+        summary = self.read_summary(strict=False)
+        record = self.read_eval(strict=False)
+        return bool(summary and summary.get("finished") and record is not None
+                    and record.get("iterations") == summary.get("iterations"))
+
     def progress(self) -> tuple[int, int]:
         """(iterations done, iterations in all) as the files say while the run trains elsewhere: the last row of
         the metrics log against config.json's train.iterations; (0, 0) before either exists."""

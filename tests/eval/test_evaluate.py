@@ -140,6 +140,43 @@ def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
     assert (tmp_path / "eval_model_q3.json").is_file()
 
 
+def test_a_record_of_a_half_trained_run_says_so_and_is_not_the_finished_runs(tmp_path: Path, caplog) -> None:
+    """`stgc eval` of a run still training scores its latest saved model: the record says the training had not
+    finished, and once it has, that record is not taken for the finished model's (Run.evaluated_finished_model)."""
+    it = tmp_path / "point_cloud" / "iteration_10"
+    it.mkdir(parents=True)
+    rows = np.zeros(7, dtype=[(n, "f4") for n in ply_fields("lite")])
+    PlyData([PlyElement.describe(rows, "vertex")]).write(str(it / "point_cloud.ply"))
+    (tmp_path / "config.json").write_text("{}")
+
+    class FakeModel:
+        num_gaussians, variant = 7, "lite"
+
+        def render(self, cam: FakeCam, t: float, background: torch.Tensor) -> torch.Tensor:
+            return _noisy_render(cam)
+
+    class FakeDataset:
+        test, frames, fps, background = CAMS, list(range(4)), 2.0, (0.0, 0.0, 0.0)
+        root = "fake_data"
+
+        def load_image(self, cam: FakeCam) -> np.ndarray:
+            return _gt(cam)
+
+    def score() -> dict:
+        return evaluate_run(tmp_path, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset(),
+                            measure_fps=False)
+
+    with caplog.at_level("WARNING"):
+        record = score()
+    assert record["training_finished"] is False and "iterations" not in record
+    assert "has not finished training" in caplog.text
+    (tmp_path / "train_summary.json").write_text(json.dumps({"finished": True, "iterations": 20}))
+    assert not Run(tmp_path).evaluated_finished_model()  # the record scored the half-trained model
+    record = score()
+    assert record["training_finished"] is True and record["iterations"] == 20
+    assert Run(tmp_path).evaluated_finished_model()
+
+
 def test_a_whole_videos_render_rate_is_all_renders_over_all_their_time() -> None:
     from stgc.eval.evaluate import aggregate_video_records
 

@@ -171,6 +171,20 @@ def test_run_plan_is_resumable(tmp_path: Path) -> None:
     assert {o.name: o.status for o in second.outcomes}["c1"] == "skipped"
     assert len(_results(out)) == 9
 
+    # An evaluation record made while c1 still trained (`stgc eval` of the half-trained run: no iterations) is
+    # stale once the run has finished: the runner scores the finished model instead of reporting that record.
+    record = json.loads((out / "c1" / "eval.json").read_text())
+    del record["iterations"]
+    (out / "c1" / "eval.json").write_text(json.dumps(record | {"psnr": 12.0}))
+    assert not run_is_finished(out / "c1")
+    third = run_plan("DATA", plan_path, out, preset="cpu", extra_overrides=["train.iterations=10"],
+                     codec_qualities=[4], runner=fake_runner, check_options=False, python=sys.executable, log=messages.append)
+    c1_calls = [c for c in _invocations(out)[len(calls) + 1:] if f"{out / 'c1'}" in c]
+    assert len(c1_calls) == 1 and c1_calls[0].startswith("eval"), c1_calls  # not trained, not compressed again
+    assert {o.name: o.status for o in third.outcomes}["c1"] == "finished"
+    assert run_is_finished(out / "c1")
+    assert float(next(r for r in _results(out) if r["name"] == "c1")["psnr"]) == pytest.approx(29.7)
+
 
 MINI_PLAN = """
 name = "mini"

@@ -85,6 +85,11 @@ def test_resume_trains_only_what_is_unfinished(scene, tmp_path, capsys):
     # Its saved model is not the video's: compress refuses to pack it (it used to, silently).
     assert main(["compress", str(out), "--out", str(out / "v.stgc"), "--set", "codec.allocation=ladder"]) == 2
     assert "segment_001" in capsys.readouterr().err and not (out / "v.stgc").exists()
+    # Nor is it scored as the video (it was: its half-trained model went into the video's PSNR and rate).
+    video_record = (out / "eval.json").read_bytes()
+    assert main(["eval", str(out)]) == 2
+    assert "segment_001: segment has not finished training" in capsys.readouterr().err
+    assert (out / "eval.json").read_bytes() == video_record
     assert main(["train", "--out", str(out), "--resume", "--no-ray"]) == 0
     assert second.training_finished()
     assert (first.summary_path.stat().st_mtime_ns, (first.latest_model_dir() / "point_cloud.ply").read_bytes()) == kept

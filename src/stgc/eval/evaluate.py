@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import io
+import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -48,6 +49,8 @@ from stgc.fileio import atomic_open, atomic_path, file_sha256, read_json_object,
 from stgc.metrics import LPIPS, psnr, ssim, yuv_psnr
 from stgc.model import STGModel
 from stgc.run import Run
+
+log = logging.getLogger(__name__)
 
 PER_VIEW_COLUMNS = ("camera", "frame", "time", "psnr", "ssim", "lpips", "render_ms", "psnr_yuv", "psnr_y", "psnr_u",
                     "psnr_v")
@@ -235,6 +238,8 @@ def write_eval(
     more: dict[str, Any] = {"train_seconds": training_seconds(summary)}
     if summary and "iterations" in summary:
         more["iterations"] = summary["iterations"]
+    if bitstream is None and run.has_config():
+        more["training_finished"] = bool(summary and summary.get("finished"))
     if bitstream is not None:
         more.update(bitstream=Path(bitstream).name, bitstream_sha256=file_sha256(bitstream))
     more.update(extra or {})
@@ -420,7 +425,14 @@ def evaluate_run(
     if target.suffix != ".stgc" and Run(target).is_video():
         if data_path is not None or load_model is not None or open_dataset is not None:
             raise DataError(target, "a whole-video run is evaluated on its own data, segment by segment")
-        for segment in Run(target).segments():
+        segments = Run(target).segments()
+        for segment in segments:
+            if not segment.training_finished():
+                # A killed or failed segment still holds the models save_iterations wrote: half-trained, not the
+                # video (as `stgc compress` refuses it).
+                raise DataError(segment.path, "segment has not finished training (finish it with stgc train "
+                                              "--resume)")
+        for segment in segments:
             evaluate_run(segment.path, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
         return write_video_eval(target)
     if target.suffix == ".stgc" and is_video_stgc(target):
@@ -436,6 +448,8 @@ def evaluate_run(
         config_dir, data_path, target if target.suffix == ".stgc" else None)
     if load_model is None:
         load_model = _default_model_loader
+    if owner is None and target.suffix != ".stgc" and Run(target).has_config() and not Run(target).training_finished():
+        log.warning("%s has not finished training: scoring its latest saved model (the record says so)", target)
     model = load_model(target)
     duration_s = dataset_duration_s(dataset)
     if target.suffix == ".stgc":

@@ -265,9 +265,8 @@ def _read_json(path: Path) -> dict[str, Any] | None:
 
 
 def run_is_finished(run_dir: str | Path) -> bool:
-    """Finished = the run's evaluation record is there and its training summary says finished."""
-    run = Run(run_dir)
-    return run.training_finished() and run.eval_paths()[0].is_file()
+    """Finished = its training summary says finished and its evaluation record scored that finished model."""
+    return Run(run_dir).evaluated_finished_model()
 
 
 def parse_overrides(items: Sequence[str] | Mapping[str, Any] | None) -> dict[str, str]:
@@ -537,9 +536,9 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
             outcome.message = f"train exited 0 but {run.summary_path} does not say finished"
             say(f"[{spec.name}] FAILED: {outcome.message}")
             return "failed"
-    if not run.eval_paths()[0].is_file():
+    if not run.evaluated_finished_model():
         code = runner(build_eval_command(run_dir, python=python), log_path)
-        if code != 0 or not run.eval_paths()[0].is_file():
+        if code != 0 or not run.evaluated_finished_model():
             outcome.message = f"evaluation failed (status {code}); see {log_path}"
             return "failed"
     return "finished"
