@@ -216,6 +216,7 @@ def test_a_run_saved_before_the_real_capture_options_resumes_as_it_trained(train
                          ("model", "decoder_ray_direction"), ("train", "colour_correction")):
         del saved[section][key]
     del saved["train"]["densify"]["stats_views"]
+    del saved["train"]["densify"]["prune_in_rounds"]
     del saved["train"]["floaters"]["scale_min_opacity"]
     (run / "config.json").write_text(json.dumps(saved))
     configs = configs_from_run(run)
@@ -224,6 +225,8 @@ def test_a_run_saved_before_the_real_capture_options_resumes_as_it_trained(train
     assert configs["model"].decoder_ray_origin == "on" and configs["train"].colour_correction == "off"
     assert configs["model"].decoder_ray_direction == "on"
     assert configs["train"].densify.stats_views == "last"
+    # Before the option, no round pruned (now None would mean "decide from the cloud": on for sparse clouds).
+    assert configs["train"].densify.prune_in_rounds is False
 
 
 def test_the_codec_allocation_measures_training_views_with_their_colour_correction(trained_run, tmp_path, monkeypatch):

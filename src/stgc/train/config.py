@@ -306,7 +306,7 @@ class TrainConfig:
 
     # How a run saved before these options existed was trained (stgc.config.from_saved).
     SAVED_BEFORE: ClassVar[dict] = {"colour_correction": "off", "densify.stats_views": "last",
-                                    "floaters.scale_min_opacity": 0.0}
+                                    "densify.prune_in_rounds": False, "floaters.scale_min_opacity": 0.0}
 
     def validate(self, prefix: str = "") -> None:
         check(self.iterations >= 1, f"{prefix}iterations", self.iterations, ">= 1")
