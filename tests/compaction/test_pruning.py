@@ -67,10 +67,10 @@ def test_chain_resolution_closest_pair_decides():
     # Chain 0-1 (d .1), 1-2 (d .2), 2-3 (d .3), 3-4 (d .4); later timestamps lose: mu_t = index.
     scores = np.arange(6, dtype=float)
     sel = select_removals(_pairs([0, 1, 2, 3], [1, 2, 3, 4], [0.1, 0.2, 0.3, 0.4]), 1.0, scores)
-    # 0-1: remove 1; its partners 0 and 2 are kept. 1-2: loser 2 is kept -> conflict (else both would go).
-    # 2-3: remove 3; 2 and 4 kept. 3-4: loser 4 is kept -> conflict.
+    # 0-1: remove 1; its partners 0 and 2 are kept. 1-2: loser 2 is kept, skipped (else both would go); the pair
+    # has lost 1 already. 2-3: remove 3; 2 and 4 kept. 3-4: loser 4 is kept, skipped; the pair has lost 3.
     assert sel.remove.tolist() == [1, 3]
-    assert sel.conflicts == 2
+    assert sel.conflicts == 0  # every selected pair lost a member
     # A kept Gaussian is never removed by a farther pair.
     scores = np.array([1.0, 0.0, 2.0])  # 0 loses to 1, 2 loses to 0
     sel = select_removals(_pairs([1, 0], [0, 2], [0.1, 0.2]), 1.0, scores)
@@ -80,8 +80,13 @@ def test_chain_resolution_closest_pair_decides():
     assert sel.remove.tolist() == [1, 2]  # one Gaussian may absorb several neighbours
     scores = np.array([1.0, 0.0, 0.5])
     sel = select_removals(_pairs([1, 0], [2, 2], [0.1, 0.2]), 1.0, scores)
-    # (1,2) d .1: 2 loses (0.5 > 0.0); its partners 1 and 0 are kept. (0,2) d .2: loser 0 is kept -> conflict.
-    assert sel.remove.tolist() == [2] and sel.conflicts == 1
+    # (1,2) d .1: 2 loses (0.5 > 0.0); its partners 1 and 0 are kept. (0,2) d .2: loser 0 is kept, skipped; the
+    # pair has lost 2.
+    assert sel.remove.tolist() == [2] and sel.conflicts == 0
+    scores = np.array([1.0, 2.0, 0.0])
+    sel = select_removals(_pairs([0, 0], [1, 2], [0.1, 0.2]), 1.0, scores)
+    # (0,1): 1 loses, 0 is kept. (0,2): loser 0 is kept and keeper 2 stays: the pair keeps both, a conflict.
+    assert sel.remove.tolist() == [1] and sel.conflicts == 1
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -99,6 +104,7 @@ def test_random_pair_sets_never_lose_both_members_or_a_keeper(seed):
     order = np.lexsort((pairs.reference, pairs.distance))[: sel.selected_pairs]
     a, b = pairs.reference[order], pairs.partner[order]
     assert not np.any(removed[a] & removed[b])
+    assert sel.conflicts == int(np.sum(~removed[a] & ~removed[b]))  # the selected pairs that kept both members
     assert sel.remove.size + sel.conflicts <= sel.selected_pairs
     assert sel.remove.size > 0 and sel.conflicts > 0
     # Every removal was the loser of some selected pair whose other member survived.

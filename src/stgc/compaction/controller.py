@@ -20,7 +20,9 @@ the damage shows some steps after the prunes that caused it). So the accumulated
 `budget_for_psnr_drop` turns a PSNR drop into it. The best seen so far understates the damage: once pruning takes
 the model's capacity its loss stops falling, while an unpruned model's keeps falling to the end (issue #17 measured
 1.8 dB lost on a test view with the probe held within 0.3 dB's worth of its own best). Given a `reference` loss at
-each step, the unpruned model's at the same iteration (compaction.loss_reference), the budget is held against it.
+each step, the unpruned model's at the same iteration (compaction.loss_reference), the budget is held against it;
+then the first step has something to compare with too (the reference's loss), and an undamaged model raises the
+ratio there already: the first prune is at the initial ratio plus one step.
 """
 
 from __future__ import annotations

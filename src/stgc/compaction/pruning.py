@@ -15,8 +15,9 @@ Pairs can share Gaussians (chains i->j, j->k, or one Gaussian nearest to several
 greedily, closest first, so the closest pairs decide. When a loser is removed, *every* selected pair it belongs to
 has lost a member, so all its partners in selected pairs are marked kept. Hence, for each selected pair in order:
 - the loser is still free: it is removed and its selected partners are marked kept;
-- the loser is kept (a partner of a removed Gaussian): the pair is skipped, a *conflict*; removing the keeper
-  instead would go against the criterion (and the keeper may itself be kept);
+- the loser is kept (a partner of a removed Gaussian): the pair is skipped; removing the keeper instead would go
+  against the criterion (and the keeper may itself be kept). When the keeper was removed by a closer pair the pair
+  has lost a member anyway; when not, it keeps both: a *conflict*;
 - the loser is already removed: nothing to do.
 So no selected pair loses both members and no kept Gaussian is removed; the removed set is exactly reproducible.
 Mutual pairs were merged into one earlier (`matching.match_from_neighbors`).
@@ -40,7 +41,7 @@ _FREE, _KEPT, _REMOVED = 0, 1, 2
 class PruneSelection:
     remove: np.ndarray  # [R] int64, sorted indices of the Gaussians to remove
     selected_pairs: int  # pairs taken by the ratio
-    conflicts: int  # selected pairs skipped because their loser is kept by a closer pair
+    conflicts: int  # selected pairs that keep both members: their loser is kept by a closer pair, their keeper stays
     max_selected_distance: float  # the distance of the farthest selected pair (nan when none)
 
 
@@ -67,6 +68,7 @@ def select_removals(
     a, b = pairs.reference[order], pairs.partner[order]
     a_loses = (scores[a] > scores[b]) | ((scores[a] == scores[b]) & (a > b))
     losers = np.where(a_loses, a, b).tolist()
+    keepers = np.where(a_loses, b, a).tolist()
 
     # Selected partners of every Gaussian (CSR): a removal marks all of them kept.
     ends = np.concatenate([a, b])
@@ -77,11 +79,11 @@ def select_removals(
 
     state = bytearray(scores.shape[0])
     removed: list[int] = []
-    conflicts = 0
     limit = n_selected if max_removals is None else max_removals
-    for loser in losers:
+    skipped: list[int] = []  # keepers of the pairs whose loser was kept
+    for loser, keeper in zip(losers, keepers):
         if state[loser] == _KEPT:
-            conflicts += 1
+            skipped.append(keeper)
         elif state[loser] == _FREE:
             if len(removed) >= limit:
                 break
@@ -89,6 +91,7 @@ def select_removals(
             removed.append(loser)
             for partner in partners[offsets[loser] : offsets[loser + 1]]:
                 state[partner] = _KEPT
+    conflicts = sum(state[keeper] != _REMOVED for keeper in skipped)  # a later pair may still remove a keeper
     return PruneSelection(
         remove=np.sort(np.asarray(removed, dtype=np.int64)),
         selected_pairs=n_selected,
