@@ -8,7 +8,10 @@ Those three are exact. Gaussians whose opacity at t is below 1/255 cannot touch 
 
 Colour is where a static splat loses something:
 - lite model: the splatted colour is the Gaussian's own RGB, written as the degree-0 SH coefficient
-  (f_dc = (rgb - 0.5) / C0); exact.
+  (f_dc = (rgb - 0.5) / C0); exact where the colour is not negative. Readers of the INRIA layout clamp each
+  Gaussian's colour at 0, and stgc (like STG lite) splats it unclamped, so a Gaussian with a negative channel
+  (nothing bounds the lite colours) renders brighter there than here. The same holds for a full model whose
+  decoder has no output activation.
 - full model: STG splats 9 features and decodes them per *pixel* with a small MLP that also sees the viewing
   direction. A static splat needs one colour per *Gaussian*: the decoder is applied to each Gaussian's own
   features, with the ray from the training cameras' centroid to the Gaussian (the average training view).
