@@ -124,12 +124,18 @@ def test_rate_points_name_four_points_per_curve_spread_over_log_rate(tmp_path):
     """MPEG's rp01..rp04, rp01 the lowest rate: a curve of four or fewer points names them all in rate order; a
     longer one its lowest, its highest and the points nearest 1/3 and 2/3 of the way in log rate."""
     rates = [0.1, 0.12, 0.2, 0.45, 0.5, 1.0, 2.2, 10.0]  # log10: -1 ... 1; thirds at 10^(-1/3) and 10^(1/3)
-    curve = [ReportRow(f"lambda {k}", "rate-aware", m, 30 + k) for k, m in enumerate(reversed(rates))]
-    short = [ReportRow(f"q{k}", "codec", m, 28 + k) for k, m in enumerate([3.0, 1.0, 2.0])]
+    curve = [ReportRow(f"lambda {k}", "rate-aware", m, 30 + k) for k, m in enumerate(rates)]
+    short = [ReportRow(f"q{k}", "codec", m, 27 + m) for k, m in enumerate([3.0, 1.0, 2.0])]
     names = rate_points(curve + short)
     assert {r.mbps: names[id(r)] for r in curve if id(r) in names} == {0.1: "rp01", 0.45: "rp02", 2.2: "rp03",
                                                                         10.0: "rp04"}
     assert [names[id(r)] for r in short] == ["rp03", "rp01", "rp02"]
+    # A cloud (two runs at three codec qualities): the rate points name its Pareto front, the curve the BD deltas
+    # and the plot use; a point another beats (a higher rate for a lower PSNR) names none.
+    cloud = [ReportRow(n, "cloud", m, p) for n, m, p in
+             [("a q1", 1.0, 30.0), ("b q2", 2.0, 29.5), ("a q3", 3.0, 32.0), ("b q3", 3.5, 31.5)]]
+    names = rate_points(cloud)
+    assert {r.name: names.get(id(r)) for r in cloud} == {"a q1": "rp01", "b q2": None, "a q3": "rp02", "b q3": None}
     rows = [ReportRow("a", "A", 1.0, 30.0, extra={"psnr_yuv": 33.25}), ReportRow("b", "A", 2.0, 31.0)]
     md = make_report(rows, tmp_path, baseline="A").markdown.read_text()
     assert "| A | a | rp01 | – | – | 1.00 | 30.00 | 33.25 |" in md and "|  | b | rp02 | – | – | 2.00 | 31.00 | – |" in md
@@ -186,6 +192,12 @@ def test_bd_deltas_use_each_familys_pareto_front(tmp_path):
     assert bd.points == 4
     assert "1 dominated point(s) of this curve left out" in bd.note
     assert "1 dominated point(s) of the baseline left out" in bd.note
+    # The note names the ranges the deltas average over (a delta over a sliver of PSNR is noise).
+    assert "BD-rate over 30.00-36.00 dB (6.00 dB shared)" in bd.note and "BD-PSNR over 1-6.4 Mbps" in bd.note
+    # The reference of the table's last two columns is the baseline's best point, not a dominated one at a higher
+    # rate.
+    report = make_report(rows + [ReportRow("b9", "base", 9.0, 35.0)], tmp_path / "more", baseline="base")
+    assert "Reference for the last two columns: base / b3." in report.markdown.read_text()
 
 
 def test_a_rate_aware_run_without_experiment_json_is_not_reported_as_stg(tmp_path) -> None:

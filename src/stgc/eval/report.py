@@ -126,11 +126,12 @@ RATE_POINTS = 4  # rp01..rp04, as the MPEG Gaussian-splat-coding test conditions
 
 def rate_points(rows: Sequence[ReportRow]) -> dict[int, str]:
     """{id(row): "rp01".."rp04"} for each curve's points from its lowest rate up (MPEG's numbering: rp01 is the
-    lowest rate). A curve with more than four points names four of them, spread evenly over its log rate: the
-    lowest, the highest, and the points nearest one and two thirds of the way between."""
+    lowest rate). The curve is the family's Pareto front (`_front`), as the BD deltas and the plot's line see it: a
+    dominated point names no rate point. A curve with more than four points names four of them, spread evenly over
+    its log rate: the lowest, the highest, and the points nearest one and two thirds of the way between."""
     names: dict[int, str] = {}
     for members in _families(rows).values():
-        curve = _curve(members)
+        curve = _front(_curve(members))
         if len(curve) > RATE_POINTS:
             logs = np.log([float(r.mbps) for r in curve])  # type: ignore[arg-type]
             picked: list[int] = []
@@ -178,19 +179,32 @@ def bd_table(rows: Sequence[ReportRow], baseline: str | None, method: Method = "
             if len(base) < 2 or len(curve) < 2:
                 raise BDError(f"needs >= 2 rate points per curve (baseline {len(base)}, this {len(curve)})")
             args = ([r.mbps for r in base], [r.psnr for r in base], [r.mbps for r in curve], [r.psnr for r in curve])
+            # The shared ranges the deltas average over: a value over a sliver of PSNR says little, and the reader
+            # should see that it is one.
+            shared = []
             try:
                 result.bd_rate = bd_rate(*args, method=method)  # type: ignore[arg-type]
+                lo, hi = _shared([r.psnr for r in base], [r.psnr for r in curve])
+                shared.append(f"BD-rate over {lo:.2f}-{hi:.2f} dB ({hi - lo:.2f} dB shared)")
             except BDError as exc:
-                result.note = f"BD-rate n/a: {exc}"
+                shared.append(f"BD-rate n/a: {exc}")
             try:
                 result.bd_psnr = bd_psnr(*args, method=method)  # type: ignore[arg-type]
+                lo, hi = _shared([r.mbps for r in base], [r.mbps for r in curve])
+                shared.append(f"BD-PSNR over {lo:.3g}-{hi:.3g} Mbps")
             except BDError as exc:
-                result.note = (result.note + "; " if result.note else "") + f"BD-PSNR n/a: {exc}"
+                shared.append(f"BD-PSNR n/a: {exc}")
+            result.note = "; ".join(shared)
         except BDError as exc:
             result.note = f"n/a: {exc}"
         result.note = "; ".join([*dropped, *([result.note] if result.note else [])])
         results.append(result)
     return results
+
+
+def _shared(first: Sequence[Any], second: Sequence[Any]) -> tuple[float, float]:
+    """The range two curves share on one axis (rate or PSNR)."""
+    return max(min(map(float, first)), min(map(float, second))), min(max(map(float, first)), max(map(float, second)))
 
 
 def _f(x: float | None, fmt: str) -> str:
@@ -200,11 +214,11 @@ def _f(x: float | None, fmt: str) -> str:
 def markdown_table(rows: Sequence[ReportRow], baseline: str | None, bd: Sequence[BDResult],
                    title: str = "Rate-distortion results", bd_method: str = "pchip") -> str:
     """The paper's Table 2 layout: method | setting | # Gaussians | size (MB) | Mbps | PSNR (dB) | SSIM,
-    then change against the baseline's highest-rate point, then the BD deltas."""
+    then change against the baseline's highest-rate point on its Pareto front (its best), then the BD deltas."""
     show_lpips = any(r.lpips is not None for r in rows)
     show_yuv = any(_num(r.extra.get("psnr_yuv")) is not None for r in rows)
     points = rate_points(rows)
-    ref = _curve(_families(rows).get(baseline, []))[-1:] if baseline else []
+    ref = _front(_curve(_families(rows).get(baseline, [])))[-1:] if baseline else []
     ref_row = ref[0] if ref else None
     head = ["Method", "Setting", "RP", "# Gaussians", "Size (MB)", "Mbps", "PSNR (dB)"]
     head += ["YUV-PSNR (dB)"] if show_yuv else []
@@ -231,7 +245,8 @@ def markdown_table(rows: Sequence[ReportRow], baseline: str | None, bd: Sequence
     lines += ["", SIZE_NOTE]
     if points:
         lines.append("RP: the curve's rate points rp01 (lowest rate) to rp04, as MPEG's Gaussian-splat-coding test "
-                     "conditions name them; a curve of more than four points names four spread over its log rate.")
+                     "conditions name them, on its Pareto front (a point another beats names none); a curve of more than four "
+                     "points names four spread over its log rate.")
     if show_yuv:
         lines.append("YUV-PSNR: BT.709 YUV 4:2:0, (6 Y + U + V) / 8, as MPEG video coding reports quality.")
     if ref_row:
