@@ -120,7 +120,7 @@ def run_demo(out_dir: Path, data: Path | None = None) -> int:
     print(f"video:      {video}")
     print(f"bitstream:  {compacted_run / f'model_q{DEFAULT_QUALITY}.stgc'}")
     print()
-    print(f"{'model':<26} {'Gaussians':>10} {'MB':>8} {'Mbps':>9} {'PSNR dB':>8}")
+    print(f"{'model':<26} {'Gaussians':>10} {'MiB':>8} {'Mbps':>9} {'PSNR dB':>8}")
     for label, outcome in rows:
         rec = outcome.record if outcome else None
         print(

@@ -487,7 +487,7 @@ class Viewer:
         lines = [
             f"**frame** {numbers['frame']:.1f} (segment {numbers['segment']})",
             f"**Gaussians** {numbers['gaussians_alive']:,} alive of {numbers['gaussians']:,}",
-            f"**size** {numbers['size_mb']:.3f} MB ({numbers['size_kind']}), **{numbers['mbps']:.2f} Mbps**",
+            f"**size** {numbers['size_mb']:.3f} MiB ({numbers['size_kind']}), **{numbers['mbps']:.2f} Mbps**",
         ]
         if camera is not None:
             role = "test" if camera in self.scene.test_names else "training"
