@@ -297,3 +297,27 @@ def test_images_txt_reads_pose_lines_with_and_without_their_keypoint_lines(tmp_p
         images = _read_images_txt(path)
         assert [images[i].name for i in sorted(images)] == [f"cam{i:02d}.png" for i in range(1, 5)], case
         assert images[3].tvec[0] == pytest.approx(0.3), case
+
+
+def test_a_video_whose_stream_starts_late_decodes_every_coded_frame_once(tmp_path):
+    """Frame k of a video is its k-th coded frame. A video stream that starts after the file does (here 0.1 s after
+    an audio track) was padded by ffmpeg's constant-rate output with copies of its first frame, and its last frames
+    were lost: the camera was out of step with the others."""
+    import subprocess
+
+    import imageio_ffmpeg
+    from PIL import Image
+
+    from stgc.data.dataset import decode_video
+
+    exe = imageio_ffmpeg.get_ffmpeg_exe()
+    for k in range(10):
+        Image.fromarray(np.full((16, 16, 3), 20 * k + 10, np.uint8)).save(tmp_path / f"g{k}.png")
+    run = dict(check=True, capture_output=True)
+    subprocess.run([exe, "-y", "-framerate", "30", "-i", str(tmp_path / "g%d.png"), "-f", "lavfi", "-i",
+                    "anullsrc=r=8000:cl=mono", "-t", "0.5", "-c:v", "libx264", "-pix_fmt", "yuv444p", "-qp", "0",
+                    "-c:a", "aac", str(tmp_path / "plain.mp4")], **run)
+    subprocess.run([exe, "-y", "-i", str(tmp_path / "plain.mp4"), "-itsoffset", "0.1", "-i", str(tmp_path / "plain.mp4"),
+                    "-map", "1:v", "-map", "0:a", "-c", "copy", str(tmp_path / "late.mp4")], **run)
+    frames = decode_video(tmp_path / "late.mp4", list(range(10)))
+    assert [round((float(frames[k].mean()) - 10) / 20) for k in range(10)] == list(range(10))

@@ -53,13 +53,19 @@ class YuvFrame:
         return read_frame(self.path, self.width, self.height, self.index, self.bit_depth, self.color_range)
 
 
+# Every coded frame once, in order (as OpenCV's read loop in STG's pre_n3d.py). ffmpeg's default for a raw pipe is a
+# constant frame rate: a video stream that starts after the file does (an audio track first, an edit list) is padded
+# with copies of its first frame, and irregular timestamps duplicate or drop frames, so frame k was not the k-th.
+EVERY_CODED_FRAME = ["-fps_mode", "passthrough"]
+
+
 def decode_video(path: Path, indices: list[int]) -> dict[int, np.ndarray]:
-    """Decode the frames `indices` of a video in one sequential pass (uint8 RGB)."""
+    """Decode the frames `indices` of a video in one sequential pass (uint8 RGB); frame k is the k-th coded frame."""
     wanted = set(indices)
     last = max(wanted)
     out: dict[int, np.ndarray] = {}
     try:
-        reader = imageio_ffmpeg.read_frames(str(path), pix_fmt="rgb24")
+        reader = imageio_ffmpeg.read_frames(str(path), pix_fmt="rgb24", output_params=EVERY_CODED_FRAME)
         meta = next(reader)
         width, height = meta["size"]
         for i, raw in enumerate(reader):
