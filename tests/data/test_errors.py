@@ -161,3 +161,27 @@ def test_miv_camera_without_yuv(tmp_path):
     expect_error("seq.json", "v00 has no YUV file", open_dataset, tmp_path)
     (tmp_path / "v00.yuv").write_bytes(b"\0" * 100)
     expect_error("v00.yuv", "not a whole number", open_dataset, tmp_path)
+
+
+def _blender(root: Path, **lens) -> Path:
+    """A two-camera Blender/NeRF transforms scene with `lens` keys (nerfstudio's camera_model, k1.., p1..)."""
+    for split, name in (("train", "a"), ("test", "b")):
+        _image(root / f"{name}.png")
+        c2w = np.linalg.inv(_w2c(len(name)))
+        frame = {"file_path": f"{name}.png", "transform_matrix": c2w.tolist(), "time": 0.0}
+        meta = {"fl_x": 20.0, "fl_y": 20.0, "cx": 8.0, "cy": 6.0, "w": W, "h": H, **lens, "frames": [frame]}
+        (root / f"transforms_{split}.json").write_text(json.dumps(meta))
+    return root
+
+
+def test_distorted_transforms_cameras_are_refused_not_read_as_pinholes(tmp_path):
+    """nerfstudio and instant-ngp write the lens model into transforms files: reading distorted images as pinhole
+    cameras trained them off by pixels toward their edges, silently."""
+    assert open_dataset(_blender(tmp_path / "plain", camera_model="OPENCV", k1=0.0, p1=0.0)).format == "blender"
+    expect_error("transforms_train.json", r"lens distortion \(k1=-0.25, p2=0.001\) is not modelled", open_dataset,
+                 _blender(tmp_path / "k", camera_model="OPENCV", k1=-0.25, k2=0.0, p2=0.001))
+    expect_error("transforms_train.json", "camera model OPENCV_FISHEYE: only pinhole cameras", open_dataset,
+                 _blender(tmp_path / "fisheye", camera_model="OPENCV_FISHEYE"))
+    expect_error("transforms_train.json", "camera model fisheye", open_dataset,
+                 _blender(tmp_path / "ngp", is_fisheye=True))
+    expect_error("transforms_train.json", "not a number", open_dataset, _blender(tmp_path / "text", k1="strong"))

@@ -73,6 +73,7 @@ def read_blender(path: Path, options: ReaderOptions) -> SourceScene:
             raise DataError(f, "no intrinsics: need fl_x (and cx, cy) or camera_angle_x")
         cx = float(get("cx")) if get("cx") is not None else width / 2.0
         cy = float(get("cy")) if get("cy") is not None else height / 2.0
+        _refuse_distortion(f, get)
         K = intrinsics(fx, fy, cx, cy)
         time = float(fr.get("time", 0.0))
         if multiview:
@@ -122,3 +123,26 @@ def _check_duplicates(cameras: list[Camera], meta: Path) -> None:
         if (c.name, c.frame) in seen:
             raise DataError(meta, f"camera {c.name} frame {c.frame} appears twice")
         seen.add((c.name, c.frame))
+
+
+# Lens models nerfstudio and instant-ngp write into transforms files; stgc's cameras are pinholes.
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL")
+
+
+def _refuse_distortion(f: Path, get: Any) -> None:
+    """A transforms file of distorted images (nerfstudio's and instant-ngp's k1..k4, p1, p2, a fisheye or
+    equirectangular `camera_model`, `is_fisheye`) read as pinhole cameras would train every image off by pixels at
+    its edges: refused, as the COLMAP readers refuse such cameras."""
+    model = get("camera_model")
+    if model is not None and str(model).upper() not in _PINHOLE_MODELS or bool(get("is_fisheye")):
+        raise DataError(f, f"camera model {model or 'fisheye'}: only pinhole cameras are supported; undistort "
+                           "the images first (e.g. COLMAP's image_undistorter or nerfstudio's processing)")
+    try:
+        coefficients = {k: float(get(k)) for k in _DISTORTION_KEYS if get(k) is not None}
+    except (TypeError, ValueError):
+        raise DataError(f, f"a lens distortion coefficient ({', '.join(_DISTORTION_KEYS)}) is not a number") from None
+    if any(v != 0.0 for v in coefficients.values()):
+        listed = ", ".join(f"{k}={v:g}" for k, v in coefficients.items() if v != 0.0)
+        raise DataError(f, f"lens distortion ({listed}) is not modelled: stgc's cameras are pinholes; undistort the "
+                           "images first (e.g. COLMAP's image_undistorter or nerfstudio's processing)")
