@@ -46,3 +46,10 @@ def test_read_image_modes(tmp_path):
     out = read_image(tmp_path / "a.png", background=(1.0, 1.0, 1.0))
     assert out[0, 0].tolist() == [255, 0, 0] and out[0, 1].tolist() == [255, 255, 255]
     assert out[1, 1].tolist() == [127, 127, 255]
+    # An RGB or grey PNG with one transparent colour (a tRNS chunk, no alpha channel): that colour is the
+    # background too (it kept its key colour).
+    keyed = np.array([[[10, 20, 30], [200, 100, 50]]], np.uint8)
+    Image.fromarray(keyed).save(tmp_path / "k.png", transparency=(10, 20, 30))
+    assert read_image(tmp_path / "k.png", background=(1.0, 1.0, 1.0)).tolist() == [[[255, 255, 255], [200, 100, 50]]]
+    Image.fromarray(np.array([[0, 90]], np.uint8)).save(tmp_path / "kg.png", transparency=0)
+    assert read_image(tmp_path / "kg.png", background=(1.0, 0.0, 0.0)).tolist() == [[[255, 0, 0], [90, 90, 90]]]

@@ -31,7 +31,8 @@ def read_image(path: Path, background: tuple[float, float, float] = (0.0, 0.0, 0
     try:
         with Image.open(path) as im:
             im.load()
-            if im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info):
+            # A palette, RGB or grey PNG may carry one transparent colour (its tRNS chunk) instead of an alpha.
+            if im.mode in ("RGBA", "LA") or (im.mode in ("P", "RGB", "L") and "transparency" in im.info):
                 rgba = np.asarray(im.convert("RGBA"), dtype=np.float32) / 255.0
                 alpha = rgba[..., 3:4]
                 rgb = rgba[..., :3] * alpha + np.asarray(background, np.float32) * (1.0 - alpha)
