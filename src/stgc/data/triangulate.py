@@ -64,7 +64,7 @@ def _cache_key(cameras: list[Camera], upsample: float, min_track_length: int,
                background: tuple[float, float, float]) -> str:
     """Digest of everything the result depends on: cameras, image files (path, size, mtime), how they decode (the
     background RGBA images are composited on, a YUV file's range and depth) and options."""
-    h = hashlib.sha256(f"v2 {upsample} {min_track_length} {tuple(background)}".encode())
+    h = hashlib.sha256(f"v3 {upsample} {min_track_length} {tuple(background)}".encode())
     for cam in cameras:
         h.update(cam.name.encode())
         h.update(np.ascontiguousarray(cam.K).tobytes() + np.ascontiguousarray(cam.w2c).tobytes())
@@ -128,8 +128,8 @@ def _triangulate(dataset: Dataset, frame: int, cameras: list[Camera], upsample: 
             names[file_name] = cam
             image = Image.fromarray(np.asarray(dataset.load_image(cam)))
             if upsample != 1:
-                image = image.resize((round(cam.width * upsample), round(cam.height * upsample)),
-                                     Image.Resampling.BICUBIC)
+                up = cam.scaled(upsample)
+                image = image.resize((up.width, up.height), Image.Resampling.BICUBIC)
             image.save(image_dir / file_name)
         timings["prepare_s"] = time.perf_counter() - t0
 
@@ -145,7 +145,7 @@ def _triangulate(dataset: Dataset, frame: int, cameras: list[Camera], upsample: 
         with pycolmap.Database.open(db_path) as db:
             for image in db.read_all_images():
                 cam = names[image.name]
-                K = _scaled_K(cam, upsample)
+                K = cam.scaled(upsample).K  # per axis, the ratio the rounded image size achieved
                 db_cam = db.read_camera(image.camera_id)
                 db_cam.params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
                 db_cam.has_prior_focal_length = True
@@ -179,7 +179,9 @@ def _triangulate(dataset: Dataset, frame: int, cameras: list[Camera], upsample: 
             tracks.append(length)
             for element in point.track.elements:
                 cam = by_id[element.image_id]
-                observed = np.asarray(rec.images[element.image_id].points2D[element.point2D_idx].xy) / upsample
+                up = cam.scaled(upsample)
+                observed = (np.asarray(rec.images[element.image_id].points2D[element.point2D_idx].xy)
+                            / (up.width / cam.width, up.height / cam.height))
                 projected, _ = cam.project(np.asarray(point.xyz)[None])
                 errors.append(float(np.linalg.norm(projected[0] - observed)))
     result = TriangulationResult(
@@ -203,12 +205,6 @@ def _triangulate(dataset: Dataset, frame: int, cameras: list[Camera], upsample: 
     }
     return result
 
-
-def _scaled_K(cam: Camera, upsample: float) -> np.ndarray:
-    """K for the image upsampled by `upsample`: with corner-convention K every entry scales by the factor."""
-    K = cam.K.copy()
-    K[:2] *= upsample
-    return K
 
 
 def _safe(name: str) -> str:
