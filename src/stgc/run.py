@@ -32,6 +32,7 @@ RUN_FILES = (
     "seams.png",
     "video.json",
     "continued_from.json",
+    "restored_from.json",
 )
 RUN_FOLDERS = ("point_cloud", "tensorboard")
 # A whole-video run (`stgc train --segment-frames N`) holds one complete run per segment in RUN/segment_<k>/.
@@ -101,6 +102,7 @@ class Run:
     VIDEO = "video.json"
     TASK_LOG = "task.log"
     CONTINUED_FROM = "continued_from.json"
+    RESTORED_FROM = "restored_from.json"  # `stgc decompress`: the model is a bitstream's, not a training's
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -201,6 +203,12 @@ class Run:
 
     def read_eval(self, other_data: str | None = None, *, strict: bool = True) -> dict[str, Any] | None:
         return read_json_object(self.eval_paths(other_data)[0], strict=strict)
+
+    def holds_final_model(self) -> bool:
+        """Whether the run's latest saved model is the one it ends with: its training finished, or it was restored
+        from a bitstream (which holds a finished model: `stgc compress` refuses a half-trained video and says when a
+        run is half-trained)."""
+        return self.training_finished() or (self.path / self.RESTORED_FROM).is_file()
 
     def evaluated_finished_model(self) -> bool:
         """Whether the run's own evaluation record (eval.json) scored the model its finished training left: the

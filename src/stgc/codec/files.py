@@ -13,7 +13,7 @@ from tqdm import tqdm
 from stgc.config import check
 from stgc.data.config import open_run_dataset
 from stgc.errors import DataError, FormatError
-from stgc.fileio import atomic_path
+from stgc.fileio import atomic_path, write_json
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel
 from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
 from stgc.model.ply import resolve_ply_path
@@ -343,7 +343,7 @@ def decompress(stgc_path: str | Path, out_run_dir: str | Path, *, overwrite: boo
     decoded = read_stgc(stgc_path)
     restored = _restorable(decoded, str(stgc_path))  # a defective file fails before anything is written
     run = Run.create(out_run_dir, overwrite=overwrite, keep=Path(stgc_path))
-    return _restore(decoded, *restored, run)
+    return _restore(decoded, *restored, run, Path(stgc_path))
 
 
 def _restorable(decoded: DecodedModel, source: str) -> tuple[Any, int]:
@@ -354,12 +354,13 @@ def _restorable(decoded: DecodedModel, source: str) -> tuple[Any, int]:
     return _model_from_decoded(decoded, source), iteration
 
 
-def _restore(decoded: DecodedModel, model: Any, iteration: int, run: Run) -> Path:
+def _restore(decoded: DecodedModel, model: Any, iteration: int, run: Run, source: Path) -> Path:
     iteration_dir = run.iteration_dir(iteration)
     model.save(iteration_dir)
     run_config = decoded.metadata.get("run_config")
     if isinstance(run_config, dict):
         run.write_config(run_config)
+    write_json(run.path / Run.RESTORED_FROM, {"bitstream": str(source.resolve()), "iteration": iteration})
     return iteration_dir
 
 
@@ -372,7 +373,7 @@ def _decompress_video(stgc_path: Path, out_run_dir: Path, overwrite: bool) -> Pa
     plan = []
     for k, (entry, segment, (model, iteration)) in enumerate(zip(index.entries, decoded, restored)):
         segment_run = run.segment(k)
-        _restore(segment, model, iteration, segment_run)
+        _restore(segment, model, iteration, segment_run, stgc_path)
         plan.append({"name": segment_run.path.name, "start": entry.first_frame, "duration": entry.num_frames})
     run_config = decoded[0].metadata.get("run_config")
     data = run_config.get("data") if isinstance(run_config, dict) else None

@@ -240,6 +240,9 @@ def write_eval(
         more["iterations"] = summary["iterations"]
     if bitstream is None and run.has_config():
         more["training_finished"] = bool(summary and summary.get("finished"))
+        restored = read_json_object(run.path / Run.RESTORED_FROM, strict=False)
+        if restored is not None:
+            more["restored_from"] = restored.get("bitstream")
     if bitstream is not None:
         more.update(bitstream=Path(bitstream).name, bitstream_sha256=file_sha256(bitstream))
     more.update(extra or {})
@@ -427,7 +430,7 @@ def evaluate_run(
             raise DataError(target, "a whole-video run is evaluated on its own data, segment by segment")
         segments = Run(target).segments()
         for segment in segments:
-            if not segment.training_finished():
+            if not segment.holds_final_model():
                 # A killed or failed segment still holds the models save_iterations wrote: half-trained, not the
                 # video (as `stgc compress` refuses it).
                 raise DataError(segment.path, "segment has not finished training (finish it with stgc train "
@@ -448,7 +451,7 @@ def evaluate_run(
         config_dir, data_path, target if target.suffix == ".stgc" else None)
     if load_model is None:
         load_model = _default_model_loader
-    if owner is None and target.suffix != ".stgc" and Run(target).has_config() and not Run(target).training_finished():
+    if owner is None and target.suffix != ".stgc" and Run(target).has_config() and not Run(target).holds_final_model():
         log.warning("%s has not finished training: scoring its latest saved model (the record says so)", target)
     model = load_model(target)
     duration_s = dataset_duration_s(dataset)
