@@ -194,7 +194,7 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
     source = Path(run_or_model_path)
     if source.is_dir() and Run(source).is_video():
         return _compress_video(Run(source), out_path, config)
-    if source.is_dir() and Run(source).has_config() and not Run(source).training_finished():
+    if source.is_dir() and Run(source).has_config() and not Run(source).holds_final_model():
         log.warning("%s has not finished training: compressing its latest saved model, %s", source,
                     Run(source).latest_model_dir())
     data, result = _encode_model(source, out_path, config)
@@ -237,7 +237,7 @@ def _compress_video(run: Run, out_path: Path, config: CodecConfig) -> VideoCompr
     payloads, results = [], []
     for entry in tqdm(plan, desc="compressing segments", unit="segment", leave=False, disable=len(plan) < 2):
         segment = Run(run.path / str(entry["name"]))
-        if segment.latest_model_dir() is None or not segment.training_finished():
+        if segment.latest_model_dir() is None or not segment.holds_final_model():
             # A killed or failed segment still holds the models save_iterations wrote: half-trained, not the video.
             raise DataError(segment.path, "segment has not finished training (finish it with stgc train --resume)")
         data, result = _encode_model(segment.path, out_path, config)

@@ -16,8 +16,8 @@ greedily, closest first, so the closest pairs decide. When a loser is removed, *
 has lost a member, so all its partners in selected pairs are marked kept. Hence, for each selected pair in order:
 - the loser is still free: it is removed and its selected partners are marked kept;
 - the loser is kept (a partner of a removed Gaussian): the pair is skipped; removing the keeper instead would go
-  against the criterion (and the keeper may itself be kept). When the keeper was removed by a closer pair the pair
-  has lost a member anyway; when not, it keeps both: a *conflict*;
+  against the criterion (and the keeper may itself be kept). When the keeper is removed too (by a closer pair, or
+  by a farther one later) the pair has lost a member anyway; when not, it keeps both: a *conflict*;
 - the loser is already removed: nothing to do.
 So no selected pair loses both members and no kept Gaussian is removed; the removed set is exactly reproducible.
 Mutual pairs were merged into one earlier (`matching.match_from_neighbors`).

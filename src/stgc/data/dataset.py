@@ -7,7 +7,9 @@ every view has every frame of the segment.
 
 from __future__ import annotations
 
+import functools
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -56,7 +58,13 @@ class YuvFrame:
 # Every coded frame once, in order (as OpenCV's read loop in STG's pre_n3d.py). ffmpeg's default for a raw pipe is a
 # constant frame rate: a video stream that starts after the file does (an audio track first, an edit list) is padded
 # with copies of its first frame, and irregular timestamps duplicate or drop frames, so frame k was not the k-th.
-EVERY_CODED_FRAME = ["-fps_mode", "passthrough"]
+@functools.cache
+def every_coded_frame() -> tuple[str, ...]:
+    """-fps_mode (ffmpeg 5.1 on) or the -vsync it replaced, for the ffmpeg imageio-ffmpeg runs (a system one may be
+    older)."""
+    found = re.search(r"(\d+)\.(\d+)", imageio_ffmpeg.get_ffmpeg_version() or "")
+    old = found is not None and (int(found.group(1)), int(found.group(2))) < (5, 1)
+    return ("-vsync" if old else "-fps_mode", "passthrough")
 
 
 def decode_video(path: Path, indices: list[int]) -> dict[int, np.ndarray]:
@@ -65,7 +73,7 @@ def decode_video(path: Path, indices: list[int]) -> dict[int, np.ndarray]:
     last = max(wanted)
     out: dict[int, np.ndarray] = {}
     try:
-        reader = imageio_ffmpeg.read_frames(str(path), pix_fmt="rgb24", output_params=EVERY_CODED_FRAME)
+        reader = imageio_ffmpeg.read_frames(str(path), pix_fmt="rgb24", output_params=list(every_coded_frame()))
         meta = next(reader)
         width, height = meta["size"]
         for i, raw in enumerate(reader):
