@@ -90,6 +90,11 @@ def test_path_options_agree_when_they_name_one_place_however_spelled(tmp_path, m
     assert same_option_value("data.path", "./reference/../reference", str(run))
     assert not same_option_value("compaction.loss_reference", "reference", str(other))
     assert not same_option_value("compaction.loss_reference", "", str(run))
+    # Two files are two places, even in one folder (DATA naming one MIV sequence JSON of several).
+    (tmp_path / "A01.json").write_text("{}")
+    (tmp_path / "B02.json").write_text("{}")
+    assert not same_option_value("data.path", "A01.json", "B02.json")
+    assert same_option_value("data.path", "A01.json", str(tmp_path))
     # Other options compare as values: a string that happens to name a folder is not a place.
     assert not same_option_value("train.backend", "reference", str(run))
     assert same_option_value("train.iterations", 9000, 9000)

@@ -24,11 +24,11 @@ from stgc.config import (
     apply_overrides,
     collect_overrides,
     parse_set_arguments,
+    same_place,
     split_sections,
     validate_config,
 )
 from stgc.data import inspect_text
-from stgc.data.config import dataset_folder
 from stgc.data.preprocess import MODES as PREPROCESS_MODES
 from stgc.demo import run_demo
 from stgc.errors import StgcError
@@ -63,7 +63,7 @@ def _resumed_data_path(run: Path, given: str | None, saved: str | None) -> str |
     if given is None or saved is None:
         return given or saved
 
-    if dataset_folder(given) != dataset_folder(saved) and Path(saved).exists():
+    if not same_place(given, saved) and Path(saved).exists():
         raise StgcError(f"{run}: the run trains on {saved}, not {given}; continue it without DATA, or train the "
                         "other data into a new --out")
     return given

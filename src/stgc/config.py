@@ -28,8 +28,7 @@ EXECUTION_OPTIONS = frozenset({"train.threads", "train.backend", "train.eval_eve
                                "train.tensorboard", "train.stop_after", "data.image_cache_mb"})
 
 
-# Options that name a file or folder: two configs agree on one when they name the same place, however spelled
-# (relative or absolute, the folder or a file in it: a dataset's metadata file, a reference run's log).
+# Options that name a file or folder: two configs agree on one when they name the same place (`same_place`).
 PATH_OPTIONS = frozenset({"data.path", "compaction.loss_reference"})
 
 
@@ -37,13 +36,20 @@ def same_option_value(name: str, first: Any, second: Any) -> bool:
     """Whether the option `name` (dotted, with its section: "compaction.loss_reference") has one value in two
     configs."""
     if name in PATH_OPTIONS and first and second:
-        return bool(_named_folder(first) == _named_folder(second))
+        return same_place(first, second)
     return bool(first == second)
 
 
-def _named_folder(value: Any) -> Path:
-    resolved = Path(str(value)).resolve()
-    return resolved.parent if resolved.is_file() else resolved
+def same_place(first: str | Path, second: str | Path) -> bool:
+    """Whether two paths name one dataset or run: one path however spelled (relative or absolute), or a folder and
+    a file in it (DATA may name a dataset's metadata file, a loss reference a file of its run). Two files are two
+    places even in one folder (one MIV sequence of several)."""
+    a, b = Path(str(first)).resolve(), Path(str(second)).resolve()
+    if a == b:
+        return True
+    if a.is_file() and b.is_file():
+        return False
+    return (a.parent if a.is_file() else a) == (b.parent if b.is_file() else b)
 
 
 class ConfigError(StgcError, ValueError):

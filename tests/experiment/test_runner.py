@@ -502,6 +502,29 @@ def test_a_moved_experiment_folder_keeps_its_fine_tuning_runs(tmp_path: Path) ->
     again = run_plan("DATA", plan_path, tmp_path / "moved", preset="cpu", runner=fake_runner, python=sys.executable,
                      log=lambda m: None)
     assert {o.status for o in again.outcomes} == {"skipped"}, [o.message for o in again.outcomes]
+    # So does a run pruned against a loss reference in the folder (recorded as an absolute path that moved too).
+    plan_path.write_text(REFERENCE_TOML)
+    run_plan("DATA", plan_path, tmp_path / "budget", preset="cpu", runner=fake_runner, python=sys.executable,
+             log=lambda m: None)
+    (tmp_path / "budget").rename(tmp_path / "budget-moved")
+    again = run_plan("DATA", plan_path, tmp_path / "budget-moved", preset="cpu", runner=fake_runner,
+                     python=sys.executable, log=lambda m: None)
+    assert {o.status for o in again.outcomes} == {"skipped"}, [o.message for o in again.outcomes]
+
+
+def test_a_baseline_recorded_with_set_compaction_options_is_still_this_plans(tmp_path: Path) -> None:
+    """An earlier runner passed --set's compaction options to runs that prune nothing too, and recorded them; they
+    never acted there, so the finished baseline is reused (it was refused as made with other settings)."""
+    from stgc.experiment.runner import reuse_mismatch
+
+    run = tmp_path / "exp" / "stg"
+    run.mkdir(parents=True)
+    then = {"compaction.method": "none", "compaction.rotation_weight": "0.02"}
+    (run / "experiment.json").write_text(json.dumps({"name": "stg", "overrides": then, "preset": "cpu",
+                                                     "data": str(tmp_path / "DATA")}))
+    assert reuse_mismatch(run, tmp_path / "DATA", "cpu", {"compaction.method": "none"}) is None
+    assert "compaction.rotation_weight" in (reuse_mismatch(run, tmp_path / "DATA", "cpu", {
+        "compaction.method": "st-knn", "compaction.rotation_weight": "0.05"}) or "")
 
 
 def test_a_loss_reference_is_the_same_folder_however_spelled(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -144,12 +144,6 @@ def data_config_from_saved(section: dict[str, Any], source: str | Path | None) -
         raise FormatError(source, f"run config: {exc}") from None
 
 
-def dataset_folder(path: str | Path) -> Path:
-    """The dataset's folder, absolute: DATA may name the folder or its metadata file (a run saves the folder)."""
-    resolved = Path(path).resolve()
-    return resolved.parent if resolved.is_file() else resolved
-
-
 def saved_run_data(run_dir: str | Path) -> tuple[DataConfig, str | None] | None:
     """(DataConfig, dataset path) that the run in `run_dir` saved in its config.json, or None without one."""
     run = Run(run_dir)

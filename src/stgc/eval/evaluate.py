@@ -30,6 +30,7 @@ from stgc.codec import (
     read_stgc_metadata,
     read_video_index,
 )
+from stgc.config import same_place
 from stgc.data.cameras import Camera
 from stgc.data.config import data_config_from_saved, saved_run_data
 from stgc.data.config import open_run_dataset as open_saved_run_dataset
@@ -497,12 +498,12 @@ def _other_data(run_dir: Path, data_path: str | Path | None, bitstream: Path | N
     else:
         saved = saved_run_data(config_dir or run_dir)
         saved_path = saved[1] if saved is not None else None
-    if saved_path is not None and Path(data_path).resolve() == Path(saved_path).resolve():
+    if saved_path is not None and same_place(data_path, saved_path):
         return None
     other = Path(data_path).resolve()
     # Two datasets with one folder name must not share (and overwrite) one record: the second gets its path's hash.
     earlier = read_json_object(Run(run_dir).eval_paths(other.name, bitstream)[0], strict=False)
-    if earlier is not None and earlier.get("data") and Path(str(earlier["data"])).resolve() != other:
+    if earlier is not None and earlier.get("data") and not same_place(earlier["data"], other):
         return f"{other.name}-{hashlib.sha256(str(other).encode()).hexdigest()[:8]}"
     return other.name
 

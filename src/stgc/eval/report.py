@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from stgc.config import same_place
 from stgc.errors import DataError
 from stgc.eval.bjontegaard import BDError, Method, bd_psnr, bd_rate
 from stgc.fileio import atomic_open, atomic_path, read_json_object, write_json
@@ -450,7 +451,7 @@ def _on_other_data(record: Mapping[str, Any], config: Mapping[str, Any] | None) 
         return True
     saved = ((config or {}).get("data") or {}).get("path")
     scored = record.get("data")
-    return bool(saved and scored) and Path(str(scored)).resolve() != Path(str(saved)).resolve()
+    return bool(saved and scored) and not same_place(str(scored), str(saved))
 
 
 RECORD_FIELDS = ("num_gaussians", "size_mb", "mbps", "psnr", "psnr_yuv", "ssim", "lpips", "fps", "train_seconds")

@@ -33,8 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from stgc.config import EXECUTION_OPTIONS, ConfigError, iter_fields, same_option_value
-from stgc.data.config import dataset_folder
+from stgc.config import EXECUTION_OPTIONS, ConfigError, iter_fields, same_option_value, same_place
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.errors import FormatError, StgcError
 from stgc.eval.report import Report, ReportRow, make_report, rate_points, record_fields
@@ -150,12 +149,16 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
     wanted = {k: str(v) for k, v in overrides.items() if k not in EXECUTION_OPTIONS}
     if recorded is not None:
         before = {str(k): str(v) for k, v in (recorded.get("overrides") or {}).items() if k not in EXECUTION_OPTIONS}
+        if wanted.get("compaction.method", "none") == "none":
+            # A run that prunes nothing: --set's compaction options are no longer passed to it (run_overrides), and
+            # never acted in it; an earlier runner recorded them.
+            before = {k: v for k, v in before.items() if not k.startswith("compaction.") or k in wanted}
         for key in sorted(set(before) | set(wanted)):
-            if not same_option_value(key, before.get(key), wanted.get(key)):
+            if not _same_plan_option(key, before.get(key), wanted.get(key), run_dir.parent):
                 differences.append(f"{key}: {before.get(key, 'unset')} then, {wanted.get(key, 'unset')} now")
         if recorded.get("preset") not in (None, preset or "cpu"):
             differences.append(f"preset: {recorded['preset']} then, {preset or 'cpu'} now")
-        if recorded.get("data") is not None and dataset_folder(recorded["data"]) != dataset_folder(data_path):
+        if recorded.get("data") is not None and not same_place(recorded["data"], data_path):
             differences.append(f"data: {recorded['data']} then, {Path(data_path).resolve()} now")
     finetune = spec if spec is not None and spec.source is not None else None
     if finetune is not None:
@@ -209,12 +212,20 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
             if (f.dotted not in present or key in EXECUTION_OPTIONS or f.default is None or f.default == "auto"
                     or not (every_option or key in wanted)):
                 continue
-            if not same_option_value(key, theirs.get(f.dotted), f.default):
+            if not _same_plan_option(key, theirs.get(f.dotted), f.default, run_dir.parent):
                 differences.append(f"{key}: {theirs.get(f.dotted)} in its config.json, {f.default} in the plan")
     saved_data = saved.get("data_path")
-    if saved_data is not None and dataset_folder(saved_data) != dataset_folder(data_path):
+    if saved_data is not None and not same_place(saved_data, data_path):
         differences.append(f"data: {saved_data} in its config.json, {Path(data_path).resolve()} in the plan")
     return differences
+
+
+def _same_plan_option(key: str, before: Any, now: Any, out_dir: Path) -> bool:
+    """`same_option_value`, except that a loss reference the plan puts in its own experiment folder is that folder's
+    run by name: the folder may have moved since (the runner records absolute paths)."""
+    if key == "compaction.loss_reference" and before and now and Path(str(now)).resolve().parent == out_dir.resolve():
+        return Path(str(before)).name == Path(str(now)).name
+    return same_option_value(key, before, now)
 
 
 def _dotted_keys(section: Any, prefix: str = "") -> set[str]:
