@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from stgc.eval.bjontegaard import bd_psnr, bd_rate
-from stgc.eval.report import ReportRow, make_report, rate_points, report_from_runs
+from stgc.eval.report import ReportRow, make_report, rate_points, report_from_runs, rows_from_run
 
 TABLE2 = [
     ("Trained model", "STG", 433_936, 62.9, 527.68, 35.58),
@@ -106,6 +106,26 @@ def test_report_from_runs(tmp_path: Path) -> None:
     md = report.markdown.read_text()
     assert "unfinished" in md and report.baseline == "STG"
     assert report.plot_png.is_file() and str(report).startswith("report written")
+
+
+def test_a_record_made_before_the_run_finished_is_not_its_result(tmp_path: Path, caplog) -> None:
+    """`stgc eval` of a run still training scores its latest saved model. While the run trains, the report names
+    the row half-trained; once the run has finished, that record is not the run's result and is left out (the
+    experiment runner scores such a run again)."""
+    config = {"data": {}, "compaction": {"method": "none"}}
+    run = _fake_run(tmp_path, "r", config, {"psnr": 20.0, "mbps": 3.0, "training_finished": False})
+    (row,) = rows_from_run(run)
+    assert row.name.endswith("(half-trained)")
+    (run / "train_summary.json").write_text(json.dumps({"finished": True, "iterations": 9000}))
+    with caplog.at_level("WARNING"):
+        assert rows_from_run(run) == []
+    assert "before the training finished" in caplog.text
+    (run / "eval.json").write_text(json.dumps({"psnr": 25.0, "mbps": 3.0, "iterations": 6000}))  # an earlier end
+    assert rows_from_run(run) == []
+    (run / "eval.json").write_text(json.dumps({"psnr": 27.0, "mbps": 3.0, "iterations": 9000,
+                                               "training_finished": True}))
+    (row,) = rows_from_run(run)
+    assert row.psnr == 27.0 and "half-trained" not in row.name
 
 
 def test_rate_axis_turns_logarithmic_when_the_rates_span_more_than_ten_times(tmp_path):

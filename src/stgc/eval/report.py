@@ -423,8 +423,13 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
     setting = str(meta.get("label") or meta.get("name") or setting)
     rows = []
     record = run.read_eval()
-    if record is not None:
-        rows.append(ReportRow.from_mapping({**record_fields(record), "name": setting, "family": family,
+    if record is not None and _stale_own_record(record, run.read_summary(strict=False)):
+        log.warning("%s: left out of the report: it scored the model before the training finished (stgc eval the "
+                    "run again)", run.eval_paths()[0])
+    elif record is not None:
+        # A run still training, scored by `stgc eval`: its numbers are not the run's result, and the table says so.
+        name = f"{setting} (half-trained)" if record.get("training_finished") is False else setting
+        rows.append(ReportRow.from_mapping({**record_fields(record), "name": name, "family": family,
                                             "run": run_dir.name, "run_dir": str(run_dir)}))
     if include_codec:
         for path in sorted(run_dir.glob("eval_*.json")):
@@ -441,6 +446,17 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
                                                 "family": f"{family} + codec", "run": run_dir.name,
                                                 "run_dir": str(run_dir), "bitstream": bitstream}))
     return rows
+
+
+def _stale_own_record(record: Mapping[str, Any], summary: Mapping[str, Any] | None) -> bool:
+    """Whether the run has finished since its eval.json was made (`stgc eval` of the half-trained run): the record
+    scored a model the run no longer ends with. Records that name neither (written before the fields existed, or
+    by other tools) are taken as they are."""
+    if not (summary and summary.get("finished")):
+        return False
+    if record.get("training_finished") is False:
+        return True
+    return "iterations" in record and record["iterations"] != summary.get("iterations")
 
 
 def _on_other_data(record: Mapping[str, Any], config: Mapping[str, Any] | None) -> bool:
