@@ -107,17 +107,19 @@ def ply_columns(variant: str) -> dict[str, list[str]]:
     return columns
 
 
-def initial_log_scales(xyz: np.ndarray, neighbours: int = 3) -> np.ndarray:
+def initial_log_scales(xyz: np.ndarray, neighbours: int = 3, among: np.ndarray | None = None) -> np.ndarray:
     """log(sqrt(mean squared distance to the `neighbours` nearest other points)), clamped as the official init.
+    The other points are `among` (which holds the rows of `xyz`), by default `xyz` itself.
 
     The official code uses simple-knn's distCUDA2 (an approximate 3-NN); this is the exact KNN from a k-d tree.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
-    count = xyz.shape[0]
+    pool = xyz if among is None else np.asarray(among, dtype=np.float64)
+    count = pool.shape[0]
     if count < 2:
-        return np.full(count, INIT_LOG_SCALE_RANGE[1], dtype=np.float32)
+        return np.full(xyz.shape[0], INIT_LOG_SCALE_RANGE[1], dtype=np.float32)
     k = min(neighbours, count - 1)
-    distances, _ = cKDTree(xyz).query(xyz, k=k + 1)  # column 0 is the point itself (distance 0)
+    distances, _ = cKDTree(pool).query(xyz, k=k + 1)  # column 0 is the point itself (distance 0)
     mean_sq = np.mean(np.square(distances[:, 1:]), axis=1)
     log_scale = np.log(np.sqrt(np.maximum(mean_sq, INIT_MIN_SQUARED_DISTANCE)))
     return cast(np.ndarray, np.clip(log_scale, *INIT_LOG_SCALE_RANGE).astype(np.float32))

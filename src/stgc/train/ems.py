@@ -76,8 +76,8 @@ def new_gaussians(
     n = len(xyz)
     # The 3-NN among the new and the existing Gaussians (the official code's distCUDA2 of both, first n rows).
     existing = model.params["xyz"].detach().cpu().numpy()
-    log_scale = torch.as_tensor(initial_log_scales(np.concatenate([xyz, existing]).astype(np.float32), 3)[:n],
-                                dtype=torch.float32)
+    pool = np.concatenate([xyz, existing]).astype(np.float32)
+    log_scale = torch.as_tensor(initial_log_scales(pool[:n], 3, among=pool), dtype=torch.float32)
     rgb_t = torch.as_tensor(rgb, dtype=torch.float32)
     new = {
         "xyz": torch.as_tensor(xyz, dtype=torch.float32),
