@@ -69,6 +69,19 @@ def test_a_failing_task_is_named_and_the_others_finish_in_process(tmp_path):
     assert run_tasks([Task("a", _double, (4,))], use_ray=False) == [8]
 
 
+def test_a_task_after_others_runs_once_they_have_and_not_after_a_failure_in_process():
+    started = []
+    tasks = [Task("a", _double, (1,)), Task("bad", _fail_on_bad_data, ("x.png",)),
+             Task("after-a", _double, (2,), after=(0,)), Task("after-bad", _double, (3,), after=(1,)),
+             Task("declined", _double, (4,), after=(0,))]
+    with pytest.raises(TasksFailed) as failed:
+        run_tasks(tasks, use_ray=False, start_if=lambda i: started.append(i) or tasks[i].name != "declined")
+    assert failed.value.failures["after-bad"] == "not run: bad failed"
+    assert started == [0, 1, 2, 4]  # every task whose prerequisites finished, in order (not after-bad)
+    with pytest.raises(ValueError, match="only tasks listed before it"):
+        run_tasks([Task("a", _double, (1,), after=(1,)), Task("b", _double, (2,))], use_ray=False)
+
+
 def test_errors_cross_process_boundaries_whole():
     for error in (DataError("x.png", "too small"), OutputError("out.stgc", "disk full"), TasksFailed({"s": "m"}, 2)):
         again = pickle.loads(pickle.dumps(error))
@@ -329,6 +342,27 @@ def _bad_frame_then_fine(index: int) -> int:
         warnings.warn("frame_1.png: 3 of 5 views have no mask", UserWarning, stacklevel=1)
         raise DataError(f"frame_{index}.png", "truncated PNG")
     return index
+
+
+def _stamp(folder: str, name: str, seconds: float) -> str:
+    (Path(folder) / f"{name}.start").write_text(repr(time.time()))
+    time.sleep(seconds)
+    (Path(folder) / f"{name}.end").write_text(repr(time.time()))
+    return name
+
+
+def test_a_task_starts_when_its_prerequisite_finishes_not_when_every_task_has_on_ray(cluster, tmp_path):
+    """Two CPUs: `next` comes after `quick` and starts while `slow` still runs (a plan's fine-tuning runs start
+    once their source has trained, beside the other from-scratch runs)."""
+    folder = str(tmp_path)
+    tasks = [Task("slow", _stamp, (folder, "slow", 6.0)), Task("quick", _stamp, (folder, "quick", 0.5)),
+             Task("next", _stamp, (folder, "next", 0.5), after=(1,))]
+    assert run_tasks(tasks, use_ray=True, show_progress=False) == ["slow", "quick", "next"]
+
+    def at(name: str, what: str) -> float:
+        return float((tmp_path / f"{name}.{what}").read_text())
+
+    assert at("quick", "end") <= at("next", "start") < at("slow", "end")
 
 
 def test_a_task_failing_on_bad_data_fails_alone_on_ray(cluster, tmp_path):

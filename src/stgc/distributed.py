@@ -27,7 +27,7 @@ import logging
 import os
 import socket
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -48,9 +48,10 @@ _said_no_ray = False
 
 @dataclasses.dataclass(frozen=True)
 class Task:
-    """One independent piece of work: `function(*args)` needing `num_cpus` CPUs. `function` must be importable
-    by name on the workers (a module-level function). `progress() -> (done, total)`, run in the driver, feeds its
-    progress bar. `log_file`: where the task's log records and warnings are appended."""
+    """One piece of work: `function(*args)` needing `num_cpus` CPUs. `function` must be importable by name on the
+    workers (a module-level function). `progress() -> (done, total)`, run in the driver, feeds its progress bar.
+    `log_file`: where the task's log records and warnings are appended. `after`: the tasks (their indices in the
+    same `run_tasks` call, all earlier in the list) that must have finished before this one starts."""
 
     name: str
     function: Callable[..., Any]
@@ -58,6 +59,7 @@ class Task:
     num_cpus: int = 1
     progress: Callable[[], tuple[int, int]] | None = None
     log_file: Path | None = None
+    after: tuple[int, ...] = ()
 
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -121,11 +123,18 @@ def ray_available() -> bool:
 
 
 def run_tasks(tasks: Sequence[Task], *, use_ray: bool = False, address: str | None = None, max_retries: int = 3,
-              on_done: Callable[[int, Any], None] | None = None, show_progress: bool = True) -> list[Any]:
-    """Run every task and return their results in the order given. on_done(index, result) is called in this
-    process as each one finishes (in finishing order). Raises TasksFailed after all have run if any failed."""
+              on_done: Callable[[int, Any], None] | None = None, show_progress: bool = True,
+              start_if: Callable[[int], bool] | None = None) -> list[Any]:
+    """Run every task and return their results in the order given (None for a task not run). on_done(index, result)
+    is called in this process as each one finishes (in finishing order). A task starts as soon as the tasks it
+    comes `after` have finished, not when a whole batch has: then `start_if(index)`, in this process, may still
+    decline it (it is not run and gets no on_done). A task after one that raised is not run and fails too. Raises
+    TasksFailed after all have run if any failed."""
     if not tasks:
         return []
+    for index, task in enumerate(tasks):
+        if any(not 0 <= earlier < index for earlier in task.after):
+            raise ValueError(f"task {task.name!r} comes after {task.after}: only tasks listed before it")
     if address is not None and not use_ray:
         raise StgcError("--ray-address names a Ray cluster, and --no-ray asks for none: give one of them")
     if use_ray and not ray_available():
@@ -138,14 +147,26 @@ def run_tasks(tasks: Sequence[Task], *, use_ray: bool = False, address: str | No
             _said_no_ray = True
         use_ray = False
     if not use_ray:
-        return _run_in_process(tasks, on_done)
-    return _run_on_ray(tasks, address, max_retries, on_done, show_progress)
+        return _run_in_process(tasks, on_done, start_if)
+    return _run_on_ray(tasks, address, max_retries, on_done, show_progress, start_if)
 
 
-def _run_in_process(tasks: Sequence[Task], on_done: Callable[[int, Any], None] | None) -> list[Any]:
+def _failed_before(task: Task, tasks: Sequence[Task], failures: Mapping[str, str]) -> str | None:
+    """The name of a task this one comes after that failed, or None."""
+    return next((tasks[i].name for i in task.after if tasks[i].name in failures), None)
+
+
+def _run_in_process(tasks: Sequence[Task], on_done: Callable[[int, Any], None] | None,
+                    start_if: Callable[[int], bool] | None) -> list[Any]:
     results: list[Any] = [None] * len(tasks)
     failures: dict[str, str] = {}
-    for index, task in enumerate(tasks):
+    for index, task in enumerate(tasks):  # in list order, every task's `after` has run before it
+        failed = _failed_before(task, tasks, failures)
+        if failed is not None:
+            failures[task.name] = f"not run: {failed} failed"
+            continue
+        if start_if is not None and not start_if(index):
+            continue
         try:
             results[index] = run_logged(task.function, task.log_file, *task.args)
         except StgcError as error:  # the task's own failure (bad data): the others still run
@@ -214,7 +235,8 @@ def _failure_message(error: Exception) -> str:
 
 
 def _run_on_ray(tasks: Sequence[Task], address: str | None, max_retries: int,
-                on_done: Callable[[int, Any], None] | None, show_progress: bool) -> list[Any]:
+                on_done: Callable[[int, Any], None] | None, show_progress: bool,
+                start_if: Callable[[int], bool] | None) -> list[Any]:
     import ray  # optional extra
 
     started = _start_ray(address)
@@ -224,24 +246,43 @@ def _run_on_ray(tasks: Sequence[Task], address: str | None, max_retries: int,
         # A task asking for more CPUs than any node has would wait forever: it gets the largest node instead.
         largest_node = max((int(node["Resources"].get("CPU", 0)) for node in ray.nodes() if node.get("Alive")),
                            default=1)
-        for index, task in enumerate(tasks):
-            cpus = min(task.num_cpus, max(largest_node, 1))
-            if cpus < task.num_cpus:
-                log.warning("%s asks for %d CPUs; the largest node has %d: it runs there with %d",
-                            task.name, task.num_cpus, largest_node, cpus)
-            remote = ray.remote(run_logged).options(num_cpus=cpus, max_retries=max_retries,
-                                                    retry_exceptions=False, name=task.name)
-            pending[remote.remote(task.function, task.log_file, *task.args)] = index
+        results: list[Any] = [None] * len(tasks)
+        failures: dict[str, str] = {}
+        done: set[int] = set()
+        waiting = list(range(len(tasks)))
+
+        def submit_ready() -> None:
+            # In list order: Ray starts queued tasks first come, first served, so the order given is kept among
+            # the tasks that can start.
+            for index in [i for i in waiting if all(earlier in done for earlier in tasks[i].after)]:
+                waiting.remove(index)
+                task = tasks[index]
+                failed = _failed_before(task, tasks, failures)
+                if failed is not None:
+                    failures[task.name] = f"not run: {failed} failed"
+                    done.add(index)
+                    continue
+                if start_if is not None and not start_if(index):
+                    done.add(index)
+                    continue
+                cpus = min(task.num_cpus, max(largest_node, 1))
+                if cpus < task.num_cpus:
+                    log.warning("%s asks for %d CPUs; the largest node has %d: it runs there with %d",
+                                task.name, task.num_cpus, largest_node, cpus)
+                remote = ray.remote(run_logged).options(num_cpus=cpus, max_retries=max_retries,
+                                                        retry_exceptions=False, name=task.name)
+                pending[remote.remote(task.function, task.log_file, *task.args)] = index
+
         log.info("%d tasks on Ray (%s)", len(tasks), address or f"local, {os.cpu_count()} CPUs")
         if show_progress:
             bars = [tqdm(total=1, desc=task.name, unit="it", position=i, dynamic_ncols=True, leave=True)
                     for i, task in enumerate(tasks)]
-        results: list[Any] = [None] * len(tasks)
-        failures: dict[str, str] = {}
-        while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1, timeout=POLL_SECONDS)
+        submit_ready()
+        while pending or waiting:
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=POLL_SECONDS) if pending else ([], [])
             for ref in ready:
                 index = pending.pop(ref)
+                done.add(index)
                 try:
                     results[index] = ray.get(ref)
                 except ray.exceptions.RayError as error:
@@ -250,6 +291,7 @@ def _run_on_ray(tasks: Sequence[Task], address: str | None, max_retries: int,
                     continue
                 if on_done is not None:
                     on_done(index, results[index])
+            submit_ready()
             for bar, task in zip(bars, tasks):
                 _update_bar(bar, task)
         if failures:

@@ -247,7 +247,8 @@ def _failed(outcomes: Sequence[RunOutcome]) -> bool:
 def _waves(plan: Plan) -> list[list[int]]:
     """The plan's run indices in waves: runs trained from scratch first, then each fine-tuning run in the wave
     after its source's, and each run with a loss reference in the wave after the reference's (both are always
-    listed before the runs that need them)."""
+    listed before the runs that need them). The runs start in this order, each as soon as what it needs has
+    finished."""
     depth: dict[str, int] = {}
     for spec in plan.runs:
         needs = [name for name in (spec.source, spec.reference) if name is not None]
@@ -433,45 +434,58 @@ def run_plan(
 
     per_spec: list[list[RunOutcome]] = [[] for _ in plan.runs]
     index_of = {spec.name: index for index, spec in enumerate(plan.runs)}
-    for wave in _waves(plan):  # a fine-tuning run starts once its source has finished
-        tasks, indices = [], []
-        for index in wave:
-            spec = plan.runs[index]
-            run_dir = out_dir / spec.name
-            overrides = run_overrides(plan, spec, extra, out_dir)
-            if dry_run:
-                outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
-                if not run_is_finished(run_dir):
-                    outcome.status = "dry-run"
-                    outcome.message = " ".join(
-                        command_builder(data_path, run_dir, preset, overrides, python=python) if spec.source is None
-                        else build_finetune_command(out_dir / spec.source, run_dir, spec.iterations,
-                                                    finetune_overrides(spec, extra), python=python))
-                per_spec[index] = [outcome]
-                continue
-            needed = [(what, name) for what, name in (("source", spec.source), ("loss reference", spec.reference))
-                      if name is not None and _failed(per_spec[index_of[name]])]
-            if needed:
-                what, name = needed[0]
-                per_spec[index] = [RunOutcome(spec.name, spec.family, spec.label, "failed", run_dir, overrides,
-                                              message=f"its {what} run {name!r} failed")]
-                continue
-            tasks.append(Task(name=spec.name, function=run_spec,
-                              args=(spec, run_dir, data_path, preset, overrides,
-                                    qualities if spec.codec_qualities is None else list(spec.codec_qualities),
-                                    runner, command_builder,
-                                    python, out_dir / "logs" / f"{spec.name}.log", say, extra, check_options),
-                              num_cpus=_run_cpus(preset, overrides), progress=Run(run_dir).progress,
-                              log_file=Run(run_dir).task_log_path))
-            indices.append(index)
+    # Runs trained from scratch first, then the runs that need another (a fine-tuning run its source, a budgeted
+    # run its loss reference): each starts as soon as what it needs has finished, not when a whole batch has.
+    order = [index for wave in _waves(plan) for index in wave]
+    tasks: list[Task] = []
+    indices: list[int] = []
+    task_of: dict[str, int] = {}
+    for index in order:
+        spec = plan.runs[index]
+        run_dir = out_dir / spec.name
+        overrides = run_overrides(plan, spec, extra, out_dir)
+        if dry_run:
+            outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
+            if not run_is_finished(run_dir):
+                outcome.status = "dry-run"
+                outcome.message = " ".join(
+                    command_builder(data_path, run_dir, preset, overrides, python=python) if spec.source is None
+                    else build_finetune_command(out_dir / spec.source, run_dir, spec.iterations,
+                                                finetune_overrides(spec, extra), python=python))
+            per_spec[index] = [outcome]
+            continue
+        task_of[spec.name] = len(tasks)
+        tasks.append(Task(name=spec.name, function=run_spec,
+                          args=(spec, run_dir, data_path, preset, overrides,
+                                qualities if spec.codec_qualities is None else list(spec.codec_qualities),
+                                runner, command_builder,
+                                python, out_dir / "logs" / f"{spec.name}.log", say, extra, check_options),
+                          num_cpus=_run_cpus(preset, overrides), progress=Run(run_dir).progress,
+                          log_file=Run(run_dir).task_log_path,
+                          after=tuple(task_of[name] for name in (spec.source, spec.reference) if name is not None)))
+        indices.append(index)
 
-        def finished(task_index: int, outcomes: list[RunOutcome], indices: list[int] = indices) -> None:
-            per_spec[indices[task_index]] = outcomes
-            result.outcomes = [o for group in per_spec for o in group]
-            write_results(results_csv, plan, result.outcomes, out_dir)  # after every run: a kill keeps what is done
+    def record(index: int, outcomes: list[RunOutcome]) -> None:
+        per_spec[index] = outcomes
+        result.outcomes = [o for group in per_spec for o in group]
+        write_results(results_csv, plan, result.outcomes, out_dir)  # after every run: a kill keeps what is done
 
-        if tasks:
-            run_tasks(tasks, use_ray=use_ray, address=ray_address, on_done=finished)
+    def start_if(task_index: int) -> bool:
+        index = indices[task_index]
+        spec = plan.runs[index]
+        needed = [(what, name) for what, name in (("source", spec.source), ("loss reference", spec.reference))
+                  if name is not None and _failed(per_spec[index_of[name]])]
+        if not needed:
+            return True
+        what, name = needed[0]
+        record(index, [RunOutcome(spec.name, spec.family, spec.label, "failed", out_dir / spec.name,
+                                  run_overrides(plan, spec, extra, out_dir),
+                                  message=f"its {what} run {name!r} failed")])
+        return False
+
+    if tasks:
+        run_tasks(tasks, use_ray=use_ray, address=ray_address, start_if=start_if,
+                  on_done=lambda task_index, outcomes: record(indices[task_index], outcomes))
     result.outcomes = [o for group in per_spec for o in group]
     write_results(results_csv, plan, result.outcomes, out_dir)
 
