@@ -106,26 +106,33 @@ def test_eval_paths_for_bitstreams(tmp_path: Path) -> None:
     assert run.eval_paths("other")[0] == tmp_path / "eval_on_other.json"
 
 
-def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
-    it = tmp_path / "point_cloud" / "iteration_10"
+class FakeModel:
+    num_gaussians, variant = 7, "lite"
+
+    def render(self, cam: FakeCam, t: float, background: torch.Tensor) -> torch.Tensor:
+        assert t == cam.time
+        return _noisy_render(cam)
+
+
+class FakeDataset:
+    test, frames, fps, background = CAMS, list(range(4)), 2.0, (0.0, 0.0, 0.0)
+    root = "fake_data"
+
+    def load_image(self, cam: FakeCam) -> np.ndarray:
+        return _gt(cam)
+
+
+def _seven_gaussian_run(run: Path) -> None:
+    """RUN/point_cloud/iteration_10 holding a 7-row lite model (what FakeModel renders)."""
+    it = run / "point_cloud" / "iteration_10"
     it.mkdir(parents=True)
     rows = np.zeros(7, dtype=[(n, "f4") for n in ply_fields("lite")])
     PlyData([PlyElement.describe(rows, "vertex")]).write(str(it / "point_cloud.ply"))
 
-    class FakeModel:
-        num_gaussians, variant = 7, "lite"
 
-        def render(self, cam: FakeCam, t: float, background: torch.Tensor) -> torch.Tensor:
-            assert t == cam.time
-            return _noisy_render(cam)
-
-    class FakeDataset:
-        test, frames, fps, background = CAMS, list(range(4)), 2.0, (0.0, 0.0, 0.0)
-        root = "fake_data"
-
-        def load_image(self, cam: FakeCam) -> np.ndarray:
-            return _gt(cam)
-
+def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
+    _seven_gaussian_run(tmp_path)
+    it = tmp_path / "point_cloud" / "iteration_10"
     record = evaluate_run(tmp_path, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset())
     assert record["num_gaussians"] == 7 and record["duration_s"] == 2.0
     assert record["file_bytes"] == {"point_cloud.ply": (it / "point_cloud.ply").stat().st_size}
@@ -143,24 +150,8 @@ def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
 def test_a_record_of_a_half_trained_run_says_so_and_is_not_the_finished_runs(tmp_path: Path, caplog) -> None:
     """`stgc eval` of a run still training scores its latest saved model: the record says the training had not
     finished, and once it has, that record is not taken for the finished model's (Run.evaluated_finished_model)."""
-    it = tmp_path / "point_cloud" / "iteration_10"
-    it.mkdir(parents=True)
-    rows = np.zeros(7, dtype=[(n, "f4") for n in ply_fields("lite")])
-    PlyData([PlyElement.describe(rows, "vertex")]).write(str(it / "point_cloud.ply"))
+    _seven_gaussian_run(tmp_path)
     (tmp_path / "config.json").write_text("{}")
-
-    class FakeModel:
-        num_gaussians, variant = 7, "lite"
-
-        def render(self, cam: FakeCam, t: float, background: torch.Tensor) -> torch.Tensor:
-            return _noisy_render(cam)
-
-    class FakeDataset:
-        test, frames, fps, background = CAMS, list(range(4)), 2.0, (0.0, 0.0, 0.0)
-        root = "fake_data"
-
-        def load_image(self, cam: FakeCam) -> np.ndarray:
-            return _gt(cam)
 
     def score() -> dict:
         return evaluate_run(tmp_path, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset(),
