@@ -43,10 +43,6 @@ class DensificationStats:
         mask = torch.as_tensor(mask, dtype=torch.bool).to(self.grad_sum.device)
         self.grad_sum, self.count = self.grad_sum[mask], self.count[mask]
 
-    def append(self, n: int) -> None:
-        self.grad_sum = torch.cat([self.grad_sum, torch.zeros(n, dtype=self.grad_sum.dtype)])
-        self.count = torch.cat([self.count, torch.zeros(n, dtype=self.count.dtype)])
-
     def reset(self, num_gaussians: int) -> None:
         self.grad_sum = torch.zeros(num_gaussians, dtype=torch.float64)
         self.count = torch.zeros(num_gaussians, dtype=torch.int64)
@@ -201,8 +197,8 @@ class DensityControl:
     """The official density control as a strategy around the training step (in the manner of gsplat's
     `Strategy`): it watches each view's render for the screen-space gradient statistics (`observe`), and after the
     optimizer step clones/splits, prunes and resets opacities when the schedule says so (`step`). Gaussians that
-    others add (EMS) or remove (compaction) are reported to it (`rows_added`, `rows_kept`), so its statistics stay
-    aligned with the model's rows. Its state goes into the training checkpoint under the keys it always had."""
+    others remove (compaction) are reported to it (`rows_kept`), so its statistics stay aligned with the model's
+    rows; when others add some (EMS) every statistic starts again (`restart_statistics`), as officially. Its state goes into the training checkpoint under the keys it always had."""
 
     def __init__(self, cfg: DensifyConfig, floaters: FloaterConfig, schedule: Schedule, initial_gaussians: int,
                  train_centers: np.ndarray):
@@ -251,8 +247,9 @@ class DensityControl:
             report["opacity_reset"] = 1
         return report
 
-    def rows_added(self, count: int) -> None:
-        self.stats.append(count)
+    def restart_statistics(self, num_gaussians: int) -> None:
+        """Every row's gradient statistic from zero (what the official code does whenever it adds Gaussians)."""
+        self.stats.reset(num_gaussians)
 
     def rows_kept(self, keep: torch.Tensor) -> None:
         self.stats.keep(keep)

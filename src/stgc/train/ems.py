@@ -110,8 +110,11 @@ class ErrorGuidedSampler:
         """Whether `observe` uses the views' SSIM at `iteration`."""
         return bool(self.cfg.enabled and iteration >= self.start and self.state["events"] < self.cfg.max_events)
 
-    def observe(self, iteration: int, camera: Camera, ssim_value: float) -> bool:
-        """Record a rendered training view; True when this view should trigger an insertion."""
+    def observe(self, iteration: int, camera: Camera, ssim_value: float, last_of_batch: bool = True) -> bool:
+        """Record a rendered training view; True when this view should trigger an insertion. As the official loop,
+        only the batch's last view may trigger, and a candidate rendered more than `min_gap` iterations after the
+        previous event spends its one chance whatever its SSIM: it leaves the candidates, the event counts, and it
+        inserts only below the trigger SSIM."""
         st, cfg = self.state, self.cfg
         if not self.listening(iteration):
             return False
@@ -123,11 +126,12 @@ class ErrorGuidedSampler:
             poor = sorted((s, n) for n, s in st["ssim"].items() if s < cfg.select_ssim)[:2]
             st["candidates"] = [n for _, n in poor] if len(poor) == 2 else []
             return False  # candidates act from their next render on
-        return (
-            name in st["candidates"]
-            and ssim_value < cfg.trigger_ssim
-            and iteration - st["last"] >= self.min_gap
-        )
+        if not last_of_batch or name not in st["candidates"] or iteration - st["last"] <= self.min_gap:
+            return False
+        st["candidates"].remove(name)
+        st["events"] += 1
+        st["last"] = iteration
+        return bool(ssim_value < cfg.trigger_ssim)
 
     def camera_depth(self, model: STGModel, camera: Camera) -> float:
         """The largest median depth the model shows in this camera (cached per camera name)."""
@@ -142,9 +146,7 @@ class ErrorGuidedSampler:
 
     def insert(self, iteration: int, model: STGModel, camera: Camera, render: torch.Tensor, gt: torch.Tensor,
                generator: torch.Generator) -> int:
-        """Add Gaussians for `camera`'s error patches; returns how many were added."""
-        self.state["events"] += 1
-        self.state["last"] = iteration
+        """Add Gaussians for `camera`'s error patches (an event `observe` counted); returns how many were added."""
         depth = self.camera_depth(model, camera)
         pixels = error_pixels(render, gt, self.cfg)
         if not len(pixels) or not math.isfinite(depth):

@@ -458,7 +458,7 @@ class Trainer:
             # Error-guided sampling picks its views by their SSIM, whether or not the loss has an SSIM term.
             loss, ssim_value = self.view_loss(rgb, gt, cam, need_ssim=self.ems.listening(iteration))
             (loss / batch).backward()
-            if self.ems.observe(iteration, cam, ssim_value) and ems_view is None:
+            if self.ems.observe(iteration, cam, ssim_value, last_of_batch=k == batch - 1):
                 ems_view = (cam, rgb.detach(), gt)
             total_loss += float(loss.detach())
             total_mse += float(((rgb.detach().clamp(0, 1) - gt) ** 2).mean())

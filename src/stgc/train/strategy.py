@@ -73,7 +73,8 @@ class ErrorGuidedStrategy:
             return {}
         camera, render, gt = ctx.ems_view
         added = self.sampler.insert(ctx.iteration, ctx.model, camera, render, gt, ctx.generator)
-        self.density.rows_added(added)
+        # As the official addgaussians (its densification_postfix): the gradient statistics start again, for every row.
+        self.density.restart_statistics(ctx.model.num_gaussians)
         return {"ems_added": added}
 
     def state_dict(self) -> dict[str, Any]:
