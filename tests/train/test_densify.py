@@ -333,3 +333,33 @@ def test_pruning_in_clone_split_rounds_is_an_option(prune_in_rounds):
     assert DensifyConfig().resolved(sparse_cloud=True).prune_in_rounds is True
     assert DensifyConfig().resolved(sparse_cloud=False).prune_in_rounds is False
     assert control.stats.count.shape[0] == model.num_gaussians
+
+
+def test_the_official_count_adds_the_views_a_temporally_invisible_gaussian_is_in_frustum_of():
+    """densify.stats_count 'in_frustum': a view counts for every Gaussian whose 3-sigma box reaches it, rendered or
+    culled as temporally invisible (official STG: 0 to the sum, 1 to the count); 'rendered' counts only the rendered
+    ones. Positions worked out by hand: a 64x48 camera at the origin looking down +z, f = 50."""
+    from stgc.data.cameras import Camera
+    from stgc.train.densify import DensityControl, reaches_view
+
+    model = _model(4)
+    with torch.no_grad():
+        # In view; behind the camera; far right of the image with a tiny scale (u = 1032, radius 0.3 px); 8 px right
+        # of the image with scale 1 (u = 72, radius 30 px: its box reaches in).
+        model.params["xyz"].copy_(torch.tensor([[0.0, 0, 5], [0, 0, -5], [100, 0, 5], [4.0, 0, 5]]))
+        model.params["motion"].zero_()
+        model.params["scaling"].copy_(torch.log(torch.tensor([[0.1] * 3, [0.1] * 3, [0.01] * 3, [1.0] * 3])))
+    camera = Camera("c", 0, 0.5, np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]), np.eye(4), 64, 48)
+    assert reaches_view(model, camera, 0.5).tolist() == [True, False, False, True]
+
+    render = SimpleNamespace(index=torch.tensor([0]), raster=SimpleNamespace(
+        visible=torch.tensor([True]), means2d_grad_ndc_norm=lambda: torch.tensor([0.25])))
+    counts = {}
+    for count in ("rendered", "in_frustum"):
+        densify = DensifyConfig(stats_count=count).resolved(False)
+        schedule = resolve_schedule(TrainConfig(iterations=3000, densify=densify))
+        density = DensityControl(densify, FloaterConfig(), schedule, 4, np.zeros((1, 3)))
+        density.observe(render, 1, 2, model, camera, 0.5)
+        counts[count] = density.stats.count.tolist()
+        assert density.stats.grad_sum.tolist() == [0.5, 0, 0, 0]  # the gradient of view 1 of 2, times 2
+    assert counts == {"rendered": [1, 0, 0, 0], "in_frustum": [1, 0, 0, 1]}

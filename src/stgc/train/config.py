@@ -100,6 +100,13 @@ class DensifyConfig:
         metadata={"help": "views of each batch whose screen-space gradients feed the statistics: all, or only the "
                           "last (official STG; half the signal for the same iterations)"},
     )
+    stats_count: Literal["rendered", "in_frustum"] = field(
+        default="rendered",
+        metadata={"help": "views a Gaussian's mean gradient is averaged over: those that rendered it (temporally "
+                          "visible), or every view whose frustum its 3-sigma box reaches, temporally visible or not "
+                          "(official STG: its rasterizer sees every Gaussian; an invisible one adds 0 to the sum and "
+                          "1 to the count)"},
+    )
     max_gaussians: int = field(
         default=0,
         metadata={"help": "clone/split never takes the model above this many Gaussians: the candidates with the "
@@ -306,7 +313,8 @@ class TrainConfig:
 
     # How a run saved before these options existed was trained (stgc.config.from_saved).
     SAVED_BEFORE: ClassVar[dict] = {"colour_correction": "off", "densify.stats_views": "last",
-                                    "densify.prune_in_rounds": False, "floaters.scale_min_opacity": 0.0}
+                                    "densify.stats_count": "rendered", "densify.prune_in_rounds": False,
+                                    "floaters.scale_min_opacity": 0.0}
 
     def validate(self, prefix: str = "") -> None:
         check(self.iterations >= 1, f"{prefix}iterations", self.iterations, ">= 1")

@@ -14,9 +14,29 @@ from typing import Any
 import numpy as np
 import torch
 
+from stgc.data.cameras import Camera
 from stgc.model import STGModel
 from stgc.render.projection import quat_to_rotmat
 from stgc.train.config import DensifyConfig, FloaterConfig, Schedule
+
+
+def reaches_view(model: STGModel, camera: Camera, t: float) -> torch.Tensor:
+    """[N] bool: the Gaussians in front of the camera's near plane whose 3-sigma box (3 x the largest scale) at
+    time t overlaps the image: where the official rasterizer gives a positive radius, whatever the opacity."""
+    with torch.no_grad():
+        means = model.means_at(t).double()
+        w2c = torch.as_tensor(np.asarray(camera.w2c), dtype=torch.float64)
+        K = torch.as_tensor(np.asarray(camera.K), dtype=torch.float64)
+        cam = means @ w2c[:3, :3].T + w2c[:3, 3]
+        z = cam[:, 2]
+        ahead = z > float(camera.near)
+        depth = torch.where(ahead, z, torch.ones_like(z))
+        u = K[0, 0] * cam[:, 0] / depth + K[0, 2]
+        v = K[1, 1] * cam[:, 1] / depth + K[1, 2]
+        sigma = torch.exp(model.params["scaling"].detach().double()).amax(dim=1)
+        radius = 3.0 * sigma * torch.maximum(K[0, 0], K[1, 1]) / depth
+        inside = (u + radius > 0) & (u - radius < camera.width) & (v + radius > 0) & (v - radius < camera.height)
+    return ahead & inside
 
 
 class DensificationStats:
@@ -213,14 +233,24 @@ class DensityControl:
         """Whether clone/split rounds are still ahead (the statistics only matter until then)."""
         return self.rounds_done < self.schedule.densify_rounds
 
-    def observe(self, render: Any, view_index: int, batch: int) -> None:
-        """After the backward of view `view_index` of a `batch`-view step: add its screen-space gradients."""
+    def observe(self, render: Any, view_index: int, batch: int, model: STGModel | None = None,
+                camera: Camera | None = None, t: float = 0.0) -> None:
+        """After the backward of view `view_index` of a `batch`-view step: add its screen-space gradients. With
+        `stats_count` 'in_frustum' (needs `model`, `camera` and the view's time `t`), the Gaussians the render culled
+        as temporally invisible count the view too, where their 3-sigma box reaches it."""
         if not self.collecting or (self.cfg.stats_views == "last" and view_index != batch - 1):
             return
         # Each view's screen-space gradient is its own (a render's means2d is its own tensor); it came from
         # loss/batch, hence the factor batch to get the per-view gradient.
         grad_norm = render.raster.means2d_grad_ndc_norm() * batch
         self.stats.add(render.index, grad_norm, render.raster.visible)
+        if self.cfg.stats_count == "in_frustum":
+            if model is None or camera is None:
+                raise ValueError("densify.stats_count 'in_frustum' needs the model, camera and time of the view")
+            culled = torch.ones(model.num_gaussians, dtype=torch.bool)
+            culled[render.index] = False
+            rows = torch.nonzero(culled & reaches_view(model, camera, t), as_tuple=False)[:, 0]
+            self.stats.count.index_add_(0, rows, torch.ones_like(rows))
 
     def step(self, iteration: int, model: STGModel, generator: torch.Generator) -> dict[str, int]:
         """After the optimizer step: what the schedule asks at `iteration`; returns what it did (counts)."""

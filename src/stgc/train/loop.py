@@ -462,7 +462,7 @@ class Trainer:
                 ems_view = (cam, rgb.detach(), gt)
             total_loss += float(loss.detach())
             total_mse += float(((rgb.detach().clamp(0, 1) - gt) ** 2).mean())
-            self.density.observe(out, k, batch)
+            self.density.observe(out, k, batch, self.model, cam, t)
         if rate_bits is not None:
             (self.cfg.quantization_aware.rate_weight * rate_bits).backward()
         self.optimizer.step()
