@@ -136,14 +136,23 @@ def test_letterbox_keeps_every_pixel_at_whole_scale():
     assert not small[0].any() and not small[:, 0].any()
 
 
-def test_the_moving_image_is_padded_to_the_canvas_shape_without_scaling():
-    from stgc.viewer import pad_to_aspect
+def test_the_moving_image_shows_as_large_as_the_still_one_and_undistorted():
+    """While the camera moves the viewer sends a half-resolution render, unscaled (the browser stretches it over the
+    canvas); it is padded so that it covers the part of the canvas the full render covers at rest, in the canvas's
+    aspect ratio. It filled the canvas, and the picture jumped in size when the camera stopped."""
+    from stgc.viewer import letterbox_scale, pad_like_still
 
-    image = np.full((6, 8, 3), 200, dtype=np.uint8)
-    wide = pad_to_aspect(image, 400, 200, (0.0, 0.0, 0.0))  # 2:1 canvas: 12 x 6
-    assert wide.shape == (6, 12, 3) and np.array_equal(wide[:, 2:10], image)
-    tall = pad_to_aspect(image, 100, 200, (0.0, 0.0, 0.0))  # 1:2 canvas: 8 x 16
-    assert tall.shape == (16, 8, 3) and np.array_equal(tall[5:11], image)
+    coarse = np.full((25, 50, 3), 200, dtype=np.uint8)  # the 100 x 50 render at half resolution
+    for width, height in ((350, 200), (640, 480), (120, 40), (90, 60)):
+        padded = pad_like_still(coarse, 100, 50, width, height, (0.0, 0.0, 0.0))
+        ph, pw = padded.shape[:2]
+        assert abs(pw / ph - width / height) < 0.05  # undistorted
+        assert int((padded == 200).all(axis=2).sum()) == 50 * 25  # unscaled
+        still = letterbox_scale(100, 50, width, height)
+        # Shown on the canvas: the coarse image's share of the padded one, against the still image's share.
+        assert 50 / pw * width == pytest.approx(100 * still, rel=0.05)
+        assert 25 / ph * height == pytest.approx(50 * still, rel=0.05)
+    assert letterbox_scale(100, 50, 350, 200) == 3 and letterbox_scale(100, 50, 90, 60) == 0.5
 
 
 def test_a_port_in_use_gives_a_clear_error_with_a_free_port():

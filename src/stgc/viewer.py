@@ -227,20 +227,34 @@ def letterbox(image: np.ndarray, width: int, height: int, fill: tuple[float, flo
         fitted = np.repeat(np.repeat(image, scale, axis=0), scale, axis=1)
     else:
         fitted = _shrink(image, math.ceil(max(w / width, h / height)))
+    return _centred(fitted, width, height, fill)
+
+
+def letterbox_scale(width: int, height: int, canvas_width: int, canvas_height: int) -> float:
+    """The scale `letterbox` shows a `width` x `height` image at on a canvas: a whole number, or 1/k."""
+    scale = min(canvas_width // width, canvas_height // height)
+    return float(scale) if scale >= 1 else 1.0 / math.ceil(max(width / canvas_width, height / canvas_height))
+
+
+def pad_like_still(image: np.ndarray, still_width: int, still_height: int, width: int, height: int,
+                   fill: tuple[float, float, float]) -> np.ndarray:
+    """A coarse `image` (the render while the camera moves), not scaled, in the middle of a canvas of the fill
+    colour with the `width` x `height` canvas's aspect ratio, so sized that the browser, stretching it over the
+    canvas, shows it as large as `letterbox` shows the `still_width` x `still_height` image at rest: the picture
+    does not jump in size when the camera stops."""
+    h, w = image.shape[:2]
+    shown = letterbox_scale(still_width, still_height, width, height)
+    canvas_w = max(w, round(w * width / (still_width * shown)))
+    canvas_h = max(h, round(h * height / (still_height * shown)))
+    return _centred(image, canvas_w, canvas_h, fill)
+
+
+def _centred(image: np.ndarray, width: int, height: int, fill: tuple[float, float, float]) -> np.ndarray:
     canvas = np.empty((height, width, 3), dtype=np.uint8)
     canvas[:] = (np.asarray(fill) * 255.0 + 0.5).astype(np.uint8)
-    top, left = (height - fitted.shape[0]) // 2, (width - fitted.shape[1]) // 2
-    canvas[top:top + fitted.shape[0], left:left + fitted.shape[1]] = fitted
+    top, left = (height - image.shape[0]) // 2, (width - image.shape[1]) // 2
+    canvas[top:top + image.shape[0], left:left + image.shape[1]] = image
     return canvas
-
-
-def pad_to_aspect(image: np.ndarray, width: int, height: int, fill: tuple[float, float, float]) -> np.ndarray:
-    """`image`, not scaled, in the middle of the smallest canvas of the fill colour that holds it and has the
-    `width` x `height` canvas's aspect ratio (the browser then stretches it uniformly)."""
-    h, w = image.shape[:2]
-    if w * height >= h * width:
-        return letterbox(image, w, max(h, round(w * height / width)), fill)
-    return letterbox(image, max(w, round(h * width / height)), h, fill)
 
 
 def _shrink(image: np.ndarray, factor: int) -> np.ndarray:
@@ -353,10 +367,11 @@ class _ClientView:
                 gt = scene.ground_truth(name, frame)
                 if gt is not None and gt.shape == rendered.shape:
                     picture = np.concatenate([rendered, gt], axis=1)
-            # At rest every pixel exact; while moving only padded to the canvas's shape (an upscaled coarse image
-            # would cost the encoding time the coarse render saves).
+            # At rest every pixel exact; while moving padded so the browser shows it as large as at rest (an
+            # upscaled coarse image would cost the encoding time the coarse render saves).
             image = (letterbox(picture, width, height, scene.background) if still
-                     else pad_to_aspect(picture, width, height, scene.background))
+                     else pad_like_still(picture, dataset_camera.width * (2 if viewer.show_ground_truth else 1),
+                                         dataset_camera.height, width, height, scene.background))
         else:
             scale = min(1.0, viewer.max_side / max(width, height)) * (1.0 if still else MOVING_PIXEL_SCALE)
             w, h = max(1, round(width * scale)), max(1, round(height * scale))
