@@ -46,8 +46,9 @@ def _test_psnr(model, dataset) -> float:
 
 
 def test_killed_run_resumes_to_the_uninterrupted_result(tiny_toys, make_model, tmp_path):
-    # Error-guided sampling from iteration 2, so its camera bookkeeping and insertions cross the kill too.
-    cfg = _short_config(ems=EMSConfig(enabled=True, start=2, min_gap=3, select_ssim=0.99, trigger_ssim=0.99))
+    # Error-guided sampling from iteration 2, so its camera bookkeeping and insertions cross the kill too (with this
+    # seed its candidates are picked before the kill and are the last view of a batch at 31 and later).
+    cfg = _short_config(seed=4, ems=EMSConfig(enabled=True, start=2, min_gap=3, select_ssim=0.99, trigger_ssim=0.99))
     # Compaction prunes every 2 iterations from 22 to 34, so the kill at 27 interrupts its window.
     compaction = CompactionConfig(case=0, window_start=0.55, window_end=0.875, interval=2)
     straight = Trainer(tiny_toys, None, None, cfg, compaction, tmp_path / "a", model=make_model(tiny_toys, 200),
@@ -78,7 +79,8 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tiny_toys, make_model, t
     rows_b = [(r["iteration"], r["loss"], r["num_gaussians"]) for r in resumed.metrics_log.read()]
     assert rows_a == rows_b and [r[0] for r in rows_a] == list(range(5, 41, 5))
     assert straight.ems.state["events"] >= 1  # it did insert Gaussians
-    assert resumed.ems.state == straight.ems.state
+    # (as JSON: a camera whose render showed no depth has NaN, which equals nothing)
+    assert json.dumps(resumed.ems.state, sort_keys=True) == json.dumps(straight.ems.state, sort_keys=True)
     events_a = [(e["iteration"], e["removed"]) for e in straight.compaction_log.read()]
     events_b = [(e["iteration"], e["removed"]) for e in resumed.compaction_log.read()]
     assert events_a == events_b and len(events_a) >= 5 and sum(r for _, r in events_a) > 0
@@ -160,6 +162,6 @@ def test_error_guided_sampling_acts_without_the_ssim_loss(tiny_toys, make_model,
 
     # Every view is a candidate and triggers: with lambda_dssim = 0 the views once had no SSIM (NaN) and none did.
     ems = EMSConfig(enabled=True, start=1, min_gap=1, select_ssim=1.0, trigger_ssim=1.0, max_events=1)
-    cfg = _short_config(iterations=20, save_iterations=(), checkpoint_every=0, lambda_dssim=0.0, ems=ems)
+    cfg = _short_config(iterations=40, seed=4, save_iterations=(), checkpoint_every=0, lambda_dssim=0.0, ems=ems)
     train(tiny_toys, None, None, cfg, None, tmp_path / "run", model=make_model(tiny_toys, 100))
     assert load_checkpoint(tmp_path / "run")["ems"]["events"] == 1
