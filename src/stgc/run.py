@@ -9,13 +9,14 @@ run's files, and only those: other files in the folder, such as an experiment's 
 
 from __future__ import annotations
 
+import ast
 import json
 import re
 import shutil
 from pathlib import Path
 from typing import Any
 
-from stgc.errors import StgcError
+from stgc.errors import FormatError, StgcError
 from stgc.fileio import file_sha256, read_json_object, write_json
 
 # Everything a training writes into its run directory (docs/training.md lists them): their presence means the
@@ -318,3 +319,32 @@ def prepare_new_run(path: str | Path, *, overwrite: bool = False, keep: Path | N
     except OSError as exc:
         raise StgcError(f"{path}: cannot create the run directory ({exc.strerror or exc})") from None
     return path
+
+
+# An official STG run keeps its options as the repr of its argparse Namespace in RUN/cfg_args.
+OFFICIAL_ARGS = "cfg_args"
+
+
+def official_run_args(path: str | Path) -> dict[str, Any] | None:
+    """The options an official STG run saved (RUN/cfg_args, `Namespace(key=value, ...)`), found from the run, an
+    iteration dir or its PLY; None where there is none. Read as Python literals, never executed; FormatError when
+    the file is not such a Namespace."""
+    path = Path(path)
+    found = next((p / OFFICIAL_ARGS for p in [path, *path.parents][:4] if (p / OFFICIAL_ARGS).is_file()), None)
+    if found is None:
+        return None
+    try:
+        call = ast.parse(found.read_text(errors="replace").strip(), mode="eval").body
+        if not (isinstance(call, ast.Call) and isinstance(call.func, ast.Name) and call.func.id == "Namespace"):
+            raise ValueError("not a Namespace(...)")
+        args = {}
+        for keyword in call.keywords:
+            if keyword.arg is None:
+                raise ValueError("a **-argument")
+            try:
+                args[keyword.arg] = ast.literal_eval(keyword.value)
+            except ValueError:
+                args[keyword.arg] = None  # a value that is no literal (an object's repr): not one stgc reads
+        return args
+    except (SyntaxError, ValueError) as exc:
+        raise FormatError(found, f"not an official STG cfg_args file ({exc})") from None

@@ -170,3 +170,72 @@ def test_from_ply_arrays_rejects_bad_arrays_and_round_trips_state_dict():
     again = STGModel.from_state_dict(model.state_dict())
     for key in model.params:
         assert torch.equal(again.params[key], model.params[key])
+
+
+@pytest.mark.parametrize("rgbfunction, activation", [("sandwich", "sigmoid"), ("sandwichnoact", "clamp"),
+                                                     ("sandwichnoactss", "none")])
+def test_an_official_runs_decoder_ends_as_its_cfg_args_says(tmp_path, rgbfunction, activation):
+    """An official run has no config.json; its rgbfunction is in RUN/cfg_args (the repr of its argparse Namespace).
+    Technicolor's and the immersive configs' decoders were read as N3DV's sigmoid: 19 of the 25 official full
+    configs rendered wrong colours."""
+    random_model("full", count=4).save(tmp_path / "point_cloud" / "iteration_30000")
+    (tmp_path / "cfg_args").write_text(f"Namespace(duration=50, model='ours_full', rgbfunction='{rgbfunction}', "
+                                       f"save_iterations=[7000, 25000], loader='technicolor')")
+    assert STGModel.load(tmp_path).decoder_activation == activation
+    assert STGModel.load(tmp_path / "point_cloud" / "iteration_30000" / "point_cloud.ply").decoder_activation == activation
+
+
+def test_an_unknown_official_decoder_or_none_said_is_not_taken_silently(tmp_path, caplog):
+    random_model("full", count=4).save(tmp_path / "point_cloud" / "iteration_10")
+    (tmp_path / "cfg_args").write_text("Namespace(rgbfunction='sandwichmlp', duration=50)")
+    with pytest.raises(FormatError, match="rgbfunction='sandwichmlp' is not one stgc renders"):
+        STGModel.load(tmp_path)
+    (tmp_path / "cfg_args").write_text("import os")  # never executed
+    with pytest.raises(FormatError, match="cfg_args: not an official STG cfg_args file"):
+        STGModel.load(tmp_path)
+    (tmp_path / "cfg_args").unlink()
+    with caplog.at_level("WARNING"):
+        assert STGModel.load(tmp_path).decoder_activation == "sigmoid"
+    assert "sigmoid assumed" in caplog.text
+
+
+def test_an_official_runs_data_opens_with_its_duration(tmp_path):
+    """`stgc eval OFFICIAL_RUN --data SCENE`: the model's times are (frame - start) / duration with the run's own
+    duration; opened with every frame of the folder, t was scaled by the wrong length."""
+    from scenes import write_panoptic_scene
+
+    from stgc.data.config import open_run_dataset
+
+    scene = write_panoptic_scene(tmp_path / "scene", views=3, frames=4, width=16, height=12)
+    run = tmp_path / "official"
+    run.mkdir()
+    assert open_run_dataset(run, scene.root).frames == [0, 1, 2, 3]
+    (run / "cfg_args").write_text("Namespace(duration=2, rgbfunction='sandwich')")
+    data = open_run_dataset(run, scene.root)
+    assert data.frames == [0, 1] and [data.time_of(f) for f in data.frames] == [0.0, 0.5]
+
+
+def test_decoder_weights_and_ply_fields_stgc_does_not_know_are_refused(tmp_path):
+    model = random_model("full", count=3)
+    path = model.save(tmp_path)
+    state = {k: torch.as_tensor(v) for k, v in model.decoder_state().items()}
+    for bad, message in (({**state, "mlp1.bias": torch.zeros(6)}, "key.*mlp1.bias"),
+                         ({**state, "mlp1.weight": state["mlp1.weight"].reshape(12, 6, 1, 1)}, r"shape \(12, 6, 1, 1\)")):
+        torch.save(bad, tmp_path / "point_cloud.pt")
+        with pytest.raises(FormatError, match=message):
+            STGModel.load(path)
+    torch.save({k: v.reshape(v.shape[:2]) for k, v in state.items()}, tmp_path / "point_cloud.pt")  # [out, in]
+    assert STGModel.load(path).num_gaussians == 3
+    torch.save(state, tmp_path / "point_cloud.pt")
+    vertex = PlyData.read(str(path))["vertex"]
+    names = [p.name for p in vertex.properties] + ["f_dc_9"]
+    rows = np.zeros(vertex.count, dtype=[(n, "f4") for n in names])
+    for name in names[:-1]:
+        rows[name] = vertex[name]
+    PlyData([PlyElement.describe(rows, "vertex")]).write(str(path))
+    with pytest.raises(FormatError, match="does not have: f_dc_9"):  # it would have rendered truncated
+        STGModel.load(path)
+    _rewrite(path, drop="f_dc_9")
+    _rewrite(path, drop="f_t_1")
+    with pytest.raises(FormatError, match="missing field.*f_t_1"):  # the list was empty
+        STGModel.load(path)

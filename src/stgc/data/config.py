@@ -10,7 +10,7 @@ from typing import Any, ClassVar, Literal, get_args
 
 from stgc.config import ConfigError, check, from_saved, validate_config
 from stgc.errors import DataError, FormatError
-from stgc.run import Run
+from stgc.run import Run, official_run_args
 
 from .dataset import Dataset
 from .points import InitSource, PointCloud, initial_points, thin_like
@@ -158,13 +158,26 @@ def open_run_dataset(run_dir: str | Path, data_path: str | Path | None = None) -
     saved = saved_run_data(run_dir)
     if saved is None:
         if data_path is not None:  # a model without its run: the given data, with default options
-            return DataConfig().open(data_path)
+            return _official_run_data_config(run_dir).open(data_path)
         raise DataError(config_path, "no run config found; pass the dataset with --data")
     config, path = saved
     target = data_path if data_path is not None else path
     if target is None:
         raise DataError(config_path, "config.json has no data.path; pass the dataset with --data")
     return config.open(target)
+
+
+def _official_run_data_config(run_dir: str | Path) -> DataConfig:
+    """Data options for a model without stgc's config.json: default ones, except that an official STG run's
+    cfg_args gives its `duration` (its model's times are (frame - start) / duration: opened with every frame of the
+    folder, t would be scaled by the wrong length)."""
+    official = official_run_args(run_dir)
+    duration = None if official is None else official.get("duration")
+    if isinstance(duration, int) and not isinstance(duration, bool) and duration > 0:
+        logging.getLogger(__name__).info("%s: an official STG run of %d frames (cfg_args): frames 0-%d",
+                                         run_dir, duration, duration - 1)
+        return DataConfig(duration=duration)
+    return DataConfig()
 
 
 def initial_points_from_config(dataset: Dataset, cfg: DataConfig | None = None) -> PointCloud:

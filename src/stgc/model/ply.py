@@ -34,7 +34,9 @@ def detect_variant(field_names: list[str] | set[str], path: Path | None = None) 
             return variant
     missing_full = sorted(set(ply_fields("full")) - set(NORMAL_FIELDS) - names, key=ply_fields("full").index)
     missing_lite = sorted(set(ply_fields("lite")) - set(NORMAL_FIELDS) - names, key=ply_fields("lite").index)
-    missing = missing_full if len(missing_full) <= len(missing_lite) else missing_lite
+    # A file with full-only fields is a full model missing some, even where it holds all a lite model needs.
+    missing = (missing_full if ({"f_dc_3", "f_t_0"} & names) or len(missing_full) <= len(missing_lite)
+               else missing_lite)
     raise FormatError(path, f"not an STG point cloud: missing field(s) {', '.join(missing)}")
 
 
@@ -86,6 +88,11 @@ def read_ply(path: str | Path) -> tuple[dict[str, np.ndarray], str]:
     vertex = ply["vertex"]
     names = [prop.name for prop in vertex.properties]
     variant = detect_variant(names, path)
+    unknown = [name for name in names if name not in ply_fields(variant)]
+    if unknown:
+        # The official loader sizes its arrays from the fields present: a variant with more coefficients would be
+        # rendered truncated here.
+        raise FormatError(path, f"field(s) an STG {variant} model does not have: {', '.join(unknown)}")
     arrays = {name: np.asarray(vertex[name]) for name in ply_fields(variant) if name in names}
     for name in arrays:  # plyfile returns the file's byte order; keep native float32 in memory
         if arrays[name].dtype.kind == "f" and arrays[name].dtype.itemsize == 4:
@@ -118,13 +125,19 @@ def read_decoder(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def validate_decoder_state(state: dict[str, Any], path: Path | None = None) -> dict[str, np.ndarray]:
+    """The decoder's weights, in the official 1x1-convolution shapes; FormatError for any other key (a bias: the
+    official decoder has none) or shape (as [out, in, 1, 1] or [out, in] only: a transposed matrix of the same size
+    would be read scrambled)."""
+    extra = sorted(set(state) - set(DECODER_SHAPES))
+    if extra:
+        raise FormatError(path, f"decoder state has key(s) STG's decoder does not have: {', '.join(map(str, extra))}")
     out = {}
     for key, shape in DECODER_SHAPES.items():
         if key not in state:
             raise FormatError(path, f"decoder state has no {key!r} (keys: {sorted(state)})")
         value = state[key]
         array = value.detach().cpu().numpy() if torch.is_tensor(value) else np.asarray(value)
-        if array.size != int(np.prod(shape)):
+        if tuple(array.shape) not in (shape, shape[:2]):
             raise FormatError(path, f"decoder {key!r} has shape {tuple(array.shape)}, expected {shape}")
         if not np.all(np.isfinite(array)):
             raise FormatError(path, f"decoder {key!r} has non-finite values")

@@ -12,6 +12,7 @@ docs/model.md). With Δ = t − μ_t and Δ' = Δ.detach() (as the official rend
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -32,7 +33,9 @@ from stgc.model.config import DecoderActivation, ModelConfig
 from stgc.model.decoder import SandwichDecoder, camera_rays
 from stgc.model.layout import NORMAL_FIELDS, VARIANTS, Variant, ply_fields
 from stgc.model.optim import replace_group_param
-from stgc.run import Run
+from stgc.run import Run, official_run_args
+
+log = logging.getLogger(__name__)
 
 PARAM_KEYS = (
     "xyz",
@@ -552,6 +555,9 @@ class STGModel:
             decoder_state = _ply.read_decoder(ply_path.with_suffix(".pt"))
             if decoder_activation is None:
                 decoder_activation = _activation_from_run_config(ply_path)
+            if decoder_activation is None:
+                log.warning("%s: no run config or official cfg_args beside it says how its decoder ends: sigmoid "
+                            "assumed (official N3DV; Technicolor's is a clamp, the immersive configs' none)", ply_path)
         return cls.from_ply_arrays(
             arrays,
             variant,
@@ -635,9 +641,25 @@ def _cloud_arrays(cloud: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return xyz.astype(np.float32), rgb.astype(np.float32), time.astype(np.float32)
 
 
+# The official decoders (`rgbfunction`) by the output activation they end with.
+OFFICIAL_DECODERS = {"sandwich": "sigmoid", "sandwichnoact": "clamp", "sandwichnoactss": "none"}
+
+
 def _activation_from_run_config(ply_path: Path) -> str | None:
+    """The decoder's output activation as the PLY's run saved it: stgc's config.json, else an official run's
+    cfg_args (`rgbfunction`: N3DV's sandwich is a sigmoid, Technicolor's sandwichnoact a clamp, the immersive
+    configs' sandwichnoactss none); None where neither says."""
     run = Run.of(ply_path.parent)
     saved = None if run is None else run.read_config(strict=False)
     model_section = (saved or {}).get("model")
     activation = model_section.get("decoder_activation") if isinstance(model_section, dict) else None
-    return activation if isinstance(activation, str) else None
+    if isinstance(activation, str):
+        return activation
+    official = official_run_args(ply_path.parent) if run is None else None
+    if official is None or official.get("rgbfunction") is None:
+        return None
+    rgbfunction = str(official["rgbfunction"])
+    if rgbfunction not in OFFICIAL_DECODERS:
+        raise FormatError(ply_path, f"its official run's decoder rgbfunction={rgbfunction!r} is not one stgc "
+                                    f"renders ({', '.join(OFFICIAL_DECODERS)})")
+    return OFFICIAL_DECODERS[rgbfunction]
