@@ -153,6 +153,12 @@ def test_the_moving_image_shows_as_large_as_the_still_one_and_undistorted():
         assert 50 / pw * width == pytest.approx(100 * still, rel=0.05)
         assert 25 / ph * height == pytest.approx(50 * still, rel=0.05)
     assert letterbox_scale(100, 50, 350, 200) == 3 and letterbox_scale(100, 50, 90, 60) == 0.5
+    # With the ground truth beside the still render, the pair sets the scale; the moving render alone keeps the
+    # canvas's aspect ratio and its own share of the pair's size (it was stretched to twice its width).
+    pair = letterbox_scale(200, 50, 640, 480)
+    padded = pad_like_still(coarse, 100, 50, 640, 480, (0.0, 0.0, 0.0), still_scale=pair)
+    ph, pw = padded.shape[:2]
+    assert abs(pw / ph - 640 / 480) < 0.05 and 50 / pw * 640 == pytest.approx(100 * pair, rel=0.05)
 
 
 def test_a_port_in_use_gives_a_clear_error_with_a_free_port():

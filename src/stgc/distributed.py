@@ -10,8 +10,8 @@ Each `Task` names a module-level function and its arguments, and the CPUs it nee
 Fault tolerance is Ray's task retry: a task whose worker process or node dies is run again (up to `max_retries`
 times), and the task functions here are written to continue from what their folder holds (a segment resumes from
 its last checkpoint), so a retry redoes at most the work since that checkpoint. An exception raised by the task
-itself (bad data) is not retried: it fails that task only; the others run to their end and keep their results, and
-`run_tasks` then raises a `TasksFailed` naming each failed task.
+itself (bad data) is not retried: it fails that task and the tasks that come `after` it (not run); the others run
+to their end and keep their results, and `run_tasks` then raises a `TasksFailed` naming each failed task.
 
 Progress: one bar per task in this process, fed by each task's `progress` callable, which reads the task's output
 folder (a shared file system), so workers need no channel back to the driver. Messages: a task with a `log_file`

@@ -236,16 +236,17 @@ def letterbox_scale(width: int, height: int, canvas_width: int, canvas_height: i
     return float(scale) if scale >= 1 else 1.0 / math.ceil(max(width / canvas_width, height / canvas_height))
 
 
-def pad_like_still(image: np.ndarray, still_width: int, still_height: int, width: int, height: int,
-                   fill: tuple[float, float, float]) -> np.ndarray:
+def pad_like_still(image: np.ndarray, full_width: int, full_height: int, width: int, height: int,
+                   fill: tuple[float, float, float], still_scale: float | None = None) -> np.ndarray:
     """A coarse `image` (the render while the camera moves), not scaled, in the middle of a canvas of the fill
     colour with the `width` x `height` canvas's aspect ratio, so sized that the browser, stretching it over the
-    canvas, shows it as large as `letterbox` shows the `still_width` x `still_height` image at rest: the picture
-    does not jump in size when the camera stops."""
+    canvas, shows it as large as the `full_width` x `full_height` render is shown at rest: at `still_scale` (by
+    default `letterbox`'s for that render alone; with the ground truth beside it, the pair's). The picture does not
+    jump in size when the camera stops."""
     h, w = image.shape[:2]
-    shown = letterbox_scale(still_width, still_height, width, height)
-    canvas_w = max(w, round(w * width / (still_width * shown)))
-    canvas_h = max(h, round(h * height / (still_height * shown)))
+    shown = letterbox_scale(full_width, full_height, width, height) if still_scale is None else still_scale
+    canvas_w = max(w, round(w * width / (full_width * shown)))
+    canvas_h = max(h, round(h * height / (full_height * shown)))
     return _centred(image, canvas_w, canvas_h, fill)
 
 
@@ -370,8 +371,10 @@ class _ClientView:
             # At rest every pixel exact; while moving padded so the browser shows it as large as at rest (an
             # upscaled coarse image would cost the encoding time the coarse render saves).
             image = (letterbox(picture, width, height, scene.background) if still
-                     else pad_like_still(picture, dataset_camera.width * (2 if viewer.show_ground_truth else 1),
-                                         dataset_camera.height, width, height, scene.background))
+                     else pad_like_still(picture, dataset_camera.width, dataset_camera.height, width, height,
+                                         scene.background, letterbox_scale(
+                                             dataset_camera.width * (2 if viewer.show_ground_truth else 1),
+                                             dataset_camera.height, width, height)))
         else:
             scale = min(1.0, viewer.max_side / max(width, height)) * (1.0 if still else MOVING_PIXEL_SCALE)
             w, h = max(1, round(width * scale)), max(1, round(height * scale))

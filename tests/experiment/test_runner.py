@@ -525,6 +525,10 @@ def test_a_baseline_recorded_with_set_compaction_options_is_still_this_plans(tmp
     assert reuse_mismatch(run, tmp_path / "DATA", "cpu", {"compaction.method": "none"}) is None
     assert "compaction.rotation_weight" in (reuse_mismatch(run, tmp_path / "DATA", "cpu", {
         "compaction.method": "st-knn", "compaction.rotation_weight": "0.05"}) or "")
+    # The method itself is never dropped: a pruned run is not a plan's unpruned one.
+    (run / "experiment.json").write_text(json.dumps({"name": "stg", "overrides": {"compaction.method": "st-knn"},
+                                                     "preset": "cpu", "data": str(tmp_path / "DATA")}))
+    assert "compaction.method: st-knn then" in (reuse_mismatch(run, tmp_path / "DATA", "cpu", {}) or "")
 
 
 def test_a_loss_reference_is_the_same_folder_however_spelled(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

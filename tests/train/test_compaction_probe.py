@@ -104,6 +104,16 @@ def test_a_budget_run_reads_its_unpruned_reference_run_at_the_same_iterations(sc
     assert not (tmp_path / "other").exists()
     Trainer(dataset, None, None, dataclasses.replace(_config(80), backend="numba", threads=trained_with), budgeted,
             tmp_path / "numba", model=start())  # what "auto" means on CPU, and the count it trained with
+    # A reference saved before an option existed trained as its SAVED_BEFORE value says (here the densification
+    # statistic's count): not a difference, unless this run asks for another value.
+    saved = json.loads((tmp_path / "ref" / "config.json").read_text())
+    del saved["train"]["densify"]["stats_count"]
+    (tmp_path / "ref" / "config.json").write_text(json.dumps(saved))
+    Trainer(dataset, None, None, _config(80), budgeted, tmp_path / "old-ref", model=start())
+    official_count = dataclasses.replace(_config(80), densify=DensifyConfig(enabled=False, opacity_reset_interval=0,
+                                                                            stats_count="in_frustum"))
+    with pytest.raises(DataError, match="train.densify.stats_count: this run 'in_frustum', the reference 'rendered'"):
+        Trainer(dataset, None, None, official_count, budgeted, tmp_path / "other", model=start())
     # A continuation (stgc finetune) of the budgeted run prunes nothing: the loss reference it keeps is not checked.
     Trainer(dataset, None, None, _config(90), dataclasses.replace(budgeted, method="none"), tmp_path / "longer",
             model=start())

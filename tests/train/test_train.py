@@ -163,5 +163,8 @@ def test_error_guided_sampling_acts_without_the_ssim_loss(tiny_toys, make_model,
     # Every view is a candidate and triggers: with lambda_dssim = 0 the views once had no SSIM (NaN) and none did.
     ems = EMSConfig(enabled=True, start=1, min_gap=1, select_ssim=1.0, trigger_ssim=1.0, max_events=1)
     cfg = _short_config(iterations=40, seed=4, save_iterations=(), checkpoint_every=0, lambda_dssim=0.0, ems=ems)
-    train(tiny_toys, None, None, cfg, None, tmp_path / "run", model=make_model(tiny_toys, 100))
+    inserted = []
+    train(tiny_toys, None, None, cfg, None, tmp_path / "run", model=make_model(tiny_toys, 100),
+          callback=lambda iteration, numbers: inserted.append(iteration) if "ems_added" in numbers else None)
     assert load_checkpoint(tmp_path / "run")["ems"]["events"] == 1
+    assert len(inserted) == 1  # the event's SSIM was below the trigger (a NaN would count an event, insert nothing)

@@ -198,6 +198,8 @@ def test_a_whole_video_is_one_bitstream_that_evaluates_renders_and_restores(scen
     again = json.loads((restored / "eval.json").read_text())
     assert again["psnr"] == pytest.approx(record["psnr"], abs=1e-3)
     assert again["num_gaussians"] == record["num_gaussians"]
+    # A restored segment's model is its final one: its record says so (a report named it half-trained).
+    assert json.loads((restored / "segment_000" / "eval.json").read_text())["training_finished"] is True
     # Its segments hold final models though no training summary says so: compress packs them again (it refused
     # them as unfinished, with a resume that could not run).
     assert main(["compress", str(restored), "--out", str(restored / "again.stgc"), "--set", "codec.allocation=ladder"]) == 0

@@ -240,7 +240,8 @@ def write_eval(
     if summary and "iterations" in summary:
         more["iterations"] = summary["iterations"]
     if bitstream is None and run.has_config():
-        more["training_finished"] = bool(summary and summary.get("finished"))
+        # Whether the model scored is the one the run ends with (a restored run's is: it came from a bitstream).
+        more["training_finished"] = run.holds_final_model()
         restored = read_json_object(run.path / Run.RESTORED_FROM, strict=False)
         if restored is not None:
             more["restored_from"] = restored.get("bitstream")

@@ -152,7 +152,8 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
         if wanted.get("compaction.method", "none") == "none":
             # A run that prunes nothing: --set's compaction options are no longer passed to it (run_overrides), and
             # never acted in it; an earlier runner recorded them.
-            before = {k: v for k, v in before.items() if not k.startswith("compaction.") or k in wanted}
+            before = {k: v for k, v in before.items()
+                      if not k.startswith("compaction.") or k == "compaction.method" or k in wanted}
         for key in sorted(set(before) | set(wanted)):
             if not _same_plan_option(key, before.get(key), wanted.get(key), run_dir.parent):
                 differences.append(f"{key}: {before.get(key, 'unset')} then, {wanted.get(key, 'unset')} now")
@@ -449,7 +450,8 @@ def run_plan(
             if not run_is_finished(run_dir):
                 outcome.status = "dry-run"
                 outcome.message = " ".join(
-                    command_builder(data_path, run_dir, preset, overrides, python=python) if spec.source is None
+                    build_eval_command(run_dir, python=python) if Run(run_dir).training_finished()  # scored again
+                    else command_builder(data_path, run_dir, preset, overrides, python=python) if spec.source is None
                     else build_finetune_command(out_dir / spec.source, run_dir, spec.iterations,
                                                 finetune_overrides(spec, extra), python=python))
             per_spec[index] = [outcome]

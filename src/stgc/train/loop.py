@@ -284,11 +284,18 @@ class Trainer:
             raise DataError(reference_dir, "the loss reference has no config.json to check it against this run")
         mine = json.loads(json.dumps(self._run_config()))  # as config.json holds it: tuples read back as lists
         differences = []
-        for section in ("data", "model", "train", "compaction"):
+        sections = {"data": DataConfig, "model": ModelConfig, "train": TrainConfig, "compaction": CompactionConfig}
+        for section, cls in sections.items():
             ours, saved = _flat(mine.get(section) or {}), _flat(theirs.get(section) or {})
+            # A reference saved before an option existed trained as that option's SAVED_BEFORE value says; where
+            # the class says nothing, the option is not compared (as the experiment runner's reuse check).
+            before = getattr(cls, "SAVED_BEFORE", {})
+            saved = {**{k: v for k, v in before.items() if k in ours}, **saved}
             for key in sorted(set(ours) | set(saved)):
                 name = f"{section}.{key}"
                 if name in EXECUTION_OPTIONS or name in _PRUNED_RUN_ONLY or key.startswith("resolved_schedule"):
+                    continue
+                if key not in saved:
                     continue
                 if not same_option_value(name, ours.get(key), saved.get(key)):
                     differences.append(f"{name}: this run {ours.get(key)!r}, the reference {saved.get(key)!r}")
