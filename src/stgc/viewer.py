@@ -222,11 +222,11 @@ def letterbox(image: np.ndarray, width: int, height: int, fill: tuple[float, flo
     by the smallest whole factor k that fits (means of k x k pixels). Always the canvas's shape: viser stretches
     whatever image it gets over the whole canvas, so any other shape would show the picture distorted."""
     h, w = image.shape[:2]
-    scale = min(width // w, height // h)
+    scale = letterbox_scale(w, h, width, height)
     if scale >= 1:
-        fitted = np.repeat(np.repeat(image, scale, axis=0), scale, axis=1)
+        fitted = np.repeat(np.repeat(image, int(scale), axis=0), int(scale), axis=1)
     else:
-        fitted = _shrink(image, math.ceil(max(w / width, h / height)))
+        fitted = _shrink(image, round(1.0 / scale))
     return _centred(fitted, width, height, fill)
 
 
