@@ -12,7 +12,7 @@ from scenes import write_panoptic_scene
 
 from stgc.codec import CodecConfig, compress_run, load_model, read_stgc_header
 from stgc.data import open_dataset
-from stgc.model import STGModel
+from stgc.model import MIN_VISIBLE_OPACITY, STGModel
 from stgc.train import TrainConfig, train
 from stgc.train.config import DensifyConfig, QuantizationAwareConfig
 from stgc.train.loop import Trainer, learning_rates, xyz_learning_rate
@@ -121,6 +121,52 @@ def test_the_optimised_allocation_is_measured_once_when_the_window_opens_and_kep
     assert summary["quantization_aware_allocation"]["depths"] and summary["finished"]
     seen = torch.load(run / "checkpoint.pt", weights_only=False)["quantization_aware"]["settings"]
     assert [dict(x) for x in seen] == [dict(x) for x in settings]
+
+
+def test_compress_stores_the_depths_the_window_trained_through(scene, tmp_path):
+    """A model trained through an optimised window is written at the window's depths (not measured again, which
+    would spend the quality's budget a second time): the decoded file is exactly what the window's simulation
+    rendered with the depths kept in the checkpoint. Another quality, an earlier iteration or
+    codec.allocation=optimised measure them again; 'trained' refuses a model without such depths."""
+    from stgc.codec import read_stgc, read_stgc_metadata
+    from stgc.codec.files import WINDOW_MODE, written_without_window_depths
+    from stgc.codec.format import simulate_quantization
+    from stgc.errors import DataError
+
+    dataset = open_dataset(scene.root)
+    start = STGModel.from_ply_arrays(scene.model.to_ply_arrays(), "lite", None, scene_extent=3.3)
+    run = tmp_path / "run"
+    train(dataset, None, None, _config(20, iterations=40, allocation="optimised", save_iterations=(10, 40)), None,
+          run, model=start)
+    group_bits, step_scales = torch.load(run / "checkpoint.pt", weights_only=False)["quantization_aware"]["settings"]
+
+    written = compress_run(run, run / "model_q1.stgc", quality=QUALITY)
+    assert read_stgc_metadata(written.path)["allocation"]["mode"] == WINDOW_MODE
+    assert not written_without_window_depths(written.path, QUALITY)
+    final = STGModel.load(run)
+    visible = (final.peak_temporal_opacity() >= MIN_VISIBLE_OPACITY * (1 - 1e-3)).numpy()  # as compress drops
+    arrays = {k: v[visible] for k, v in final.to_ply_arrays().items()}
+    simulated = simulate_quantization(arrays, "lite", QUALITY, group_bits=group_bits, step_scales=step_scales)
+    decoded = read_stgc(written.path).arrays
+
+    def rows(columns: dict) -> np.ndarray:  # the file stores the Gaussians in Morton order
+        table = np.stack([np.asarray(columns[k], np.float64) for k in sorted(simulated)], axis=1)
+        return table[np.lexsort(table.T[::-1])]
+
+    np.testing.assert_array_equal(rows(decoded), rows(simulated))
+
+    few = CodecConfig(quality=QUALITY, allocation_views=2)  # measured again: two views are enough to see which
+    others = {"q2": compress_run(run, tmp_path / "q2.stgc", config=dataclasses.replace(few, quality=2)),
+              "optimised": compress_run(run, tmp_path / "o.stgc",
+                                        config=dataclasses.replace(few, allocation="optimised")),
+              "iteration 10": compress_run(run / "point_cloud" / "iteration_10", tmp_path / "i.stgc", config=few)}
+    for name, result in others.items():
+        assert read_stgc_metadata(result.path)["allocation"]["mode"] == "rd-optimised", name
+    (run / "model_q1.stgc").write_bytes((tmp_path / "o.stgc").read_bytes())  # as an earlier stgc wrote it
+    assert written_without_window_depths(run / "model_q1.stgc", QUALITY)
+    for source, quality in ((run, 2), (run / "point_cloud" / "iteration_10", QUALITY)):
+        with pytest.raises(DataError, match="allocation=trained"):
+            compress_run(source, tmp_path / "t.stgc", config=CodecConfig(quality=quality, allocation="trained"))
 
 
 def test_the_rate_term_trades_distortion_for_a_smaller_file(scene, tmp_path):

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from stgc.codec.files import written_without_window_depths
 from stgc.config import EXECUTION_OPTIONS, ConfigError, iter_fields, same_option_value, same_place
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.errors import FormatError, StgcError
@@ -580,6 +581,11 @@ def _codec_point(spec: RunSpec, run_dir: Path, quality: int, runner: Runner, pyt
     stale = json_path.is_file() and not Run.scored_this_bitstream(_read_json(json_path) or {}, stgc)
     if stale:
         say(f"[{spec.name}] {json_path.name} scored an earlier {stgc.name}: evaluating it again")
+    if stgc.is_file() and written_without_window_depths(stgc, quality):
+        say(f"[{spec.name}] {stgc.name} measured its depths again although the model trained through a rate-aware "
+            f"window at q{quality}: compressing it again with the window's depths")
+        stgc.unlink()
+        stale = True
     if stale or not json_path.is_file():
         if not stgc.is_file():
             code = runner(build_compress_command(run_dir, stgc, quality, python=python), log_path)
