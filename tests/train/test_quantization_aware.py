@@ -273,6 +273,40 @@ def test_the_learned_mask_drops_the_gaussians_that_cost_bits_and_show_nothing(sc
     assert psnrs["mask"] > psnrs["rate"] - 5.0
 
 
+def test_remeasure_at_settle_trains_the_last_fifth_at_depths_measured_on_the_masked_model(scene, tmp_path,
+                                                                                         monkeypatch):
+    """remeasure_at_settle: the depths are measured when the window opens and again, once, on the model the
+    settled mask leaves; the last fifth trains at the second, which the summary records and compress stores."""
+    import stgc.train.quantization as quantization
+    from stgc.codec import read_stgc_metadata
+
+    measured = []
+    real_measure = quantization.optimise_on_views
+
+    def measure(model, *args, **kwargs):
+        allocation = real_measure(model, *args, **kwargs)
+        measured.append((model.num_gaussians, allocation.summary()))
+        return allocation
+
+    monkeypatch.setattr(quantization, "optimise_on_views", measure)
+    dataset = open_dataset(scene.root)
+    start, real = _with_hidden_gaussians(scene.model, 200)
+    config = _config(200, iterations=200, allocation="optimised")
+    config = dataclasses.replace(config, quantization_aware=dataclasses.replace(
+        config.quantization_aware, rate_weight=1e-4, mask=True, mask_lr=0.05, remeasure_at_settle=True))
+    summary = train(dataset, None, None, config, None, tmp_path / "run", model=start)
+    assert [count for count, _ in measured] == [real + 200, summary["num_gaussians"]]
+    assert summary["num_gaussians"] < real  # the hidden ones and some of the scene went before the second
+    assert summary["quantization_aware_allocation"] == measured[1][1]
+    written = compress_run(tmp_path / "run", tmp_path / "run.stgc", quality=QUALITY)
+    assert read_stgc_metadata(written.path)["allocation"]["depths"] == measured[1][1]["depths"]
+    from stgc.config import ConfigError, validate_config
+
+    with pytest.raises(ConfigError, match="remeasure_at_settle"):
+        validate_config(dataclasses.replace(config, quantization_aware=dataclasses.replace(
+            config.quantization_aware, mask=False)), "train")
+
+
 def test_the_masked_rate_is_the_plain_rate_plus_the_shared_sections_and_its_gradient_is_each_gaussian_s_price():
     """With every Gaussian kept, the masked rate equals the plain bits per Gaussian plus the position and omega
     sections' estimated bits per Gaussian; its gradient with respect to a Gaussian's mask logit is that Gaussian's

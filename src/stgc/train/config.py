@@ -241,6 +241,10 @@ class QuantizationAwareConfig:
                 "its sections included, times its factor, so a Gaussian whose contribution to the views is worth "
                 "less than its bits fades out; in the window's last fifth the faded ones (factor < 1/2) are removed "
                 "and the others keep their factor in their opacity; needs rate_weight > 0"})
+    remeasure_at_settle: bool = field(default=False, metadata={
+        "help": "with mask and the optimised allocation: when the mask settles, measure the depths again on the "
+                "model it leaves, and train the window's last fifth at them (what compress then stores): the "
+                "depths measured when the window opened were chosen for the unmasked model"})
     mask_lr: float = field(default=0.02, metadata={
         "help": "Adam learning rate of the mask logits (not scaled by lr_scale; they start at 3, a Gaussian is "
                 "removed if its logit is below 0 when the mask settles: at 0.02 a logit can cross 0 in 150 of a "
@@ -256,6 +260,10 @@ class QuantizationAwareConfig:
         check(not self.mask or self.rate_weight > 0, f"{prefix}mask", self.mask,
               "false when rate_weight is 0: a Gaussian's price is lambda x its bits")
         check(math.isfinite(self.mask_lr) and self.mask_lr > 0, f"{prefix}mask_lr", self.mask_lr, "> 0")
+        check(not self.remeasure_at_settle or (self.mask and self.allocation == "optimised"),
+              f"{prefix}remeasure_at_settle", self.remeasure_at_settle,
+              "false unless mask is true and allocation is 'optimised' (only a settling mask leaves another model "
+              "to measure, and the ladder measures nothing)")
         check(self.quality in QUALITY_LEVELS, f"{prefix}quality", self.quality,
               f"one of {', '.join(map(str, QUALITY_LEVELS))} (the codec's levels)")
         check(self.allocation in ("optimised", "ladder"), f"{prefix}allocation", self.allocation,

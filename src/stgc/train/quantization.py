@@ -122,7 +122,8 @@ class QuantizationSimulation:
 
     def settle_mask(self, model: STGModel) -> torch.Tensor | None:
         """End the mask's learning: bake each kept Gaussian's mask into its opacity (sigmoid(o) x mask) and return
-        the rows to keep (mask >= 1/2) for the caller to prune with; None when there is no mask to settle."""
+        the rows to keep (mask >= 1/2) for the caller to prune with; None when there is no mask to settle. With
+        remeasure_at_settle the depths are dropped, to be measured again on the pruned model."""
         if self.mask is None:
             return None
         with torch.no_grad():
@@ -131,6 +132,8 @@ class QuantizationSimulation:
             model.replace_param("opacity", torch.logit(opacity)[:, None], reset_moments=False)
         keep = factor >= 0.5
         self.mask, self.mask_settled = None, True
+        if self.cfg.remeasure_at_settle:
+            self.settings = None  # measured again (prepare) on the first rendering of the model the mask leaves
         return keep
 
     def state_dict(self) -> dict[str, Any]:
