@@ -51,7 +51,7 @@ def test_compress_then_decompress_restores_an_equivalent_run(run_dir, tmp_path):
     assert result.input_gaussians == 2000
     assert result.bytes_per_input_gaussian == pytest.approx(152 / result.ratio_vs_ply)
     assert stgc_bytes_per_gaussian(run / "model.stgc") == pytest.approx(result.file_bytes / result.num_gaussians)
-    assert f"{result.file_bytes} bytes" in str(result) and "B/Gaussian" in str(result)
+    assert f"{result.file_bytes} bytes" in str(result) and "B per stored Gaussian" in str(result)
     assert f"{invisible} Gaussians left out" in str(result)
     assert read_stgc(run / "model.stgc").metadata["dropped_invisible"] == invisible
     kept = compress_run(run, tmp_path / "all.stgc", config=CodecConfig(drop_invisible=False))

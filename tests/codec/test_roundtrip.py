@@ -246,6 +246,23 @@ def test_tiny_and_degenerate_models_round_trip():
     assert np.allclose(np.linalg.norm(np.stack([out[f"rot_{i}"] for i in range(4)], 1), axis=1), 1.0, atol=1e-6)
 
 
+def test_a_span_of_a_few_ulps_round_trips_and_what_cannot_be_stored_is_refused_when_encoding():
+    """Opacity logits far out differ by float64 ulps after the sigmoid: the quantizer's zero point must stay within
+    the 2**53 the decoder accepts (it was written, then refused on decoding). Values whose quantizer would reach
+    beyond float32 are refused by the encoder, never written as a file the decoder refuses."""
+    from stgc.codec import simulate_quantization
+
+    arrays = {k: v.copy() for k, v in synthetic_model(3, "lite", seed=4)[0].items()}
+    arrays["opacity"] = np.array([20.0, 20.000002, 20.000004], np.float32)
+    decoded = decode(encode(arrays, "lite", None)).arrays
+    simulated = simulate_quantization(arrays, "lite")
+    assert sorted(decoded["opacity"].tolist()) == sorted(simulated["opacity"].tolist())
+    assert sigmoid(decoded["opacity"]) == pytest.approx(sigmoid(arrays["opacity"]), abs=1e-6)
+    far = dict(arrays, x=np.array([-3e38, 0.0, 3e38], np.float32))
+    with pytest.raises(DataError, match="cannot be stored"):
+        encode(far, "lite", None)
+
+
 def test_bad_input_is_refused_with_a_clear_error(models):
     arrays, decoder = models["lite"]
     with pytest.raises(DataError, match="non-finite"):

@@ -4,6 +4,7 @@ when the model is really encoded and decoded than the same training without it."
 from __future__ import annotations
 
 import dataclasses
+import shutil
 
 import numpy as np
 import pytest
@@ -123,11 +124,12 @@ def test_the_optimised_allocation_is_measured_once_when_the_window_opens_and_kep
     assert [dict(x) for x in seen] == [dict(x) for x in settings]
 
 
-def test_compress_stores_the_depths_the_window_trained_through(scene, tmp_path):
+def test_compress_stores_the_depths_the_window_trained_through(scene, tmp_path, monkeypatch):
     """A model trained through an optimised window is written at the window's depths (not measured again, which
     would spend the quality's budget a second time): the decoded file is exactly what the window's simulation
     rendered with the depths kept in the checkpoint. Another quality, an earlier iteration or
     codec.allocation=optimised measure them again; 'trained' refuses a model without such depths."""
+    import stgc.codec.files as files
     from stgc.codec import read_stgc, read_stgc_metadata
     from stgc.codec.files import WINDOW_MODE, written_without_window_depths
     from stgc.codec.format import simulate_quantization
@@ -162,11 +164,19 @@ def test_compress_stores_the_depths_the_window_trained_through(scene, tmp_path):
               "iteration 10": compress_run(run / "point_cloud" / "iteration_10", tmp_path / "i.stgc", config=few)}
     for name, result in others.items():
         assert read_stgc_metadata(result.path)["allocation"]["mode"] == "rd-optimised", name
-    (run / "model_q1.stgc").write_bytes((tmp_path / "o.stgc").read_bytes())  # as an earlier stgc wrote it
+    # The runner writes RUN/model_q<Q>.stgc again when an earlier stgc measured its depths by default, never when
+    # they were asked for.
+    (run / "model_q1.stgc").write_bytes((tmp_path / "o.stgc").read_bytes())
+    assert not written_without_window_depths(run / "model_q1.stgc", QUALITY)
+    with monkeypatch.context() as patch:
+        patch.setattr(files, "window_depths", lambda source: None)  # as the default wrote it before session 27
+        compress_run(run, run / "model_q1.stgc", config=few)
     assert written_without_window_depths(run / "model_q1.stgc", QUALITY)
     for source, quality in ((run, 2), (run / "point_cloud" / "iteration_10", QUALITY)):
         with pytest.raises(DataError, match="allocation=trained"):
             compress_run(source, tmp_path / "t.stgc", config=CodecConfig(quality=quality, allocation="trained"))
+    shutil.rmtree(run / "point_cloud" / "iteration_40")  # a partial copy: the latest model is from before the window
+    assert files.window_depths(run) is None
 
 
 def test_the_rate_term_trades_distortion_for_a_smaller_file(scene, tmp_path):

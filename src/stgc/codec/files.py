@@ -122,8 +122,8 @@ class CompressResult:
 
     def __str__(self) -> str:
         text = (f"{self.path}: {self.num_gaussians} Gaussians ({self.variant}), {self.file_bytes} bytes = "
-                f"{self.bytes_per_gaussian:.2f} B/Gaussian, {self.ratio_vs_ply:.2f}x smaller than the input's "
-                "float32 PLY rows")
+                f"{self.bytes_per_gaussian:.2f} B per stored Gaussian, {self.ratio_vs_ply:.2f}x smaller than the "
+                "input's float32 PLY rows")
         if self.dropped_invisible:
             text += f"\n{self.dropped_invisible} Gaussians left out: no frame shows them (opacity < 1/255 at every t)"
         if self.allocation and self.allocation.get("mode") == WINDOW_MODE:
@@ -187,14 +187,16 @@ def window_depths(source: str | Path) -> WindowDepths | None:
     if run is None or not run.training_finished():
         return None
     latest = run.latest_model_dir()
+    summary = run.read_summary(strict=False) or {}
     try:
         if latest is None or resolve_ply_path(latest) != resolve_ply_path(source):
             return None  # an earlier iteration: saved before the window, or inside it
     except FormatError:
         return None
+    if iteration_of(latest) is None or iteration_of(latest) != summary.get("iterations"):
+        return None  # the final iteration's model is gone (deleted, a partial copy): the latest is an earlier one
     train = (run.read_config(strict=False) or {}).get("train")
     window = train.get("quantization_aware") if isinstance(train, dict) else None
-    summary = run.read_summary(strict=False) or {}
     if not isinstance(window, dict) or not window.get("iterations") or window.get("simulate") is not True:
         return None
     if not {"quality", "position_bits", "allocation"} <= set(window) or "variant" not in summary:
@@ -207,17 +209,21 @@ def window_depths(source: str | Path) -> WindowDepths | None:
 
 
 def written_without_window_depths(bitstream: str | Path, quality: int) -> bool:
-    """Whether `bitstream`, written from its run's final model at `quality`, measured its depths again although the
-    model trained through a rate-aware window at that quality (an stgc before `auto` took the window's depths):
-    compressed today, with the default options, it would store the window's."""
+    """Whether `bitstream`, written from its run's final model at `quality` with the default allocation, measured
+    its depths again although the model trained through a rate-aware window at that quality (an stgc before
+    `auto` took the window's depths): compressed today, with the default options, it would store the window's.
+    A file whose allocation was chosen explicitly (metadata `allocation_option`) is what was asked for; a
+    whole-video container is not looked into."""
     depths = window_depths(Path(bitstream).parent)
     if depths is None or not depths.fits(CodecConfig(quality=quality)):
         return False
     try:
-        allocation = read_stgc_metadata(bitstream).get("allocation")
+        metadata = read_stgc_metadata(bitstream)
     except (FormatError, OSError):
         return False
-    return not (isinstance(allocation, dict) and allocation.get("mode") == WINDOW_MODE)
+    allocation = metadata.get("allocation")
+    return "allocation_option" not in metadata and not (isinstance(allocation, dict)
+                                                         and allocation.get("mode") == WINDOW_MODE)
 
 
 def encode_with_config(arrays: dict, variant: str, decoder_state: dict | None, config: CodecConfig,
@@ -357,6 +363,8 @@ def _encode_model(source: Path, out_path: Path, config: CodecConfig) -> tuple[by
         # What evaluating the restored run needs (its dataset and model options); training options would only
         # add bytes: a compressed model cannot resume training anyway.
         metadata["run_config"] = {key: saved[key] for key in RESTORED_CONFIG_SECTIONS if key in saved}
+    if config.allocation != "auto":
+        metadata["allocation_option"] = config.allocation  # asked for: never replaced as an old default's choice
     allocation: Allocation | WindowDepths | None = None
     window = window_depths(source) if config.allocation in ("auto", "trained") else None
     if window is not None and window.fits(config) and window.variant == model.variant:

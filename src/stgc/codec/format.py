@@ -323,7 +323,8 @@ def outlier_guard_extra_bits(values: np.ndarray) -> int:
     """The bits to add to a group's depth to keep the bulk's precision when a few outliers stretch the range.
 
     The quantizer step follows the full [min, max] range, so one Gaussian far out (a floater, a stray motion
-    coefficient) would coarsen every other Gaussian's step. When the full span exceeds _GUARD_RATIO (4) times the
+    coefficient) would coarsen every other Gaussian's step. Applied to the linear and time-span groups (in their
+    quantized domain). When the full span exceeds _GUARD_RATIO (4) times the
     span of the central 99.8 % (0.1 to 99.9 percentile) of any component, ceil(log2(ratio / 4)) bits are added, up
     to +8 bits (and MAX_BITS in all). Outlier-free heavy-tailed data (ratio ~2) stays below 4 and
     is unaffected. It depends on the values only, not on the depth (the allocation's trials reuse it)."""
@@ -710,7 +711,12 @@ def encode(
             table += _COEFFICIENT.pack(a)
     head = _HEADER.pack(MAGIC, VERSION, _VARIANT_CODES[variant], quality, n, len(sections), 0, len(table),
                         zlib.crc32(table))
-    return b"".join([head, _HEADER_CRC.pack(zlib.crc32(head)), bytes(table)] + [sec.payload for _, _, sec in sections])
+    data = b"".join([head, _HEADER_CRC.pack(zlib.crc32(head)), bytes(table)] + [sec.payload for _, _, sec in sections])
+    try:  # what the decoder would refuse is never written (values near the float32 limit overflow a quantizer)
+        _check_section_table(read_header(data), None)
+    except FormatError as exc:
+        raise DataError(None, f"these values cannot be stored: {exc}") from None
+    return data
 
 
 # =====================================================================================================================
@@ -937,14 +943,9 @@ def decode_metadata(data: bytes, source: str | None = None) -> dict[str, Any]:
     return {}
 
 
-def decode(data: bytes | str | os.PathLike, source: str | None = None) -> DecodedModel:
-    """Decode a .stgc bitstream (bytes, or a file path). Raises FormatError naming `source` for any invalid input.
-
-    To get a renderable `stgc.model.STGModel`, use `stgc.codec.load_model(path)`."""
-    if isinstance(data, (str, os.PathLike)):
-        return decode(read_capped(data), source=str(data))
-    data = bytes(data)
-    header = read_header(data, source)
+def _check_section_table(header: StgcHeader, source: str | None) -> dict[str, AttributeGroup]:
+    """Every rule of the section table (§6) a file must meet before its payloads are read; returns the variant's
+    attribute groups by tag. The encoder checks what it wrote with it too."""
     n, variant = header.num_gaussians, header.variant
     expected = {g.tag.decode("latin-1"): g for g in groups_for(variant)}
     seen: set[str] = set()
@@ -976,6 +977,19 @@ def decode(data: bytes | str | os.PathLike, source: str | None = None) -> Decode
         raise _fail(f"{variant} model lacks sections {missing}", source)
     if variant == "full" and _DECO not in seen:
         raise _fail("full-variant model lacks its decoder section", source)
+    return expected
+
+
+def decode(data: bytes | str | os.PathLike, source: str | None = None) -> DecodedModel:
+    """Decode a .stgc bitstream (bytes, or a file path). Raises FormatError naming `source` for any invalid input.
+
+    To get a renderable `stgc.model.STGModel`, use `stgc.codec.load_model(path)`."""
+    if isinstance(data, (str, os.PathLike)):
+        return decode(read_capped(data), source=str(data))
+    data = bytes(data)
+    header = read_header(data, source)
+    n, variant = header.num_gaussians, header.variant
+    expected = _check_section_table(header, source)
 
     columns: dict[str, np.ndarray] = {}
     decoder_state = None

@@ -55,7 +55,9 @@ def fit_quantizer(values: np.ndarray, bits: int, coarsen: float = 1.0) -> Quanti
     lo = float(np.min(values)) if values.size else 0.0
     hi = float(np.max(values)) if values.size else 0.0
     if hi > lo:
-        step = (hi - lo) / ((1 << bits) - 2) * coarsen
+        # At least 2**-52 of the values' magnitude: a span of a few float64 ulps (opacity logits far out, where the
+        # sigmoid is 1 - 1e-16) would otherwise give a zero point beyond the 2**53 the format allows.
+        step = max((hi - lo) / ((1 << bits) - 2) * coarsen, max(abs(lo), abs(hi)) * 2.0**-52)
         return Quantizer(step=step, zero_point=int(np.floor(lo / step)), bits=bits)
     # Constant component: the constant itself is represented exactly as (+-1) * step.
     step = abs(lo) if lo != 0.0 else 1.0

@@ -581,13 +581,12 @@ def _codec_point(spec: RunSpec, run_dir: Path, quality: int, runner: Runner, pyt
     stale = json_path.is_file() and not Run.scored_this_bitstream(_read_json(json_path) or {}, stgc)
     if stale:
         say(f"[{spec.name}] {json_path.name} scored an earlier {stgc.name}: evaluating it again")
-    if stgc.is_file() and written_without_window_depths(stgc, quality):
+    outdated = stgc.is_file() and written_without_window_depths(stgc, quality)
+    if outdated:
         say(f"[{spec.name}] {stgc.name} measured its depths again although the model trained through a rate-aware "
             f"window at q{quality}: compressing it again with the window's depths")
-        stgc.unlink()
-        stale = True
-    if stale or not json_path.is_file():
-        if not stgc.is_file():
+    if stale or outdated or not json_path.is_file():
+        if outdated or not stgc.is_file():  # written in place (atomically): a failed compress keeps the old file
             code = runner(build_compress_command(run_dir, stgc, quality, python=python), log_path)
             if code != 0 or not stgc.is_file():
                 outcome.status, outcome.message = "failed", f"compress q{quality} failed (status {code})"
