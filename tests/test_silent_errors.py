@@ -644,6 +644,43 @@ def test_compaction_options_for_a_run_that_prunes_nothing_are_refused(scene, tmp
     assert "compaction.method is none" in capsys.readouterr().err and not run.exists()
 
 
+@pytest.mark.parametrize("options, words", [
+    (["--compaction", "st-knn", "--set", "compaction.window_start=0.1"], "window_start acts only with compaction.case=0"),
+    (["--compaction", "st-knn", "--set", "compaction.ema_decay=0.9"], "ema_decay acts only with"),
+    (["--compaction", "st-knn", "--set", "compaction.probe_views=4"], "probe_views acts only with"),
+    (["--set", "train.quantization_aware.rate_weight=0.001"], "without a rate-aware window"),
+    (["--train.quantization_aware.quality", "1"], "without a rate-aware window"),
+])
+def test_options_that_would_act_on_nothing_are_refused(scene, tmp_path, options, words, capsys):
+    """A custom pruning window with a case's own window, EMA options with the windowed mean, rate-aware options
+    without a window: recorded in config.json and changing nothing, the run would pass for what they name."""
+    run = tmp_path / "run"
+    assert main(_train_args(scene, run, "10", *options)) == 2
+    assert words in capsys.readouterr().err and not run.exists()
+
+
+def test_a_config_saved_without_compaction_is_read_as_no_compaction(tmp_path):
+    """`train(..., compaction_cfg=None)` saves the section as null: read back, it is method none, not the default
+    st-knn that a resume would then prune with."""
+    from stgc.options import configs_from_run
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"data": {"path": str(tmp_path)}, "compaction": None}))
+    assert configs_from_run(run)["compaction"].method == "none"
+
+
+def test_preprocess_is_refused_with_a_plan_file(tmp_path):
+    from stgc.config import ConfigError
+    from stgc.experiment.plans import load_plan
+
+    plan = tmp_path / "p.toml"
+    plan.write_text('name = "p"\n[[runs]]\nname = "stg"\noverrides = { "compaction.method" = "none" }\n')
+    assert load_plan(plan).runs[0].name == "stg"
+    with pytest.raises(ConfigError, match="built-in plans"):
+        load_plan(plan, "closest-pairs")
+
+
 def test_an_evaluation_times_renders_with_the_threads_its_run_trained_with(scene, tmp_path):
     import torch
 

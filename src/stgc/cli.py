@@ -40,7 +40,13 @@ from stgc.eval.report import report_from_runs
 from stgc.eval.video import contact_sheet, load_model_and_dataset, render_still, render_video
 from stgc.experiment import run_plan
 from stgc.model.layout import VARIANTS
-from stgc.options import configs_from_run, default_configs, refuse_unused_compaction_options, resolve_configs
+from stgc.options import (
+    configs_from_run,
+    default_configs,
+    refuse_unused_compaction_options,
+    refuse_unused_window_options,
+    resolve_configs,
+)
 from stgc.run import Run
 from stgc.train import train
 from stgc.train.config import PRESETS
@@ -106,6 +112,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         refuse_unused_compaction_options(configs["compaction"], [
             *(f"compaction.{key}" for key in {**shortcuts.get("compaction", {}), **options.get("compaction", {})}),
             *sets])
+        refuse_unused_window_options(configs["train"], [
+            *(f"train.{key}" for key in options.get("train", {})), *sets])
         data_path = args.data
     if data_path is None:
         raise StgcError("no DATA given and the run has no saved data path")

@@ -70,6 +70,10 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
     classes = section_classes()
     out: dict[str, Any] = {}
     for name, cls in classes.items():
+        if name == "compaction" and saved.get(name) is None:
+            # `train(..., compaction_cfg=None)` trains without compaction and saves the section as null.
+            out[name] = CompactionConfig(method="none")
+            continue
         section = dict(saved.get(name) or {})
         if name == "data":
             out[name], _ = data_config_from_saved(section, path)
@@ -85,12 +89,35 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
     return out
 
 
-def refuse_unused_compaction_options(compaction: CompactionConfig, given: Iterable[str]) -> None:
-    """Raise ConfigError when compaction options (`given`: dotted names such as "compaction.case") are set for a run
-    whose compaction.method is none: they would be recorded in its config.json and silently ignored."""
-    if compaction.method != "none":
+def refuse_unused_window_options(train: TrainConfig, given: Iterable[str]) -> None:
+    """Raise ConfigError when rate-aware options (`given`: dotted names) are set for a run without a rate-aware
+    window (train.quantization_aware.iterations 0): they would be recorded and change nothing, and the run would be
+    taken for the rate point they name."""
+    if train.quantization_aware.iterations > 0:
         return
-    unused = sorted({key for key in given if key.startswith("compaction.")} - {"compaction.method"})
+    prefix = "train.quantization_aware."
+    unused = sorted(key for key in given if key.startswith(prefix) and key != f"{prefix}iterations")
     if unused:
-        raise ConfigError(f"{', '.join(unused)}: given for a run whose compaction.method is none, where nothing is "
-                          "pruned; choose a method (--compaction st-knn) or drop them")
+        raise ConfigError(f"{', '.join(unused)}: given for a run without a rate-aware window ({prefix}iterations "
+                          "is 0), where they act on nothing; open a window or drop them")
+
+
+def refuse_unused_compaction_options(compaction: CompactionConfig, given: Iterable[str]) -> None:
+    """Raise ConfigError when compaction options (`given`: dotted names such as "compaction.case") are set where
+    they act on nothing (a run whose compaction.method is none; a custom window with a case's own window; ...): they
+    would be recorded in its config.json and silently ignored."""
+    given = set(given)
+    if compaction.method == "none":
+        unused = sorted({key for key in given if key.startswith("compaction.")} - {"compaction.method"})
+        if unused:
+            raise ConfigError(f"{', '.join(unused)}: given for a run whose compaction.method is none, where nothing "
+                              "is pruned; choose a method (--compaction st-knn) or drop them")
+        return
+    # Options that act only with another's value: given without it, they would be recorded and change nothing.
+    only_with = (("compaction.window_start", compaction.case == 0, "compaction.case=0 (a case 1-4 has its window)"),
+                 ("compaction.window_end", compaction.case == 0, "compaction.case=0 (a case 1-4 has its window)"),
+                 ("compaction.ema_decay", compaction.loss_smoothing == "ema", "compaction.loss_smoothing=ema"),
+                 ("compaction.probe_views", compaction.loss_signal == "probe", "compaction.loss_signal=probe"))
+    unused = [f"{key} acts only with {condition}" for key, holds, condition in only_with if key in given and not holds]
+    if unused:
+        raise ConfigError("; ".join(unused))

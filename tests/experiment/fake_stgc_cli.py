@@ -53,7 +53,10 @@ def main(argv: list[str]) -> int:
                       "criterion": sets.get("compaction.criterion", "timestamp")}
         if "compaction.case" in sets:
             compaction["case"] = int(sets["compaction.case"])
-        (out / "config.json").write_text(json.dumps({"data": {"path": argv[1], "preprocess": preprocess},
+        # mask_points_per_frame: a data section without it is read as a config from before it existed (0).
+        data = {"path": argv[1], "preprocess": preprocess,
+                "mask_points_per_frame": int(sets.get("data.mask_points_per_frame", 1000))}
+        (out / "config.json").write_text(json.dumps({"data": data,
                                                      "compaction": compaction, "sets": sets}))
         (out / "checkpoint.pt").write_bytes(b"fake")
         if "--resume" not in argv:

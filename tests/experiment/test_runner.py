@@ -349,7 +349,8 @@ def test_fine_tuning_runs_start_from_their_finished_source(tmp_path: Path) -> No
     assert rows["rate-b"]["rate_point"] == "rp01" and rows["rate-a"]["rate_point"] == "rp02"
     again = run_plan("DATA", plan_path, out, preset="cpu", extra_overrides=["train.threads=1"], runner=fake_runner,
                      python=sys.executable, log=lambda m: None)
-    assert {o.status for o in again.outcomes} == {"skipped"} and len(_invocations(out)) == 3 + 2 * 5
+    assert {o.status for o in again.outcomes} == {"skipped"}, [o.message for o in again.outcomes]
+    assert len(_invocations(out)) == 3 + 2 * 5
 
 
 def test_set_options_win_over_the_plan_in_fine_tuning_runs_too(tmp_path: Path) -> None:
@@ -414,6 +415,36 @@ def test_a_run_whose_preset_defaults_moved_is_not_reused(tmp_path: Path) -> None
     other = tmp_path / "exp2" / "stg"
     _trained_config(other, "paper", sets)
     assert "train.iterations" in (reuse_mismatch(other, "DATA", "cpu", sets) or "")
+
+
+def test_an_old_or_unreadable_config_or_an_option_left_auto_is_compared_not_skipped(tmp_path: Path) -> None:
+    """A key an older config.json lacks is compared as SAVED_BEFORE says it trained; a config.json that cannot be
+    read is a difference, not a pass; a value the plan leaves 'auto' or None is compared unless training resolves
+    it from the data (the frame window, the densification schedule)."""
+    from stgc.experiment.runner import reuse_mismatch
+
+    sets = {"compaction.method": "none", "data.preprocess": "none"}
+
+    def saved_run(name: str, edit) -> Path:
+        run = tmp_path / name / "stg"
+        _trained_config(run, "cpu", sets)
+        saved = json.loads((run / "config.json").read_text())
+        edit(saved)
+        (run / "config.json").write_text(json.dumps(saved))
+        return run
+
+    assert reuse_mismatch(saved_run("today", lambda c: None), "DATA", "cpu", sets) is None
+    old = saved_run("old", lambda c: c["train"]["floaters"].pop("scale_min_opacity"))  # trained as 0.0
+    assert "train.floaters.scale_min_opacity" in (reuse_mismatch(old, "DATA", "cpu", sets) or "")
+    unknown = saved_run("unknown", lambda c: c["train"].update(option_of_another_version=1))
+    assert "cannot be compared" in (reuse_mismatch(unknown, "DATA", "cpu", sets) or "")
+    short = saved_run("short", lambda c: c["data"].update(max_points_per_frame=None))
+    assert "data.max_points_per_frame" in (reuse_mismatch(short, "DATA", "cpu", sets) or "")
+    colour = saved_run("colour", lambda c: c["train"].update(colour_correction="on"))
+    assert "train.colour_correction" in (reuse_mismatch(colour, "DATA", "cpu", sets) or "")
+    resolved = saved_run("resolved", lambda c: (c["data"].update(start=0, duration=30),
+                                                c["train"]["densify"].update(interval=100, rounds=6)))
+    assert reuse_mismatch(resolved, "DATA", "cpu", sets) is None
 
 
 def test_a_failed_source_fails_its_fine_tuning_runs_without_launching_them(tmp_path: Path) -> None:

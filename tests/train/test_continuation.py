@@ -82,10 +82,12 @@ def test_finetune_refuses_what_it_cannot_honour(source, scene, tmp_path, capsys)
     refused(str(unfinished), "--out", str(tmp_path / "e"), "--iterations", "5", expect="not finished")
     refused(str(source), "--out", str(tmp_path / "f"), "--iterations", "5", "--set",
             "train.quantization_aware.rate_weight=-1", expect="rate_weight")
+    refused(str(source), "--out", str(tmp_path / "h"), "--iterations", "5", "--set",
+            "train.quantization_aware.rate_weight=0.001", expect="without a rate-aware window")
     # A rate-aware window longer than the fine-tuning would start inside the source's finished training.
     refused(str(source), "--out", str(tmp_path / "g"), "--iterations", "5", "--set",
             "train.quantization_aware.iterations=6", expect="longer than the continuation's 5 iterations")
-    assert not any((tmp_path / x).exists() for x in "abcdfg")  # nothing half-written
+    assert not any((tmp_path / x).exists() for x in "abcdfgh")  # nothing half-written
 
 
 def test_a_killed_finetune_resumes_like_any_run(source, tmp_path):

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from stgc.codec.format import QUALITY_LEVELS
+from stgc.config import ConfigError
 from stgc.errors import DataError, FormatError
 
 PAPER_PREPROCESS = "stg-isolated"
@@ -206,5 +207,8 @@ def load_plan(plan: str | Path | Plan, preprocess: str | None = None) -> Plan:
         return BUILTIN_PLANS[key](preprocess or PAPER_PREPROCESS)
     path = Path(key)
     if path.suffix.lower() == ".toml" or path.exists():
+        if preprocess is not None:  # a TOML plan names its preprocessing in each run's overrides
+            raise ConfigError(f"--preprocess {preprocess}: applies to the built-in plans ({', '.join(BUILTIN_PLANS)}) "
+                              f"only; {path} sets data.preprocess in its runs' overrides")
         return load_plan_toml(path)
     raise DataError(path, f"unknown plan: expected one of {', '.join(BUILTIN_PLANS)} or a PLAN.toml file")

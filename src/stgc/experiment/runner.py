@@ -36,11 +36,18 @@ from typing import Any
 from stgc.codec.files import written_without_window_depths
 from stgc.config import EXECUTION_OPTIONS, ConfigError, iter_fields, same_option_value, same_place
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
+from stgc.data.readers import detect_format
 from stgc.errors import FormatError, StgcError
 from stgc.eval.report import Report, ReportRow, make_report, rate_points, record_fields
 from stgc.experiment.plans import Plan, RunSpec, load_plan
 from stgc.fileio import atomic_open, read_json_object, write_json
-from stgc.options import configs_from_run, refuse_unused_compaction_options, resolve_configs
+from stgc.options import (
+    configs_from_run,
+    refuse_unused_compaction_options,
+    section_classes,
+    refuse_unused_window_options,
+    resolve_configs,
+)
 from stgc.run import Run
 from stgc.train.continuation import check_window_fits, continuation_configs
 
@@ -122,6 +129,7 @@ def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str],
             configs = resolve_configs(preset or "cpu", {}, {}, overrides)
             if spec.source is None:
                 refuse_unused_compaction_options(configs["compaction"], overrides)
+                refuse_unused_window_options(configs["train"], spec.overrides)  # --set's apply to every run
             else:
                 check_window_fits(configs["train"].quantization_aware.iterations, spec.iterations)
         except ConfigError as exc:
@@ -189,8 +197,8 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
                      finetune: tuple[RunSpec, dict[str, str]] | None, every_option: bool = True) -> list[str]:
     """Every option of RUN/config.json (or only those in `wanted`) against the config the plan resolves to now (a
     fine-tuning run, given as its plan entry and the --set options: its source's saved config continued as the
-    plan says). Options the training resolves from the data (None or 'auto' in the plan's config) and options the
-    config.json does not hold are not compared."""
+    plan says). Not compared: options the training resolves from the data and saves resolved (RESOLVED_AT_TRAINING,
+    None in the plan), and options a config.json does not hold and no SAVED_BEFORE gives."""
     try:
         saved = configs_from_run(run_dir)
         if finetune is None:
@@ -202,24 +210,46 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
                 return []
             asked = continuation_configs(configs_from_run(source_dir), source_dir, spec.iterations,
                                          finetune_overrides(spec, extra))
-    except (ConfigError, StgcError):  # options only a stand-in trainer knows, or a config it wrote: nothing to compare
-        return []
+    except (ConfigError, StgcError) as exc:
+        if not every_option:  # options only a stand-in trainer knows (tests), or a config it wrote
+            return []
+        # Nothing compared would reuse any run (another version's options, a damaged file): refuse it instead.
+        return [f"its config.json cannot be compared with the plan's ({exc})"]
     recorded = Run(run_dir).read_config() or {}
     differences = []
     for section in ("data", "model", "train", "compaction"):
+        # A key an older config.json's section lacks was trained as SAVED_BEFORE says (configs_from_run read it so).
         present = _dotted_keys(recorded.get(section))
+        if present:
+            present |= set(getattr(section_classes()[section], "SAVED_BEFORE", {}))
         theirs = {f.dotted: f.default for f in iter_fields(saved[section])}
         for f in iter_fields(asked[section]):
             key = f"{section}.{f.dotted}"
-            if (f.dotted not in present or key in EXECUTION_OPTIONS or f.default is None or f.default == "auto"
-                    or not (every_option or key in wanted)):
+            if (f.dotted not in present or key in EXECUTION_OPTIONS
+                    or (key in RESOLVED_AT_TRAINING and f.default is None) or not (every_option or key in wanted)):
                 continue
-            if not _same_plan_option(key, theirs.get(f.dotted), f.default, run_dir.parent):
+            now = f.default
+            if key == "data.format" and now == "auto" and theirs.get(f.dotted) != "auto":
+                now = _detected_format(data_path)  # a run given the format auto finds is the same run
+            if not _same_plan_option(key, theirs.get(f.dotted), now, run_dir.parent):
                 differences.append(f"{key}: {theirs.get(f.dotted)} in its config.json, {f.default} in the plan")
     saved_data = saved.get("data_path")
     if saved_data is not None and not same_place(saved_data, data_path):
         differences.append(f"data: {saved_data} in its config.json, {Path(data_path).resolve()} in the plan")
     return differences
+
+
+# Options left None in a plan that training resolves from the data and saves resolved (the frame window, the near
+# plane, the densification schedule of the initial cloud's kind): their saved values are not the plan's None.
+RESOLVED_AT_TRAINING = frozenset({"data.start", "data.duration", "data.near_plane", "train.densify.interval",
+                                  "train.densify.rounds", "train.densify.prune_in_rounds", "train.densify.max_growth"})
+
+
+def _detected_format(data_path: str | Path) -> str:
+    try:
+        return detect_format(Path(data_path))
+    except StgcError:
+        return "auto"
 
 
 def _same_plan_option(key: str, before: Any, now: Any, out_dir: Path) -> bool:

@@ -322,6 +322,7 @@ class TrainConfig:
     # How a run saved before these options existed was trained (stgc.config.from_saved).
     SAVED_BEFORE: ClassVar[dict] = {"colour_correction": "off", "densify.stats_views": "last",
                                     "densify.stats_count": "rendered", "densify.prune_in_rounds": False,
+                                    "densify.max_growth": 0.0,
                                     "floaters.scale_min_opacity": 0.0}
 
     def validate(self, prefix: str = "") -> None:

@@ -21,6 +21,7 @@ from typing import Any
 from stgc.config import ConfigError, apply_overrides, split_sections, validate_config
 from stgc.errors import StgcError
 from stgc.fileio import write_json
+from stgc.options import refuse_unused_window_options
 from stgc.run import Run, prepare_new_run
 from stgc.train.config import resolve_schedule
 from stgc.train.loop import run_config
@@ -66,6 +67,7 @@ def continuation_configs(saved: Mapping[str, Any], source: str | Path, iteration
     if train_cfg.iterations != base + iterations:
         raise ConfigError("train.iterations: give the continuation's length as its iterations, not as an override")
     check_window_fits(train_cfg.quantization_aware.iterations, iterations)
+    refuse_unused_window_options(train_cfg, (f"train.{key}" for key in sections.get("train", {})))
     configs["train"] = validate_config(train_cfg, "train")
     configs["compaction"] = dataclasses.replace(saved["compaction"], method="none")
     return configs
