@@ -356,6 +356,14 @@ def test_fine_tuning_runs_start_from_their_finished_source(tmp_path: Path) -> No
 def test_set_options_win_over_the_plan_in_fine_tuning_runs_too(tmp_path: Path) -> None:
     plan_path = tmp_path / "rate.toml"
     plan_path.write_text(FINETUNE_TOML)
+    from stgc.config import ConfigError
+
+    # An option the plan varies between its runs is refused: under --set they would all train alike, each under the
+    # name of its own value.
+    with pytest.raises(ConfigError, match="varies it between its runs"):
+        run_plan("DATA", plan_path, tmp_path / "refused", preset="cpu", runner=fake_runner, python=sys.executable,
+                 extra_overrides=["train.quantization_aware.rate_weight=0.05"], log=lambda m: None)
+    plan_path.write_text(FINETUNE_TOML.replace(', "train.quantization_aware.rate_weight" = 0.01', ""))
     out = tmp_path / "exp"
     run_plan("DATA", plan_path, out, preset="cpu", extra_overrides=["train.quantization_aware.rate_weight=0.05"],
              runner=fake_runner, python=sys.executable, log=lambda m: None)

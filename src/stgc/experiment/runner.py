@@ -123,6 +123,11 @@ def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str], out_dir: 
 def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str], out_dir: Path) -> None:
     """Resolve and validate every run's options before the first training starts: a typo in the plan's last run
     must not surface hours later. Raises ConfigError naming the run."""
+    for key in extra:
+        values = {str(spec.overrides[key]) for spec in plan.runs if key in spec.overrides}
+        if len(values) > 1:  # --set wins in every run: the runs would train alike under the names of their values
+            raise ConfigError(f"--set {key}: plan {plan.name!r} varies it between its runs "
+                              f"({', '.join(sorted(values))}); run the plan without it, or write a plan of your own")
     for spec in plan.runs:
         try:
             overrides = run_overrides(plan, spec, extra, out_dir)
