@@ -466,6 +466,26 @@ def test_a_failed_source_fails_its_fine_tuning_runs_without_launching_them(tmp_p
     assert [c.split()[0] for c in _invocations(out)] == ["train"]
 
 
+def test_a_run_that_raises_fails_its_row_and_the_runs_that_need_it(tmp_path: Path, monkeypatch) -> None:
+    """A problem found while a run is handled (a damaged file it reads) fails that run's row, and the fine-tuning
+    runs that need it get rows saying so, instead of the plan ending without them."""
+    import stgc.experiment.runner as runner_module
+    from stgc.errors import StgcError
+
+    def broken(spec, *args, **kwargs):
+        raise StgcError(f"{spec.name}: a damaged file")
+
+    monkeypatch.setattr(runner_module, "_train_and_eval", broken)
+    plan_path = tmp_path / "rate.toml"
+    plan_path.write_text(FINETUNE_TOML)
+    result = run_plan("DATA", plan_path, tmp_path / "exp", preset="cpu", runner=fake_runner, python=sys.executable,
+                      use_ray=False, log=lambda m: None)
+    assert [(o.name, o.status) for o in result.outcomes] == [("stg", "failed"), ("rate-a", "failed"),
+                                                            ("rate-b", "failed")]
+    assert "a damaged file" in result.outcomes[0].message and "source run 'stg' failed" in result.outcomes[1].message
+    assert [r["name"] for r in _results(tmp_path / "exp", "rate")] == ["stg", "rate-a", "rate-b"]
+
+
 @pytest.mark.parametrize("run, problem", [
     ('name = "x"\nfrom = "later"\niterations = 5', "must name a run listed before it"),
     ('name = "x"\nfrom = "stg"', "needs iterations = N >= 1"),

@@ -540,7 +540,21 @@ def run_spec(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | 
              qualities: Sequence[int], runner: Runner, command_builder: Callable[..., list[str]], python: str,
              log_path: Path, say: Callable[[str], None], extra: Mapping[str, str] | None = None,
              check_config: bool = True) -> list[RunOutcome]:
-    """One run of a plan, as a task: train (or resume, or skip when finished), evaluate, and each codec point."""
+    """One run of a plan, as a task: train (or resume, or skip when finished), evaluate, and each codec point. A
+    problem found on the way (a damaged record, a bitstream that cannot be read) fails this run's row and lets
+    the runs that need it be marked failed, instead of ending the plan without their rows."""
+    try:
+        return _run_spec(spec, run_dir, data_path, preset, overrides, qualities, runner, command_builder, python,
+                         log_path, say, extra, check_config)
+    except StgcError as error:
+        say(f"[{spec.name}] FAILED: {error}")
+        return [RunOutcome(spec.name, spec.family, spec.label, "failed", run_dir, overrides, message=str(error))]
+
+
+def _run_spec(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | None, overrides: dict[str, str],
+              qualities: Sequence[int], runner: Runner, command_builder: Callable[..., list[str]], python: str,
+              log_path: Path, say: Callable[[str], None], extra: Mapping[str, str] | None,
+              check_config: bool) -> list[RunOutcome]:
     outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
     extra = dict(extra or {})
     mismatch = reuse_mismatch(run_dir, data_path, preset, overrides, spec, extra, check_config=check_config)
