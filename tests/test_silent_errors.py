@@ -659,6 +659,14 @@ def test_options_that_would_act_on_nothing_are_refused(scene, tmp_path, options,
     assert words in capsys.readouterr().err and not run.exists()
 
 
+def test_the_probe_size_of_a_reference_run_is_an_option_it_uses():
+    """A reference run (method reference) probes as its pruned run does: probe_views acts there, loss_signal or not."""
+    from stgc.compaction import CompactionConfig
+    from stgc.options import refuse_unused_compaction_options
+
+    refuse_unused_compaction_options(CompactionConfig(method="reference", probe_views=4), ["compaction.probe_views"])
+
+
 def test_a_config_saved_without_compaction_is_read_as_no_compaction(tmp_path):
     """`train(..., compaction_cfg=None)` saves the section as null: read back, it is method none, not the default
     st-knn that a resume would then prune with."""

@@ -71,7 +71,8 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name, cls in classes.items():
         if name == "compaction" and saved.get(name) is None:
-            # `train(..., compaction_cfg=None)` trains without compaction and saves the section as null.
+            # `train(..., compaction_cfg=None)` trains without compaction and saves the section as null; a restored
+            # run (`stgc decompress`) has none: neither prunes when it trains on.
             out[name] = CompactionConfig(method="none")
             continue
         section = dict(saved.get(name) or {})
@@ -117,7 +118,8 @@ def refuse_unused_compaction_options(compaction: CompactionConfig, given: Iterab
     only_with = (("compaction.window_start", compaction.case == 0, "compaction.case=0 (a case 1-4 has its window)"),
                  ("compaction.window_end", compaction.case == 0, "compaction.case=0 (a case 1-4 has its window)"),
                  ("compaction.ema_decay", compaction.loss_smoothing == "ema", "compaction.loss_smoothing=ema"),
-                 ("compaction.probe_views", compaction.loss_signal == "probe", "compaction.loss_signal=probe"))
+                 ("compaction.probe_views", compaction.loss_signal == "probe" or compaction.method == "reference",
+                  "compaction.loss_signal=probe or compaction.method=reference"))
     unused = [f"{key} acts only with {condition}" for key, holds, condition in only_with if key in given and not holds]
     if unused:
         raise ConfigError("; ".join(unused))

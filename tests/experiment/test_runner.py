@@ -446,13 +446,40 @@ def test_an_old_or_unreadable_config_or_an_option_left_auto_is_compared_not_skip
     assert "train.floaters.scale_min_opacity" in (reuse_mismatch(old, "DATA", "cpu", sets) or "")
     unknown = saved_run("unknown", lambda c: c["train"].update(option_of_another_version=1))
     assert "cannot be compared" in (reuse_mismatch(unknown, "DATA", "cpu", sets) or "")
-    short = saved_run("short", lambda c: c["data"].update(max_points_per_frame=None))
-    assert "data.max_points_per_frame" in (reuse_mismatch(short, "DATA", "cpu", sets) or "")
+    cameras = saved_run("cameras", lambda c: c["data"].update(test_cameras=[1, 2]))  # the plan's None: compared
+    assert "data.test_cameras" in (reuse_mismatch(cameras, "DATA", "cpu", sets) or "")
     colour = saved_run("colour", lambda c: c["train"].update(colour_correction="on"))
     assert "train.colour_correction" in (reuse_mismatch(colour, "DATA", "cpu", sets) or "")
-    resolved = saved_run("resolved", lambda c: (c["data"].update(start=0, duration=30),
-                                                c["train"]["densify"].update(interval=100, rounds=6)))
+    resolved = saved_run("resolved", lambda c: c["train"]["densify"].update(interval=100, rounds=6))
     assert reuse_mismatch(resolved, "DATA", "cpu", sets) is None
+    # An option an older config lacks whose plan value is 'auto' resolves by the data: not known here.
+    older = saved_run("older", lambda c: [c["model"].pop(k) for k in ("decoder_ray_origin", "decoder_ray_direction")])
+    assert reuse_mismatch(older, "DATA", "cpu", sets) is None
+
+
+def test_a_run_on_part_of_the_recording_or_named_by_format_is_checked_against_the_data(tmp_path: Path) -> None:
+    """The frame window a plan leaves unset is the whole recording: a run saved with fewer frames is another run.
+    A format given by name is the one `auto` finds, either way round."""
+    from scenes import write_panoptic_scene
+
+    from stgc.experiment.runner import reuse_mismatch
+
+    scene = write_panoptic_scene(tmp_path / "data", views=4, frames=3)
+    sets = {"compaction.method": "none", "data.preprocess": "none"}
+
+    def saved_run(name: str, data: dict, plan_sets: dict[str, str] = sets) -> str | None:
+        run = tmp_path / name / "stg"
+        _trained_config(run, "cpu", sets)
+        saved = json.loads((run / "config.json").read_text())
+        saved["data"].update(path=str(scene.root), **data)
+        (run / "config.json").write_text(json.dumps(saved))
+        return reuse_mismatch(run, scene.root, "cpu", plan_sets)
+
+    assert saved_run("whole", {"start": 0, "duration": 3, "format": "panoptic"}) is None
+    assert "data.duration: 2 in its config.json, 3 in the plan" in (saved_run("part", {"start": 0, "duration": 2})
+                                                                    or "")
+    assert saved_run("named", {"start": 0, "duration": 3}, {**sets, "data.format": "panoptic"}) is None
+    assert "data.format" in (saved_run("other", {"start": 0, "duration": 3, "format": "blender"}) or "")
 
 
 def test_a_failed_source_fails_its_fine_tuning_runs_without_launching_them(tmp_path: Path) -> None:
@@ -464,6 +491,28 @@ def test_a_failed_source_fails_its_fine_tuning_runs_without_launching_them(tmp_p
     assert [o.status for o in result.outcomes] == ["failed"] * 3
     assert "source run 'stg' failed" in result.outcomes[1].message
     assert [c.split()[0] for c in _invocations(out)] == ["train"]
+
+
+def test_a_set_rate_aware_option_reaches_the_windows_and_skips_the_runs_without_one(tmp_path: Path) -> None:
+    """--set applies to every run, but a rate-aware option acts only where a window is: the `stg` run trains
+    without it (`stgc train` would refuse it there), the fine-tuning runs get it. A plan entry's own such option
+    without a window is refused before anything trains."""
+    plan_path = tmp_path / "rate.toml"
+    plan_path.write_text(FINETUNE_TOML)
+    out = tmp_path / "exp"
+    result = run_plan("DATA", plan_path, out, preset="cpu", runner=fake_runner, python=sys.executable,
+                      extra_overrides=["train.quantization_aware.lr_scale=0.02"], log=lambda m: None)
+    assert {o.status for o in result.outcomes} == {"finished"}
+    calls = [c for c in _invocations(out) if c.startswith(("train", "finetune"))]
+    assert [("lr_scale=0.02" in c) for c in calls] == [False, True, True], calls
+    plan_path.write_text(FINETUNE_TOML.replace('"compaction.method" = "none", "data.preprocess" = "none"',
+                                               '"compaction.method" = "none", "data.preprocess" = "none", '
+                                               '"train.quantization_aware.quality" = 1'))
+    from stgc.config import ConfigError
+
+    with pytest.raises(ConfigError, match="run 'stg'.*without a rate-aware window"):
+        run_plan("DATA", plan_path, tmp_path / "refused", preset="cpu", runner=fake_runner, python=sys.executable,
+                 log=lambda m: None)
 
 
 def test_a_run_that_raises_fails_its_row_and_the_runs_that_need_it(tmp_path: Path, monkeypatch) -> None:

@@ -376,7 +376,7 @@ def _encode_model(source: Path, out_path: Path, config: CodecConfig) -> tuple[by
             "final model" if window is None else
             f"its rate-aware window trained quality {window.quality}, position_bits {window.position_bits}, with "
             "the outlier guard and invisible Gaussians left out; compress with those"))
-    elif window is not None:
+    elif window is not None and window.quality != config.quality:
         log.info("%s trained through a rate-aware window at quality %d: compress at that quality to store the "
                  "depths it learned; at quality %d the depths are chosen again", source, window.quality,
                  config.quality)

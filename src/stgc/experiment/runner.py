@@ -37,7 +37,7 @@ from stgc.codec.files import written_without_window_depths
 from stgc.config import EXECUTION_OPTIONS, ConfigError, iter_fields, same_option_value, same_place
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.data.readers import detect_format
-from stgc.errors import FormatError, StgcError
+from stgc.errors import StgcError
 from stgc.eval.report import Report, ReportRow, make_report, rate_points, record_fields
 from stgc.experiment.plans import Plan, RunSpec, load_plan
 from stgc.fileio import atomic_open, read_json_object, write_json
@@ -105,19 +105,33 @@ def finetune_overrides(spec: RunSpec, extra: Mapping[str, str]) -> dict[str, str
 
 
 def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str], out_dir: Path) -> dict[str, str]:
-    """The options that make `spec`'s run: its plan entry's with --set's over them, except --set's compaction
-    options in a run that prunes nothing (a plan's `stg` baseline; `stgc train` refuses them there); a
-    fine-tuning run's are its source's with `finetune_overrides` over them. A run with a loss reference gets
+    """The options that make `spec`'s run: its plan entry's with --set's over them, except --set's options that
+    would act on nothing there (`idle_options`: `stgc train` and `finetune` refuse them); a fine-tuning run's
+    are its source's with `finetune_overrides` over them. A run with a loss reference gets
     compaction.loss_reference = that run's folder under `out_dir`."""
     if spec.source is None:
         reference = {} if spec.reference is None else {"compaction.loss_reference": str(out_dir / spec.reference)}
         merged = {**spec.overrides, **extra, **reference}
-        if merged.get("compaction.method", "none") == "none":
-            merged = {k: v for k, v in merged.items()
-                      if not k.startswith("compaction.") or k == "compaction.method" or k in spec.overrides}
-        return merged
-    source = next(s for s in plan.runs if s.name == spec.source)
-    return {**run_overrides(plan, source, extra, out_dir), **finetune_overrides(spec, extra)}
+    else:
+        source = next(s for s in plan.runs if s.name == spec.source)
+        merged = {**run_overrides(plan, source, extra, out_dir), **finetune_overrides(spec, extra)}
+    idle = idle_options(merged) - set(spec.overrides)
+    return {k: v for k, v in merged.items() if k not in idle}
+
+
+_WINDOW = "train.quantization_aware."
+
+
+def idle_options(options: Mapping[str, str]) -> set[str]:
+    """The keys of `options` that act on nothing in the run they make: compaction options where nothing is pruned
+    (a plan's `stg` baseline), rate-aware options without a window. --set applies to every run of a plan, so its
+    such options are left out of those runs (and out of what their reuse compares)."""
+    idle = set()
+    if options.get("compaction.method", "none") == "none":
+        idle |= {k for k in options if k.startswith("compaction.") and k != "compaction.method"}
+    if str(options.get(f"{_WINDOW}iterations", "0")).strip() in ("0", ""):
+        idle |= {k for k in options if k.startswith(_WINDOW) and k != f"{_WINDOW}iterations"}
+    return idle
 
 
 def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str], out_dir: Path) -> None:
@@ -132,9 +146,9 @@ def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str],
         try:
             overrides = run_overrides(plan, spec, extra, out_dir)
             configs = resolve_configs(preset or "cpu", {}, {}, overrides)
+            refuse_unused_window_options(configs["train"], overrides)  # the entry's own: --set's idle ones are out
             if spec.source is None:
                 refuse_unused_compaction_options(configs["compaction"], overrides)
-                refuse_unused_window_options(configs["train"], spec.overrides)  # --set's apply to every run
             else:
                 check_window_fits(configs["train"].quantization_aware.iterations, spec.iterations)
         except ConfigError as exc:
@@ -163,11 +177,10 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
     wanted = {k: str(v) for k, v in overrides.items() if k not in EXECUTION_OPTIONS}
     if recorded is not None:
         before = {str(k): str(v) for k, v in (recorded.get("overrides") or {}).items() if k not in EXECUTION_OPTIONS}
-        if wanted.get("compaction.method", "none") == "none":
-            # A run that prunes nothing: --set's compaction options are no longer passed to it (run_overrides), and
-            # never acted in it; an earlier runner recorded them.
-            before = {k: v for k, v in before.items()
-                      if not k.startswith("compaction.") or k == "compaction.method" or k in wanted}
+        # --set's options that act on nothing in this run are no longer passed to it (run_overrides), and never
+        # acted in it; an earlier runner recorded them.
+        idle = idle_options({**before, **wanted}) - set(wanted)
+        before = {k: v for k, v in before.items() if k not in idle}
         for key in sorted(set(before) | set(wanted)):
             if not _same_plan_option(key, before.get(key), wanted.get(key), run_dir.parent):
                 differences.append(f"{key}: {before.get(key, 'unset')} then, {wanted.get(key, 'unset')} now")
@@ -222,22 +235,25 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
         return [f"its config.json cannot be compared with the plan's ({exc})"]
     recorded = Run(run_dir).read_config() or {}
     differences = []
+    frames = _frame_window(asked["data"], data_path)
     for section in ("data", "model", "train", "compaction"):
+        held = _dotted_keys(recorded.get(section))
         # A key an older config.json's section lacks was trained as SAVED_BEFORE says (configs_from_run read it so).
-        present = _dotted_keys(recorded.get(section))
-        if present:
-            present |= set(getattr(section_classes()[section], "SAVED_BEFORE", {}))
+        before = set(getattr(section_classes()[section], "SAVED_BEFORE", {})) - held if held else set()
         theirs = {f.dotted: f.default for f in iter_fields(saved[section])}
         for f in iter_fields(asked[section]):
-            key = f"{section}.{f.dotted}"
-            if (f.dotted not in present or key in EXECUTION_OPTIONS
-                    or (key in RESOLVED_AT_TRAINING and f.default is None) or not (every_option or key in wanted)):
+            key, then, now = f"{section}.{f.dotted}", theirs.get(f.dotted), f.default
+            if (f.dotted not in held | before or key in EXECUTION_OPTIONS or not (every_option or key in wanted)
+                    or (f.dotted in before and now == "auto")):  # 'auto' resolves by the data: unknown here
                 continue
-            now = f.default
-            if key == "data.format" and now == "auto" and theirs.get(f.dotted) != "auto":
-                now = _detected_format(data_path)  # a run given the format auto finds is the same run
-            if not _same_plan_option(key, theirs.get(f.dotted), now, run_dir.parent):
-                differences.append(f"{key}: {theirs.get(f.dotted)} in its config.json, {f.default} in the plan")
+            if key in RESOLVED_AT_TRAINING and now is None:
+                if key not in frames:
+                    continue
+                now = frames[key]  # the frame window the plan's data gives
+            if key == "data.format" and "auto" in (then, now):
+                then, now = (_detected_format(data_path) if v == "auto" else v for v in (then, now))
+            if not _same_plan_option(key, then, now, run_dir.parent):
+                differences.append(f"{key}: {then} in its config.json, {now} in the plan")
     saved_data = saved.get("data_path")
     if saved_data is not None and not same_place(saved_data, data_path):
         differences.append(f"data: {saved_data} in its config.json, {Path(data_path).resolve()} in the plan")
@@ -248,6 +264,18 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
 # plane, the densification schedule of the initial cloud's kind): their saved values are not the plan's None.
 RESOLVED_AT_TRAINING = frozenset({"data.start", "data.duration", "data.near_plane", "train.densify.interval",
                                   "train.densify.rounds", "train.densify.prune_in_rounds", "train.densify.max_growth"})
+
+
+def _frame_window(data: Any, data_path: str | Path) -> dict[str, int]:
+    """{"data.start": first frame, "data.duration": frames} the plan's data options give on `data_path` when they
+    leave the window unset (the whole recording), or {} when the data cannot be opened here."""
+    if data.start is not None and data.duration is not None:
+        return {}
+    try:
+        dataset = data.open(data_path)
+    except (StgcError, OSError):
+        return {}
+    return {"data.start": int(dataset.start), "data.duration": int(dataset.duration)}
 
 
 def _detected_format(data_path: str | Path) -> str:
@@ -648,6 +676,7 @@ def _codec_point(spec: RunSpec, run_dir: Path, quality: int, runner: Runner, pyt
             return outcome
         outcome.status = "finished"
     outcome.record = _read_json(json_path)
-    if outcome.record is None:
-        raise FormatError(json_path, "cannot read the bitstream evaluation")
+    if outcome.record is None:  # this point fails; the run's own row and its other points stand
+        outcome.status, outcome.message = "failed", f"{json_path}: cannot read the bitstream evaluation"
+        say(f"[{spec.name}] {outcome.message}")
     return outcome

@@ -222,7 +222,8 @@ class QuantizationAwareConfig:
     allocation: Literal["optimised", "ladder"] = field(default="optimised", metadata={
         "help": "how the depths are chosen, as the codec's option: 'optimised' = the rd-optimised allocation "
                 "measured on the training views when the window opens (what stgc compress does by default), "
-                "'ladder' = the quality's fixed depths (then compress with --set codec.allocation=ladder)"})
+                "'ladder' = the quality's fixed depths (stgc compress of the run's final model at this quality "
+                "stores the window's depths either way)"})
     position_bits: int = field(default=0, metadata={"help": "as the codec's position_bits (0 = the quality's)"})
     lr_scale: float = field(default=0.01, metadata={
         "help": "every learning rate is multiplied by this inside the window: the straight-through gradient only "

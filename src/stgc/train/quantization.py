@@ -64,14 +64,16 @@ class QuantizationSimulation:
 
     def __init__(self, cfg: QuantizationAwareConfig):
         self.cfg = cfg
-        # (group_bits, step_scales) of the allocation chosen when the window opened; None before, or for the ladder.
+        # (group_bits, step_scales) of the allocation chosen when the window opened (or, with remeasure_at_settle,
+        # when the mask settled); None before, or for the ladder.
         self.settings: tuple[dict[str, int], dict[str, list[float]]] | None = None
         self.allocation: dict[str, Any] | None = None  # its summary, for the run's records
         self.mask: GaussianMask | None = None  # with cfg.mask: created on the window's first step
         self.mask_settled = False  # the mask's Gaussians were removed or baked; no mask from then on
 
     def prepare(self, model: STGModel, dataset: Dataset, corrections: Corrections | None) -> None:
-        """Choose the bit depths once, on the model as the window finds it (no-op when chosen or for the ladder)."""
+        """Choose the bit depths on the model as it is now: when the window opens, and again once after the mask
+        settles with remeasure_at_settle (no-op while chosen, or for the ladder)."""
         if self.cfg.allocation != "optimised" or self.settings is not None:
             return
         keep = _visible(model)
