@@ -455,6 +455,16 @@ def test_an_old_or_unreadable_config_or_an_option_left_auto_is_compared_not_skip
     # An option an older config lacks whose plan value is 'auto' resolves by the data: not known here.
     older = saved_run("older", lambda c: [c["model"].pop(k) for k in ("decoder_ray_origin", "decoder_ray_direction")])
     assert reuse_mismatch(older, "DATA", "cpu", sets) is None
+    # An option that acts on nothing in either run (remeasure_at_settle without a window) is no difference.
+    idle = saved_run("idle", lambda c: c["train"]["quantization_aware"].pop("remeasure_at_settle"))
+    assert reuse_mismatch(idle, "DATA", "cpu", sets) is None
+    # A plan that now names the value a run trained with unnamed (its default then) still names that run.
+    (idle / "experiment.json").write_text(json.dumps({"name": "stg", "overrides": sets, "preset": "cpu",
+                                                      "data": str(Path("DATA").resolve())}))
+    named = {**sets, "train.quantization_aware.remeasure_at_settle": "false"}
+    assert reuse_mismatch(idle, "DATA", "cpu", named) is None
+    assert "remeasure_at_settle: unset then, true now" in (reuse_mismatch(idle, "DATA", "cpu", {
+        **sets, "train.quantization_aware.remeasure_at_settle": "true"}) or "")
 
 
 def test_a_run_on_part_of_the_recording_or_named_by_format_is_checked_against_the_data(tmp_path: Path) -> None:

@@ -34,7 +34,14 @@ from pathlib import Path
 from typing import Any
 
 from stgc.codec.files import written_without_window_depths
-from stgc.config import EXECUTION_OPTIONS, ConfigError, iter_fields, same_option_value, same_place
+from stgc.config import (
+    EXECUTION_OPTIONS,
+    ConfigError,
+    apply_overrides,
+    iter_fields,
+    same_option_value,
+    same_place,
+)
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.data.readers import detect_format
 from stgc.errors import StgcError
@@ -122,6 +129,16 @@ def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str], out_dir: 
 _WINDOW = "train.quantization_aware."
 
 
+def idle_window_options(train: Any) -> set[str]:
+    """The rate-aware options (dotted, with their section) that act on nothing in a run trained with `train`: all
+    but the window's length without a window, remeasure_at_settle without a settling mask measured by the
+    optimised allocation. Two runs that differ only there trained alike."""
+    window = train.quantization_aware
+    if window.iterations == 0:
+        return {f"{_WINDOW}{f.dotted}" for f in iter_fields(window) if f.dotted != "iterations"}
+    return set() if window.mask and window.allocation == "optimised" else {f"{_WINDOW}remeasure_at_settle"}
+
+
 def idle_options(options: Mapping[str, str]) -> set[str]:
     """The keys of `options` that act on nothing in the run they make: compaction options where nothing is pruned
     (a plan's `stg` baseline), rate-aware options without a window. --set applies to every run of a plan, so its
@@ -182,8 +199,11 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
         idle = idle_options({**before, **wanted}) - set(wanted)
         before = {k: v for k, v in before.items() if k not in idle}
         for key in sorted(set(before) | set(wanted)):
-            if not _same_plan_option(key, before.get(key), wanted.get(key), run_dir.parent):
-                differences.append(f"{key}: {before.get(key, 'unset')} then, {wanted.get(key, 'unset')} now")
+            if _same_plan_option(key, before.get(key), wanted.get(key), run_dir.parent):
+                continue
+            if key not in before and _saved_value_is(run_dir, key, wanted[key]):
+                continue  # the plan now names the value the run trained with unnamed (its default then)
+            differences.append(f"{key}: {before.get(key, 'unset')} then, {wanted.get(key, 'unset')} now")
         if recorded.get("preset") not in (None, preset or "cpu"):
             differences.append(f"preset: {recorded['preset']} then, {preset or 'cpu'} now")
         if recorded.get("data") is not None and not same_place(recorded["data"], data_path):
@@ -195,6 +215,17 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
         differences += _config_mismatch(run_dir, data_path, preset, wanted,
                                         None if finetune is None else (finetune, dict(extra or {})), check_config)
     return "; ".join(differences) or None
+
+
+def _saved_value_is(run_dir: Path, key: str, value: str) -> bool:
+    """Whether the run's config.json (read as it trained: SAVED_BEFORE for keys it lacks) holds `value` for the
+    option `key` (dotted, with its section)."""
+    section, _, name = key.partition(".")
+    try:
+        saved = configs_from_run(run_dir)[section]
+        return bool(apply_overrides(saved, {name: value}, section) == saved)
+    except (ConfigError, StgcError, KeyError):
+        return False
 
 
 def _continuation_mismatch(run: Run, spec: RunSpec) -> list[str]:
@@ -244,7 +275,8 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
         for f in iter_fields(asked[section]):
             key, then, now = f"{section}.{f.dotted}", theirs.get(f.dotted), f.default
             if (f.dotted not in held | before or key in EXECUTION_OPTIONS or not (every_option or key in wanted)
-                    or (f.dotted in before and now == "auto")):  # 'auto' resolves by the data: unknown here
+                    or (f.dotted in before and now == "auto")  # 'auto' resolves by the data: unknown here
+                    or key in idle_window_options(saved["train"]) & idle_window_options(asked["train"])):
                 continue
             if key in RESOLVED_AT_TRAINING and now is None:
                 if key not in frames:

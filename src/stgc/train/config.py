@@ -242,10 +242,11 @@ class QuantizationAwareConfig:
                 "its sections included, times its factor, so a Gaussian whose contribution to the views is worth "
                 "less than its bits fades out; in the window's last fifth the faded ones (factor < 1/2) are removed "
                 "and the others keep their factor in their opacity; needs rate_weight > 0"})
-    remeasure_at_settle: bool = field(default=False, metadata={
+    remeasure_at_settle: bool = field(default=True, metadata={
         "help": "with mask and the optimised allocation: when the mask settles, measure the depths again on the "
                 "model it leaves, and train the window's last fifth at them (what compress then stores): the "
-                "depths measured when the window opened were chosen for the unmasked model"})
+                "depths measured when the window opened were chosen for the unmasked model (no effect without "
+                "a mask or with the ladder)"})
     mask_lr: float = field(default=0.02, metadata={
         "help": "Adam learning rate of the mask logits (not scaled by lr_scale; they start at 3, a Gaussian is "
                 "removed if its logit is below 0 when the mask settles: at 0.02 a logit can cross 0 in 150 of a "
@@ -261,10 +262,6 @@ class QuantizationAwareConfig:
         check(not self.mask or self.rate_weight > 0, f"{prefix}mask", self.mask,
               "false when rate_weight is 0: a Gaussian's price is lambda x its bits")
         check(math.isfinite(self.mask_lr) and self.mask_lr > 0, f"{prefix}mask_lr", self.mask_lr, "> 0")
-        check(not self.remeasure_at_settle or (self.mask and self.allocation == "optimised"),
-              f"{prefix}remeasure_at_settle", self.remeasure_at_settle,
-              "false unless mask is true and allocation is 'optimised' (only a settling mask leaves another model "
-              "to measure, and the ladder measures nothing)")
         check(self.quality in QUALITY_LEVELS, f"{prefix}quality", self.quality,
               f"one of {', '.join(map(str, QUALITY_LEVELS))} (the codec's levels)")
         check(self.allocation in ("optimised", "ladder"), f"{prefix}allocation", self.allocation,
@@ -323,7 +320,7 @@ class TrainConfig:
     # How a run saved before these options existed was trained (stgc.config.from_saved).
     SAVED_BEFORE: ClassVar[dict] = {"colour_correction": "off", "densify.stats_views": "last",
                                     "densify.stats_count": "rendered", "densify.prune_in_rounds": False,
-                                    "densify.max_growth": 0.0,
+                                    "densify.max_growth": 0.0, "quantization_aware.remeasure_at_settle": False,
                                     "floaters.scale_min_opacity": 0.0}
 
     def validate(self, prefix: str = "") -> None:

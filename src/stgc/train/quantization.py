@@ -134,7 +134,7 @@ class QuantizationSimulation:
             model.replace_param("opacity", torch.logit(opacity)[:, None], reset_moments=False)
         keep = factor >= 0.5
         self.mask, self.mask_settled = None, True
-        if self.cfg.remeasure_at_settle:
+        if self.cfg.remeasure_at_settle and self.cfg.allocation == "optimised":
             self.settings = None  # measured again (prepare) on the first rendering of the model the mask leaves
         return keep
 
