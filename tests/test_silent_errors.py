@@ -103,7 +103,7 @@ def test_compress_refuses_a_non_stgc_name_and_a_bad_allocation_at_once(trained_r
     assert main(["compress", str(trained_run), "--out", str(tmp_path / "model.ply")]) == 2
     assert "must end in .stgc" in capsys.readouterr().err
     assert main(["compress", str(trained_run), "--out", str(tmp_path / "m.stgc"), "--codec.allocation", "bogus"]) == 2
-    assert "codec.allocation: 'bogus' is not one of auto, optimised, ladder" in capsys.readouterr().err
+    assert "codec.allocation: 'bogus' is not one of auto, trained, optimised, ladder" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
 
 

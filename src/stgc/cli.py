@@ -44,12 +44,11 @@ from stgc.options import (
     configs_from_run,
     default_configs,
     refuse_unused_compaction_options,
-    refuse_unused_window_options,
     resolve_configs,
 )
 from stgc.run import Run
 from stgc.train import train
-from stgc.train.config import PRESETS
+from stgc.train.config import PRESETS, refuse_unused_window_options
 from stgc.train.continuation import check_continuable, continuation_configs, start_continuation
 from stgc.train.video import train_video
 from stgc.viewer import serve

@@ -90,19 +90,6 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
     return out
 
 
-def refuse_unused_window_options(train: TrainConfig, given: Iterable[str]) -> None:
-    """Raise ConfigError when rate-aware options (`given`: dotted names) are set for a run without a rate-aware
-    window (train.quantization_aware.iterations 0): they would be recorded and change nothing, and the run would be
-    taken for the rate point they name."""
-    if train.quantization_aware.iterations > 0:
-        return
-    prefix = "train.quantization_aware."
-    unused = sorted(key for key in given if key.startswith(prefix) and key != f"{prefix}iterations")
-    if unused:
-        raise ConfigError(f"{', '.join(unused)}: given for a run without a rate-aware window ({prefix}iterations "
-                          "is 0), where they act on nothing; open a window or drop them")
-
-
 def refuse_unused_compaction_options(compaction: CompactionConfig, given: Iterable[str]) -> None:
     """Raise ConfigError when compaction options (`given`: dotted names such as "compaction.case") are set where
     they act on nothing (a run whose compaction.method is none; a custom window with a case's own window; ...): they

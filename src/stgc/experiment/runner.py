@@ -52,10 +52,10 @@ from stgc.options import (
     configs_from_run,
     refuse_unused_compaction_options,
     section_classes,
-    refuse_unused_window_options,
     resolve_configs,
 )
 from stgc.run import Run
+from stgc.train.config import refuse_unused_window_options
 from stgc.train.continuation import check_window_fits, continuation_configs
 
 _log = logging.getLogger(__name__)

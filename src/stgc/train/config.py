@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
 from stgc.codec.format import DEFAULT_QUALITY, QUALITY_LEVELS
-from stgc.config import check
+from stgc.config import ConfigError, check
 from stgc.render.api import BACKENDS, Backend
 
 
@@ -396,6 +397,19 @@ class Schedule:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def refuse_unused_window_options(train: TrainConfig, given: Iterable[str]) -> None:
+    """Raise ConfigError when rate-aware options (`given`: dotted names) are set for a run without a rate-aware
+    window (train.quantization_aware.iterations 0): they would be recorded and change nothing, and the run would be
+    taken for the rate point they name."""
+    if train.quantization_aware.iterations > 0:
+        return
+    prefix = "train.quantization_aware."
+    unused = sorted(key for key in given if key.startswith(prefix) and key != f"{prefix}iterations")
+    if unused:
+        raise ConfigError(f"{', '.join(unused)}: given for a run without a rate-aware window ({prefix}iterations "
+                          "is 0), where they act on nothing; open a window or drop them")
 
 
 def resolve_schedule(cfg: TrainConfig) -> Schedule:

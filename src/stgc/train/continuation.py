@@ -21,9 +21,8 @@ from typing import Any
 from stgc.config import ConfigError, apply_overrides, split_sections, validate_config
 from stgc.errors import StgcError
 from stgc.fileio import write_json
-from stgc.options import refuse_unused_window_options
 from stgc.run import Run, prepare_new_run
-from stgc.train.config import resolve_schedule
+from stgc.train.config import refuse_unused_window_options, resolve_schedule
 from stgc.train.loop import run_config
 
 
