@@ -112,3 +112,38 @@ def test_a_bitstream_away_from_its_run_is_evaluated_on_the_dataset_its_embedded_
     compress_run(run, away / "bare.stgc", config=CodecConfig(embed_run_config=False))
     with pytest.raises(DataError, match="no run config found.*--data"):
         evaluate_run(away / "bare.stgc", measure_fps=False)
+
+
+def test_a_whole_video_is_written_again_when_a_segment_measured_the_depths_its_window_trained(tmp_path):
+    """The runner's check for codec points an earlier stgc wrote with measured depths looks into a whole-video
+    container's segments: one segment whose run ended with a rate-aware window at the point's quality, stored
+    without the window's depths, makes the container out of date; stored with them (or asked for explicitly), not."""
+    from stgc.codec.files import WINDOW_MODE, written_without_window_depths
+    from stgc.codec.format import encode
+    from stgc.codec.video import encode_video
+    from stgc.run import Run
+
+    video = tmp_path / "video"
+    Run(video).write_video({"segment_frames": 1, "data_path": str(tmp_path),
+                            "segments": [{"name": f"segment_{k:03d}", "start": k, "duration": 1} for k in (0, 1)]})
+    for k in (0, 1):
+        segment = video / f"segment_{k:03d}"
+        (segment / "point_cloud" / "iteration_10").mkdir(parents=True)
+        (segment / "point_cloud" / "iteration_10" / "point_cloud.ply").write_bytes(b"")
+        window = {"iterations": 10 * k, "quality": 2, "position_bits": 0, "allocation": "ladder", "simulate": True}
+        (segment / "config.json").write_text(json.dumps({"train": {"quantization_aware": window}}))
+        (segment / "train_summary.json").write_text(json.dumps({"finished": True, "iterations": 10,
+                                                                "variant": "lite"}))
+    arrays, _ = synthetic_model(20, "lite", seed=1)
+
+    def container(second: dict) -> bytes:
+        return encode_video([(0, 1, encode(arrays, "lite", None, 2, metadata={})),
+                             (1, 1, encode(arrays, "lite", None, 2, metadata=second))])
+
+    path = video / "model_q2.stgc"
+    path.write_bytes(container({}))  # segment 1 trained through a window at q2, stored with measured depths
+    assert written_without_window_depths(path, 2) and not written_without_window_depths(path, 3)
+    path.write_bytes(container({"allocation": {"mode": WINDOW_MODE, "quality": 2}}))
+    assert not written_without_window_depths(path, 2)
+    path.write_bytes(container({"allocation_option": "optimised"}))
+    assert not written_without_window_depths(path, 2)

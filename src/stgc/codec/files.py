@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from stgc.config import check
 from stgc.data.config import open_run_dataset
-from stgc.errors import DataError, FormatError
+from stgc.errors import DataError, FormatError, StgcError
 from stgc.fileio import atomic_path, write_json
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel
 from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
@@ -212,14 +212,27 @@ def written_without_window_depths(bitstream: str | Path, quality: int) -> bool:
     """Whether `bitstream`, written from its run's final model at `quality` with the default allocation, measured
     its depths again although the model trained through a rate-aware window at that quality (an stgc before
     `auto` took the window's depths): compressed today, with the default options, it would store the window's.
-    A file whose allocation was chosen explicitly (metadata `allocation_option`) is what was asked for; a
-    whole-video container is not looked into."""
-    depths = window_depths(Path(bitstream).parent)
-    if depths is None or not depths.fits(CodecConfig(quality=quality)):
-        return False
+    A file whose allocation was chosen explicitly (metadata `allocation_option`) is what was asked for. A
+    whole-video container is so when any of its segments is."""
+    bitstream = Path(bitstream)
     try:
-        metadata = read_stgc_metadata(bitstream)
-    except (FormatError, OSError):
+        if is_video_stgc(bitstream):
+            run = Run(bitstream.parent)
+            if not run.is_video():
+                return False
+            index = read_video_index(bitstream)
+            return any(_measured_again(segment.path, read_video_segment(bitstream, k, index).metadata, quality)
+                       for k, segment in enumerate(run.segments()) if k < index.num_segments)
+        return _measured_again(bitstream.parent, read_stgc_metadata(bitstream), quality)
+    except (FormatError, OSError, StgcError):
+        return False
+
+
+def _measured_again(run_dir: Path, metadata: dict[str, Any], quality: int) -> bool:
+    """Whether a model's bitstream `metadata` says its depths were measured by default although the run's final
+    model trained through a rate-aware window at `quality`."""
+    depths = window_depths(run_dir)
+    if depths is None or not depths.fits(CodecConfig(quality=quality)):
         return False
     allocation = metadata.get("allocation")
     return "allocation_option" not in metadata and not (isinstance(allocation, dict)
