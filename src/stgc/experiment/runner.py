@@ -55,7 +55,7 @@ from stgc.options import (
     resolve_configs,
 )
 from stgc.run import Run
-from stgc.train.config import refuse_unused_window_options
+from stgc.train.config import TrainConfig, refuse_unused_window_options
 from stgc.train.continuation import check_window_fits, continuation_configs
 
 _log = logging.getLogger(__name__)
@@ -129,7 +129,7 @@ def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str], out_dir: 
 _WINDOW = "train.quantization_aware."
 
 
-def idle_window_options(train: Any) -> set[str]:
+def idle_window_options(train: TrainConfig) -> set[str]:
     """The rate-aware options (dotted, with their section) that act on nothing in a run trained with `train`: all
     but the window's length without a window, remeasure_at_settle without a settling mask measured by the
     optimised allocation. Two runs that differ only there trained alike."""
@@ -267,6 +267,7 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
     recorded = Run(run_dir).read_config() or {}
     differences = []
     frames = _frame_window(asked["data"], data_path)
+    idle = idle_window_options(saved["train"]) & idle_window_options(asked["train"])  # acted in neither run
     for section in ("data", "model", "train", "compaction"):
         held = _dotted_keys(recorded.get(section))
         # A key an older config.json's section lacks was trained as SAVED_BEFORE says (configs_from_run read it so).
@@ -276,7 +277,7 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
             key, then, now = f"{section}.{f.dotted}", theirs.get(f.dotted), f.default
             if (f.dotted not in held | before or key in EXECUTION_OPTIONS or not (every_option or key in wanted)
                     or (f.dotted in before and now == "auto")  # 'auto' resolves by the data: unknown here
-                    or key in idle_window_options(saved["train"]) & idle_window_options(asked["train"])):
+                    or key in idle):
                 continue
             if key in RESOLVED_AT_TRAINING and now is None:
                 if key not in frames:
