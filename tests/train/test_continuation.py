@@ -112,3 +112,27 @@ def test_finetune_takes_its_own_colour_correction_learning_rate(source, tmp_path
     assert main(["finetune", str(source), "--out", str(new), "--iterations", "4",
                  "--set", "train.lr.colour_correction=0.5"]) == 0
     assert colour_lr(new) == pytest.approx(0.5)
+
+
+def test_a_window_opened_by_a_fine_tuning_takes_today_s_defaults_unless_its_source_had_one():
+    """A source without a window read from an older config carries that version's window options (acting on
+    nothing there): the fine-tuning's new window must not inherit them. A source that had a window passes its own
+    options on, as a resumed window would."""
+    from stgc.compaction import CompactionConfig
+    from stgc.data import DataConfig
+    from stgc.model import ModelConfig
+    from stgc.train import TrainConfig
+    from stgc.train.config import QuantizationAwareConfig
+    from stgc.train.continuation import continuation_configs
+
+    def source(window: QuantizationAwareConfig) -> dict:
+        return {"data": DataConfig(), "model": ModelConfig(), "compaction": CompactionConfig(), "data_path": None,
+                "train": TrainConfig(iterations=1000, quantization_aware=window)}
+
+    opens = {"train.quantization_aware.iterations": "100", "train.quantization_aware.rate_weight": "1e-4",
+             "train.quantization_aware.mask": "true"}
+    old = source(QuantizationAwareConfig(remeasure_at_settle=False))  # how an older config.json reads
+    assert continuation_configs(old, "SRC", 100, opens)["train"].quantization_aware.remeasure_at_settle
+    windowed = source(QuantizationAwareConfig(iterations=50, rate_weight=1e-4, mask=True, remeasure_at_settle=False))
+    again = continuation_configs(windowed, "SRC", 100, {"train.quantization_aware.iterations": "100"})
+    assert not again["train"].quantization_aware.remeasure_at_settle and again["train"].quantization_aware.mask

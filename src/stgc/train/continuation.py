@@ -22,7 +22,7 @@ from stgc.config import ConfigError, apply_overrides, split_sections, validate_c
 from stgc.errors import StgcError
 from stgc.fileio import write_json
 from stgc.run import Run, prepare_new_run
-from stgc.train.config import refuse_unused_window_options, resolve_schedule
+from stgc.train.config import QuantizationAwareConfig, refuse_unused_window_options, resolve_schedule
 from stgc.train.loop import run_config
 
 
@@ -61,8 +61,12 @@ def continuation_configs(saved: Mapping[str, Any], source: str | Path, iteration
                           f"model and the compaction {source} was trained with)")
     configs = dict(saved)
     base = saved["train"].iterations
-    train_cfg = apply_overrides(dataclasses.replace(saved["train"], iterations=base + iterations),
-                                sections.get("train", {}), "train")
+    start = dataclasses.replace(saved["train"], iterations=base + iterations)
+    if start.quantization_aware.iterations == 0:
+        # The source had no window, so its window options acted on nothing (an older config reads them as they were
+        # then): a window opened here takes today's defaults for what it is not given.
+        start = dataclasses.replace(start, quantization_aware=QuantizationAwareConfig())
+    train_cfg = apply_overrides(start, sections.get("train", {}), "train")
     if train_cfg.iterations != base + iterations:
         raise ConfigError("train.iterations: give the continuation's length as its iterations, not as an override")
     check_window_fits(train_cfg.quantization_aware.iterations, iterations)
