@@ -39,6 +39,7 @@ from .video import (
     is_video_stgc,
     read_video_index,
     read_video_segment,
+    read_video_segment_metadata,
 )
 from .views import optimise_on_views
 
@@ -221,7 +222,7 @@ def written_without_window_depths(bitstream: str | Path, quality: int) -> bool:
             if not run.is_video():
                 return False
             index = read_video_index(bitstream)
-            return any(_measured_again(segment.path, read_video_segment(bitstream, k, index).metadata, quality)
+            return any(_measured_again(segment.path, read_video_segment_metadata(bitstream, k, index), quality)
                        for k, segment in enumerate(run.segments()) if k < index.num_segments)
         return _measured_again(bitstream.parent, read_stgc_metadata(bitstream), quality)
     except (FormatError, OSError, StgcError):

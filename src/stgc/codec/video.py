@@ -13,10 +13,11 @@ import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from stgc.errors import DataError, FormatError
 
-from .format import MAX_FILE_BYTES, VIDEO_MAGIC, DecodedModel, decode, read_header
+from .format import MAX_FILE_BYTES, VIDEO_MAGIC, DecodedModel, decode, decode_metadata, read_header
 
 VIDEO_VERSION = 1
 MAX_VIDEO_SEGMENTS = 4096
@@ -188,6 +189,16 @@ def read_video_index(path: str | os.PathLike) -> VideoIndex:
 
 def read_video_segment(path: str | os.PathLike, k: int, index: VideoIndex | None = None) -> DecodedModel:
     """Segment `k` of a whole-video .stgc file, decoded; only its own bytes are read."""
+    return decode(_segment_bytes(path, k, index), source=f"{path} segment {k}")
+
+
+def read_video_segment_metadata(path: str | os.PathLike, k: int, index: VideoIndex | None = None) -> dict[str, Any]:
+    """The metadata segment `k` of a whole-video .stgc file embeds, without decoding its Gaussians."""
+    return decode_metadata(_segment_bytes(path, k, index), source=f"{path} segment {k}")
+
+
+def _segment_bytes(path: str | os.PathLike, k: int, index: VideoIndex | None) -> bytes:
+    """Segment `k`'s bitstream, checked against the index; only its own bytes are read."""
     path = Path(path)
     index = index or read_video_index(path)
     if not 0 <= k < index.num_segments:
@@ -199,4 +210,4 @@ def read_video_segment(path: str | os.PathLike, k: int, index: VideoIndex | None
             payload = f.read(entry.length)
     except OSError as exc:
         raise DataError(path, f"cannot read .stgc file ({exc.strerror})") from None
-    return decode(_checked_payload(payload, index, k, str(path)), source=f"{path} segment {k}")
+    return _checked_payload(payload, index, k, str(path))

@@ -55,7 +55,7 @@ from stgc.options import (
     resolve_configs,
 )
 from stgc.run import Run
-from stgc.train.config import TrainConfig, refuse_unused_window_options
+from stgc.train.config import idle_window_options, refuse_unused_window_options
 from stgc.train.continuation import check_window_fits, continuation_configs
 
 _log = logging.getLogger(__name__)
@@ -127,16 +127,6 @@ def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str], out_dir: 
 
 
 _WINDOW = "train.quantization_aware."
-
-
-def idle_window_options(train: TrainConfig) -> set[str]:
-    """The rate-aware options (dotted, with their section) that act on nothing in a run trained with `train`: all
-    but the window's length without a window, remeasure_at_settle without a settling mask measured by the
-    optimised allocation. Two runs that differ only there trained alike."""
-    window = train.quantization_aware
-    if window.iterations == 0:
-        return {f"{_WINDOW}{f.dotted}" for f in iter_fields(window) if f.dotted != "iterations"}
-    return set() if window.mask and window.allocation == "optimised" else {f"{_WINDOW}remeasure_at_settle"}
 
 
 def idle_options(options: Mapping[str, str]) -> set[str]:

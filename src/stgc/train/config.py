@@ -399,6 +399,17 @@ class Schedule:
         return dataclasses.asdict(self)
 
 
+def idle_window_options(train: TrainConfig) -> set[str]:
+    """The rate-aware options (dotted, with their section) that act on nothing in a run trained with `train`: all
+    but the window's length without a window, remeasure_at_settle without a settling mask measured by the
+    optimised allocation. Two runs that differ only there trained alike."""
+    window = train.quantization_aware
+    if window.iterations == 0:
+        return {f"train.quantization_aware.{f.name}" for f in dataclasses.fields(window) if f.name != "iterations"}
+    settles = window.mask and window.allocation == "optimised"
+    return set() if settles else {"train.quantization_aware.remeasure_at_settle"}
+
+
 def refuse_unused_window_options(train: TrainConfig, given: Iterable[str]) -> None:
     """Raise ConfigError when rate-aware options (`given`: dotted names) are set for a run without a rate-aware
     window (train.quantization_aware.iterations 0): they would be recorded and change nothing, and the run would be

@@ -27,7 +27,7 @@ import torch
 
 from stgc import machine
 from stgc.compaction import CompactionConfig, STKNNCompactor
-from stgc.config import EXECUTION_OPTIONS, same_option_value, validate_config
+from stgc.config import EXECUTION_OPTIONS, from_saved, same_option_value, validate_config
 from stgc.data import DataConfig
 from stgc.data.cameras import Camera
 from stgc.data.config import initial_points_from_config
@@ -44,7 +44,7 @@ from stgc.train.checkpoint import (
     save_checkpoint,
 )
 from stgc.train.colour import COLOUR_CORRECTION_NAME, ColourCorrection
-from stgc.train.config import Schedule, TrainConfig, resolve_schedule
+from stgc.train.config import Schedule, TrainConfig, idle_window_options, resolve_schedule
 from stgc.train.densify import DensityControl
 from stgc.train.ems import ErrorGuidedSampler
 from stgc.train.monitor import JsonLines, Progress, TensorBoard
@@ -285,6 +285,11 @@ class Trainer:
         mine = json.loads(json.dumps(self._run_config()))  # as config.json holds it: tuples read back as lists
         differences = []
         sections = {"data": DataConfig, "model": ModelConfig, "train": TrainConfig, "compaction": CompactionConfig}
+        their_train = {k: v for k, v in (theirs.get("train") or {}).items() if k != "resolved_schedule"}
+        try:  # options that acted on nothing in either run (rate-aware ones without a window) are no difference
+            idle = idle_window_options(self.cfg) & idle_window_options(from_saved(TrainConfig, their_train))
+        except ValueError:  # ConfigError included: a reference this version cannot read differs anyway, below
+            idle = set()
         for section, cls in sections.items():
             ours, saved = _flat(mine.get(section) or {}), _flat(theirs.get(section) or {})
             # A reference saved before an option existed trained as that option's SAVED_BEFORE value says; where
@@ -293,7 +298,8 @@ class Trainer:
             saved = {**{k: v for k, v in before.items() if k in ours}, **saved}
             for key in sorted(set(ours) | set(saved)):
                 name = f"{section}.{key}"
-                if name in EXECUTION_OPTIONS or name in _PRUNED_RUN_ONLY or key.startswith("resolved_schedule"):
+                if (name in EXECUTION_OPTIONS or name in _PRUNED_RUN_ONLY or name in idle
+                        or key.startswith("resolved_schedule")):
                     continue
                 if key not in saved:
                     continue
