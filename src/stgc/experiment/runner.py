@@ -55,7 +55,7 @@ from stgc.options import (
     resolve_configs,
 )
 from stgc.run import Run
-from stgc.train.config import idle_window_options, refuse_unused_window_options
+from stgc.train.config import WINDOW_PREFIX, TrainConfig, idle_window_options, refuse_unused_window_options
 from stgc.train.continuation import check_window_fits, continuation_configs
 
 _log = logging.getLogger(__name__)
@@ -126,18 +126,18 @@ def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str], out_dir: 
     return {k: v for k, v in merged.items() if k not in idle}
 
 
-_WINDOW = "train.quantization_aware."
-
-
 def idle_options(options: Mapping[str, str]) -> set[str]:
     """The keys of `options` that act on nothing in the run they make: compaction options where nothing is pruned
-    (a plan's `stg` baseline), rate-aware options without a window. --set applies to every run of a plan, so its
-    such options are left out of those runs (and out of what their reuse compares)."""
+    (a plan's `stg` baseline), rate-aware options `idle_window_options` names. --set applies to every run of a
+    plan, so its such options are left out of those runs (and out of what their reuse compares)."""
     idle = set()
     if options.get("compaction.method", "none") == "none":
         idle |= {k for k in options if k.startswith("compaction.") and k != "compaction.method"}
-    if str(options.get(f"{_WINDOW}iterations", "0")).strip() in ("0", ""):
-        idle |= {k for k in options if k.startswith(_WINDOW) and k != f"{_WINDOW}iterations"}
+    window = {k.removeprefix("train."): v for k, v in options.items() if k.startswith(WINDOW_PREFIX)}
+    try:
+        idle |= set(options) & idle_window_options(apply_overrides(TrainConfig(), window, "train"))
+    except ConfigError:  # a bad value: check_plan_options names it
+        pass
     return idle
 
 

@@ -399,28 +399,33 @@ class Schedule:
         return dataclasses.asdict(self)
 
 
+WINDOW_PREFIX = "train.quantization_aware."  # the rate-aware window's options, as dotted names with their section
+
+
 def idle_window_options(train: TrainConfig) -> set[str]:
     """The rate-aware options (dotted, with their section) that act on nothing in a run trained with `train`: all
     but the window's length without a window, remeasure_at_settle without a settling mask measured by the
-    optimised allocation. Two runs that differ only there trained alike."""
+    optimised allocation. Two runs that differ only there trained alike; given for such a run, they are refused
+    (`refuse_unused_window_options`), and a plan's --set leaves them out of it."""
     window = train.quantization_aware
     if window.iterations == 0:
-        return {f"train.quantization_aware.{f.name}" for f in dataclasses.fields(window) if f.name != "iterations"}
+        return {f"{WINDOW_PREFIX}{f.name}" for f in dataclasses.fields(window) if f.name != "iterations"}
     settles = window.mask and window.allocation == "optimised"
-    return set() if settles else {"train.quantization_aware.remeasure_at_settle"}
+    return set() if settles else {f"{WINDOW_PREFIX}remeasure_at_settle"}
 
 
 def refuse_unused_window_options(train: TrainConfig, given: Iterable[str]) -> None:
-    """Raise ConfigError when rate-aware options (`given`: dotted names) are set for a run without a rate-aware
-    window (train.quantization_aware.iterations 0): they would be recorded and change nothing, and the run would be
-    taken for the rate point they name."""
-    if train.quantization_aware.iterations > 0:
+    """Raise ConfigError when rate-aware options (`given`: dotted names) are set where they act on nothing
+    (`idle_window_options`): they would be recorded, change nothing, and the run would be taken for the rate point
+    they name."""
+    unused = sorted(set(given) & idle_window_options(train))
+    if not unused:
         return
-    prefix = "train.quantization_aware."
-    unused = sorted(key for key in given if key.startswith(prefix) and key != f"{prefix}iterations")
-    if unused:
-        raise ConfigError(f"{', '.join(unused)}: given for a run without a rate-aware window ({prefix}iterations "
-                          "is 0), where they act on nothing; open a window or drop them")
+    if train.quantization_aware.iterations == 0:
+        raise ConfigError(f"{', '.join(unused)}: given for a run without a rate-aware window ({WINDOW_PREFIX}"
+                          "iterations is 0), where they act on nothing; open a window or drop them")
+    raise ConfigError(f"{', '.join(unused)}: acts only with {WINDOW_PREFIX}mask and the optimised allocation (a "
+                      "settling mask measured again)")
 
 
 def resolve_schedule(cfg: TrainConfig) -> Schedule:
