@@ -214,13 +214,17 @@ def cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_compress(args: argparse.Namespace) -> int:
+def compress_config(args: argparse.Namespace) -> CodecConfig:
+    """The codec options `stgc compress` writes with: defaults < --codec.* < --quality < --set."""
     overrides = collect_overrides(args).get("codec", {})
     if args.quality is not None:
         overrides["quality"] = str(args.quality)
     overrides.update(split_sections(parse_set_arguments(args.set), {"codec"}).get("codec", {}))
-    config = validate_config(apply_overrides(CodecConfig(), overrides, "codec"), "codec")
-    result = compress_run(args.run, args.out, config=config)
+    return validate_config(apply_overrides(CodecConfig(), overrides, "codec"), "codec")
+
+
+def cmd_compress(args: argparse.Namespace) -> int:
+    result = compress_run(args.run, args.out, config=compress_config(args))
     print(result)
     return 0
 

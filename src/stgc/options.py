@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from stgc.compaction import CompactionConfig
+from stgc.compaction.config import acts_only_with, idle_compaction_options
 from stgc.config import ConfigError, apply_overrides, from_saved, split_sections, validate_config
 from stgc.data import DataConfig
 from stgc.data.config import data_config_from_saved
@@ -92,21 +93,12 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
 
 def refuse_unused_compaction_options(compaction: CompactionConfig, given: Iterable[str]) -> None:
     """Raise ConfigError when compaction options (`given`: dotted names such as "compaction.case") are set where
-    they act on nothing (a run whose compaction.method is none; a custom window with a case's own window; ...): they
-    would be recorded in its config.json and silently ignored."""
-    given = set(given)
-    if compaction.method == "none":
-        unused = sorted({key for key in given if key.startswith("compaction.")} - {"compaction.method"})
-        if unused:
-            raise ConfigError(f"{', '.join(unused)}: given for a run whose compaction.method is none, where nothing "
-                              "is pruned; choose a method (--compaction st-knn) or drop them")
+    they act on nothing (`idle_compaction_options`: a run whose compaction.method is none; a custom window with a
+    case's own window; ...): they would be recorded in its config.json and silently ignored."""
+    unused = sorted(set(given) & idle_compaction_options(compaction))
+    if not unused:
         return
-    # Options that act only with another's value: given without it, they would be recorded and change nothing.
-    only_with = (("compaction.window_start", compaction.case == 0, "compaction.case=0 (a case 1-4 has its window)"),
-                 ("compaction.window_end", compaction.case == 0, "compaction.case=0 (a case 1-4 has its window)"),
-                 ("compaction.ema_decay", compaction.loss_smoothing == "ema", "compaction.loss_smoothing=ema"),
-                 ("compaction.probe_views", compaction.loss_signal == "probe" or compaction.method == "reference",
-                  "compaction.loss_signal=probe or compaction.method=reference"))
-    unused = [f"{key} acts only with {condition}" for key, holds, condition in only_with if key in given and not holds]
-    if unused:
-        raise ConfigError("; ".join(unused))
+    if compaction.method == "none":
+        raise ConfigError(f"{', '.join(unused)}: given for a run whose compaction.method is none, where nothing "
+                          "is pruned; choose a method (--compaction st-knn) or drop them")
+    raise ConfigError("; ".join(f"{key} acts only with {acts_only_with(key)}" for key in unused))

@@ -118,6 +118,7 @@ def test_a_whole_video_is_written_again_when_a_segment_measured_the_depths_its_w
     """The runner's check for codec points an earlier stgc wrote with measured depths looks into a whole-video
     container's segments: one segment whose run ended with a rate-aware window at the point's quality, stored
     without the window's depths, makes the container out of date; stored with them (or asked for explicitly), not."""
+    from stgc.codec import CodecConfig
     from stgc.codec.files import WINDOW_MODE, written_without_window_depths
     from stgc.codec.format import encode
     from stgc.codec.video import encode_video
@@ -142,8 +143,11 @@ def test_a_whole_video_is_written_again_when_a_segment_measured_the_depths_its_w
 
     path = video / "model_q2.stgc"
     path.write_bytes(container({}))  # segment 1 trained through a window at q2, stored with measured depths
-    assert written_without_window_depths(path, 2) and not written_without_window_depths(path, 3)
+    q2, q3 = CodecConfig(quality=2), CodecConfig(quality=3)
+    assert written_without_window_depths(path, q2) and not written_without_window_depths(path, q3)
+    # compressed now with a measured allocation or the ladder, the file would not store the window's depths either
+    assert not written_without_window_depths(path, CodecConfig(quality=2, allocation="optimised"))
     path.write_bytes(container({"allocation": {"mode": WINDOW_MODE, "quality": 2}}))
-    assert not written_without_window_depths(path, 2)
+    assert not written_without_window_depths(path, q2)
     path.write_bytes(container({"allocation_option": "optimised"}))
-    assert not written_without_window_depths(path, 2)
+    assert not written_without_window_depths(path, q2)

@@ -677,6 +677,15 @@ def test_set_compaction_options_skip_the_runs_that_prune_nothing_and_a_plan_that
     assert "compaction.criterion" not in run_overrides(plan, stg, extra, tmp_path)  # `stgc train` would refuse it
     assert run_overrides(plan, c2, extra, tmp_path)["compaction.criterion"] == "scale"
     check_plan_options(plan, "cpu", extra, tmp_path)
+    # The same for options that act only with another's value: --set's EMA decay reaches the EMA run only.
+    smoothing = load_plan_toml_text(tmp_path, MINI_PLAN + '[[runs]]\nname = "c2"\nfamily = "ST-KNN"\n'
+                                    'overrides = { "compaction.method" = "st-knn", "compaction.case" = 2 }\n'
+                                    '[[runs]]\nname = "c2-ema"\nfamily = "ST-KNN"\noverrides = { '
+                                    '"compaction.method" = "st-knn", "compaction.loss_smoothing" = "ema" }\n')
+    decay = {"compaction.ema_decay": "0.8"}
+    assert ["compaction.ema_decay" in run_overrides(smoothing, spec, decay, tmp_path) for spec in smoothing.runs] \
+        == [False, False, True]
+    check_plan_options(smoothing, "cpu", decay, tmp_path)
     wrong = load_plan_toml_text(tmp_path, MINI_PLAN.replace('"compaction.method" = "none" }',
                                                             '"compaction.method" = "none", "compaction.case" = 3 }'))
     with pytest.raises(ConfigError, match="run 'stg'.*compaction.method is none"):
@@ -691,3 +700,17 @@ def load_plan_toml_text(folder: Path, text: str) -> Any:
     path = folder / "plan.toml"
     path.write_text(text)
     return load_plan_toml(path)
+
+
+def test_the_compress_command_writes_with_the_codec_options_it_is_built_from() -> None:
+    """The runner checks a codec point's file against the options it compresses with (written_without_window_depths
+    takes the same CodecConfig): the command must carry them all to `stgc compress`."""
+    from stgc.cli import build_parser, compress_config
+    from stgc.codec import CodecConfig
+    from stgc.experiment.runner import build_compress_command
+
+    for config in (CodecConfig(quality=2), CodecConfig(quality=4, allocation="ladder", zstd_level=9,
+                                                       adaptive_delta=False, position_bits=14)):
+        cmd = build_compress_command("RUN", "RUN/model.stgc", config, python="py")
+        assert cmd[:3] == ["py", "-m", "stgc.cli"]
+        assert compress_config(build_parser().parse_args(cmd[3:])) == config

@@ -144,7 +144,7 @@ def test_compress_stores_the_depths_the_window_trained_through(scene, tmp_path, 
 
     written = compress_run(run, run / "model_q1.stgc", quality=QUALITY)
     assert read_stgc_metadata(written.path)["allocation"]["mode"] == WINDOW_MODE
-    assert not written_without_window_depths(written.path, QUALITY)
+    assert not written_without_window_depths(written.path, CodecConfig(quality=QUALITY))
     final = STGModel.load(run)
     visible = (final.peak_temporal_opacity() >= MIN_VISIBLE_OPACITY * (1 - 1e-3)).numpy()  # as compress drops
     arrays = {k: v[visible] for k, v in final.to_ply_arrays().items()}
@@ -167,11 +167,11 @@ def test_compress_stores_the_depths_the_window_trained_through(scene, tmp_path, 
     # The runner writes RUN/model_q<Q>.stgc again when an earlier stgc measured its depths by default, never when
     # they were asked for.
     (run / "model_q1.stgc").write_bytes((tmp_path / "o.stgc").read_bytes())
-    assert not written_without_window_depths(run / "model_q1.stgc", QUALITY)
+    assert not written_without_window_depths(run / "model_q1.stgc", CodecConfig(quality=QUALITY))
     with monkeypatch.context() as patch:
         patch.setattr(files, "window_depths", lambda source: None)  # as the default wrote it before session 27
         compress_run(run, run / "model_q1.stgc", config=few)
-    assert written_without_window_depths(run / "model_q1.stgc", QUALITY)
+    assert written_without_window_depths(run / "model_q1.stgc", CodecConfig(quality=QUALITY))
     for source, quality in ((run, 2), (run / "point_cloud" / "iteration_10", QUALITY)):
         with pytest.raises(DataError, match="allocation=trained"):
             compress_run(source, tmp_path / "t.stgc", config=CodecConfig(quality=quality, allocation="trained"))

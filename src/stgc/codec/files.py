@@ -209,31 +209,34 @@ def window_depths(source: str | Path) -> WindowDepths | None:
                         optimised if window["allocation"] == "optimised" else None)
 
 
-def written_without_window_depths(bitstream: str | Path, quality: int) -> bool:
-    """Whether `bitstream`, written from its run's final model at `quality` with the default allocation, measured
-    its depths again although the model trained through a rate-aware window at that quality (an stgc before
-    `auto` took the window's depths): compressed today, with the default options, it would store the window's.
-    A file whose allocation was chosen explicitly (metadata `allocation_option`) is what was asked for. A
-    whole-video container is so when any of its segments is."""
+def written_without_window_depths(bitstream: str | Path, config: CodecConfig) -> bool:
+    """Whether `bitstream`, written from its run's final model with the default allocation, measured its depths
+    again although the model trained through a rate-aware window that `config` (the options it would be compressed
+    with now) writes: compressed today it would store the window's (an stgc before `auto` took them). A file whose
+    allocation was chosen explicitly (metadata `allocation_option`) is what was asked for, and `config` asking for
+    a measured allocation or the ladder makes none out of date. A whole-video container is so when any of its
+    segments is."""
     bitstream = Path(bitstream)
+    if config.allocation not in ("auto", "trained"):
+        return False
     try:
         if is_video_stgc(bitstream):
             run = Run(bitstream.parent)
             if not run.is_video():
                 return False
             index = read_video_index(bitstream)
-            return any(_measured_again(segment.path, read_video_segment_metadata(bitstream, k, index), quality)
+            return any(_measured_again(segment.path, read_video_segment_metadata(bitstream, k, index), config)
                        for k, segment in enumerate(run.segments()) if k < index.num_segments)
-        return _measured_again(bitstream.parent, read_stgc_metadata(bitstream), quality)
+        return _measured_again(bitstream.parent, read_stgc_metadata(bitstream), config)
     except (FormatError, OSError, StgcError):
         return False
 
 
-def _measured_again(run_dir: Path, metadata: dict[str, Any], quality: int) -> bool:
+def _measured_again(run_dir: Path, metadata: dict[str, Any], config: CodecConfig) -> bool:
     """Whether a model's bitstream `metadata` says its depths were measured by default although the run's final
-    model trained through a rate-aware window at `quality`."""
+    model trained through a rate-aware window that `config` writes."""
     depths = window_depths(run_dir)
-    if depths is None or not depths.fits(CodecConfig(quality=quality)):
+    if depths is None or not depths.fits(config):
         return False
     allocation = metadata.get("allocation")
     return "allocation_option" not in metadata and not (isinstance(allocation, dict)

@@ -12,7 +12,8 @@ iterations and the count moves by a few percent: 5,000 iterations give 59/99/138
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
 from typing import Literal, get_args
 
 from .criteria import CRITERIA, criteria_help
@@ -185,6 +186,31 @@ class CompactionConfig:
             raise ValueError(f"compaction.sample_times {self.sample_times}: must be >= 0")
         if self.min_gaussians < 0:
             raise ValueError(f"compaction.min_gaussians {self.min_gaussians}: must be >= 0")
+
+
+# Options that act only with another option's value, and that value in words (for the refusal).
+_ACTS_ONLY_WITH: dict[str, tuple[Callable[[CompactionConfig], bool], str]] = {
+    "window_start": (lambda c: c.case == 0, "compaction.case=0 (a case 1-4 has its window)"),
+    "window_end": (lambda c: c.case == 0, "compaction.case=0 (a case 1-4 has its window)"),
+    "ema_decay": (lambda c: c.loss_smoothing == "ema", "compaction.loss_smoothing=ema"),
+    "probe_views": (lambda c: c.loss_signal == "probe" or c.method == "reference",
+                    "compaction.loss_signal=probe or compaction.method=reference"),
+}
+
+
+def idle_compaction_options(compaction: CompactionConfig) -> set[str]:
+    """The compaction options (dotted, with their section) that act on nothing in a run with `compaction`: all but
+    the method where it is none, and those that act only with another option's value where that value is not set.
+    Two runs that differ only there pruned alike; given for such a run they are refused
+    (`stgc.options.refuse_unused_compaction_options`), and a plan's --set leaves them out of it."""
+    if compaction.method == "none":
+        return {f"compaction.{f.name}" for f in fields(compaction) if f.name != "method"}
+    return {f"compaction.{name}" for name, (acts, _) in _ACTS_ONLY_WITH.items() if not acts(compaction)}
+
+
+def acts_only_with(key: str) -> str:
+    """The condition, in words, under which the compaction option `key` (dotted) acts."""
+    return _ACTS_ONLY_WITH[key.removeprefix("compaction.")][1]
 
 
 @dataclass(frozen=True)

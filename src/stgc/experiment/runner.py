@@ -33,7 +33,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from stgc.codec import CodecConfig
 from stgc.codec.files import written_without_window_depths
+from stgc.compaction.config import idle_compaction_options
 from stgc.config import (
     EXECUTION_OPTIONS,
     ConfigError,
@@ -50,6 +52,7 @@ from stgc.experiment.plans import Plan, RunSpec, load_plan
 from stgc.fileio import atomic_open, read_json_object, write_json
 from stgc.options import (
     configs_from_run,
+    default_configs,
     refuse_unused_compaction_options,
     section_classes,
     resolve_configs,
@@ -131,12 +134,16 @@ def idle_options(options: Mapping[str, str]) -> set[str]:
     (a plan's `stg` baseline), rate-aware options `idle_window_options` names. --set applies to every run of a
     plan, so its such options are left out of those runs (and out of what their reuse compares)."""
     idle = set()
-    if options.get("compaction.method", "none") == "none":
-        idle |= {k for k in options if k.startswith("compaction.") and k != "compaction.method"}
+    compaction = {k.removeprefix("compaction."): v for k, v in options.items() if k.startswith("compaction.")}
     window = {k.removeprefix("train."): v for k, v in options.items() if k.startswith(WINDOW_PREFIX)}
+    try:  # on the defaults a plan's run starts from (no compaction)
+        idle |= set(options) & idle_compaction_options(
+            apply_overrides(default_configs()["compaction"], compaction, "compaction"))
+    except ConfigError:  # a bad value: check_plan_options names it
+        pass
     try:
         idle |= set(options) & idle_window_options(apply_overrides(TrainConfig(), window, "train"))
-    except ConfigError:  # a bad value: check_plan_options names it
+    except ConfigError:
         pass
     return idle
 
@@ -351,9 +358,13 @@ def build_eval_command(target: str | Path, *, python: str = sys.executable) -> l
     return [python, "-m", CLI_MODULE, "eval", str(target), "--json"]
 
 
-def build_compress_command(run_dir: str | Path, out: str | Path, quality: int, *,
+def build_compress_command(run_dir: str | Path, out: str | Path, config: CodecConfig, *,
                            python: str = sys.executable) -> list[str]:
-    return [python, "-m", CLI_MODULE, "compress", str(run_dir), "--out", str(out), "--quality", str(quality)]
+    """`stgc compress` with `config`'s options (those that differ from the defaults named)."""
+    named = [f"codec.{f.dotted}={f.default}" for f in iter_fields(config)
+             if f.dotted != "quality" and f.default != getattr(CodecConfig(), f.dotted)]
+    return [python, "-m", CLI_MODULE, "compress", str(run_dir), "--out", str(out), "--quality", str(config.quality),
+            *[arg for option in named for arg in ("--set", option)]]
 
 
 # ------------------------------------------------------------------------------------------- state
@@ -681,13 +692,14 @@ def _codec_point(spec: RunSpec, run_dir: Path, quality: int, runner: Runner, pyt
     stale = json_path.is_file() and not Run.scored_this_bitstream(_read_json(json_path) or {}, stgc)
     if stale:
         say(f"[{spec.name}] {json_path.name} scored an earlier {stgc.name}: evaluating it again")
-    outdated = stgc.is_file() and written_without_window_depths(stgc, quality)
+    codec = CodecConfig(quality=quality)  # what the point is written with, and what its file is checked against
+    outdated = stgc.is_file() and written_without_window_depths(stgc, codec)
     if outdated:
         say(f"[{spec.name}] {stgc.name} measured its depths again although the model trained through a rate-aware "
             f"window at q{quality}: compressing it again with the window's depths")
     if stale or outdated or not json_path.is_file():
         if outdated or not stgc.is_file():  # written in place (atomically): a failed compress keeps the old file
-            code = runner(build_compress_command(run_dir, stgc, quality, python=python), log_path)
+            code = runner(build_compress_command(run_dir, stgc, codec, python=python), log_path)
             if code != 0 or not stgc.is_file():
                 outcome.status, outcome.message = "failed", f"compress q{quality} failed (status {code})"
                 say(f"[{spec.name}] {outcome.message}")
