@@ -185,3 +185,77 @@ def test_distorted_transforms_cameras_are_refused_not_read_as_pinholes(tmp_path)
     expect_error("transforms_train.json", "camera model fisheye", open_dataset,
                  _blender(tmp_path / "ngp", is_fisheye=True))
     expect_error("transforms_train.json", "not a number", open_dataset, _blender(tmp_path / "text", k1="strong"))
+
+
+def _blender_multiview(root: Path, test: set[tuple[str, int]]) -> Path:
+    """Three cameras x two frames in transforms_{train,test}.json, (camera, frame) pairs in `test` in the test file."""
+    frames: dict[str, list] = {"train": [], "test": []}
+    for k, name in enumerate(("camA", "camB", "camC")):
+        for t in range(2):
+            _image(root / f"{name}_{t}.png")
+            frame = {"file_path": f"{name}_{t}.png", "transform_matrix": np.linalg.inv(_w2c(k)).tolist(),
+                     "time": t / 2, "camera": name, "frame_index": t}
+            frames["test" if (name, t) in test else "train"].append(frame)
+    for split, entries in frames.items():
+        meta = {"fl_x": 20.0, "cx": 8.0, "cy": 6.0, "w": W, "h": H, "frames": entries}
+        (root / f"transforms_{split}.json").write_text(json.dumps(meta))
+    return root
+
+
+def test_a_camera_in_both_blender_files_is_refused_not_held_out_whole(tmp_path):
+    """Multi-view scenes hold out whole cameras: camA's training image (frame 0) was silently held out with its
+    test image (frame 1)."""
+    data = open_dataset(_blender_multiview(tmp_path / "ok", {("camC", 0), ("camC", 1)}))
+    assert sorted({c.name for c in data.train}) == ["camA", "camB"] and {c.name for c in data.test} == {"camC"}
+    expect_error("transforms_test.json", "camera.s. camA also in transforms_train.json", open_dataset,
+                 _blender_multiview(tmp_path / "both", {("camA", 1), ("camC", 0), ("camC", 1)}))
+
+
+@pytest.mark.parametrize("key, value, match", [
+    ("fl_x", "abc", "a value cannot be read"), ("time", "abc", "time 'abc' is not a number"),
+    ("frame_index", "x", "a value cannot be read")])
+def test_unreadable_values_of_a_blender_frame_name_the_file(tmp_path, key, value, match):
+    root = _blender_multiview(tmp_path, {("camC", 0), ("camC", 1)})
+    meta = json.loads((root / "transforms_train.json").read_text())
+    meta["frames"][0][key] = value
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    expect_error("transforms_train.json", match, open_dataset, root)
+    meta["frames"][0] = "camA_0.png"
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    expect_error("transforms_train.json", r"frames\[0\] is str", open_dataset, root)
+
+
+def test_malformed_metadata_values_name_the_file(tmp_path):
+    """Each was a TypeError, KeyError, ZeroDivisionError or UnicodeDecodeError from inside a reader."""
+    root = make_panoptic(tmp_path / "p")
+    meta = json.loads((root / "train_meta.json").read_text())
+    meta["k"] = 5
+    (root / "train_meta.json").write_text(json.dumps(meta))
+    expect_error("train_meta.json", "must be lists", open_dataset, root)
+
+    root = make_panoptic(tmp_path / "p2")
+    np.savez(root / "init_pt_cld.npz", points=np.zeros((5, 7)))
+    expect_error("init_pt_cld.npz", "no 'data' array", open_dataset(root).data_points, 0)
+    np.savez(root / "init_pt_cld.npz", data=np.zeros((5, 3)))
+    expect_error("init_pt_cld.npz", r"'data' is \[5, 3\]", open_dataset(root).data_points, 0)
+
+    root = make_n3dv(tmp_path / "n")
+    rows = np.load(root / "poses_bounds.npy")
+    rows[1, 4] = 0.0  # the height of camera 1 (column 4 of the 3x5 block's first row)
+    np.save(root / "poses_bounds.npy", rows)
+    expect_error("poses_bounds.npy", "camera cam01: height 0", open_dataset, root)
+
+    (tmp_path / "t").mkdir()
+    (tmp_path / "t" / "cameras_parameters.txt").write_bytes("header\n\xe9t\xe9\n".encode("latin-1"))
+    expect_error("cameras_parameters.txt", "not a text file of numbers", open_dataset, tmp_path / "t")
+
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "seq.json").write_text(json.dumps({"sequence": "not miv"}))
+    expect_error("seq.json", "not an MIV sequence JSON", open_dataset, tmp_path / "m" / "seq.json", format="miv")
+
+
+def test_a_metadata_file_is_detected_as_its_folder_is(tmp_path):
+    """The readers take a format's own metadata file; detection refused it ('unknown layout')."""
+    root = make_n3dv(tmp_path / "n")
+    assert open_dataset(root / "poses_bounds.npy").format == "n3dv"
+    assert open_dataset(make_panoptic(tmp_path / "p") / "train_meta.json").format == "panoptic"

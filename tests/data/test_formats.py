@@ -183,6 +183,10 @@ def test_stg_colmap_round_trip(toys, tmp_path, ext):
         assert np.allclose(xyz, points[f][0], atol=1e-6) and np.allclose(rgb * 255, points[f][1])
     # STG passes one colmap_<t> folder: that sets the default start frame.
     assert open_dataset(tmp_path / "colmap_1").frames == [1, 2]
+    # Without a points3D anywhere it ships no points: init_source=auto triangulates instead of failing on "data".
+    for f in FRAMES:
+        (tmp_path / f"colmap_{f}" / "sparse" / "0" / f"points3D.{ext}").unlink()
+    assert not open_dataset(tmp_path).has_points
 
 
 def test_stg_colmap_holds_out_cam10_of_a_prepared_technicolor_scene(toys, tmp_path):

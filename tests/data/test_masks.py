@@ -56,6 +56,23 @@ def test_mask_of_the_wrong_size_is_an_error_naming_the_file(masked_scene, tmp_pa
         dataset.load_mask(camera)
 
 
+def test_masks_follow_a_downscale_that_is_not_whole(masked_scene):
+    """At --data.downscale 1.5 the images are 43x32 (64x48 / 1.5): each mask is averaged over the same boxes, and
+    agrees with the full-size mask sampled at the small pixels' centres (they were refused)."""
+    small = open_dataset(masked_scene.root, downscale=1.5)
+    full = open_dataset(masked_scene.root)
+    camera = next(c for c in small.train if c.name == "1" and c.frame == 0)
+    mask = small.load_mask(camera)
+    assert mask is not None and mask.shape == (camera.height, camera.width) == (32, 43)
+    reference = full.load_mask(next(c for c in full.train if c.name == "1" and c.frame == 0))
+    assert reference is not None
+    rows = np.minimum(((np.arange(32) + 0.5) * 48 / 32).astype(int), 47)
+    cols = np.minimum(((np.arange(43) + 0.5) * 64 / 43).astype(int), 63)
+    sampled = reference[rows][:, cols]
+    assert 0.05 < sampled.mean() < 0.95  # the ball is in view: a comparison that can fail
+    assert (mask == sampled).mean() > 0.95
+
+
 def test_a_static_cloud_for_the_first_frame_leaves_every_frame_its_hull_points(masked_scene, tmp_path):
     import shutil
 

@@ -21,8 +21,8 @@ FOREGROUND_LEVEL = 128
 
 
 def read_mask(path: Path, width: int, height: int) -> np.ndarray:
-    """bool [height, width]: the foreground of the mask image at `path`, area-averaged to the camera's size when
-    the image is a whole multiple of it (the downscaled dataset), else a DataError naming the file."""
+    """bool [height, width]: the foreground of the mask image at `path`, area-averaged to the camera's size when it
+    is larger with the same aspect (the downscaled dataset), else a DataError naming the file."""
     try:
         with Image.open(path) as im:
             im.load()
@@ -34,9 +34,14 @@ def read_mask(path: Path, width: int, height: int) -> np.ndarray:
     h, w = mask.shape
     if (w, h) != (width, height):
         f = w // width if width else 0
-        if not (f >= 1 and w == f * width and h == f * height):
-            raise DataError(path, f"mask is {w}x{h} but its image is {width}x{height} (or a whole multiple of it)")
-        mask = mask.reshape(height, f, width, f).mean(axis=(1, 3))
+        if f >= 1 and w == f * width and h == f * height:
+            mask = mask.reshape(height, f, width, f).mean(axis=(1, 3))
+        elif width and height and w > width and abs(h * width / w - height) <= 1:
+            # a downscale by a factor that is not whole: area-averaged over the same box as the image's pixels
+            mask = np.asarray(Image.fromarray(mask, mode="F").resize((width, height), Image.Resampling.BOX))
+        else:
+            raise DataError(path, f"mask is {w}x{h} but its image is {width}x{height} (masks must have the "
+                            "images' full size or their aspect at a larger size)")
     return mask >= FOREGROUND_LEVEL
 
 

@@ -42,55 +42,27 @@ def read_blender(path: Path, options: ReaderOptions) -> SourceScene:
         frames = meta.get("frames")
         if not isinstance(frames, list) or not frames:
             raise DataError(f, "no 'frames' list")
-        entries += [(split, f, meta, fr) for fr in frames]
+        for k, fr in enumerate(frames):
+            if not isinstance(fr, dict):
+                raise DataError(f, f"frames[{k}] is {type(fr).__name__}, not an object with file_path and "
+                                "transform_matrix")
+            entries.append((split, f, meta, fr))
     multiview = all("camera" in e[3] for e in entries)
-    all_times = sorted({float(e[3].get("time", 0.0)) for e in entries})
+    all_times = sorted({_time(f, fr) for _, f, _, fr in entries})
     cameras, test_names = [], []
     for split, f, meta, fr in entries:
         try:
-            file_path = root / fr["file_path"]
-            c2w = np.array(fr["transform_matrix"], dtype=np.float64).reshape(4, 4)
+            camera = _camera(root, split, f, meta, fr, multiview, all_times)
+        except DataError:
+            raise
         except (KeyError, TypeError, ValueError) as exc:
-            raise DataError(f, f"frame entry without a valid {exc} (need file_path, transform_matrix)") from None
-        image = _find_image(file_path)
-        if image is None:
-            raise DataError(file_path, "image file is missing (no file with this name or a known extension)")
-
-        def get(key: str) -> Any:
-            return fr.get(key, meta.get(key))
-
-        width, height = get("w"), get("h")
-        if width is None or height is None:
-            width, height = image_size(image)
-        width, height = int(width), int(height)
-        if get("fl_x") is not None:
-            fx = float(get("fl_x"))
-            fy = float(get("fl_y") if get("fl_y") is not None else fx)
-        elif get("camera_angle_x") is not None:
-            fx = fov_to_focal(float(get("camera_angle_x")), width)
-            fy = fov_to_focal(float(get("camera_angle_y")), height) if get("camera_angle_y") is not None else fx
-        else:
-            raise DataError(f, "no intrinsics: need fl_x (and cx, cy) or camera_angle_x")
-        cx = float(get("cx")) if get("cx") is not None else width / 2.0
-        cy = float(get("cy")) if get("cy") is not None else height / 2.0
-        _refuse_distortion(f, get)
-        K = intrinsics(fx, fy, cx, cy)
-        time = float(fr.get("time", 0.0))
-        if multiview:
-            name = str(fr["camera"])
-            frame = int(fr["frame_index"]) if "frame_index" in fr else all_times.index(time)
-        else:
-            name = f"{split}_{Path(fr['file_path']).name}"  # D-NeRF reuses r_000 in train and test
-            frame = all_times.index(time)
-        if not np.all(np.isfinite(c2w)):
-            raise DataError(f, f"camera {name} frame {frame}: non-finite (NaN or inf) value in transform_matrix")
-        w2c = opengl_c2w_to_w2c(c2w)
-        _checked(f, name, frame, K, w2c)
-        cameras.append(Camera(name, frame, 0.0, K, w2c, width, height, image))
-        if split == "test" and name not in test_names:
-            test_names.append(name)
+            raise DataError(f, f"frame {fr.get('file_path')!r}: a value cannot be read ({exc})") from None
+        cameras.append(camera)
+        if split == "test" and camera.name not in test_names:
+            test_names.append(camera.name)
     if multiview:
         _check_duplicates(cameras, meta_file)
+        _check_held_out_whole(entries, splits)
     fps = first_meta.get("fps")
     points_dir = root / "points3d"
     points, description = None, None
@@ -105,6 +77,58 @@ def read_blender(path: Path, options: ReaderOptions) -> SourceScene:
                        frame_positions=_positions_of_ranks(all_times) if ranked else None)
 
 
+def _time(f: Path, fr: dict[str, Any]) -> float:
+    try:
+        return float(fr.get("time", 0.0))
+    except (TypeError, ValueError):
+        raise DataError(f, f"frame {fr.get('file_path')!r}: time {fr.get('time')!r} is not a number") from None
+
+
+def _camera(root: Path, split: str, f: Path, meta: dict[str, Any], fr: dict[str, Any], multiview: bool,
+            all_times: list[float]) -> Camera:
+    """The camera of one frame entry of transforms_<split>.json (`f`, `meta`)."""
+    try:
+        file_path = root / fr["file_path"]
+        c2w = np.array(fr["transform_matrix"], dtype=np.float64).reshape(4, 4)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DataError(f, f"frame entry without a valid {exc} (need file_path, transform_matrix)") from None
+    image = _find_image(file_path)
+    if image is None:
+        raise DataError(file_path, "image file is missing (no file with this name or a known extension)")
+
+    def get(key: str) -> Any:
+        return fr.get(key, meta.get(key))
+
+    width, height = get("w"), get("h")
+    if width is None or height is None:
+        width, height = image_size(image)
+    width, height = int(width), int(height)
+    if get("fl_x") is not None:
+        fx = float(get("fl_x"))
+        fy = float(get("fl_y") if get("fl_y") is not None else fx)
+    elif get("camera_angle_x") is not None:
+        fx = fov_to_focal(float(get("camera_angle_x")), width)
+        fy = fov_to_focal(float(get("camera_angle_y")), height) if get("camera_angle_y") is not None else fx
+    else:
+        raise DataError(f, "no intrinsics: need fl_x (and cx, cy) or camera_angle_x")
+    cx = float(get("cx")) if get("cx") is not None else width / 2.0
+    cy = float(get("cy")) if get("cy") is not None else height / 2.0
+    _refuse_distortion(f, get)
+    K = intrinsics(fx, fy, cx, cy)
+    time = float(fr.get("time", 0.0))
+    if multiview:
+        name = str(fr["camera"])
+        frame = int(fr["frame_index"]) if "frame_index" in fr else all_times.index(time)
+    else:
+        name = f"{split}_{Path(fr['file_path']).name}"  # D-NeRF reuses r_000 in train and test
+        frame = all_times.index(time)
+    if not np.all(np.isfinite(c2w)):
+        raise DataError(f, f"camera {name} frame {frame}: non-finite (NaN or inf) value in transform_matrix")
+    w2c = opengl_c2w_to_w2c(c2w)
+    _checked(f, name, frame, K, w2c)
+    return Camera(name, frame, 0.0, K, w2c, width, height, image)
+
+
 def _positions_of_ranks(times: list[float]) -> dict[int, float] | None:
     """Where each rank of the sorted distinct `times` lies on the frame axis: the times mapped linearly so that the
     first is at 0 and the last at len - 1. None when the times are evenly spaced (every rank is its position)."""
@@ -115,6 +139,16 @@ def _positions_of_ranks(times: list[float]) -> dict[int, float] | None:
     if all(abs(position - rank) <= 1e-6 for rank, position in positions.items()):
         return None
     return positions
+
+
+def _check_held_out_whole(entries: list[tuple[str, Path, Any, Any]], splits: dict[str, tuple[Path, Any]]) -> None:
+    """Multi-view scenes hold out whole cameras (every frame of a test camera is a test view): a camera listed in
+    both files would have its training images held out with the rest of it, so it is refused."""
+    names = {split: {str(fr["camera"]) for s, _, _, fr in entries if s == split} for split in splits}
+    both = sorted(names.get("train", set()) & names.get("test", set()))
+    if both:
+        raise DataError(splits["test"][0], f"camera(s) {', '.join(both)} also in transforms_train.json: a multi-view "
+                        "scene holds out whole cameras (all their frames), so list each camera in one file")
 
 
 def _check_duplicates(cameras: list[Camera], meta: Path) -> None:

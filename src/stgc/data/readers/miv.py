@@ -48,6 +48,8 @@ def read_miv(path: Path, options: ReaderOptions) -> SourceScene:
             raise DataError(path, f"expected one MIV sequence JSON, found {len(candidates)}")
         json_file, root = candidates[0], path
     meta = _load_json(json_file)
+    if not _is_miv_json(json_file):
+        raise DataError(json_file, "not an MIV sequence JSON (needs a 'cameras' list of objects with a 'Name')")
     entries = meta["cameras"]
     source_names = meta.get("sourceCameraNames")
     if source_names:

@@ -16,7 +16,8 @@ from .registry import ReaderOptions, register_reader
 
 
 @register_reader("n3dv", order=40, marker="poses_bounds.npy (N3DV)",
-                 detect=lambda path: path.is_dir() and (path / "poses_bounds.npy").is_file(),
+                 detect=lambda path: (path.parent if path.name == "poses_bounds.npy" else path).joinpath(
+                     "poses_bounds.npy").is_file(),
                  aliases=("dynerf", "llff", "n3d"))
 def read_n3dv(path: Path, options: ReaderOptions) -> SourceScene:
     """poses_bounds.npy (one LLFF row per camera, cameras in sorted name order) + camXX/NNNN.png,
@@ -46,6 +47,9 @@ def read_n3dv(path: Path, options: ReaderOptions) -> SourceScene:
         if not np.all(np.isfinite(row)):
             raise DataError(meta_file, f"camera {name}: non-finite (NaN or inf) value in its pose row")
         w2c, (h, w, focal) = llff_to_w2c(row[:15])
+        if min(h, w, focal) <= 0:
+            raise DataError(meta_file, f"camera {name}: height {h:g}, width {w:g} and focal {focal:g} must be "
+                                       "positive")
         if name in frame_dirs:
             files = _frame_files(frame_dirs[name])
             sources: dict[int, Path | VideoFrame] = dict(files)

@@ -40,13 +40,19 @@ def read_panoptic(path: Path, options: ReaderOptions) -> SourceScene:
             ks, w2cs, fns, ids = meta["k"], meta["w2c"], meta["fn"], meta["cam_id"]
         except (KeyError, TypeError, ValueError) as exc:
             raise DataError(meta_file, f"missing or bad key {exc} (need w, h, k, w2c, fn, cam_id)") from None
+        if not all(isinstance(v, list) for v in (ks, w2cs, fns, ids)):
+            raise DataError(meta_file, "k, w2c, fn and cam_id must be lists (one entry per frame)")
         if not (len(ks) == len(w2cs) == len(fns) == len(ids)):
             raise DataError(meta_file, "k, w2c, fn and cam_id have different numbers of frames")
         for t in range(len(ks)):
+            if not all(isinstance(v[t], list) for v in (ks, w2cs, fns, ids)):
+                raise DataError(meta_file, f"frame {t}: k, w2c, fn and cam_id must be lists (one entry per camera)")
             if not (len(ks[t]) == len(w2cs[t]) == len(fns[t]) == len(ids[t])):
                 raise DataError(meta_file, f"frame {t}: k, w2c, fn and cam_id have different numbers of cameras")
             for c in range(len(ks[t])):
                 name = str(ids[t][c])
+                if not isinstance(fns[t][c], str):
+                    raise DataError(meta_file, f"camera {name} frame {t}: fn {fns[t][c]!r} is not a file name")
                 stem = Path(fns[t][c]).stem
                 frame = int(stem) if stem.isdigit() else t
                 try:
@@ -93,7 +99,15 @@ def _panoptic_masks(root: Path) -> Callable[[Camera], Path | None] | None:
 
 
 def _panoptic_points(npz: Path) -> tuple[np.ndarray, np.ndarray]:
-    data = np.load(npz)["data"]
+    try:
+        with np.load(npz) as archive:
+            data = np.asarray(archive["data"], dtype=np.float64)
+    except KeyError:
+        raise DataError(npz, "no 'data' array (Dynamic 3D Gaussians' [N, 7]: x, y, z, r, g, b, seg)") from None
+    except (OSError, ValueError) as exc:
+        raise DataError(npz, f"unreadable point cloud: {exc}") from None
+    if data.ndim != 2 or data.shape[1] < 6:
+        raise DataError(npz, f"'data' is {list(data.shape)}; expected [N, 7] (x, y, z, r, g, b, seg)")
     return data[:, :3].astype(np.float32), _rgb01(data[:, 3:6])
 
 

@@ -82,18 +82,22 @@ def read_stg_colmap(path: Path, options: ReaderOptions) -> SourceScene:
     technicolor = (root / "cameras_parameters.txt").is_file()
     held_out = "cam10" if technicolor else "cam00"
     test = [held_out] if held_out in names else [sorted(names)[0]]
-    points = lambda frame: _colmap_points(dirs.get(frame))
+    # Without a points3D in any frame the dataset ships no points (init_source=auto then triangulates).
+    shipped = any(_points_file(d) is not None for d in dirs.values())
+    points = (lambda frame: _colmap_points(dirs.get(frame))) if shipped else None
     return SourceScene(name=root.name, format="stg-colmap", root=root, cameras=cameras, default_test=test,
                        meta_file=meta_file, fps=30.0, points=points,
                        points_description="colmap_<t>/sparse/0/points3D per frame", default_start=default_start)
 
 
-def _colmap_points(frame_dir: Path | None) -> tuple[np.ndarray, np.ndarray] | None:
-    if frame_dir is None:
-        return None
+def _points_file(frame_dir: Path) -> Path | None:
     model_dir = frame_dir / "sparse" / "0"
     ext = find_model_files(model_dir)
-    if ext is None or not (model_dir / f"points3D.{ext}").is_file():
+    return None if ext is None or not (model_dir / f"points3D.{ext}").is_file() else model_dir / f"points3D.{ext}"
+
+
+def _colmap_points(frame_dir: Path | None) -> tuple[np.ndarray, np.ndarray] | None:
+    if frame_dir is None or _points_file(frame_dir) is None:
         return None
-    xyz, rgb, _, _ = read_points(model_dir)
+    xyz, rgb, _, _ = read_points(frame_dir / "sparse" / "0")
     return xyz.astype(np.float32), rgb.astype(np.float32) / 255.0

@@ -16,7 +16,8 @@ from .registry import ReaderOptions, register_reader
 
 
 @register_reader("technicolor", order=50, marker="cameras_parameters.txt (Technicolor)",
-                 detect=lambda path: path.is_dir() and (path / "cameras_parameters.txt").is_file())
+                 detect=lambda path: (path.parent if path.name == "cameras_parameters.txt" else path).joinpath(
+                     "cameras_parameters.txt").is_file())
 def read_technicolor(path: Path, options: ReaderOptions) -> SourceScene:
     """cameras_parameters.txt (a header line, then per camera: f cx cy _ _ qw qx qy qz tx ty tz, a COLMAP-
     style w2c; camera k is row k) + <Scene>_undist_<frame:05d>_<cam:02d>.png. Test view: cam10."""
@@ -27,6 +28,8 @@ def read_technicolor(path: Path, options: ReaderOptions) -> SourceScene:
         lines = meta_file.read_text(encoding="utf-8").splitlines()
     except FileNotFoundError:
         raise DataError(meta_file, "file is missing") from None
+    except UnicodeDecodeError as exc:
+        raise DataError(meta_file, f"not a text file of numbers ({exc.reason} at byte {exc.start})") from None
     for number, line in enumerate(lines[1:], start=2):
         if not line.strip():
             continue
