@@ -59,12 +59,15 @@ def test_evaluation_records_per_dataset_and_per_bitstream(tmp_path):
 def test_create_refuses_an_existing_run_and_overwrite_clears_it(tmp_path):
     run = _fake_run(tmp_path / "run")
     (run.path / "model_q3.stgc").write_bytes(b"x")  # derived from the old model
+    # The experiment runner's label of the old run: kept, the report named the new run after the old plan entry.
+    (run.path / "experiment.json").write_text(json.dumps({"family": "ST-KNN", "label": "Case 2"}))
     (run.path / "notes.txt").write_text("mine")
     with pytest.raises(RunExistsError, match="--overwrite"):
         Run.create(run.path)
     fresh = Run.create(run.path, overwrite=True)
     assert not fresh.has_config() and fresh.latest_model_dir() is None
-    assert not (run.path / "model_q3.stgc").exists() and (run.path / "notes.txt").read_text() == "mine"
+    assert not (run.path / "model_q3.stgc").exists() and not (run.path / "experiment.json").exists()
+    assert (run.path / "notes.txt").read_text() == "mine"
 
 
 def test_progress_reads_the_files_of_a_run_training_elsewhere(tmp_path):

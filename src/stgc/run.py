@@ -39,8 +39,9 @@ RUN_FOLDERS = ("point_cloud", "tensorboard")
 # A whole-video run (`stgc train --segment-frames N`) holds one complete run per segment in RUN/segment_<k>/.
 SEGMENT_PREFIX = "segment_"
 # What later verbs derive from the run's model and keep beside it: bitstreams and their evaluations, evaluations on
-# other data. They describe the old model, so replacing the run removes them too.
-DERIVED_PATTERNS = ("*.stgc", "eval_*.json", "eval_*_per_view.csv", "seams_*.png")
+# other data, and the experiment runner's record of the plan entry the run was trained for. They describe the old
+# model, so replacing the run removes them too.
+DERIVED_PATTERNS = ("*.stgc", "eval_*.json", "eval_*_per_view.csv", "seams_*.png", "experiment.json")
 
 
 # RUN/point_cloud/iteration_<N>/point_cloud.ply: one saved model per N (official layout).
@@ -211,6 +212,15 @@ class Run:
         run is half-trained)."""
         return self.training_finished() or (self.path / self.RESTORED_FROM).is_file()
 
+    def final_iteration(self) -> int | None:
+        """The iteration of the model the run ends with: its finished training's, or the bitstream's a restored run
+        came from; None while it trains (or when the files do not say)."""
+        summary = self.read_summary(strict=False)
+        if summary and summary.get("finished"):
+            return _int_or_none(summary.get("iterations"))
+        restored = read_json_object(self.path / self.RESTORED_FROM, strict=False)
+        return None if restored is None else _int_or_none(restored.get("iteration"))
+
     def evaluated_finished_model(self) -> bool:
         """Whether the run's own evaluation record (eval.json) scored the model its finished training left: the
         record's iterations are the summary's. A record made while the run still trained (`stgc eval` of a
@@ -348,3 +358,10 @@ def official_run_args(path: str | Path) -> dict[str, Any] | None:
         return args
     except (SyntaxError, ValueError) as exc:
         raise FormatError(found, f"not an official STG cfg_args file ({exc})") from None
+
+
+def _int_or_none(value: Any) -> int | None:
+    try:
+        return None if value is None else int(value)
+    except (TypeError, ValueError):
+        return None

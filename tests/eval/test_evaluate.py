@@ -140,11 +140,33 @@ def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
     assert record["fps"] > 0
     assert (tmp_path / "eval.json").is_file() and "all" in format_eval_table(record)
     stgc = tmp_path / "model_q3.stgc"
-    stgc.write_bytes(b"x" * 500)
+    stgc.write_bytes(_bitstream({}))
     record = evaluate_run(stgc, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset(),
                           measure_fps=False)
-    assert record["size_bytes"] == 500 and record["fps"] is None
+    assert record["size_bytes"] == stgc.stat().st_size and record["fps"] is None
     assert (tmp_path / "eval_model_q3.json").is_file()
+
+
+def _bitstream(metadata: dict) -> bytes:
+    from stgc.codec.format import encode
+    from stgc.codec.synthetic import synthetic_model
+
+    arrays, _ = synthetic_model(20, "lite", seed=1)
+    return encode(arrays, "lite", None, 2, metadata=metadata)
+
+
+def test_a_bitstream_record_names_the_iteration_it_holds(tmp_path: Path) -> None:
+    """A .stgc of an earlier iteration (`stgc compress RUN/point_cloud/iteration_N`) was recorded with the run's
+    final iterations, and reported as the finished run's codec point."""
+    _seven_gaussian_run(tmp_path)
+    (tmp_path / "config.json").write_text("{}")
+    (tmp_path / "train_summary.json").write_text(json.dumps({"finished": True, "iterations": 20}))
+    stgc = tmp_path / "model_q2.stgc"
+    for iteration, final in ((5, False), (20, True)):
+        stgc.write_bytes(_bitstream({"iteration": iteration}))
+        record = evaluate_run(stgc, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset(),
+                              measure_fps=False)
+        assert record["iterations"] == iteration and record["training_finished"] is final
 
 
 def test_a_record_of_a_half_trained_run_says_so_and_is_not_the_finished_runs(tmp_path: Path, caplog) -> None:

@@ -126,6 +126,15 @@ def test_a_record_made_before_the_run_finished_is_not_its_result(tmp_path: Path,
                                                "training_finished": True}))
     (row,) = rows_from_run(run)
     assert row.psnr == 27.0 and "half-trained" not in row.name
+    # The same for a bitstream's record: one of an earlier iteration's model is not the run's codec point.
+    (run / "model_q2.stgc").write_bytes(b"0123456789")
+    earlier = {"psnr": 25.0, "mbps": 0.5, "size_bytes": 10, "iterations": 3000, "training_finished": False}
+    (run / "eval_model_q2.json").write_text(json.dumps(earlier))
+    with caplog.at_level("WARNING"):
+        assert [r.name for r in rows_from_run(run)] == [row.name]
+    assert "holds the model of iteration 3000" in caplog.text
+    (run / "eval_model_q2.json").write_text(json.dumps({**earlier, "iterations": 9000, "training_finished": True}))
+    assert [r.name for r in rows_from_run(run)] == [row.name, f"{row.name} model_q2"]
 
 
 def test_rate_axis_turns_logarithmic_when_the_rates_span_more_than_ten_times(tmp_path):

@@ -247,6 +247,13 @@ def write_eval(
             more["restored_from"] = restored.get("bitstream")
     if bitstream is not None:
         more.update(bitstream=Path(bitstream).name, bitstream_sha256=file_sha256(bitstream))
+        # The model the file holds, which need not be the run's final one (`stgc compress RUN/point_cloud/
+        # iteration_N`, or a half-trained run compressed and finished since): the report tells them apart.
+        iteration = read_stgc_metadata(bitstream).get("iteration")
+        if isinstance(iteration, int):
+            more["iterations"] = iteration
+            if run.has_config():
+                more["training_finished"] = iteration == run.final_iteration()
     more.update(extra or {})
     record = eval_record(result, model_info, more)
     write_json(json_path, record)

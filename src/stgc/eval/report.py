@@ -422,15 +422,15 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
     family = str(meta.get("family") or family)
     setting = str(meta.get("label") or meta.get("name") or setting)
     rows = []
+    summary = run.read_summary(strict=False)
     record = run.read_eval()
-    if record is not None and _stale_own_record(record, run.read_summary(strict=False)):
+    if record is not None and _scored_earlier_model(record, summary):
         log.warning("%s: left out of the report: it scored the model before the training finished (stgc eval the "
                     "run again)", run.eval_paths()[0])
     elif record is not None:
         # A run still training, scored by `stgc eval`: its numbers are not the run's result, and the table says so.
-        name = f"{setting} (half-trained)" if record.get("training_finished") is False else setting
-        rows.append(ReportRow.from_mapping({**record_fields(record), "name": name, "family": family,
-                                            "run": run_dir.name, "run_dir": str(run_dir)}))
+        rows.append(ReportRow.from_mapping({**record_fields(record), "name": _named(setting, record),
+                                            "family": family, "run": run_dir.name, "run_dir": str(run_dir)}))
     if include_codec:
         for path in sorted(run_dir.glob("eval_*.json")):
             rec = read_json_object(path)
@@ -442,16 +442,24 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
                 log.warning("%s: left out of the report: %s is missing or was written again after this "
                             "evaluation (stgc eval it again)", path, bitstream)
                 continue
-            rows.append(ReportRow.from_mapping({**record_fields(rec), "name": f"{setting} {point}",
+            if _scored_earlier_model(rec, summary):
+                log.warning("%s: left out of the report: %s holds the model of iteration %s, not the one the run "
+                            "ended with (compress and evaluate the run again)", path, bitstream, rec.get("iterations"))
+                continue
+            rows.append(ReportRow.from_mapping({**record_fields(rec), "name": _named(f"{setting} {point}", rec),
                                                 "family": f"{family} + codec", "run": run_dir.name,
                                                 "run_dir": str(run_dir), "bitstream": bitstream}))
     return rows
 
 
-def _stale_own_record(record: Mapping[str, Any], summary: Mapping[str, Any] | None) -> bool:
-    """Whether the run has finished since its eval.json was made (`stgc eval` of the half-trained run): the record
-    scored a model the run no longer ends with. Records that name neither (written before the fields existed, or
-    by other tools) are taken as they are."""
+def _named(name: str, record: Mapping[str, Any]) -> str:
+    return f"{name} (half-trained)" if record.get("training_finished") is False else name
+
+
+def _scored_earlier_model(record: Mapping[str, Any], summary: Mapping[str, Any] | None) -> bool:
+    """Whether a record of the run (its eval.json, or a bitstream's) scored a model the finished run does not end
+    with: made while the run trained (`stgc eval` of the half-trained run), or of an earlier iteration's file.
+    Records that name neither (written before the fields existed, or by other tools) are taken as they are."""
     if not (summary and summary.get("finished")):
         return False
     if record.get("training_finished") is False:

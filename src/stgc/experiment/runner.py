@@ -653,9 +653,9 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
                     command_builder: Callable[..., list[str]], python: str, log_path: Path,
                     say: Callable[[str], None], outcome: RunOutcome) -> str:
     run_dir.mkdir(parents=True, exist_ok=True)
-    write_json(Run(run_dir).experiment_path, {"name": spec.name, "family": spec.family, "label": spec.label,
-                                            "overrides": overrides, "preset": preset or "cpu",
-                                            "data": str(Path(data_path).resolve())})
+    entry = {"name": spec.name, "family": spec.family, "label": spec.label, "overrides": overrides,
+             "preset": preset or "cpu", "data": str(Path(data_path).resolve())}
+    write_json(Run(run_dir).experiment_path, entry)
     run = Run(run_dir)
     if not run.training_finished():
         resume = run.checkpoint_path.is_file() and run.has_config()
@@ -667,6 +667,7 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
             cmd = command_builder(data_path, run_dir, preset, overrides, resume=resume, python=python)
         say(f"[{spec.name}] {'resuming' if resume else 'training'} (log: {log_path})")
         code = runner(cmd, log_path)
+        write_json(run.experiment_path, entry)  # a new run's --overwrite removed it with whatever was there before
         if code != 0:
             outcome.message = f"train exited with status {code}; see {log_path}"
             say(f"[{spec.name}] FAILED: {outcome.message}")
