@@ -184,6 +184,17 @@ def test_a_whole_video_is_one_bitstream_that_evaluates_renders_and_restores(scen
     assert main(["eval", str(away / "copy.stgc"), "--no-fps"]) == 0
     moved = json.loads((away / "eval_copy.json").read_text())
     assert moved["psnr"] == pytest.approx(record["psnr"]) and moved["size_bytes"] == record["size_bytes"]
+    assert record["train_seconds"] > 0 and moved["train_seconds"] is None  # unknown away from its runs, not 0 s
+
+    # Copied into another video's folder (the same frames, other data): scored on its own data, as away from its
+    # run; it was scored on that folder's data.
+    other_scene = write_panoptic_scene(tmp_path / "other_scene", views=5, frames=5, width=32, height=24, seed=3)
+    other = tmp_path / "other"
+    assert main(["train", str(other_scene.root), "--out", str(other), "--segment-frames", "2", *QUICK]) == 0
+    shutil.copy(bitstream, other / "copy.stgc")
+    assert main(["eval", str(other / "copy.stgc"), "--no-fps"]) == 0
+    beside = json.loads((other / "eval_copy.json").read_text())
+    assert beside["psnr"] == pytest.approx(record["psnr"]) and beside["train_seconds"] is None
 
     # render plays across the segments of the file.
     assert main(["render", str(bitstream), "--camera", "0", "--out", str(tmp_path / "all.mp4")]) == 0

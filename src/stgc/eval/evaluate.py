@@ -385,9 +385,12 @@ class BitstreamSegment:
 
 def video_bitstream_segments(path: str | Path, data_path: str | Path | None = None) -> Iterator[BitstreamSegment]:
     """The segments of a whole-video .stgc in time order, decoded one at a time (random access: each reads only
-    its own bytes). A segment's dataset is its training run's when the file lies in the whole-video run it was
-    written from (RUN/<name>.stgc), else the one its embedded run config names (`data_path` replaces its location).
-    A dataset whose frames are not the segment's is an error, never a silently shifted timeline."""
+    its own bytes). A segment's dataset is the one its embedded run config names (`data_path` replaces its
+    location), as for a single model's file; without one, its training run's when the file lies in the whole-video
+    run it was written from (RUN/<name>.stgc). The run beside the file is the segment's (its name and training
+    time) only where its frames and data are the embedded ones: a container copied into another video's folder
+    of the same frames is scored on its own data. A dataset whose frames are not the segment's is an error, never
+    a silently shifted timeline."""
     path = Path(path)
     index = read_video_index(path)
     beside = Run(path.parent)
@@ -399,7 +402,11 @@ def video_bitstream_segments(path: str | Path, data_path: str | Path | None = No
         model, decoded = load_video_segment(path, k, index)
         source = f"{path} segment {k}"
         run = runs[k] if runs else None
-        dataset = open_saved_run_dataset(run.path) if run else open_embedded_dataset(decoded.metadata, source, data_path)
+        embedded = embedded_data_section(decoded.metadata)
+        if run is not None and embedded is not None and (run.read_config(strict=False) or {}).get("data") != embedded:
+            run = None  # another video's segment of the same frames
+        dataset = open_saved_run_dataset(run.path) if run and embedded is None else \
+            open_embedded_dataset(decoded.metadata, source, data_path)
         frames = sorted(int(f) for f in dataset.frames)
         if frames != list(range(entry.first_frame, entry.last_frame + 1)):
             raise DataError(source, f"covers frames {entry.first_frame}-{entry.last_frame}, but its dataset has frames "
@@ -600,7 +607,9 @@ def aggregate_video_records(records: Sequence[tuple[str, Mapping[str, Any]]]) ->
         "fps": _renders_per_second(rows),
         "num_views": sum(int(r.get("num_views") or 0) for r in rows),
         "segments": len(rows),
-        "train_seconds": sum(float(r.get("train_seconds") or 0.0) for r in rows),
+        # unknown for the whole when unknown for a part (a container away from its runs): not 0 s
+        "train_seconds": None if any(r.get("train_seconds") is None for r in rows) else
+        sum(float(r["train_seconds"]) for r in rows),
         "per_segment": {name: {"frames": [min(r.get("frames") or [0]), max(r.get("frames") or [0])],
                                "views": r.get("num_views"), "psnr": r.get("psnr"), "ssim": r.get("ssim"),
                                "psnr_yuv": r.get("psnr_yuv"), "num_gaussians": r.get("num_gaussians"),
