@@ -185,6 +185,9 @@ def test_a_whole_video_is_one_bitstream_that_evaluates_renders_and_restores(scen
     moved = json.loads((away / "eval_copy.json").read_text())
     assert moved["psnr"] == pytest.approx(record["psnr"]) and moved["size_bytes"] == record["size_bytes"]
     assert record["train_seconds"] > 0 and moved["train_seconds"] is None  # unknown away from its runs, not 0 s
+    # Its own data named with --data is its own data there too (it was filed as other data, eval_copy_on_<name>).
+    assert main(["eval", str(away / "copy.stgc"), "--data", str(scene.root), "--no-fps"]) == 0
+    assert sorted(p.name for p in away.glob("eval_*.json")) == ["eval_copy.json"]
 
     # Copied into another video's folder (the same frames, other data): scored on its own data, as away from its
     # run; it was scored on that folder's data.

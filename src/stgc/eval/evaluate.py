@@ -30,6 +30,7 @@ from stgc.codec import (
     read_stgc_metadata,
     read_video_index,
 )
+from stgc.codec.video import read_video_segment_metadata
 from stgc.config import same_place
 from stgc.data.cameras import Camera
 from stgc.data.config import data_config_from_saved, saved_run_data
@@ -507,7 +508,12 @@ def _other_data(run_dir: Path, data_path: str | Path | None, bitstream: Path | N
     `run_dir`'s)."""
     if data_path is None:
         return None
-    embedded = embedded_data_section(read_stgc_metadata(bitstream)) if bitstream is not None else None
+    if bitstream is None:
+        embedded = None
+    elif is_video_stgc(bitstream):  # each segment embeds its run's config; they share the video's data
+        embedded = embedded_data_section(read_video_segment_metadata(bitstream, 0))
+    else:
+        embedded = embedded_data_section(read_stgc_metadata(bitstream))
     if embedded is not None:
         saved_path = embedded.get("path")
     else:
@@ -546,12 +552,13 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
                    "data": str(data_path) if data_path is not None else None})
     seams = [seam_of(name, curve) for name, curve in curves]
     record["seams"] = [{k: v for k, v in seam.items() if k != "frames"} for seam in seams if seam]
-    # A whole-video container embeds no run config of its own (its segments do): the folder's is the video's.
-    json_path, csv_path = Run(target.parent).eval_paths(_other_data(target.parent, data_path), target)
+    other = _other_data(target.parent, data_path, target)
+    json_path, csv_path = Run(target.parent).eval_paths(other, target)
     write_json(json_path, record)
     _write_per_view(csv_path, rows)
     if record["seams"]:
-        seam_plot([seam for seam in seams if seam], target.parent / f"seams_{target.stem}.png")
+        seams_name = f"seams_{target.stem}" + (f"_on_{other}" if other else "")
+        seam_plot([seam for seam in seams if seam], target.parent / f"{seams_name}.png")
     return record
 
 
