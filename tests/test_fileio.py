@@ -22,3 +22,21 @@ def test_written_files_get_umask_permissions(tmp_path):
     finally:
         os.umask(umask)
     assert stat.S_IMODE((tmp_path / "x.json").stat().st_mode) == 0o644
+
+
+def test_a_folder_is_replaced_whole_or_not_at_all(tmp_path):
+    from stgc.fileio import atomic_folder
+
+    out = tmp_path / "out"
+    with atomic_folder(out) as tmp:
+        (tmp / "a").write_text("1")
+        (tmp / "b").write_text("1")
+    with pytest.raises(RuntimeError):
+        with atomic_folder(out) as tmp:
+            (tmp / "c").write_text("2")
+            raise RuntimeError("failed halfway")
+    assert sorted(p.name for p in out.iterdir()) == ["a", "b"]  # the earlier write, untouched
+    with atomic_folder(out) as tmp:
+        (tmp / "c").write_text("2")
+    assert sorted(p.name for p in out.iterdir()) == ["c"]  # not mixed with the earlier write
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no temporary folder left

@@ -98,6 +98,15 @@ def test_sh_dc_round_trip_and_the_cli(scene, tmp_path, capsys):
     # A selection outside the data is a clear error (exit status 2, the frames named), and nothing is written.
     assert main(["export", str(run), "--out", str(tmp_path / "bad"), "--frames", "7:9"]) == 2
     assert "frames 7:9" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+    # Exported again into the same folder: only this export's frames are there (the earlier ones were left beside
+    # them, unlisted); a folder with other files in it is refused, not replaced.
+    assert main(["export", str(run), "--out", str(tmp_path / "out"), "--frames", "0:1"]) == 0
+    listed = [f["file"] for f in json.loads((tmp_path / "out" / "export.json").read_text())["frames"]]
+    assert listed == ["frame_000000.ply"] and sorted(p.name for p in (tmp_path / "out").iterdir()) == \
+        ["export.json", "frame_000000.ply"]
+    (tmp_path / "out" / "notes.txt").write_text("mine")
+    assert main(["export", str(run), "--out", str(tmp_path / "out")]) == 2
+    assert "notes.txt" in capsys.readouterr().err and (tmp_path / "out" / "notes.txt").is_file()
 
 
 def _read_splatv(path):

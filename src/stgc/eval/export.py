@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,7 +37,7 @@ from plyfile import PlyData, PlyElement
 from stgc.data.dataset import Dataset
 from stgc.errors import DataError
 from stgc.eval.video import ModelSource, frame_selection, load_model_and_dataset
-from stgc.fileio import atomic_path, write_json
+from stgc.fileio import atomic_folder, atomic_path, write_json
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel
 
 SH_C0 = 0.28209479177387814  # the degree-0 real spherical harmonic, 1 / (2 sqrt(pi))
@@ -144,24 +145,32 @@ def export_ply_frames(source: ModelSource, out_dir: str | Path, frames: Any = No
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise DataError(out, "exists and is not a directory")
-    out.mkdir(parents=True, exist_ok=True)
+    foreign = sorted(p.name for p in out.iterdir() if not _written_by_export(p)) if out.is_dir() else []
+    if foreign:  # the folder is replaced as a whole: never with someone's files in it
+        raise DataError(out, f"holds files that are not an earlier export ({', '.join(foreign[:3])}"
+                             f"{', ...' if len(foreign) > 3 else ''}); choose a new or empty folder")
     origin = training_view_origin(dataset)
-    written, entries = [], []
-    for frame in chosen:
-        t = float(dataset.time_of(frame))
-        gaussians = gaussians_at(model, t, origin)
-        path = write_inria_ply(out / f"frame_{frame:06d}.ply", gaussians)
-        written.append(path)
-        entries.append({"frame": frame, "time": t, "file": path.name, "gaussians": len(gaussians)})
-    colour = ("exact: the lite model's own RGB as degree-0 SH" if model.decoder is None else
-              "the full model's decoder applied per Gaussian along the ray from the training cameras' centroid "
-              f"{[round(float(v), 6) for v in origin]}: no view dependence, and decoded per Gaussian instead of "
-              "per pixel")
-    write_json(out / "export.json", {"format": "ply-frames", "layout": "INRIA 3DGS (SH degree 3, bands 1-3 zero)",
-                                     "source": str(source) if isinstance(source, (str, Path)) else "in-memory model",
-                                     "variant": model.variant, "colour": colour, "frames": entries,
-                                     "sh_c0": SH_C0, "min_opacity": float(MIN_VISIBLE_OPACITY)})
-    return written
+    entries = []
+    with atomic_folder(out) as tmp:  # an earlier export's frames are not left beside this one's
+        for frame in chosen:
+            t = float(dataset.time_of(frame))
+            gaussians = gaussians_at(model, t, origin)
+            path = write_inria_ply(tmp / f"frame_{frame:06d}.ply", gaussians)
+            entries.append({"frame": frame, "time": t, "file": path.name, "gaussians": len(gaussians)})
+        colour = ("exact: the lite model's own RGB as degree-0 SH" if model.decoder is None else
+                  "the full model's decoder applied per Gaussian along the ray from the training cameras' centroid "
+                  f"{[round(float(v), 6) for v in origin]}: no view dependence, and decoded per Gaussian instead "
+                  "of per pixel")
+        write_json(tmp / "export.json", {
+            "format": "ply-frames", "layout": "INRIA 3DGS (SH degree 3, bands 1-3 zero)",
+            "source": str(source) if isinstance(source, (str, Path)) else "in-memory model",
+            "variant": model.variant, "colour": colour, "frames": entries,
+            "sh_c0": SH_C0, "min_opacity": float(MIN_VISIBLE_OPACITY)})
+    return [out / entry["file"] for entry in entries]
+
+
+def _written_by_export(path: Path) -> bool:
+    return path.is_file() and (path.name == "export.json" or re.fullmatch(r"frame_\d+\.ply", path.name) is not None)
 
 
 def static_render_inputs(gaussians: StaticGaussians) -> dict[str, torch.Tensor]:
