@@ -428,7 +428,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("report", help="tables, RD plots and BD deltas from any set of runs")
     p.add_argument("runs", nargs="+", help="run directories")
     p.add_argument("--out", required=True, help="report directory")
-    p.add_argument("--baseline", help="name of the baseline run (default: the first)")
+    p.add_argument("--baseline", help="the baseline curve: a method family, or a run (its name or path) whose "
+                   "family it is (default: the first run's family)")
     p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("demo", help="the whole pipeline on the small embedded scene (what `make demo` runs)")

@@ -147,6 +147,10 @@ def test_rate_axis_turns_logarithmic_when_the_rates_span_more_than_ten_times(tmp
     assert not rate_axis_is_log(close + [ReportRow(name="d", family="codec", mbps=0.5, psnr=None)])
     report = make_report(wide, tmp_path / "r")
     assert report.plot_png is not None and report.plot_png.stat().st_size > 0
+    # Written again with nothing to plot: no plot of the earlier rows stands beside the new table.
+    again = make_report([ReportRow(name="d", family="codec", mbps=0.5, psnr=None)], tmp_path / "r")
+    assert again.plot_png is None and sorted(p.name for p in (tmp_path / "r").iterdir()) == ["report.json",
+                                                                                           "report.md"]
 
 
 def test_rate_points_name_four_points_per_curve_spread_over_log_rate(tmp_path):
@@ -239,3 +243,17 @@ def test_a_rate_aware_run_without_experiment_json_is_not_reported_as_stg(tmp_pat
     assert describe_run(tmp_path / "mask-3e-4", masked) == ("learned mask", "mask-3e-4")
     rate_aware = {**plain, "train": {"quantization_aware": {**window, "mask": False}}}
     assert describe_run(tmp_path / "rate-1e-3", rate_aware) == ("rate-aware", "rate-1e-3")
+
+
+def test_a_record_with_a_value_that_is_no_number_names_its_file_and_a_baseline_may_be_a_runs_path(tmp_path):
+    from stgc.errors import FormatError
+
+    config = {"data": {}, "compaction": {"method": "none"}}
+    good = _fake_run(tmp_path, "good", config, {"psnr": 27.0, "mbps": 3.0})
+    other = _fake_run(tmp_path, "other", {"data": {}, "compaction": {"method": "st-knn", "case": 2}},
+                      {"psnr": 26.0, "mbps": 2.0})
+    assert report_from_runs([good, other], tmp_path / "out", baseline=str(other)).baseline == "ST-KNN (timestamp)"
+    bad = _fake_run(tmp_path, "bad", config, {"psnr": "abc", "mbps": 3.0})
+    with pytest.raises(FormatError, match="not an evaluation record") as info:
+        rows_from_run(bad)
+    assert info.value.path == bad / "eval.json"

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from stgc.config import same_place
-from stgc.errors import DataError
+from stgc.errors import DataError, FormatError
 from stgc.eval.bjontegaard import BDError, Method, bd_psnr, bd_rate
 from stgc.fileio import atomic_open, atomic_path, read_json_object, write_json
 from stgc.run import Run
@@ -153,8 +153,10 @@ def resolve_baseline(rows: Sequence[ReportRow], baseline: str | None) -> str | N
     families = _families(rows)
     if baseline in families:
         return baseline
-    for r in rows:
-        if baseline in (r.name, r.extra.get("run"), Path(str(r.extra.get("run_dir", ""))).name):
+    for r in rows:  # a run by name, or by the path `stgc report` was given it as
+        run_dir = str(r.extra.get("run_dir", ""))
+        if baseline in (r.name, r.extra.get("run"), Path(run_dir).name) or (
+                run_dir and Path(baseline).exists() and same_place(baseline, run_dir)):
             return r.family
     raise ValueError(f"baseline {baseline!r} is neither a method family ({', '.join(families)}) nor a run name")
 
@@ -372,6 +374,9 @@ def _write_report(rows: list[ReportRow], out_dir: Path, baseline: str | None, ti
     if any(r.mbps is not None and r.psnr is not None for r in rows):
         png, svg = out_dir / f"{stem}_rd.png", out_dir / f"{stem}_rd.svg"
         rd_plot(rows, png, svg, title, base)
+    else:  # nothing to plot: an earlier report's plot must not stand beside this table
+        for stale in (out_dir / f"{stem}_rd.png", out_dir / f"{stem}_rd.svg"):
+            stale.unlink(missing_ok=True)
     md = out_dir / f"{stem}.md"
     with atomic_open(md, "w") as f:
         f.write(f"# {title}\n\n")
@@ -429,8 +434,8 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
                     "run again)", run.eval_paths()[0])
     elif record is not None:
         # A run still training, scored by `stgc eval`: its numbers are not the run's result, and the table says so.
-        rows.append(ReportRow.from_mapping({**record_fields(record), "name": _named(setting, record),
-                                            "family": family, "run": run_dir.name, "run_dir": str(run_dir)}))
+        rows.append(_row_of(run.eval_paths()[0], {**record_fields(record), "name": _named(setting, record),
+                                                  "family": family, "run": run_dir.name, "run_dir": str(run_dir)}))
     if include_codec:
         for path in sorted(run_dir.glob("eval_*.json")):
             rec = read_json_object(path)
@@ -446,10 +451,17 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
                 log.warning("%s: left out of the report: %s holds the model of iteration %s, not the one the run "
                             "ended with (compress and evaluate the run again)", path, bitstream, rec.get("iterations"))
                 continue
-            rows.append(ReportRow.from_mapping({**record_fields(rec), "name": _named(f"{setting} {point}", rec),
-                                                "family": f"{family} + codec", "run": run_dir.name,
-                                                "run_dir": str(run_dir), "bitstream": bitstream}))
+            rows.append(_row_of(path, {**record_fields(rec), "name": _named(f"{setting} {point}", rec),
+                                       "family": f"{family} + codec", "run": run_dir.name,
+                                       "run_dir": str(run_dir), "bitstream": bitstream}))
     return rows
+
+
+def _row_of(path: Path, fields: Mapping[str, Any]) -> ReportRow:
+    try:
+        return ReportRow.from_mapping(fields)
+    except (TypeError, ValueError) as exc:
+        raise FormatError(path, f"not an evaluation record stgc can report: {exc}") from None
 
 
 def _named(name: str, record: Mapping[str, Any]) -> str:
