@@ -150,7 +150,7 @@ def export_ply_frames(source: ModelSource, out_dir: str | Path, frames: Any = No
         raise DataError(out, f"holds files that are not an earlier export ({', '.join(foreign[:3])}"
                              f"{', ...' if len(foreign) > 3 else ''}); choose a new or empty folder")
     origin = training_view_origin(dataset)
-    entries = []
+    entries: list[dict[str, Any]] = []
     with atomic_folder(out) as tmp:  # an earlier export's frames are not left beside this one's
         for frame in chosen:
             t = float(dataset.time_of(frame))
@@ -166,7 +166,7 @@ def export_ply_frames(source: ModelSource, out_dir: str | Path, frames: Any = No
             "source": str(source) if isinstance(source, (str, Path)) else "in-memory model",
             "variant": model.variant, "colour": colour, "frames": entries,
             "sh_c0": SH_C0, "min_opacity": float(MIN_VISIBLE_OPACITY)})
-    return [out / entry["file"] for entry in entries]
+    return [out / str(entry["file"]) for entry in entries]
 
 
 def _written_by_export(path: Path) -> bool:
