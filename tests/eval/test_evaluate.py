@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,6 +75,13 @@ def test_evaluate_accepts_model_render_objects_and_rejects_size_mismatch() -> No
 
     r = evaluate(lambda c: Out(torch.from_numpy(_gt(c) / 255.0)), CAMS[:2], _gt)
     assert r.views[0].psnr == float("inf") and r.ssim == pytest.approx(1.0)
+    # One exact view among others counts at the ceiling: the mean stays finite (it was inf, and the record null).
+    from stgc.eval.evaluate import PSNR_CEILING_DB
+
+    mixed = evaluate(lambda c: _gt(c) / 255.0 if c.frame == 0 else _noisy_render(c), CAMS[:2], _gt)
+    assert mixed.views[0].psnr == float("inf")
+    assert mixed.psnr == pytest.approx((PSNR_CEILING_DB + mixed.views[1].psnr) / 2)
+    assert mixed.overall["psnr_yuv"] is not None and math.isfinite(mixed.overall["psnr_yuv"])
     with pytest.raises(DataError, match="ground-truth"):
         evaluate(lambda c: torch.zeros(8, 8, 3), CAMS[:1], _gt)
 
@@ -139,6 +147,11 @@ def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
     assert record["mbps"] == pytest.approx(7 * 128 * 8 / 1e6 / 2.0)
     assert record["fps"] > 0
     assert (tmp_path / "eval.json").is_file() and "all" in format_eval_table(record)
+    # A saved model's PLY named itself is scored into its folder (it rendered every view, then could not write
+    # PLY/eval.json).
+    record = evaluate_run(it / "point_cloud.ply", load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset(),
+                          measure_fps=False)
+    assert record["num_gaussians"] == 7 and (it / "eval.json").is_file()
     stgc = tmp_path / "model_q3.stgc"
     stgc.write_bytes(_bitstream({}))
     record = evaluate_run(stgc, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset(),

@@ -89,17 +89,23 @@ class EvalResult:
         return float(self.overall["ssim"])  # type: ignore[arg-type]
 
 
-def _mean(values: Iterable[float | None]) -> float | None:
-    vals = [v for v in values if v is not None]
+# A view rendered exactly has an infinite PSNR, which would make every mean it enters infinite (and the record
+# null). Means count such a view at this ceiling (an MSE of 1e-10 on [0, 1] images), as video-coding tools cap
+# identical pictures; the per-view CSV keeps the exact value.
+PSNR_CEILING_DB = 100.0
+
+
+def _mean(values: Iterable[float | None], ceiling: float = math.inf) -> float | None:
+    vals = [min(v, ceiling) for v in values if v is not None]
     return float(np.mean(vals)) if vals else None
 
 
 def _aggregate(views: Sequence[ViewScore]) -> dict[str, float | None]:
     return {
-        "psnr": _mean(v.psnr for v in views),
+        "psnr": _mean((v.psnr for v in views), PSNR_CEILING_DB),
         "ssim": _mean(v.ssim for v in views),
         "lpips": _mean(v.lpips for v in views),
-        **{key: _mean(v.yuv.get(key) for v in views) for key in YUV_KEYS},
+        **{key: _mean((v.yuv.get(key) for v in views), PSNR_CEILING_DB) for key in YUV_KEYS},
         "views": len(views),
     }
 
@@ -439,7 +445,8 @@ def evaluate_run(
     `load_model` / `open_dataset` default to `stgc.model.STGModel.load` (or `stgc.codec.load_model` for .stgc)
     and the dataset named in RUN/config.json; tests inject fakes."""
     target = Path(target)
-    run_dir = target.parent if target.suffix == ".stgc" else target
+    # A file (a bitstream, or a saved model's PLY) is scored into the folder it lies in.
+    run_dir = target.parent if target.is_file() or target.suffix == ".stgc" else target
     if not target.exists():
         raise DataError(target, "no such run directory or bitstream")
     if target.suffix != ".stgc" and Run(target).is_video():
