@@ -135,11 +135,8 @@ def run_tasks(tasks: Sequence[Task], *, use_ray: bool = False, address: str | No
     for index, task in enumerate(tasks):
         if any(not 0 <= earlier < index for earlier in task.after):
             raise ValueError(f"task {task.name!r} comes after {task.after}: only tasks listed before it")
-    if address is not None and not use_ray:
-        raise StgcError("--ray-address names a Ray cluster, and --no-ray asks for none: give one of them")
+    check_ray_options(use_ray, address)
     if use_ray and not ray_available():
-        if address is not None:
-            raise StgcError(f"--ray-address {address}: Ray is not installed (pip install 'stgc[distributed]')")
         global _said_no_ray
         if not _said_no_ray:
             log.warning("Ray is not installed: the %d tasks run one after another in this process "
@@ -149,6 +146,14 @@ def run_tasks(tasks: Sequence[Task], *, use_ray: bool = False, address: str | No
     if not use_ray:
         return _run_in_process(tasks, on_done, start_if)
     return _run_on_ray(tasks, address, max_retries, on_done, show_progress, start_if)
+
+
+def check_ray_options(use_ray: bool, address: str | None) -> None:
+    """Refuse Ray options that contradict each other or this machine (call it before writing anything)."""
+    if address is not None and not use_ray:
+        raise StgcError("--ray-address names a Ray cluster, and --no-ray asks for none: give one of them")
+    if address is not None and not ray_available():
+        raise StgcError(f"--ray-address {address}: Ray is not installed (pip install 'stgc[distributed]')")
 
 
 def _failed_before(task: Task, tasks: Sequence[Task], failures: Mapping[str, str]) -> str | None:
@@ -172,6 +177,10 @@ def _run_in_process(tasks: Sequence[Task], on_done: Callable[[int, Any], None] |
         except StgcError as error:  # the task's own failure (bad data): the others still run
             log.error("%s failed: %s", task.name, error)
             failures[task.name] = _with_log(str(error), task)
+            continue
+        except Exception as error:  # any other failure is the task's too, as on Ray: its traceback goes to the log
+            log.error("%s failed", task.name, exc_info=True)
+            failures[task.name] = _with_log(f"{type(error).__name__}: {error}", task)
             continue
         if on_done is not None:
             on_done(index, results[index])

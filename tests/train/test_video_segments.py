@@ -247,3 +247,48 @@ def test_a_video_whose_start_was_killed_before_saving_its_options_is_not_resumed
     assert main(["train", str(scene.root), "--out", str(run), "--resume"]) == 2
     assert "before it saved its options" in capsys.readouterr().err
     assert not (run / "segment_000").exists()
+
+
+def test_segments_without_test_views_and_contradicting_ray_options_are_refused_before_anything_is_written(
+        scene, tmp_path, capsys):
+    """Monocular data holds out images at a few times: a segment without one trained to its end, then failed its
+    evaluation (and stopped the segments after it), leaving a video nothing could evaluate. --no-ray with
+    --ray-address was refused after the run folder was written (a second start then found 'a run')."""
+    from PIL import Image
+
+    from stgc.data.cameras import w2c_to_opengl_c2w
+
+    mono = tmp_path / "mono"
+    times = {"train": [0.0, 0.25, 0.5, 0.75, 1.0], "test": [0.1]}
+    for split, ts in times.items():
+        frames = []
+        for i, t in enumerate(ts):
+            (mono / split).mkdir(parents=True, exist_ok=True)
+            Image.fromarray(np.full((12, 16, 3), 60 * i, np.uint8)).save(mono / split / f"r_{i:03d}.png")
+            w2c = np.eye(4)
+            w2c[:3, 3] = [0, 0, 3]
+            frames.append({"file_path": f"./{split}/r_{i:03d}", "time": t,
+                           "transform_matrix": w2c_to_opengl_c2w(w2c).tolist()})
+        (mono / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
+    out = tmp_path / "video"
+    assert main(["train", str(mono), "--out", str(out), "--segment-frames", "2", *QUICK]) == 2
+    assert "segment_001, segment_002 would have no test view" in capsys.readouterr().err and not out.exists()
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", *QUICK,
+                 "--ray-address", "127.0.0.1:1"]) == 2
+    assert "--no-ray asks for none" in capsys.readouterr().err and not out.exists()
+
+
+def test_a_segment_that_raises_anything_fails_alone_and_the_others_still_run(tmp_path):
+    """In this process as on Ray: an error that is not the data's (a bug) stopped every segment after it."""
+    from stgc.distributed import Task, TasksFailed, run_tasks
+
+    def work(x: int) -> int:
+        if x == 1:
+            raise ZeroDivisionError("a bug")
+        return x
+
+    tasks = [Task(name=f"t{k}", function=work, args=(k,)) for k in range(3)]
+    done = []
+    with pytest.raises(TasksFailed, match="ZeroDivisionError: a bug"):
+        run_tasks(tasks, on_done=lambda i, r: done.append(r))
+    assert done == [0, 2]

@@ -21,7 +21,7 @@ from typing import Any
 
 from stgc.data import DataConfig
 from stgc.data.dataset import segments
-from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
+from stgc.distributed import Task, check_ray_options, check_reachable, cpus_for_threads, run_tasks
 from stgc.errors import StgcError
 from stgc.run import Run
 from stgc.train.config import TrainConfig
@@ -49,8 +49,9 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
     returns their training summaries in time order. resume: continue the video in `out_dir` (its saved segments;
     `segment_frames` must be None or the saved value); a finished segment is never trained again. evaluator: as
     `train`'s, for every segment."""
+    check_ray_options(use_ray, ray_address)  # refused before anything is written
     if use_ray and ray_address is not None:
-        check_reachable(ray_address)  # refused in seconds, before anything is written
+        check_reachable(ray_address)  # refused in seconds
     # Absolute: a worker on another node reads relative paths against its own working directory.
     data_path, out_dir = Path(data_path).resolve(), Path(out_dir).resolve()
     run = Run(out_dir)
@@ -73,6 +74,7 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
         data_cfg: DataConfig = configs["data"]
         whole = data_cfg.open(data_path)  # the frame window the data options select
         plan = plan_segments(list(whole.frames), int(segment_frames))
+        _refuse_segments_without_test_views(plan, whole, data_path)
         run = Run.create(out_dir, overwrite=overwrite)
         # video.json first: a start killed before config.json is still a video that --resume recognises.
         run.write_video({"segment_frames": int(segment_frames), "data_path": str(Path(data_path).resolve()),
@@ -95,6 +97,17 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
                           log_file=segment_run.task_log_path))
     run_tasks(tasks, use_ray=use_ray, address=ray_address)
     return [segment_run.read_summary() or {} for segment_run in run.segments()]
+
+
+def _refuse_segments_without_test_views(plan: list[dict[str, Any]], whole: Any, data_path: Path) -> None:
+    """Every segment is evaluated on its own test views: one without any (monocular data whose held-out images lie
+    at a few times) would fail at its end, after its training, and leave the video unevaluable."""
+    empty = [str(s["name"]) for s in plan
+             if not any(whole.test_at(f) for f in range(int(s["start"]), int(s["start"]) + int(s["duration"])))]
+    if empty:
+        raise StgcError(f"{data_path}: segment(s) {', '.join(empty)} would have no test view (the held-out images "
+                        "lie at other frames); choose longer segments (--segment-frames) or hold out views at every "
+                        "frame (--data.test_cameras)")
 
 
 def train_segment(data_path: str, configs: dict[str, Any], segment_dir: str,
