@@ -172,22 +172,26 @@ def cmd_render(args: argparse.Namespace) -> int:
         if out.suffix.lower() != ".png" or args.orbit or args.time is not None:
             raise StgcError(f"{out}: a contact sheet is a .png of test cameras at --frames (not --orbit/--time)")
 
-        model, dataset = load_model_and_dataset(args.run)
-        frames = args.frames or f"{min(dataset.frames)},{max(dataset.frames)}"
+        model, dataset = load_model_and_dataset(args.run, data_path=args.data)
+        # Monocular data holds out images at some frames only: the first and last of those.
+        shown = list(dataset.frames) if dataset.multiview else sorted({c.frame for c in dataset.test}) or \
+            list(dataset.frames)
+        frames = args.frames or f"{min(shown)},{max(shown)}"
         contact_sheet(model, dataset, frames, out, cameras=[args.camera] if args.camera else None)
     elif out.suffix.lower() == ".png":
         if args.orbit or args.frames:
             raise StgcError(f"{out}: a .png is one still; use .mp4 for --orbit or --frames")
 
-        model, dataset = load_model_and_dataset(args.run)
-        camera = args.camera or dataset.test[0].name
+        model, dataset = load_model_and_dataset(args.run, data_path=args.data)
+        camera = args.camera or str((dataset.test or dataset.train)[0].name)
         render_still(model, camera, 0.0 if args.time is None else args.time, out, dataset=dataset)
     elif out.suffix.lower() in (".mp4", ".gif"):
         if args.time is not None:
             raise StgcError(f"{out}: --time is a still's; a video's frames give its times (use --frames)")
         if args.orbit and (args.camera or args.frames):
             raise StgcError(f"{out}: an --orbit follows its own path over all frames (not --camera/--frames)")
-        render_video(args.run, out, camera_name=args.camera, frames=args.frames, orbit=args.orbit)
+        render_video(args.run, out, camera_name=args.camera, frames=args.frames, orbit=args.orbit,
+                     data_path=args.data)
     else:
         raise StgcError(f"{out}: output must end in .png or .mp4")
     print(f"wrote {out}")
@@ -198,9 +202,9 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.format == "splatv":
         if args.frames:
             raise StgcError("--frames applies to ply-frames; a .splatv file holds the whole model over time")
-        print(f"wrote {export_splatv(args.source, args.out)}")
+        print(f"wrote {export_splatv(args.source, args.out, data_path=args.data)}")
         return 0
-    written = export_ply_frames(args.source, args.out, frames=args.frames)
+    written = export_ply_frames(args.source, args.out, frames=args.frames, data_path=args.data)
     print(f"wrote {len(written)} static 3DGS PLY file(s) to {args.out} (what each holds: {Path(args.out) / 'export.json'})")
     return 0
 
@@ -210,7 +214,8 @@ def cmd_view(args: argparse.Namespace) -> int:
         raise StgcError(f"--port {args.port}: a TCP port is 1..65535")
     if args.max_side is not None and args.max_side < 16:
         raise StgcError(f"--max-side {args.max_side}: at least 16 pixels")
-    serve(args.source, host=args.host, port=args.port, max_side=args.max_side, bitstream=args.bitstream)
+    serve(args.source, host=args.host, port=args.port, max_side=args.max_side, bitstream=args.bitstream,
+          data_path=args.data)
     return 0
 
 
@@ -308,6 +313,10 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_train)
 
 
+MODEL_DATA_HELP = ("dataset directory (default: the one recorded in the run; needed for a model without stgc's run "
+                   "config, such as an official STG run)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="stgc",
@@ -356,6 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--contact-sheet", action="store_true",
                    help="FILE.png with one row per test camera (or --camera) and frame: ground truth | render | "
                         "|error| x4 (default frames: the first and the last)")
+    p.add_argument("--data", help=MODEL_DATA_HELP)
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("export", help="write a run or .stgc file for other tools (one static 3DGS PLY per frame)")
@@ -365,6 +375,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "whole model as one file for the splaTV browser viewer")
     p.add_argument("--out", required=True, help="output folder (ply-frames) or FILE.splatv")
     p.add_argument("--frames", help="frame range A:B or frames A,B,... (default: all)")
+    p.add_argument("--data", help=MODEL_DATA_HELP)
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("view", help="an interactive viewer in the browser for a run or a .stgc file (viser)")
@@ -375,6 +386,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: the dataset's); a dataset camera always renders at its own size")
     p.add_argument("--bitstream", metavar="NAME.stgc", help="show the run's bitstream of this name (for a whole "
                    "video, each segment's, played as one timeline) instead of its trained model")
+    p.add_argument("--data", help=MODEL_DATA_HELP)
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("compress", help="write a trained run as a compact .stgc bitstream")

@@ -96,10 +96,12 @@ class ViewerScene:
         self._lock = threading.Lock()  # torch renders from several browser threads, one at a time
 
     @classmethod
-    def open(cls, source: str | Path, bitstream: str | None = None) -> ViewerScene:
+    def open(cls, source: str | Path, bitstream: str | None = None,
+             data_path: str | Path | None = None) -> ViewerScene:
         """A run directory (single or whole-video), an iteration directory or PLY, or a `.stgc` bitstream.
         bitstream: show the run's (each segment's, for a whole video) file of this name instead of its model, so a
-        whole video's bitstreams play as one timeline."""
+        whole video's bitstreams play as one timeline. data_path: the dataset, where the saved one moved or the
+        model has no stgc run config (an official run)."""
         path = Path(source)
         if not path.exists():
             raise DataError(path, "not found: give a run directory or a .stgc file")
@@ -117,10 +119,10 @@ class ViewerScene:
             folders = [f / bitstream for f in folders]
         if len(folders) == 1 and is_video_stgc(folders[0]):
             return cls([Segment(s.model, s.dataset, sorted(int(f) for f in s.dataset.frames), s.size)
-                        for s in video_bitstream_segments(folders[0])], path)
+                        for s in video_bitstream_segments(folders[0], data_path)], path)
         segments = []
         for target in folders:
-            model, dataset = load_model_and_dataset(target)
+            model, dataset = load_model_and_dataset(target, data_path=data_path)
             duration = dataset_duration_s(dataset)
             if target.suffix == ".stgc":
                 size = bitstream_size(target, model.num_gaussians, model.variant, duration)
@@ -533,13 +535,14 @@ class Viewer:
 
 
 def serve(source: str | Path, host: str = "127.0.0.1", port: int = 8080, max_side: int | None = None,
-          on_ready: Callable[[Viewer], None] | None = None, bitstream: str | None = None) -> None:
+          on_ready: Callable[[Viewer], None] | None = None, bitstream: str | None = None,
+          data_path: str | Path | None = None) -> None:
     """`stgc view`: open `source`, serve it at host:port until Ctrl-C."""
     try:
         import viser  # noqa: F401
     except ImportError:
         raise StgcError("the viewer needs viser: pip install 'stgc[viewer]'") from None
-    scene = ViewerScene.open(source, bitstream)
+    scene = ViewerScene.open(source, bitstream, data_path)
     viewer = Viewer(scene, host=host, port=port, max_side=max_side)
     print(f"stgc view: {source} at {viewer.url} (Ctrl-C stops)", flush=True)
     if on_ready is not None:

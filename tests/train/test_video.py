@@ -28,6 +28,13 @@ def test_fixed_view_video_has_one_frame_per_selected_frame(tiny_toys, model, tmp
     frames = iio.imread(out)
     cam = tiny_toys.test[0]
     assert frames.shape == (2, cam.height, cam.width, 3)
+    # Each video frame is the camera's render at that frame's time (H.264 costs a little; a wrong camera or
+    # time costs far more).
+    for k, frame in enumerate((0, 1)):
+        view = next(c for c in tiny_toys.test_at(frame) if c.name == "cam00")
+        direct = model.render(view, t=view.time).rgb.detach().clamp(0, 1).numpy()
+        mse = np.mean((frames[k] / 255.0 - direct) ** 2)
+        assert 10 * np.log10(1 / mse) > 30
 
 
 def test_orbit_video_and_path(tiny_toys, model, tmp_path):
@@ -79,3 +86,66 @@ def test_render_verb_writes_the_contact_sheet_of_the_first_and_last_frame(tiny_t
     assert np.array_equal(iio.imread(tmp_path / "cli.png"), iio.imread(direct))
     assert main(["render", str(tmp_path / "run"), "--contact-sheet", "--orbit", "--out", str(tmp_path / "x.png")]) == 2
     assert "contact sheet" in capsys.readouterr().err
+
+
+def test_an_official_run_renders_exports_and_opens_in_the_viewer_on_the_data_it_is_given(tiny_toys, model, tmp_path,
+                                                                                        capsys):
+    """A model without stgc's run config (an official STG run) needs the dataset named: only `stgc eval` took
+    --data, and the others' error named an option they did not have."""
+    import json
+
+    from stgc.cli import main
+    from stgc.viewer import ViewerScene
+
+    run = tmp_path / "official"
+    model.save(run / "point_cloud" / "iteration_5")
+    (run / "cfg_args").write_text("Namespace(duration=3, rgbfunction='sandwich')")  # its frames 0-2
+    still = tmp_path / "still.png"
+    assert main(["render", str(run), "--out", str(still)]) == 2
+    assert "--data" in capsys.readouterr().err
+    data = str(tiny_toys.root)
+    assert main(["render", str(run), "--out", str(still), "--data", data]) == 0
+    full = next(c for c in tiny_toys.test if c.frame == 0)
+    assert iio.imread(still).shape == (2 * full.height, 2 * full.width, 3)  # opened at the data's own size
+    assert main(["export", str(run), "--out", str(tmp_path / "frames"), "--data", data]) == 0
+    assert len(json.loads((tmp_path / "frames" / "export.json").read_text())["frames"]) == 3
+    scene = ViewerScene.open(run, data_path=data)
+    assert [f for s in scene.segments for f in s.frames] == [0, 1, 2]
+
+
+def test_monocular_data_renders_its_default_video_and_contact_sheet(tmp_path, capsys):
+    """Each image of monocular data is its own view: a fixed camera keeps its pose through the frames' times, and
+    the contact sheet shows each frame's own held-out views (both were refused: 'no view at frame 1')."""
+    import json
+
+    from PIL import Image
+
+    from stgc.cli import main
+    from stgc.data import open_dataset
+    from stgc.data.cameras import w2c_to_opengl_c2w
+    from stgc.model import STGModel
+    from stgc.train import TrainConfig, train
+
+    root = tmp_path / "mono"
+    for split, times in {"train": [0.0, 0.5, 1.0], "test": [0.25, 0.75]}.items():
+        frames = []
+        for i, t in enumerate(times):
+            (root / split).mkdir(parents=True, exist_ok=True)
+            Image.fromarray(np.full((12, 16, 3), 40 + 50 * i, np.uint8)).save(root / split / f"r_{i:03d}.png")
+            w2c = np.eye(4)
+            w2c[:3, 3] = [0.1 * i, 0, 3]
+            frames.append({"file_path": f"./{split}/r_{i:03d}", "time": t,
+                           "transform_matrix": w2c_to_opengl_c2w(w2c).tolist()})
+        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
+    dataset = open_dataset(root)
+    rng = np.random.default_rng(0)
+    cloud = type("Cloud", (), {"xyz": rng.normal(size=(50, 3)).astype(np.float32),
+                               "rgb": rng.random((50, 3)).astype(np.float32),
+                               "time": rng.random(50).astype(np.float32)})
+    model = STGModel.from_points(cloud, variant="lite", scene_extent=1.0)
+    cfg = TrainConfig(iterations=1, progress=False, tensorboard=False, eval_at_end=False, save_iterations=())
+    train(dataset, None, None, cfg, None, tmp_path / "run", model=model)
+    assert main(["render", str(tmp_path / "run"), "--out", str(tmp_path / "m.mp4")]) == 0
+    assert iio.imread(tmp_path / "m.mp4").shape[:3] == (5, 12, 16)  # frames 0-4 (ranks of the five times)
+    assert main(["render", str(tmp_path / "run"), "--contact-sheet", "--out", str(tmp_path / "cs.png")]) == 0
+    assert iio.imread(tmp_path / "cs.png").shape[0] == 2 * 12 + 2  # frames 1 and 3, each its own test view

@@ -135,7 +135,7 @@ def test_a_video_renders_across_its_segments(scene, tmp_path):
     assert main(["render", str(out), "--orbit", "--out", str(tmp_path / "orbit.mp4")]) == 2
 
 
-def test_a_whole_video_is_one_bitstream_that_evaluates_renders_and_restores(scene, tmp_path):
+def test_a_whole_video_is_one_bitstream_that_evaluates_renders_and_restores(scene, tmp_path, capsys):
     out = tmp_path / "video"
     assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", *QUICK]) == 0
     bitstream = out / "video.stgc"
@@ -203,6 +203,8 @@ def test_a_whole_video_is_one_bitstream_that_evaluates_renders_and_restores(scen
     assert main(["render", str(bitstream), "--camera", "0", "--out", str(tmp_path / "all.mp4")]) == 0
     assert len(imageio.mimread(tmp_path / "all.mp4")) == 5
     assert main(["render", str(bitstream), "--out", str(tmp_path / "still.png")]) == 2  # a still has no segment
+    assert main(["export", str(out), "--out", str(tmp_path / "frames")]) == 2  # nor an export of the whole run
+    assert "each segment is its own model" in capsys.readouterr().err
 
     # decompress restores a whole-video run, which evaluates to the bitstream's numbers.
     restored = tmp_path / "restored"

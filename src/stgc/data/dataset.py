@@ -224,6 +224,11 @@ class Dataset:
         return None if path is None else read_mask(path, camera.width, camera.height)
 
     @property
+    def multiview(self) -> bool:
+        """Every view has every frame (False for monocular data: each image its own view)."""
+        return bool(self._scene.multiview)
+
+    @property
     def synthetic(self) -> bool:
         """Rendered images (identical camera responses), not a real capture."""
         return self._scene.synthetic

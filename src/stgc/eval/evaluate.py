@@ -33,7 +33,7 @@ from stgc.codec import (
 from stgc.codec.video import read_video_segment_metadata
 from stgc.config import same_place
 from stgc.data.cameras import Camera
-from stgc.data.config import data_config_from_saved, saved_run_data
+from stgc.data.config import DataConfig, data_config_from_saved, saved_run_data
 from stgc.data.config import open_run_dataset as open_saved_run_dataset
 from stgc.data.dataset import Dataset
 from stgc.errors import DataError
@@ -366,12 +366,19 @@ def embedded_data_section(metadata: Mapping[str, Any]) -> dict[str, Any] | None:
     return section if isinstance(section, dict) else None
 
 
-def open_embedded_dataset(metadata: Mapping[str, Any], source: str | Path, data_path: str | Path | None = None) -> Any:
+def open_embedded_dataset(metadata: Mapping[str, Any], source: str | Path, data_path: str | Path | None = None,
+                          frames: tuple[int, int] | None = None) -> Any:
     """The dataset named by the run config a bitstream embeds (its `run_config` metadata); `data_path` replaces
-    the saved location."""
+    the saved location. A bitstream written without its config (codec.embed_run_config=false) is opened on
+    `data_path` with default data options, over `frames` (start, count: a whole video's segment) when given."""
     section = embedded_data_section(metadata)
     if section is None:
-        raise DataError(source, "no run config found beside or inside the bitstream; pass the dataset with --data")
+        if data_path is None:
+            raise DataError(source, "no run config found beside or inside the bitstream; pass the dataset with "
+                                    "--data")
+        log.warning("%s: no run config beside or inside it: %s opened with default data options", source, data_path)
+        config = DataConfig() if frames is None else DataConfig(start=frames[0], duration=frames[1])
+        return config.open(data_path)
     config, path = data_config_from_saved(section, source)
     target = data_path if data_path is not None else path
     if target is None:
@@ -413,7 +420,7 @@ def video_bitstream_segments(path: str | Path, data_path: str | Path | None = No
         if run is not None and embedded is not None and (run.read_config(strict=False) or {}).get("data") != embedded:
             run = None  # another video's segment of the same frames
         dataset = open_saved_run_dataset(run.path) if run and embedded is None else \
-            open_embedded_dataset(decoded.metadata, source, data_path)
+            open_embedded_dataset(decoded.metadata, source, data_path, (entry.first_frame, entry.num_frames))
         frames = sorted(int(f) for f in dataset.frames)
         if frames != list(range(entry.first_frame, entry.last_frame + 1)):
             raise DataError(source, f"covers frames {entry.first_frame}-{entry.last_frame}, but its dataset has frames "

@@ -137,10 +137,10 @@ def training_view_origin(dataset: Dataset) -> np.ndarray:
 
 
 def export_ply_frames(source: ModelSource, out_dir: str | Path, frames: Any = None,
-                      dataset: Dataset | None = None) -> list[Path]:
+                      dataset: Dataset | None = None, data_path: str | Path | None = None) -> list[Path]:
     """Write OUT/frame_<NNNNNN>.ply (one static 3DGS per selected frame, at that frame's time) and OUT/export.json
     (times, counts, the colour approximation); returns the PLY paths."""
-    model, dataset = load_model_and_dataset(source, dataset)
+    model, dataset = load_model_and_dataset(source, dataset, data_path)
     chosen = frame_selection(frames, list(dataset.frames))
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -260,9 +260,10 @@ def write_splatv(path: str | Path, model: STGModel, dataset: Dataset) -> Path:
     return path
 
 
-def export_splatv(source: ModelSource, out_path: str | Path, dataset: Dataset | None = None) -> Path:
+def export_splatv(source: ModelSource, out_path: str | Path, dataset: Dataset | None = None,
+                  data_path: str | Path | None = None) -> Path:
     """`stgc export --format splatv`: the model (a run or a .stgc file) as one splaTV file."""
-    model, dataset = load_model_and_dataset(source, dataset)
+    model, dataset = load_model_and_dataset(source, dataset, data_path)
     if Path(out_path).suffix.lower() != ".splatv":
         raise DataError(Path(out_path), "a splaTV file is written as FILE.splatv")
     return write_splatv(out_path, model, dataset)

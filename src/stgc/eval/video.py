@@ -37,27 +37,29 @@ ModelSource = str | Path | STGModel
 
 
 # ------------------------------------------------------------------------------------------------ loading
-def load_model_and_dataset(run_or_model: ModelSource, dataset: Dataset | None = None) -> tuple[STGModel, Dataset]:
+def load_model_and_dataset(run_or_model: ModelSource, dataset: Dataset | None = None,
+                           data_path: str | Path | None = None) -> tuple[STGModel, Dataset]:
     """(model, dataset) from a run directory / iteration dir / PLY path / `.stgc` bitstream, or an in-memory model.
-    A bitstream renders what it decodes to, with the dataset of the run beside it or of the config it embeds."""
+    A bitstream renders what it decodes to, with the dataset of the run beside it or of the config it embeds.
+    `data_path` replaces the saved data location (data moved; a model without stgc's run config: an official
+    run, or a bitstream written without its config, is opened on it with default data options)."""
     if isinstance(run_or_model, (str, Path)):
-
         path = Path(run_or_model)
-        if path.suffix == ".stgc" and is_video_stgc(path):
-            raise DataError(path, "a whole video's .stgc: render it as a video (.mp4, played across its segments), "
-                                  "or `stgc decompress` it and render one segment's run")
+        if (path.suffix == ".stgc" and is_video_stgc(path)) or Run(path).is_video():
+            raise DataError(path, "a whole video: each segment is its own model; name one segment's run "
+                                  "(RUN/segment_<k>, or `stgc decompress` the .stgc first), or render the whole "
+                                  "as a video (.mp4, played across its segments)")
         if path.suffix == ".stgc":
-
             model = load_model(path)
             if dataset is None:
-                dataset = open_run_dataset(path.parent, None, path)
+                dataset = open_run_dataset(path.parent, data_path, path)
             return model, dataset
         model = STGModel.load(path)
         if dataset is None:
             run = Run.of(path)
-            if run is None:
-                raise DataError(path, "cannot find the run's config.json: pass the dataset explicitly")
-            dataset = open_run_dataset(run.path)
+            if run is None and data_path is None:
+                raise DataError(path, "cannot find the run's config.json: pass the dataset with --data")
+            dataset = open_run_dataset(run.path if run is not None else path, data_path)
         return model, dataset
     if dataset is None:
         raise ValueError("rendering an in-memory model needs the dataset (for cameras and intrinsics)")
@@ -218,9 +220,14 @@ def frame_selection(frames: Any, available: Sequence[int]) -> list[int]:
 
 
 def _camera_at(dataset: Dataset, name: str, frame: int) -> Camera:
+    """The camera `name`'s view at `frame`. Monocular data has one view per image (each its own camera): there the
+    named camera's pose is moved to the frame's time (a fixed novel view, as the viewer shows it; no image)."""
     for cam in [*dataset.test_at(frame), *dataset.train_at(frame)]:
         if str(cam.name) == str(name):
             return cam
+    if not dataset.multiview:
+        return dataclasses.replace(find_camera(dataset, name), frame=frame, time=float(dataset.time_of(frame)),
+                                   image=None)
     raise DataError(None, f"camera {name!r} has no view at frame {frame}")
 
 
@@ -256,13 +263,14 @@ def render_video(
     num_frames: int | None = None,
     fps: float | None = None,
     background: Sequence[float] | None = None,
+    data_path: str | Path | None = None,
 ) -> Path:
-    """A video of the model.
+    """A video of the model (`data_path`: as `load_model_and_dataset`'s).
 
     Fixed view (default): `camera_name` (default the first test camera) at every frame in `frames` ("A:B",
     "0,5,9", a slice or a list of frame indices; default all), one video frame per dataset frame.
     orbit=True: `num_frames` (default 2 x dataset frames) views on a smooth path through the training cameras
-    while time sweeps [0, 1]. fps defaults to the dataset's.
+    while time sweeps from the first frame's time to the last's. fps defaults to the dataset's.
 
     A whole-video run (`stgc train --segment-frames`) or whole-video .stgc plays across its segments: each frame
     is drawn by the segment that holds it (fixed view only)."""
@@ -271,13 +279,14 @@ def render_video(
             raise DataError(run_or_model, "a whole video renders from a fixed camera, each frame by its own "
                                           "segment (render one segment's run for an orbit)")
         if is_video_stgc(run_or_model):
-            segments = [(s.model, s.dataset) for s in video_bitstream_segments(run_or_model)]
+            segments = [(s.model, s.dataset) for s in video_bitstream_segments(run_or_model, data_path)]
         else:
-            segments = [load_model_and_dataset(segment.path) for segment in Run(run_or_model).segments()]
+            segments = [load_model_and_dataset(segment.path, data_path=data_path)
+                        for segment in Run(run_or_model).segments()]
         if not segments:
             raise DataError(run_or_model, "whole-video run without segments")
         return _render_across_segments(segments, out, camera_name, frames, fps, background)
-    model, dataset = load_model_and_dataset(run_or_model, dataset)
+    model, dataset = load_model_and_dataset(run_or_model, dataset, data_path)
     rate = float(fps or getattr(dataset, "fps", 30) or 30)
     if orbit:
         n = int(num_frames or 2 * len(list(dataset.frames)))
@@ -317,7 +326,9 @@ def contact_sheet(
     rows = []
     background = _background(dataset, background)
     for frame in frame_selection(frames, list(dataset.frames)):
-        for name in names:
+        # Monocular data: each frame's own test views (a view exists at one frame only).
+        at_frame = names if cameras or dataset.multiview else [str(c.name) for c in dataset.test_at(frame)]
+        for name in at_frame:
             cam = _camera_at(dataset, name, frame)
             gt = np.asarray(dataset.load_image(cam))[..., :3]
             pred = render_image(model, cam, None, background)
@@ -325,6 +336,9 @@ def contact_sheet(
             h = gt.shape[0]
             sep = np.zeros((h, gap, 3), np.uint8)
             rows.append(np.concatenate([gt, sep, pred, sep, err], axis=1))
+    if not rows:
+        raise DataError(None, f"no test view at frames {frames} (monocular data holds out images at some frames "
+                              "only: choose those frames)")
     width = rows[0].shape[1]
     sheet = []
     for r in rows:
