@@ -58,6 +58,17 @@ def test_a_video_trains_as_segment_runs_and_evaluates_as_one(scene, tmp_path, ca
     assert record["psnr"] == pytest.approx(expected)
     assert record["mbps"] == pytest.approx(record["size_bytes"] * 8 / record["duration_s"] / 1e6)
     assert "segment_002" in capsys.readouterr().out
+    # Named with --data: its own data is its own evaluation; the same frames elsewhere (the data moved) are filed
+    # as evaluations on that data, video and segments alike (refused: "evaluated on its own data").
+    assert main(["eval", str(out), "--data", str(scene.root), "--no-fps"]) == 0
+    assert sorted(p.name for p in out.glob("eval*.json")) == ["eval.json"]
+    moved = tmp_path / "moved"
+    shutil.copytree(scene.root, moved)
+    assert main(["eval", str(out), "--data", str(moved), "--no-fps"]) == 0
+    elsewhere = json.loads((out / "eval_on_moved.json").read_text())
+    assert elsewhere["psnr"] == pytest.approx(record["psnr"]) and elsewhere["other_data"] == "moved"
+    assert all((s.path / "eval_on_moved.json").is_file() for s in run.segments())
+    assert json.loads((out / "eval.json").read_text())["psnr"] == record["psnr"]
     # The seams: each segment's first / middle / last frame PSNR (mean over test cameras), and the figure.
     assert [(s["segment"], s["first_frame"], s["last_frame"]) for s in record["seams"]] == [
         ("segment_000", 0, 1), ("segment_001", 2, 3), ("segment_002", 4, 4)]

@@ -457,7 +457,7 @@ def evaluate_run(
     if not target.exists():
         raise DataError(target, "no such run directory or bitstream")
     if target.suffix != ".stgc" and Run(target).is_video():
-        if data_path is not None or load_model is not None or open_dataset is not None:
+        if load_model is not None or open_dataset is not None:
             raise DataError(target, "a whole-video run is evaluated on its own data, segment by segment")
         segments = Run(target).segments()
         for segment in segments:
@@ -466,9 +466,10 @@ def evaluate_run(
                 # video (as `stgc compress` refuses it).
                 raise DataError(segment.path, "segment has not finished training (finish it with stgc train "
                                               "--resume)")
+        other = _other_data(target, data_path)  # the segments share the video's data, and so file alike
         for segment in segments:
-            evaluate_run(segment.path, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
-        return write_video_eval(target)
+            evaluate_run(segment.path, data_path, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
+        return write_video_eval(target, other)
     if target.suffix == ".stgc" and is_video_stgc(target):
         if load_model is not None or open_dataset is not None:
             raise DataError(target, "a whole-video bitstream is evaluated segment by segment on its own data")
@@ -597,14 +598,14 @@ def _renders_per_second(records: Sequence[Mapping[str, Any]]) -> float | None:
     return sum(w for _, w in pairs) / seconds if seconds > 0 else None
 
 
-def video_record(run_dir: str | Path) -> dict[str, Any]:
-    """The whole video's evaluation from its segments' own records (RUN/segment_<k>/eval.json): PSNR, SSIM and
-    YUV-PSNR over all test views x all frames, total Gaussians and bytes, Mbps over the whole duration, and a row
-    per segment and per camera."""
+def video_record(run_dir: str | Path, other_data: str | None = None) -> dict[str, Any]:
+    """The whole video's evaluation from its segments' own records (RUN/segment_<k>/eval.json, or their records on
+    `other_data`): PSNR, SSIM and YUV-PSNR over all test views x all frames, total Gaussians and bytes, Mbps over
+    the whole duration, and a row per segment and per camera."""
     run = Run(run_dir)
     records = []
     for segment in run.segments():
-        record = segment.read_eval()
+        record = segment.read_eval(other_data)
         if record is None:
             raise DataError(segment.path, "segment has no evaluation yet (stgc eval the video run)")
         records.append((segment.path.name, record))
@@ -648,13 +649,14 @@ def aggregate_video_records(records: Sequence[tuple[str, Mapping[str, Any]]]) ->
 SEAMS_PNG = "seams.png"
 
 
-def segment_seams(run_dir: str | Path) -> list[dict[str, Any]]:
+def segment_seams(run_dir: str | Path, other_data: str | None = None) -> list[dict[str, Any]]:
     """Per segment: test PSNR (mean over the test cameras) at its first, middle and last frames, and the seam
     loss: the middle's PSNR minus the mean of the two ends (what a viewer sees as a jump at every boundary); with
-    `frames`: [(frame, PSNR)] for every frame. From the segments' RUN/segment_<k>/eval_per_view.csv."""
+    `frames`: [(frame, PSNR)] for every frame. From the segments' RUN/segment_<k>/eval_per_view.csv (or their
+    per-view files on `other_data`)."""
     seams = []
     for segment in Run(run_dir).segments():
-        per_view = segment.eval_paths()[1]
+        per_view = segment.eval_paths(other_data)[1]
         if not per_view.is_file():
             raise DataError(segment.path, "segment has no per-view evaluation yet (stgc eval the video run)")
         with per_view.open(newline="") as f:
@@ -704,15 +706,18 @@ def seam_plot(seams: Sequence[Mapping[str, Any]], png: Path) -> None:
     plt.close(fig)
 
 
-def write_video_eval(run_dir: str | Path) -> dict[str, Any]:
+def write_video_eval(run_dir: str | Path, other_data: str | None = None) -> dict[str, Any]:
     """Write the whole video's record (`video_record`, with its `seams`) as RUN/eval.json and the seam figure as
-    RUN/seams.png, and return the record."""
-    record = video_record(run_dir)
-    seams = segment_seams(run_dir)
+    RUN/seams.png (on `other_data`: RUN/eval_on_<name>.json and RUN/seams_on_<name>.png), and return the record."""
+    record = video_record(run_dir, other_data)
+    seams = segment_seams(run_dir, other_data)
     record["seams"] = [{k: v for k, v in seam.items() if k != "frames"} for seam in seams]
+    if other_data is not None:
+        record["other_data"] = other_data
     if seams:
-        seam_plot(seams, Path(run_dir) / SEAMS_PNG)
-    write_json(Run(run_dir).eval_paths()[0], record)
+        png = Path(run_dir) / SEAMS_PNG
+        seam_plot(seams, png if other_data is None else png.with_name(f"{png.stem}_on_{other_data}.png"))
+    write_json(Run(run_dir).eval_paths(other_data)[0], record)
     return record
 
 
