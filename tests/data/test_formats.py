@@ -325,3 +325,27 @@ def test_a_video_whose_stream_starts_late_decodes_every_coded_frame_once(tmp_pat
                     "-map", "1:v", "-map", "0:a", "-c", "copy", str(tmp_path / "late.mp4")], **run)
     frames = decode_video(tmp_path / "late.mp4", list(range(10)))
     assert [round((float(frames[k].mean()) - 10) / 20) for k in range(10)] == list(range(10))
+
+
+@pytest.mark.parametrize("pixel_format, bit_depth", [("yuv420p10le", 10), ("yuv420p", 8)])
+@pytest.mark.parametrize("yuv_range, ffmpeg_range", [("limited", "tv"), ("full", "pc")])
+def test_yuv_files_that_ffmpeg_wrote_decode_to_their_colours(tmp_path, pixel_format, bit_depth, yuv_range,
+                                                             ffmpeg_range):
+    """An independent encoder (ffmpeg's BT.709 matrix) against our reader: a matrix, range or plane-order mistake
+    would move these flat colours by tens of levels (the round trips through our own writer cannot see it)."""
+    import subprocess
+
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    from PIL import Image
+
+    from stgc.data.yuv import read_frame
+
+    colours = [(255, 0, 0), (0, 255, 0), (0, 0, 255), (200, 120, 40), (20, 200, 180), (255, 255, 255), (0, 0, 0)]
+    for colour in colours:
+        image = np.zeros((8, 12, 3), np.uint8) + np.array(colour, np.uint8)
+        Image.fromarray(image).save(tmp_path / "rgb.png")
+        subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-y", "-i", str(tmp_path / "rgb.png"),
+                        "-vf", f"scale=out_color_matrix=bt709:out_range={ffmpeg_range}", "-pix_fmt", pixel_format,
+                        "-f", "rawvideo", str(tmp_path / "x.yuv")], check=True)
+        decoded = read_frame(tmp_path / "x.yuv", 12, 8, 0, bit_depth, yuv_range)
+        assert np.abs(decoded.astype(int) - image).max() <= 2, (colour, decoded[0, 0])
