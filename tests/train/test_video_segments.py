@@ -105,7 +105,9 @@ def test_resume_trains_only_what_is_unfinished(scene, tmp_path, capsys):
     assert second.training_finished()
     assert (first.summary_path.stat().st_mtime_ns, (first.latest_model_dir() / "point_cloud.ply").read_bytes()) == kept
     # A resumed video keeps its segments.
+    capsys.readouterr()
     assert main(["train", "--out", str(out), "--resume", "--segment-frames", "2"]) == 2
+    assert "cut into 3-frame segments; a resumed run keeps them" in capsys.readouterr().err
 
 
 def test_a_new_video_refuses_an_existing_run_unless_overwritten(scene, tmp_path, capsys):
