@@ -54,26 +54,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         os.close(fd)
     except OSError as exc:
         raise output_error(path, exc) from None
-    tmp_path = Path(tmp)
-    try:
-        try:
-            yield tmp_path
-        except OSError as exc:
-            # Only what writing can cause is the output's fault; any other OSError of the block is its own.
-            if exc.errno in _WRITE_ERRORS:
-                raise output_error(path, exc) from None
-            raise
-        try:
-            # mkstemp creates the file 0600; give the result the permissions a plain open() would have.
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp_path, 0o666 & ~umask)
-            os.replace(tmp_path, path)
-        except OSError as exc:
-            raise output_error(path, exc) from None
-    finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+    with _renamed_into_place(Path(tmp), path, 0o666) as written:
+        yield written
 
 
 @contextlib.contextmanager
@@ -88,25 +70,37 @@ def atomic_folder(path: str | Path) -> Iterator[Path]:
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
     except OSError as exc:
         raise output_error(path, exc) from None
+    with _renamed_into_place(tmp, path, 0o777) as written:
+        yield written
+
+
+@contextlib.contextmanager
+def _renamed_into_place(tmp: Path, path: Path, mode: int) -> Iterator[Path]:
+    """Yield `tmp` (a file or folder); when the block succeeds, give it the permissions a plain create would have
+    (`mode` less the umask: mkstemp and mkdtemp make them private) and rename it onto `path` (a folder there is
+    replaced); remove it in any case."""
     try:
         try:
             yield tmp
         except OSError as exc:
+            # Only what writing can cause is the output's fault; any other OSError of the block is its own.
             if exc.errno in _WRITE_ERRORS:
                 raise output_error(path, exc) from None
             raise
         try:
             umask = os.umask(0)
             os.umask(umask)
-            os.chmod(tmp, 0o777 & ~umask)
-            if path.exists():
+            os.chmod(tmp, mode & ~umask)
+            if tmp.is_dir() and path.exists():
                 shutil.rmtree(path)
             os.replace(tmp, path)
         except OSError as exc:
             raise output_error(path, exc) from None
     finally:
-        if tmp.exists():
+        if tmp.is_dir():
             shutil.rmtree(tmp, ignore_errors=True)
+        elif tmp.exists():
+            tmp.unlink()
 
 
 @contextlib.contextmanager
