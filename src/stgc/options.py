@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from stgc.compaction import CompactionConfig
-from stgc.compaction.config import acts_only_with, idle_compaction_options
+from stgc.compaction.config import idle_compaction_options, why_idle
 from stgc.config import ConfigError, apply_overrides, from_saved, split_sections, validate_config
 from stgc.data import DataConfig
 from stgc.data.config import data_config_from_saved
@@ -101,4 +101,4 @@ def refuse_unused_compaction_options(compaction: CompactionConfig, given: Iterab
     if compaction.method == "none":
         raise ConfigError(f"{', '.join(unused)}: given for a run whose compaction.method is none, where nothing "
                           "is pruned; choose a method (--compaction st-knn) or drop them")
-    raise ConfigError("; ".join(f"{key} acts only with {acts_only_with(key)}" for key in unused))
+    raise ConfigError("; ".join(why_idle(compaction, key) for key in unused))

@@ -656,7 +656,7 @@ def test_a_loss_reference_is_the_same_folder_however_spelled(tmp_path: Path, mon
     run = tmp_path / "exp" / "budget"
     run.mkdir(parents=True)
     # Recorded when the experiment was run with a relative --out; today's runner passes absolute paths.
-    then = {"compaction.method": "reference", "compaction.loss_reference": "exp/stg"}
+    then = {"compaction.method": "st-knn", "compaction.loss_reference": "exp/stg"}
     (run / "experiment.json").write_text(json.dumps({"name": "budget", "overrides": then, "preset": "cpu",
                                                      "data": str(tmp_path / "DATA")}))
     now = {**then, "compaction.loss_reference": str(tmp_path / "exp" / "stg")}

@@ -116,6 +116,27 @@ def test_gsplat_path_wiring_matches_numba(fresh_gsplat_state, monkeypatch):
     assert (ma - mb).norm() < 1e-4 * mb.norm() and (fa - fb).norm() < 1e-4 * fb.norm()
 
 
+def test_a_zero_quaternion_is_drawn_unrotated_on_the_gsplat_path_as_on_the_others(fresh_gsplat_state, monkeypatch):
+    """gsplat's kernels normalise with rsqrt, so a zero quaternion (what the official error-guided sampling gives
+    new Gaussians) made its Gaussian NaN and vanish on the GPU path only."""
+    fake = _fake_gsplat()
+    projection = fake.fully_fused_projection
+
+    def rsqrt_normalising(means, covars, quats, *args, **kwargs):  # as gsplat's CUDA quat_to_rotmat does
+        return projection(means, covars, quats * torch.rsqrt((quats * quats).sum(-1, keepdim=True)), *args, **kwargs)
+
+    fake.fully_fused_projection = rsqrt_normalising
+    monkeypatch.setattr(gsplat_backend, "_import_gsplat", lambda: fake)
+    scene = make_scene(60, 24, 16, seed=5)
+    scene.quats[:10] = 0.0
+    images = {}
+    for backend in ("gsplat", "numba"):
+        monkeypatch.setattr(api, "select_backend", lambda requested, device, b=backend: b)
+        images[backend] = rasterize(*scene.args(), backend=backend, alpha_max=0.999).image
+    assert torch.isfinite(images["gsplat"]).all()
+    assert (images["gsplat"] - images["numba"]).abs().max() < 1e-3
+
+
 def test_gsplat_build_failure_falls_back_to_torch_with_one_warning(fresh_gsplat_state, monkeypatch):
     def broken():
         raise ImportError("gsplat_cuda.so: cannot open shared object file")

@@ -192,25 +192,39 @@ class CompactionConfig:
 _ACTS_ONLY_WITH: dict[str, tuple[Callable[[CompactionConfig], bool], str]] = {
     "window_start": (lambda c: c.case == 0, "compaction.case=0 (a case 1-4 has its window)"),
     "window_end": (lambda c: c.case == 0, "compaction.case=0 (a case 1-4 has its window)"),
-    "ema_decay": (lambda c: c.loss_smoothing == "ema", "compaction.loss_smoothing=ema"),
+    "loss_smoothing": (lambda c: c.loss_signal == "training",
+                       "compaction.loss_signal=training (the probe loss is not smoothed)"),
+    "ema_decay": (lambda c: c.loss_signal == "training" and c.loss_smoothing == "ema",
+                  "compaction.loss_smoothing=ema and compaction.loss_signal=training"),
     "probe_views": (lambda c: c.loss_signal == "probe" or c.method == "reference",
                     "compaction.loss_signal=probe or compaction.method=reference"),
 }
+# What a reference run (method=reference) uses: its pruning schedule, at which it logs the probe loss; it prunes
+# nothing, so the matching, the criterion and the controller's options act on nothing there.
+_REFERENCE_USES = frozenset({"method", "case", "window_start", "window_end", "interval", "probe_views"})
 
 
 def idle_compaction_options(compaction: CompactionConfig) -> set[str]:
     """The compaction options (dotted, with their section) that act on nothing in a run with `compaction`: all but
-    the method where it is none, and those that act only with another option's value where that value is not set.
-    Two runs that differ only there pruned alike; given for such a run they are refused
-    (`stgc.options.refuse_unused_compaction_options`), and a plan's --set leaves them out of it."""
+    the method where it is none, all but the schedule's and the probe's in a reference run, and those that act only
+    with another option's value where that value is not set. Two runs that differ only there pruned alike; given
+    for such a run they are refused (`stgc.options.refuse_unused_compaction_options`), and a plan's --set leaves
+    them out of it."""
+    names = [f.name for f in fields(compaction)]
     if compaction.method == "none":
-        return {f"compaction.{f.name}" for f in fields(compaction) if f.name != "method"}
-    return {f"compaction.{name}" for name, (acts, _) in _ACTS_ONLY_WITH.items() if not acts(compaction)}
+        return {f"compaction.{name}" for name in names if name != "method"}
+    idle = {f"compaction.{name}" for name, (acts, _) in _ACTS_ONLY_WITH.items() if not acts(compaction)}
+    if compaction.method == "reference":
+        idle |= {f"compaction.{name}" for name in names if name not in _REFERENCE_USES}
+    return idle
 
 
-def acts_only_with(key: str) -> str:
-    """The condition, in words, under which the compaction option `key` (dotted) acts."""
-    return _ACTS_ONLY_WITH[key.removeprefix("compaction.")][1]
+def why_idle(compaction: CompactionConfig, key: str) -> str:
+    """Why the compaction option `key` (dotted; one `idle_compaction_options` names) acts on nothing, in words."""
+    name = key.removeprefix("compaction.")
+    if compaction.method == "reference" and name not in _REFERENCE_USES:
+        return f"{key} acts on nothing in a reference run (compaction.method=reference prunes nothing)"
+    return f"{key} acts only with {_ACTS_ONLY_WITH[name][1]}"
 
 
 @dataclass(frozen=True)

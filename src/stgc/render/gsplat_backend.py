@@ -100,6 +100,9 @@ def rasterize_gsplat(
             RuntimeWarning,
             stacklevel=3,
         )
+    # gsplat normalises quaternions with rsqrt: a zero one (the official error-guided sampling adds Gaussians with
+    # rotation 0) turns NaN there and its Gaussian vanishes; numba, torch and the official code draw it unrotated.
+    quats = torch.where(quats.norm(dim=-1, keepdim=True) > 0, quats, quats.new_tensor([1.0, 0.0, 0.0, 0.0]))
     radii, means2d_b, depths_b, conics_b, _ = gsplat.fully_fused_projection(
         means, None, quats, scales, viewmat[None], K[None], width, height,
         eps2d=eps2d, near_plane=near_plane, opacities=opacities,
