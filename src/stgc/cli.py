@@ -11,6 +11,7 @@ import json
 import logging
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,7 @@ from stgc.compaction import plot_compaction
 from stgc.compaction.config import CASE_WINDOWS, METHODS
 from stgc.compaction.criteria import CRITERIA
 from stgc.config import (
+    EXECUTION_OPTIONS,
     add_config_arguments,
     apply_overrides,
     collect_overrides,
@@ -86,13 +88,21 @@ def add_ray_arguments(p: argparse.ArgumentParser, unit: str) -> None:
 def cmd_train(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if args.resume and Run(out).has_config():
-        given = [k for k in ("preset", "variant", "compaction", "case", "criterion", "set") if getattr(args, k, None)]
-        given += [f"{section}.{k}" for section, opts in collect_overrides(args).items() for k in opts]
+        given_options = {**{f"{section}.{k}": v for section, opts in collect_overrides(args).items()
+                            for k, v in opts.items()}, **parse_set_arguments(args.set)}
+        execution = {k: v for k, v in given_options.items() if k in EXECUTION_OPTIONS}
+        given = [k for k in ("preset", "variant", "compaction", "case", "criterion") if getattr(args, k, None)]
+        given += sorted(k for k in given_options if k not in EXECUTION_OPTIONS)
         if given:
-            raise StgcError(f"{out}: a resumed run keeps its saved config.json; drop {', '.join(given)}")
+            raise StgcError(f"{out}: a resumed run keeps its saved config.json; drop {', '.join(given)} (only "
+                            "options of how it runs may be given: threads, progress, stop_after, ...)")
         saved = configs_from_run(out)
         data_path = _resumed_data_path(out, args.data, saved["data_path"])
         configs = {k: saved[k] for k in ("data", "model", "train", "compaction")}
+        # stop_after is the command's that gave it: a resumed run trains to its end unless this one asks to stop.
+        configs["train"] = replace(configs["train"], stop_after=None)
+        for section, values in split_sections(execution, set(configs)).items():
+            configs[section] = validate_config(apply_overrides(configs[section], values, section), section)
     else:
         shortcuts: dict[str, dict[str, Any]] = {}
         if args.variant:
@@ -134,7 +144,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=args.resume,
         overwrite=args.overwrite, evaluator=RunEvaluator(),
     )
-    print(f"run written to {out}")
+    if not _said_unfinished(out):
+        print(f"run written to {out}")
     record = Run(out).read_eval()
     if record is not None:
         print(format_eval_table(record))
@@ -150,11 +161,23 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     dataset = configs["data"].open(data_path)
     train(dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=True,
           evaluator=RunEvaluator())
-    print(f"run written to {out} ({args.run} + {args.iterations} iterations)")
+    if not _said_unfinished(out):
+        print(f"run written to {out} ({args.run} + {args.iterations} iterations)")
     record = Run(out).read_eval()
     if record is not None:
         print(format_eval_table(record))
     return 0
+
+
+def _said_unfinished(out: Path) -> bool:
+    """Say so when the run in `out` stopped before its end (train.stop_after); whether it did."""
+    run = Run(out)
+    if run.training_finished():
+        return False
+    done, total = run.progress()
+    print(f"{out}: stopped at iteration {done} of {total}, unfinished (continue it with stgc train --out {out} "
+          "--resume)")
+    return True
 
 
 def cmd_eval(args: argparse.Namespace) -> int:

@@ -90,13 +90,21 @@ def test_finetune_refuses_what_it_cannot_honour(source, scene, tmp_path, capsys)
     assert not any((tmp_path / x).exists() for x in "abcdfgh")  # nothing half-written
 
 
-def test_a_killed_finetune_resumes_like_any_run(source, tmp_path):
+def test_a_killed_finetune_resumes_like_any_run(source, tmp_path, capsys):
+    """stop_after is the command's that gave it: it was saved and stopped every resume again after as many
+    iterations (a run stopped after 5 of 20 needed four resumes), and a fine-tuning of such a run inherited it."""
     new = tmp_path / "new"
-    assert main(["finetune", str(source), "--out", str(new), "--iterations", "10",
+    assert main(["finetune", str(source), "--out", str(new), "--iterations", "20",
                  "--set", "train.stop_after=5"]) == 0
+    assert "stopped at iteration 25 of 40, unfinished" in capsys.readouterr().out
     assert not Run(new).training_finished()
-    assert main(["train", "--out", str(new), "--resume"]) == 0
-    assert Run(new).training_finished() and Run(new).latest_model_dir().name == "iteration_30"
+    # Options of how it runs may be given to a resume (the others stay refused).
+    assert main(["train", "--out", str(new), "--resume", "--set", "train.threads=1"]) == 0
+    assert Run(new).training_finished() and Run(new).latest_model_dir().name == "iteration_40"
+    assert "run written to" in capsys.readouterr().out
+    again = tmp_path / "again"
+    assert main(["finetune", str(new), "--out", str(again), "--iterations", "3"]) == 0
+    assert Run(again).training_finished()
 
 
 def test_finetune_takes_its_own_colour_correction_learning_rate(source, tmp_path):
