@@ -61,7 +61,7 @@ def test_bad_input_is_one_clear_line(argv, message, capsys, tmp_path, monkeypatc
 def test_resume_refuses_options_that_would_be_ignored(tmp_path, capsys):
     (tmp_path / "config.json").write_text("{}")
     assert main(["train", "--out", str(tmp_path), "--resume", "--set", "train.iterations=5"]) == 2
-    assert "keeps its saved config.json; drop set" in capsys.readouterr().err
+    assert "keeps its saved config.json; drop train.iterations" in capsys.readouterr().err
 
 
 def test_experiment_passes_preprocess_and_bd_method_to_run_plan(monkeypatch, tmp_path):
