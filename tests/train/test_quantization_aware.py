@@ -344,6 +344,22 @@ def test_the_masked_rate_is_the_plain_rate_plus_the_shared_sections_and_its_grad
     assert float(mask.logits.grad[~torch.from_numpy(keep)].abs().sum()) == 0.0  # never-visible rows cost nothing
 
 
+def test_a_mask_that_faded_out_every_gaussian_is_an_error_naming_its_price():
+    """Settling it emptied the model, which then crashed at the next densification step with a traceback."""
+    from stgc.codec.synthetic import synthetic_model
+    from stgc.errors import StgcError
+    from stgc.train.quantization import GaussianMask, QuantizationSimulation
+
+    arrays, decoder = synthetic_model(50, seed=1)
+    model = STGModel.from_ply_arrays(arrays, "full", decoder, scene_extent=3.0)
+    simulation = QuantizationSimulation(QuantizationAwareConfig(iterations=5, mask=True, rate_weight=1.0))
+    simulation.mask = GaussianMask(model.num_gaussians, 0.01, logits=torch.full((model.num_gaussians,), -5.0))
+    with pytest.raises(StgcError, match="faded out all 50 Gaussians.*rate_weight 1.0"):
+        simulation.settle_mask(model)
+    simulation.mask.logits.data[3] = 5.0  # one kept: settled as usual
+    assert int(simulation.settle_mask(model).sum()) == 1
+
+
 def test_a_mask_needs_a_price():
     from stgc.config import validate_config
 

@@ -157,7 +157,7 @@ def prune_mask_nonfinite(model: STGModel) -> torch.Tensor:
     """Rows to REMOVE: any parameter is NaN or infinite (rare Adam blow-ups; harmless to drop)."""
     bad = torch.zeros(model.num_gaussians, dtype=torch.bool)
     for p in model.params.values():
-        bad |= ~torch.isfinite(p.detach()).reshape(p.shape[0], -1).all(dim=1)
+        bad |= ~torch.isfinite(p.detach()).flatten(1).all(dim=1)  # (reshape(N, -1) fails for N = 0)
     return bad
 
 

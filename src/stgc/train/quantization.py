@@ -54,6 +54,7 @@ from stgc.codec.format import (
 from stgc.codec.rate import code_lengths, estimate_section_bits
 from stgc.codec.views import Corrections, optimise_on_views
 from stgc.data.dataset import Dataset
+from stgc.errors import StgcError
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel, ply_columns
 
 from .config import QuantizationAwareConfig
@@ -130,6 +131,10 @@ class QuantizationSimulation:
             return None
         with torch.no_grad():
             factor = torch.sigmoid(self.mask.logits.detach())
+            if not bool((factor >= 0.5).any()):  # an empty model would train on, render nothing and crash later
+                raise StgcError(f"the learned mask faded out all {len(factor)} Gaussians: "
+                                f"train.quantization_aware.rate_weight {self.cfg.rate_weight} is too large for this "
+                                f"model (or mask_lr {self.cfg.mask_lr} too fast); lower it")
             opacity = (torch.sigmoid(model.params["opacity"].detach()[:, 0]) * factor).clamp(1e-6, 1 - 1e-6)
             model.replace_param("opacity", torch.logit(opacity)[:, None], reset_moments=False)
         keep = factor >= 0.5
