@@ -157,7 +157,8 @@ def prune_mask_nonfinite(model: STGModel) -> torch.Tensor:
     """Rows to REMOVE: any parameter is NaN or infinite (rare Adam blow-ups; harmless to drop)."""
     bad = torch.zeros(model.num_gaussians, dtype=torch.bool)
     for p in model.params.values():
-        bad |= ~torch.isfinite(p.detach()).flatten(1).all(dim=1)  # (reshape(N, -1) fails for N = 0)
+        finite = torch.isfinite(p.detach())
+        bad |= ~(finite.flatten(1).all(dim=1) if p.ndim > 1 else finite)  # (reshape(N, -1) failed for N = 0)
     return bad
 
 
