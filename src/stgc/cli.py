@@ -52,6 +52,7 @@ from stgc.run import Run
 from stgc.train import train
 from stgc.train.config import PRESETS, refuse_unused_window_options
 from stgc.train.continuation import check_continuable, continuation_configs, start_continuation
+from stgc.train.loop import check_mask_window
 from stgc.train.video import train_video
 from stgc.viewer import serve
 
@@ -156,6 +157,8 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     out, overrides = Path(args.out), parse_set_arguments(args.set)
     check_continuable(args.run)
     configs = continuation_configs(configs_from_run(Path(args.run)), args.run, args.iterations, overrides)
+    if configs["train"].densify.is_resolved:  # (as the source saved them) before NEW is written
+        check_mask_window(configs["train"], configs["compaction"])
     data_path = start_continuation(args.run, out, args.iterations, configs, overrides, overwrite=args.overwrite,
                                    data_path=_resumed_data_path(Path(args.run), args.data, configs["data_path"]))
     dataset = configs["data"].open(data_path)

@@ -87,7 +87,12 @@ def test_finetune_refuses_what_it_cannot_honour(source, scene, tmp_path, capsys)
     # A rate-aware window longer than the fine-tuning would start inside the source's finished training.
     refused(str(source), "--out", str(tmp_path / "g"), "--iterations", "5", "--set",
             "train.quantization_aware.iterations=6", expect="longer than the continuation's 5 iterations")
-    assert not any((tmp_path / x).exists() for x in "abcdfgh")  # nothing half-written
+    # A mask window that error-guided sampling could edit (it left NEW written: the corrected command was refused).
+    refused(str(source), "--out", str(tmp_path / "i"), "--iterations", "5", "--set",
+            "train.quantization_aware.iterations=5", "--set", "train.quantization_aware.mask=true", "--set",
+            "train.quantization_aware.rate_weight=0.001", "--set", "train.ems.enabled=true",
+            expect="error-guided sampling (turn it off for the window")
+    assert not any((tmp_path / x).exists() for x in "abcdfghi")  # nothing half-written
 
 
 def test_a_killed_finetune_resumes_like_any_run(source, tmp_path, capsys):

@@ -193,6 +193,20 @@ def test_floater_options_are_validated():
         validate_config(FloaterConfig(max_world_scale=-1.0), "floaters")
 
 
+def test_error_guided_sampling_options_and_the_seed_are_validated():
+    """Each failed mid-training, after the run's folder was written (a ZeroDivisionError for patch 0)."""
+    from stgc.train import TrainConfig
+    from stgc.train.config import EMSConfig
+
+    for bad, name in ((EMSConfig(patch=0), "ems.patch"), (EMSConfig(error_quantile=1.5), "ems.error_quantile"),
+                      (EMSConfig(depth_near=8.0), "ems.depth_near"), (EMSConfig(min_gap=-1), "ems.min_gap")):
+        with pytest.raises(ConfigError, match=name):
+            validate_config(TrainConfig(ems=bad), "train")
+    with pytest.raises(ConfigError, match="train.seed"):
+        validate_config(TrainConfig(seed=-1), "train")
+    validate_config(TrainConfig(), "train")
+
+
 def test_scale_rule_keeps_a_far_background_of_a_forward_facing_rig():
     # Cameras within 0.2 of the origin (E = 0.22 by their spread), the scene up to 10 away: with the default
     # threshold a background Gaussian of size 3 at distance 10 is part of the scene (a rule in units of E would

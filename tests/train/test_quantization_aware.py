@@ -406,10 +406,12 @@ def test_a_mask_window_that_density_control_or_compaction_could_edit_is_refused_
     trainer = Trainer(dataset, None, None, floaters, None, tmp_path / "floaters", model=start)
     assert trainer.schedule.floaters_until == 50
     early = dataclasses.replace(config, schedule_scale=0.01)  # low-opacity pruning until iteration 70
-    with pytest.raises(ValueError, match=r"overlaps low-opacity pruning \(until iteration 70\)"):
+    with pytest.raises(ValueError, match=r"overlaps low-opacity pruning \(until iteration 70;"):
         Trainer(dataset, None, None, early, None, tmp_path / "early", model=start)
     with pytest.raises(ValueError, match="overlaps ST-KNN compaction"):
         Trainer(dataset, None, None, config, CompactionConfig(method="st-knn"), tmp_path / "stknn", model=start)
+    # Refused before the run's folder is written: the corrected command found "already holds a run".
+    assert not (tmp_path / "early").exists() and not (tmp_path / "stknn").exists()
 
 
 def test_the_straight_through_gradient_of_a_rotation_stored_with_its_sign_flipped_still_descends():

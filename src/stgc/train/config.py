@@ -209,6 +209,17 @@ class EMSConfig:
     max_events: int = field(default=2, metadata={"help": "at most this many EMS insertions per run"})
     min_gap: int = field(default=100, metadata={"help": "iterations between two EMS insertions (schedule units)"})
 
+    def validate(self, prefix: str = "") -> None:
+        check(self.start >= 0, f"{prefix}start", self.start, ">= 0")
+        for name in ("select_ssim", "trigger_ssim", "error_quantile", "patch_fraction"):
+            value = getattr(self, name)
+            check(math.isfinite(value) and 0 <= value <= 1, f"{prefix}{name}", value, "in [0, 1]")
+        check(self.patch >= 1, f"{prefix}patch", self.patch, ">= 1 pixel")
+        check(math.isfinite(self.depth_far) and 0 < self.depth_near <= self.depth_far, f"{prefix}depth_near",
+              (self.depth_near, self.depth_far), "0 < depth_near <= depth_far")
+        check(self.max_events >= 0, f"{prefix}max_events", self.max_events, ">= 0")
+        check(self.min_gap >= 0, f"{prefix}min_gap", self.min_gap, ">= 0")
+
 
 @dataclass(frozen=True)
 class QuantizationAwareConfig:
@@ -333,6 +344,7 @@ class TrainConfig:
         check(math.isfinite(self.mask_loss) and self.mask_loss >= 0, f"{prefix}mask_loss", self.mask_loss,
               ">= 0 (0 = off)")
         check(self.threads >= 0, f"{prefix}threads", self.threads, ">= 0 (0 = leave as is)")
+        check(self.seed >= 0, f"{prefix}seed", self.seed, ">= 0")
         for name in ("checkpoint_every", "log_every", "eval_every"):
             check(getattr(self, name) >= 0, f"{prefix}{name}", getattr(self, name), ">= 0 (0 = never)")
         check(self.stop_after is None or self.stop_after >= 1, f"{prefix}stop_after", self.stop_after, ">= 1")

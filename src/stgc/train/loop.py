@@ -27,7 +27,7 @@ import torch
 
 from stgc import machine
 from stgc.compaction import CompactionConfig, STKNNCompactor
-from stgc.config import EXECUTION_OPTIONS, from_saved, same_option_value, validate_config
+from stgc.config import EXECUTION_OPTIONS, ConfigError, from_saved, same_option_value, validate_config
 from stgc.data import DataConfig
 from stgc.data.cameras import Camera
 from stgc.data.config import initial_points_from_config
@@ -168,6 +168,33 @@ class ForegroundMasks:
         return self._masks[key]
 
 
+def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig | None) -> None:
+    """The learned mask keeps one logit per row: refuse, before training (and before the run's folder is written),
+    a run in which something else may add or remove Gaussians inside the rate-aware window (the mask would lose
+    track of its rows mid-run). `train_cfg`'s densification options must be resolved."""
+    window = train_cfg.quantization_aware
+    if not (window.iterations > 0 and window.simulate and window.mask):
+        return
+    sched = resolve_schedule(train_cfg)
+    first = sched.iterations - window.iterations + 1
+    step = sched.first_densify_step(first)  # density control acts only at densification steps
+    overlapping = []
+    if compaction_cfg is not None and compaction_cfg.method == "st-knn":
+        overlapping.append("ST-KNN compaction (compaction.method; compact first, then fine-tune the pruned run)")
+    if train_cfg.ems.enabled:
+        overlapping.append("error-guided sampling (turn it off for the window: train.ems.enabled=false)")
+    if step is not None and sched.densify_end >= step:
+        overlapping.append(f"clone/split rounds (until iteration {sched.densify_end}; fine-tune the finished run "
+                           "instead: stgc finetune RUN --out NEW ...)")
+    if step is not None and sched.prune_until > step:
+        overlapping.append(f"low-opacity pruning (until iteration {sched.prune_until}; fine-tune the finished run "
+                           "instead: stgc finetune RUN --out NEW ...)")
+    if overlapping:
+        raise ConfigError(
+            f"train.quantization_aware.mask: the rate-aware window (iterations {first}-{sched.iterations}) overlaps "
+            f"{'; '.join(overlapping)}: they change the Gaussians the mask learns over")
+
+
 class Trainer:
     """Holds the state of one run. `train()` is the public entry point; tests drive `Trainer` directly."""
 
@@ -197,6 +224,7 @@ class Trainer:
         # Before the run's folder is touched: the compactor reads and checks a loss reference run's log.
         self.compactor = self._make_compactor()
         self._check_loss_reference()
+        check_mask_window(train_cfg, compaction_cfg)
         self.out_run = Run(out_dir)
         resuming = resume and self.out_run.checkpoint_path.exists()
         if not resuming:
@@ -248,7 +276,6 @@ class Trainer:
         self.quantization = QuantizationSimulation(train_cfg.quantization_aware) if (
             train_cfg.quantization_aware.iterations > 0 and train_cfg.quantization_aware.simulate) else None
         if self.quantization is not None and train_cfg.quantization_aware.mask:
-            self._check_mask_window()
             window = train_cfg.quantization_aware.iterations
             settle = self.schedule.iterations - round(MASK_SETTLE_FRACTION * window)
             self.strategies.append(MaskStrategy(self.quantization, self.density, settle))
@@ -335,27 +362,6 @@ class Trainer:
         if cfg is None or cfg.method == "none":
             return None
         return STKNNCompactor(cfg, total_iterations=self.schedule.iterations)
-
-    def _check_mask_window(self) -> None:
-        """The learned mask keeps one logit per row: refuse, before training, a run in which something else may add
-        or remove Gaussians inside the rate-aware window (the mask would lose track of its rows mid-run)."""
-        cfg, sched = self.cfg, self.schedule
-        first = sched.iterations - cfg.quantization_aware.iterations + 1
-        step = sched.first_densify_step(first)  # density control acts only at densification steps
-        overlapping = []
-        if self.compaction_cfg is not None and self.compaction_cfg.method == "st-knn":
-            overlapping.append("ST-KNN compaction (compaction.method)")
-        if cfg.ems.enabled:
-            overlapping.append("error-guided sampling (train.ems.enabled)")
-        if step is not None and sched.densify_end >= step:
-            overlapping.append(f"clone/split rounds (until iteration {sched.densify_end})")
-        if step is not None and sched.prune_until > step:
-            overlapping.append(f"low-opacity pruning (until iteration {sched.prune_until})")
-        if overlapping:
-            raise ValueError(
-                f"train.quantization_aware.mask: the rate-aware window (iterations {first}-{sched.iterations}) "
-                f"overlaps {', '.join(overlapping)}, which change the Gaussians the mask learns over; fine-tune the "
-                "finished run instead (stgc finetune RUN --out NEW ... --set train.quantization_aware.mask=true)")
 
     def _make_foreground_masks(self) -> ForegroundMasks | None:
         """The masks of the mask term, or None when the term is off or the data has no masks (said once)."""
