@@ -136,21 +136,16 @@ def build_initial_model(dataset: Dataset, data_cfg: DataConfig | None, model_cfg
     return STGModel.from_config(cloud, model_cfg or ModelConfig(), scene_extent=dataset.scene_extent())
 
 
-class ImageCache:
-    """Ground-truth images kept as uint8 tensors (4x smaller than float32), converted per use."""
+class GroundTruth:
+    """Ground-truth images as float tensors in [0, 1], converted per use from the dataset's own cache (uint8, 4x
+    smaller than float32, bounded by data.image_cache_mb: a second unbounded copy here held every image)."""
 
     def __init__(self, dataset: Dataset):
         self.dataset = dataset
-        self._images: dict[tuple[str, int], torch.Tensor] = {}
 
     def get(self, camera: Camera) -> torch.Tensor:
-        key = (camera.name, camera.frame)
-        img = self._images.get(key)
-        if img is None:
-            # A private copy: the dataset hands out read-only arrays shared with its own cache.
-            img = torch.from_numpy(np.array(self.dataset.load_image(camera), dtype=np.uint8, copy=True))
-            self._images[key] = img
-        return img.to(torch.float32) / 255.0
+        # A private copy: the dataset hands out read-only arrays shared with its cache.
+        return torch.tensor(np.asarray(self.dataset.load_image(camera)), dtype=torch.float32) / 255.0
 
 
 class ForegroundMasks:
@@ -237,7 +232,7 @@ class Trainer:
         machine.use_threads(train_cfg.threads)  # a task asking for k CPUs uses k
         self.metrics_log = JsonLines(self.out_run.path / Run.METRICS)
         self.compaction_log = JsonLines(self.out_run.path / Run.COMPACTION_LOG)
-        self.images = ImageCache(dataset)
+        self.images = GroundTruth(dataset)
         self.masks = self._make_foreground_masks()
         self.frames = dataset.train_frames  # frames only a test image holds (monocular data) are never drawn
         self.train_centers = np.array([c.center for c in dataset.train], dtype=np.float64).reshape(-1, 3)
