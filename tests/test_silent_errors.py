@@ -652,6 +652,7 @@ def test_compaction_options_for_a_run_that_prunes_nothing_are_refused(scene, tmp
     (["--compaction", "reference", "--set", "compaction.criterion=scale"],
      "criterion acts on nothing in a reference run"),
     (["--compaction", "st-knn", "--set", "compaction.probe_views=4"], "probe_views acts only with"),
+    (["--variant", "lite", "--set", "model.decoder_activation=clamp"], "the lite model has no decoder"),
     (["--set", "train.quantization_aware.rate_weight=0.001"], "without a rate-aware window"),
     (["--train.quantization_aware.quality", "1"], "without a rate-aware window"),
     (["--set", "train.quantization_aware.iterations=5", "--set", "train.quantization_aware.rate_weight=0.001",

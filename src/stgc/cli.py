@@ -46,6 +46,7 @@ from stgc.options import (
     configs_from_run,
     default_configs,
     refuse_unused_compaction_options,
+    refuse_unused_model_options,
     resolve_configs,
 )
 from stgc.run import Run
@@ -124,6 +125,8 @@ def cmd_train(args: argparse.Namespace) -> int:
             *sets])
         refuse_unused_window_options(configs["train"], [
             *(f"train.{key}" for key in options.get("train", {})), *sets])
+        refuse_unused_model_options(configs["model"], [
+            *(f"model.{key}" for key in options.get("model", {})), *sets])
         data_path = args.data
     if data_path is None:
         raise StgcError("no DATA given and the run has no saved data path")

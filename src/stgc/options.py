@@ -16,6 +16,7 @@ from stgc.data import DataConfig
 from stgc.data.config import data_config_from_saved
 from stgc.errors import StgcError
 from stgc.model import ModelConfig
+from stgc.model.config import idle_model_options
 from stgc.run import Run
 from stgc.train.config import TrainConfig, train_preset
 
@@ -89,6 +90,15 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
         out[name] = validate_config(from_saved(cls, section), name)
     out["data_path"] = (saved.get("data") or {}).get("path")
     return out
+
+
+def refuse_unused_model_options(model: ModelConfig, given: Iterable[str]) -> None:
+    """Raise ConfigError when model options (`given`: dotted names) are set where they act on nothing
+    (`idle_model_options`: the decoder's options of a lite model)."""
+    unused = sorted(set(given) & idle_model_options(model))
+    if unused:
+        raise ConfigError(f"{', '.join(unused)}: the lite model has no decoder; choose the full model "
+                          "(--variant full) or drop them")
 
 
 def refuse_unused_compaction_options(compaction: CompactionConfig, given: Iterable[str]) -> None:

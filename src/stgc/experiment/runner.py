@@ -36,6 +36,7 @@ from typing import Any
 from stgc.codec import CodecConfig
 from stgc.codec.files import written_without_window_depths
 from stgc.compaction.config import idle_compaction_options
+from stgc.model.config import idle_model_options
 from stgc.config import (
     EXECUTION_OPTIONS,
     ConfigError,
@@ -54,6 +55,7 @@ from stgc.options import (
     configs_from_run,
     default_configs,
     refuse_unused_compaction_options,
+    refuse_unused_model_options,
     section_classes,
     resolve_configs,
 )
@@ -131,8 +133,9 @@ def run_overrides(plan: Plan, spec: RunSpec, extra: Mapping[str, str], out_dir: 
 
 def idle_options(options: Mapping[str, str]) -> set[str]:
     """The keys of `options` that act on nothing in the run they make: compaction options where nothing is pruned
-    (a plan's `stg` baseline), rate-aware options `idle_window_options` names. --set applies to every run of a
-    plan, so its such options are left out of those runs (and out of what their reuse compares)."""
+    (a plan's `stg` baseline), rate-aware options `idle_window_options` names, a lite model's decoder options.
+    --set applies to every run of a plan, so its such options are left out of those runs (and out of what their
+    reuse compares)."""
     idle = set()
     compaction = {k.removeprefix("compaction."): v for k, v in options.items() if k.startswith("compaction.")}
     window = {k.removeprefix("train."): v for k, v in options.items() if k.startswith(WINDOW_PREFIX)}
@@ -143,6 +146,11 @@ def idle_options(options: Mapping[str, str]) -> set[str]:
         pass
     try:
         idle |= set(options) & idle_window_options(apply_overrides(TrainConfig(), window, "train"))
+    except ConfigError:
+        pass
+    model = {k.removeprefix("model."): v for k, v in options.items() if k.startswith("model.")}
+    try:
+        idle |= set(options) & idle_model_options(apply_overrides(default_configs()["model"], model, "model"))
     except ConfigError:
         pass
     return idle
@@ -161,6 +169,7 @@ def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str],
             overrides = run_overrides(plan, spec, extra, out_dir)
             configs = resolve_configs(preset or "cpu", {}, {}, overrides)
             refuse_unused_window_options(configs["train"], overrides)  # the entry's own: --set's idle ones are out
+            refuse_unused_model_options(configs["model"], overrides)
             if spec.source is None:
                 refuse_unused_compaction_options(configs["compaction"], overrides)
             else:

@@ -78,3 +78,13 @@ class ModelConfig:
             raise ValueError(f"model.opacity_init must be in (0, 1), got {self.opacity_init}")
         if self.init_neighbours < 1:
             raise ValueError(f"model.init_neighbours must be >= 1, got {self.init_neighbours}")
+
+
+# The full model's decoder options: a lite model has no decoder.
+DECODER_OPTIONS = ("decoder_activation", "decoder_seed", "decoder_ray_origin", "decoder_ray_direction")
+
+
+def idle_model_options(model: ModelConfig) -> set[str]:
+    """The model options (dotted, with their section) that act on nothing in a run with `model`: the decoder's
+    for the lite variant. Given for such a run they are refused (`stgc.options.refuse_unused_model_options`)."""
+    return {f"model.{name}" for name in DECODER_OPTIONS} if model.variant == "lite" else set()
