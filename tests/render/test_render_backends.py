@@ -137,6 +137,15 @@ def test_a_zero_quaternion_is_drawn_unrotated_on_the_gsplat_path_as_on_the_other
     assert (images["gsplat"] - images["numba"]).abs().max() < 1e-3
 
 
+def test_gsplat_asked_for_by_name_refuses_float64_instead_of_running_torch_silently(fresh_gsplat_state,
+                                                                                     monkeypatch):
+    monkeypatch.setattr(gsplat_backend, "_import_gsplat", _fake_gsplat)
+    scene = make_scene(30, 16, 16, dtype=torch.float64)
+    with pytest.raises(ValueError, match="renders float32 only"):
+        rasterize(*scene.args(), backend="gsplat")
+    assert rasterize(*scene.args(), backend="auto").backend == "torch"  # auto may choose
+
+
 def test_gsplat_build_failure_falls_back_to_torch_with_one_warning(fresh_gsplat_state, monkeypatch):
     def broken():
         raise ImportError("gsplat_cuda.so: cannot open shared object file")

@@ -135,6 +135,9 @@ def rasterize(
         raise ValueError(f"K: focal lengths must be positive, got fx={float(K[0, 0])}, fy={float(K[1, 1])}")
 
     chosen = select_backend(backend, device)
+    if chosen == "gsplat" and backend == "gsplat" and dtype != torch.float32:
+        raise ValueError(f"backend='gsplat' renders float32 only (got {dtype}); use backend='auto' (falls back "
+                         "to torch for float64) or 'torch'")
     if chosen == "gsplat":
         module = load_gsplat()
         if module is not None and dtype == torch.float32:
