@@ -170,7 +170,7 @@ def _write_stg_colmap(toys, root, ext, views=VIEWS):
 
 
 @pytest.mark.parametrize("ext", ["txt", "bin"])
-def test_stg_colmap_round_trip(toys, tmp_path, ext):
+def test_stg_colmap_round_trip(toys, tmp_path, ext, caplog):
     cams = _cams(toys)
     points = _write_stg_colmap(toys, tmp_path, ext)
     data = open_dataset(tmp_path)
@@ -183,8 +183,15 @@ def test_stg_colmap_round_trip(toys, tmp_path, ext):
         assert np.allclose(xyz, points[f][0], atol=1e-6) and np.allclose(rgb * 255, points[f][1])
     # STG passes one colmap_<t> folder: that sets the default start frame.
     assert open_dataset(tmp_path / "colmap_1").frames == [1, 2]
+    # A frame whose points3D is missing starts without points of its own: said, not silent.
+    from stgc.data.points import initial_points
+
+    (tmp_path / f"colmap_{FRAMES[-1]}" / "sparse" / "0" / f"points3D.{ext}").unlink()
+    with caplog.at_level("WARNING"):
+        cloud = initial_points(open_dataset(tmp_path), source="data")
+    assert f"frames {FRAMES[-1]} ship no points" in caplog.text and len(cloud) == 100 * (len(FRAMES) - 1)
     # Without a points3D anywhere it ships no points: init_source=auto triangulates instead of failing on "data".
-    for f in FRAMES:
+    for f in FRAMES[:-1]:
         (tmp_path / f"colmap_{f}" / "sparse" / "0" / f"points3D.{ext}").unlink()
     assert not open_dataset(tmp_path).has_points
 

@@ -339,6 +339,16 @@ class Dataset:
     def has_points(self) -> bool:
         return self._scene.points is not None
 
+    @property
+    def points_description(self) -> str | None:
+        """Where the shipped points come from, in words (None without any)."""
+        return self._scene.points_description
+
+    @property
+    def static_points(self) -> bool:
+        """The shipped points are one cloud for the whole capture, given to the segment's first frame."""
+        return bool(self._scene.static_points)
+
     def data_points(self, frame: int) -> tuple[np.ndarray, np.ndarray] | None:
         """Points shipped with the data for `frame` (xyz, rgb in [0,1]), or None. A static cloud (one for the whole
         capture) belongs to the segment's first frame."""

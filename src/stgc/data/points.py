@@ -131,6 +131,7 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
             log.warning("%s: training views %s have no foreground mask; the visual hull uses the others",
                         dataset.name, ", ".join(unmasked))
     clouds = []
+    without: list[int] = []  # frames of per-frame shipped points that have none (a missing or empty file)
     for frame in frames:
         t = dataset.time_of(frame)
         if source == "data":
@@ -140,6 +141,8 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
             # None: e.g. a static cloud given for the first frame only; the frame still gets its hull points.
             got = dataset.data_points(frame)
             xyz, rgb = got if got is not None else (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+            if len(xyz) == 0 and not (dataset.static_points and frame != dataset.start):
+                without.append(frame)
         elif source == "triangulate":
 
             result = triangulate_frame(dataset, frame, upsample=triangulation_upsample,
@@ -156,6 +159,9 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
             hull_xyz, hull_rgb = mask_hull_points(dataset, frame, mask_points_per_frame, rng)
             log.info("frame %d: %d points inside the masks' visual hull", frame, len(hull_xyz))
             clouds.append(PointCloud(hull_xyz, hull_rgb, np.full(len(hull_xyz), t)))
+    if without and len(without) < len(frames):
+        log.warning("%s: frames %s ship no points (%s); they start without initial points of their own",
+                    dataset.name, _frame_list(without), dataset.points_description or "the data's points")
     cloud = PointCloud.concatenate(clouds)
     if len(cloud) == 0:
         raise DataError(dataset.root, f"no initial points found for frames {frames} with source {source!r}")
@@ -245,3 +251,7 @@ def random_points(dataset: Dataset, frame: int, count: int,
     if len(xyz) == 0:
         raise DataError(dataset.root, "no random point is seen by two training cameras: check the poses")
     return xyz.astype(np.float32), rgb.astype(np.float32)
+
+
+def _frame_list(frames: list[int]) -> str:
+    return ", ".join(map(str, frames[:8])) + (f" and {len(frames) - 8} more" if len(frames) > 8 else "")
