@@ -159,3 +159,28 @@ def test_splatv_file_holds_the_model_as_an_independent_reader_sees_it(scene, tmp
     assert sorted(names) == sorted({str(c.name) for c in dataset.cameras})
     first = next(c for c in dataset.cameras if str(c.name) == splat["cameras"][0]["img_name"])
     np.testing.assert_allclose(splat["cameras"][0]["position"], first.center, atol=1e-9)
+
+
+def test_a_full_models_splatv_colour_is_its_decoded_colour_at_its_own_time():
+    """splaTV has one colour per Gaussian: the full model's decoder output at the Gaussian's mu_t (its time feature
+    zero there), along the ray from the origin given; the same as the decoded colour of the frame export at that
+    time (another path through the model: features_at, means_at)."""
+    from stgc.codec.synthetic import synthetic_model
+    from stgc.eval.export import splatv_colours
+    from stgc.model import MIN_VISIBLE_OPACITY
+
+    arrays, decoder = synthetic_model(40, "full", seed=2)
+    model = STGModel.from_ply_arrays(arrays, "full", decoder, scene_extent=3.0)
+    origin = np.array([0.3, -0.2, 4.0])
+    colours = splatv_colours(model, origin)
+    mu_t = model.params["trbf_center"].detach().numpy().ravel()
+    checked = 0
+    for i in range(model.num_gaussians):
+        visible = np.flatnonzero((model.temporal_opacity(float(mu_t[i])) >= MIN_VISIBLE_OPACITY).numpy())
+        if i not in visible:
+            continue
+        at_own_time = gaussians_at(model, float(mu_t[i]), origin)
+        np.testing.assert_allclose(colours[i], at_own_time.rgb[np.searchsorted(visible, i)], atol=1e-5)
+        checked += 1
+    assert checked > 20
+    assert np.ptp(colours, axis=0).max() > 0.05  # the colours differ between Gaussians: a comparison that can fail
