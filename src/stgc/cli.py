@@ -11,7 +11,6 @@ import json
 import logging
 import os
 import sys
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -100,9 +99,7 @@ def cmd_train(args: argparse.Namespace) -> int:
                             "options of how it runs may be given: threads, progress, stop_after, ...)")
         saved = configs_from_run(out)
         data_path = _resumed_data_path(out, args.data, saved["data_path"])
-        configs = {k: saved[k] for k in ("data", "model", "train", "compaction")}
-        # stop_after is the command's that gave it: a resumed run trains to its end unless this one asks to stop.
-        configs["train"] = replace(configs["train"], stop_after=None)
+        configs = {k: saved[k] for k in ("data", "model", "train", "compaction")}  # stop_after not among them
         for section, values in split_sections(execution, set(configs)).items():
             configs[section] = validate_config(apply_overrides(configs[section], values, section), section)
     else:

@@ -62,7 +62,7 @@ def resolve_configs(
 
 
 def configs_from_run(run_dir: Path) -> dict[str, Any]:
-    """The configs a run was started with (RUN/config.json)."""
+    """The configs a run was started with (RUN/config.json), but for `train.stop_after` (below)."""
     run = Run(run_dir)
     path = run.config_path
     saved = run.read_config()
@@ -88,6 +88,9 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
             # schedule always held the real number.
             section["iterations"] = resolved["iterations"]
         out[name] = validate_config(from_saved(cls, section), name)
+    # stop_after is the option of the command that gave it, not of the run: a run read back (to resume it, fine-tune
+    # it or compare it) trains to its end unless a command asks to stop again.
+    out["train"] = replace(out["train"], stop_after=None)
     out["data_path"] = (saved.get("data") or {}).get("path")
     return out
 

@@ -128,7 +128,7 @@ def test_a_record_made_before_the_run_finished_is_not_its_result(tmp_path: Path,
     assert row.psnr == 27.0 and "half-trained" not in row.name
     # The same for a bitstream's record: one of an earlier iteration's model is not the run's codec point.
     (run / "model_q2.stgc").write_bytes(b"0123456789")
-    earlier = {"psnr": 25.0, "mbps": 0.5, "size_bytes": 10, "iterations": 3000, "training_finished": False}
+    earlier = {"psnr": 25.0, "mbps": 0.5, "size_bytes": 10, "iterations": 3000}  # by its iterations alone
     (run / "eval_model_q2.json").write_text(json.dumps(earlier))
     with caplog.at_level("WARNING"):
         assert [r.name for r in rows_from_run(run)] == [row.name]

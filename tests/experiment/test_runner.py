@@ -458,6 +458,14 @@ def test_an_old_or_unreadable_config_or_an_option_left_auto_is_compared_not_skip
     # An option that acts on nothing in either run (remeasure_at_settle without a window) is no difference.
     idle = saved_run("idle", lambda c: c["train"]["quantization_aware"].pop("remeasure_at_settle"))
     assert reuse_mismatch(idle, "DATA", "cpu", sets) is None
+    # The same for compaction options a reference run does not use and a lite model's decoder options: an earlier
+    # runner passed --set's to them, and the run trained alike (it was refused as made with other settings).
+    reference = {"compaction.method": "reference", "compaction.case": "4", "data.preprocess": "none"}
+    _trained_config(tmp_path / "ref" / "stg", "cpu", {**reference, "compaction.ratio_max": "0.05"})
+    assert reuse_mismatch(tmp_path / "ref" / "stg", "DATA", "cpu", reference) is None
+    lite = {**sets, "model.variant": "lite"}
+    _trained_config(tmp_path / "lite" / "stg", "cpu", {**lite, "model.decoder_seed": "3"})
+    assert reuse_mismatch(tmp_path / "lite" / "stg", "DATA", "cpu", lite) is None
     # A plan that now names the value a run trained with unnamed (its default then) still names that run.
     (idle / "experiment.json").write_text(json.dumps({"name": "stg", "overrides": sets, "preset": "cpu",
                                                       "data": str(Path("DATA").resolve())}))

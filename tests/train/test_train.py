@@ -170,7 +170,7 @@ def test_error_guided_sampling_acts_without_the_ssim_loss(tiny_toys, make_model,
     assert len(inserted) == 1  # the event's SSIM was below the trigger (a NaN would count an event, insert nothing)
 
 
-def test_the_trainer_keeps_no_images_beside_the_datasets_bounded_cache(tiny_toys, make_model, tmp_path):
+def test_the_trainer_keeps_no_images_beside_the_datasets_bounded_cache(tiny_toys, make_model, tmp_path, caplog):
     """data.image_cache_mb bounds the decoded images: the trainer kept a second, unbounded copy of every one. With
     a cache of 0 MB, every use of a ground-truth image decodes it again (the trainer's copy served repeats)."""
     from stgc.data import open_dataset
@@ -178,7 +178,9 @@ def test_the_trainer_keeps_no_images_beside_the_datasets_bounded_cache(tiny_toys
 
     dataset = open_dataset(tiny_toys.root, downscale=2, start=0, duration=3, image_cache_mb=0)
     cfg = TrainConfig(iterations=30, progress=False, tensorboard=False, eval_at_end=False, save_iterations=())
-    train(dataset, None, None, cfg, None, tmp_path / "run", model=make_model(dataset, 100))
+    with caplog.at_level("WARNING"):
+        train(dataset, None, None, cfg, None, tmp_path / "run", model=make_model(dataset, 100))
+    assert "more than data.image_cache_mb (0)" in caplog.text
     uses = cfg.iterations * cfg.batch
     assert uses > len(dataset.train)  # some views drawn twice: a private copy would have served them
     assert dataset._cache.misses >= uses and len(dataset._cache._items) == 0

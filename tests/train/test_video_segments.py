@@ -265,7 +265,7 @@ def test_a_video_whose_start_was_killed_before_saving_its_options_is_not_resumed
 
 
 def test_segments_without_test_views_and_contradicting_ray_options_are_refused_before_anything_is_written(
-        scene, tmp_path, capsys):
+        scene, tmp_path, capsys, monkeypatch):
     """Monocular data holds out images at a few times: a segment without one trained to its end, then failed its
     evaluation (and stopped the segments after it), leaving a video nothing could evaluate. --no-ray with
     --ray-address was refused after the run folder was written (a second start then found 'a run')."""
@@ -288,6 +288,15 @@ def test_segments_without_test_views_and_contradicting_ray_options_are_refused_b
     out = tmp_path / "video"
     assert main(["train", str(mono), "--out", str(out), "--segment-frames", "2", *QUICK]) == 2
     assert "segment_001, segment_002 would have no test view" in capsys.readouterr().err and not out.exists()
+    # Without evaluation nothing needs them: the segments are trained (here by a stand-in) as before.
+    import stgc.train.video
+
+    trained = []
+    monkeypatch.setattr(stgc.train.video, "train_segment", lambda *args: trained.append(args[2]) or {})
+    assert main(["train", str(mono), "--out", str(out), "--segment-frames", "2", *QUICK,
+                 "--set", "train.eval_at_end=false", "--set", "train.eval_every=0"]) == 0
+    assert [Path(p).name for p in trained] == ["segment_000", "segment_001", "segment_002"]
+    shutil.rmtree(out)
     assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", *QUICK,
                  "--ray-address", "127.0.0.1:1"]) == 2
     assert "--no-ray asks for none" in capsys.readouterr().err and not out.exists()

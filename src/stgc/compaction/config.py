@@ -199,9 +199,11 @@ _ACTS_ONLY_WITH: dict[str, tuple[Callable[[CompactionConfig], bool], str]] = {
     "probe_views": (lambda c: c.loss_signal == "probe" or c.method == "reference",
                     "compaction.loss_signal=probe or compaction.method=reference"),
 }
-# What a reference run (method=reference) uses: its pruning schedule, at which it logs the probe loss; it prunes
-# nothing, so the matching, the criterion and the controller's options act on nothing there.
-_REFERENCE_USES = frozenset({"method", "case", "window_start", "window_end", "interval", "probe_views"})
+# What a reference run (method=reference) shares with the pruned run it is the reference of: the pruning schedule,
+# at which it logs the probe loss, and the probe. It prunes nothing, so the matching, the criterion and the
+# controller's options act on nothing there.
+REFERENCE_RUN_OPTIONS = frozenset({"case", "window_start", "window_end", "interval", "probe_views"})
+_REFERENCE_USES = REFERENCE_RUN_OPTIONS | {"method"}
 
 
 def idle_compaction_options(compaction: CompactionConfig) -> set[str]:

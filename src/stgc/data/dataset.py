@@ -281,6 +281,11 @@ class Dataset:
                 count += 1
         return count
 
+    @property
+    def image_cache_bytes(self) -> int:
+        """The bound on the decoded images kept (data.image_cache_mb)."""
+        return self._cache.max_bytes
+
     def load_image(self, camera: Camera) -> np.ndarray:
         """uint8 [H, W, 3] at the camera's (downscaled) size; a private copy of the cached image, so callers
         may modify it or hand it to torch.from_numpy."""
@@ -344,16 +349,17 @@ class Dataset:
         """Where the shipped points come from, in words (None without any)."""
         return self._scene.points_description
 
-    @property
-    def static_points(self) -> bool:
-        """The shipped points are one cloud for the whole capture, given to the segment's first frame."""
-        return bool(self._scene.static_points)
+    def ships_points_for(self, frame: int) -> bool:
+        """Whether the data's points are meant for `frame`: every frame's of per-frame points; a static cloud (one
+        for the whole capture) belongs to the segment's first frame."""
+        return self._scene.points is not None and not (self._scene.static_points and frame != self.start)
 
     def data_points(self, frame: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """Points shipped with the data for `frame` (xyz, rgb in [0,1]), or None. A static cloud (one for the whole
-        capture) belongs to the segment's first frame."""
-        if self._scene.points is None or (self._scene.static_points and frame != self.start):
+        """Points shipped with the data for `frame` (xyz, rgb in [0,1]), or None (`ships_points_for`; or a frame
+        whose file is missing)."""
+        if not self.ships_points_for(frame):
             return None
+        assert self._scene.points is not None
         return self._scene.points(frame)
 
     def memory_bytes(self, dtype_bytes: int = 1) -> int:

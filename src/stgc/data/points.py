@@ -141,7 +141,7 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
             # None: e.g. a static cloud given for the first frame only; the frame still gets its hull points.
             got = dataset.data_points(frame)
             xyz, rgb = got if got is not None else (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
-            if len(xyz) == 0 and not (dataset.static_points and frame != dataset.start):
+            if len(xyz) == 0 and dataset.ships_points_for(frame):
                 without.append(frame)
         elif source == "triangulate":
 

@@ -259,8 +259,9 @@ def write_eval(
         iteration = read_stgc_metadata(bitstream).get("iteration")
         if isinstance(iteration, int):
             more["iterations"] = iteration
-            if run.has_config():
-                more["training_finished"] = iteration == run.final_iteration()
+            final = run.final_iteration()  # None where the folder's run does not say (a whole video's folder)
+            if final is not None:
+                more["training_finished"] = iteration == final
     more.update(extra or {})
     record = eval_record(result, model_info, more)
     write_json(json_path, record)
@@ -672,8 +673,8 @@ def seam_of(name: str, views: Sequence[tuple[int, float]]) -> dict[str, Any] | N
     """A segment's seam record (see `segment_seams`) from its test views' (frame, PSNR); None without views."""
     by_frame: dict[int, list[float]] = {}
     for frame, value in views:
-        if value is not None and math.isfinite(value):
-            by_frame.setdefault(int(frame), []).append(float(value))
+        if value is not None and not math.isnan(value):  # an exact view counts at the ceiling, as in the means
+            by_frame.setdefault(int(frame), []).append(min(float(value), PSNR_CEILING_DB))
     if not by_frame:
         return None
     frames = sorted(by_frame)

@@ -326,8 +326,10 @@ def contact_sheet(
     rows = []
     background = _background(dataset, background)
     for frame in frame_selection(frames, list(dataset.frames)):
-        # Monocular data: each frame's own test views (a view exists at one frame only).
-        at_frame = names if cameras or dataset.multiview else [str(c.name) for c in dataset.test_at(frame)]
+        # Monocular data holds each view at one frame: each frame's own test views, or the named ones it holds.
+        present = {str(c.name) for c in [*dataset.test_at(frame), *dataset.train_at(frame)]}
+        at_frame = names if dataset.multiview else [n for n in names if n in present] if cameras else \
+            [str(c.name) for c in dataset.test_at(frame)]
         for name in at_frame:
             cam = _camera_at(dataset, name, frame)
             gt = np.asarray(dataset.load_image(cam))[..., :3]
@@ -337,8 +339,8 @@ def contact_sheet(
             sep = np.zeros((h, gap, 3), np.uint8)
             rows.append(np.concatenate([gt, sep, pred, sep, err], axis=1))
     if not rows:
-        raise DataError(None, f"no test view at frames {frames} (monocular data holds out images at some frames "
-                              "only: choose those frames)")
+        raise DataError(None, f"no view to compare at frames {frames} (monocular data holds each image at one "
+                              "frame: choose the frames of its test views, or of the cameras named)")
     width = rows[0].shape[1]
     sheet = []
     for r in rows:

@@ -273,7 +273,7 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
     recorded = Run(run_dir).read_config() or {}
     differences = []
     frames = _frame_window(asked["data"], data_path)
-    idle = idle_window_options(saved["train"]) & idle_window_options(asked["train"])  # acted in neither run
+    idle = _idle_in(saved) & _idle_in(asked)  # acted in neither run
     for section in ("data", "model", "train", "compaction"):
         held = _dotted_keys(recorded.get(section))
         # A key an older config.json's section lacks was trained as SAVED_BEFORE says (configs_from_run read it so).
@@ -297,6 +297,14 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
     if saved_data is not None and not same_place(saved_data, data_path):
         differences.append(f"data: {saved_data} in its config.json, {Path(data_path).resolve()} in the plan")
     return differences
+
+
+def _idle_in(configs: Mapping[str, Any]) -> set[str]:
+    """The options that act on nothing in a run with these configs (the same rules `idle_options` applies to
+    --set's options: rate-aware options without a window, compaction options a method does not use, a lite
+    model's decoder options)."""
+    idle = idle_window_options(configs["train"]) | idle_model_options(configs["model"])
+    return idle | (idle_compaction_options(configs["compaction"]) if configs.get("compaction") is not None else set())
 
 
 # Options left None in a plan that training resolves from the data and saves resolved (the frame window, the near
@@ -664,6 +672,8 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
     run_dir.mkdir(parents=True, exist_ok=True)
     entry = {"name": spec.name, "family": spec.family, "label": spec.label, "overrides": overrides,
              "preset": preset or "cpu", "data": str(Path(data_path).resolve())}
+    # Recorded now for a run this resumes or finds finished; a new run's --overwrite removes it (it belongs to
+    # whatever was there), so it is written again after training.
     write_json(Run(run_dir).experiment_path, entry)
     run = Run(run_dir)
     if not run.training_finished():

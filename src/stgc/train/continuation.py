@@ -61,8 +61,7 @@ def continuation_configs(saved: Mapping[str, Any], source: str | Path, iteration
                           f"model and the compaction {source} was trained with)")
     configs = dict(saved)
     base = saved["train"].iterations
-    # stop_after is one command's (`stgc train --set train.stop_after=N` stops that command): not inherited.
-    start = dataclasses.replace(saved["train"], iterations=base + iterations, stop_after=None)
+    start = dataclasses.replace(saved["train"], iterations=base + iterations)
     if start.quantization_aware.iterations == 0:
         # The source had no window, so its window options acted on nothing (an older config reads them as they were
         # then): a window opened here takes today's defaults for what it is not given.

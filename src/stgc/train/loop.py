@@ -27,6 +27,7 @@ import torch
 
 from stgc import machine
 from stgc.compaction import CompactionConfig, STKNNCompactor
+from stgc.compaction.config import REFERENCE_RUN_OPTIONS
 from stgc.config import EXECUTION_OPTIONS, ConfigError, from_saved, same_option_value, validate_config
 from stgc.data import DataConfig
 from stgc.data.cameras import Camera
@@ -142,10 +143,14 @@ class GroundTruth:
 
     def __init__(self, dataset: Dataset):
         self.dataset = dataset
+        needed = sum(c.width * c.height * 3 for c in dataset.train)
+        if needed > dataset.image_cache_bytes:  # then most draws decode their image again
+            log.warning("%s: the training images take %d MiB decoded, more than data.image_cache_mb (%d): most "
+                        "iterations will decode their images again; raise it if the memory is there",
+                        dataset.name, needed >> 20, dataset.image_cache_bytes >> 20)
 
     def get(self, camera: Camera) -> torch.Tensor:
-        # A private copy: the dataset hands out read-only arrays shared with its cache.
-        return torch.tensor(np.asarray(self.dataset.load_image(camera)), dtype=torch.float32) / 255.0
+        return torch.from_numpy(self.dataset.load_image(camera)).to(torch.float32) / 255.0  # (a private copy)
 
 
 class ForegroundMasks:
@@ -655,11 +660,9 @@ class Trainer:
         return summary
 
 
-# Compaction options that act only in the pruned run (the reference trains as `none` and only probes).
-_PRUNED_RUN_ONLY = frozenset(f"compaction.{k}" for k in (
-    "method", "criterion", "ratio_init", "ratio_step", "ratio_min", "ratio_max", "loss_tolerance", "loss_budget_db",
-    "loss_reference", "loss_smoothing", "ema_decay", "loss_signal", "rotation_weight", "sample_times",
-    "min_gaussians"))
+# Compaction options that act only in the pruned run (the reference prunes nothing and only probes).
+_PRUNED_RUN_ONLY = frozenset(f"compaction.{f.name}" for f in dataclasses.fields(CompactionConfig)
+                             if f.name not in REFERENCE_RUN_OPTIONS)
 
 
 def _flat(section: dict[str, Any], prefix: str = "") -> dict[str, Any]:

@@ -74,7 +74,8 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
         data_cfg: DataConfig = configs["data"]
         whole = data_cfg.open(data_path)  # the frame window the data options select
         plan = plan_segments(list(whole.frames), int(segment_frames))
-        _refuse_segments_without_test_views(plan, whole, data_path)
+        if configs["train"].eval_at_end or configs["train"].eval_every:
+            _refuse_segments_without_test_views(plan, whole, data_path)
         run = Run.create(out_dir, overwrite=overwrite)
         # video.json first: a start killed before config.json is still a video that --resume recognises.
         run.write_video({"segment_frames": int(segment_frames), "data_path": str(Path(data_path).resolve()),
@@ -100,8 +101,9 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
 
 
 def _refuse_segments_without_test_views(plan: list[dict[str, Any]], whole: Any, data_path: Path) -> None:
-    """Every segment is evaluated on its own test views: one without any (monocular data whose held-out images lie
-    at a few times) would fail at its end, after its training, and leave the video unevaluable."""
+    """Every segment of a run that evaluates is scored on its own test views: one without any (monocular data whose
+    held-out images lie at a few times) would fail at its end, after its training, and leave the video
+    unevaluable."""
     empty = [str(s["name"]) for s in plan
              if not any(whole.test_at(f) for f in range(int(s["start"]), int(s["start"]) + int(s["duration"])))]
     if empty:
