@@ -326,10 +326,13 @@ def contact_sheet(
     rows = []
     background = _background(dataset, background)
     for frame in frame_selection(frames, list(dataset.frames)):
-        # Monocular data holds each view at one frame: each frame's own test views, or the named ones it holds.
-        present = {str(c.name) for c in [*dataset.test_at(frame), *dataset.train_at(frame)]}
-        at_frame = names if dataset.multiview else [n for n in names if n in present] if cameras else \
-            [str(c.name) for c in dataset.test_at(frame)]
+        if dataset.multiview:
+            at_frame = names
+        elif cameras:  # monocular data holds each view at one frame: the named ones this frame holds
+            present = {str(c.name) for c in [*dataset.test_at(frame), *dataset.train_at(frame)]}
+            at_frame = [name for name in names if name in present]
+        else:  # this frame's own test views
+            at_frame = [str(c.name) for c in dataset.test_at(frame)]
         for name in at_frame:
             cam = _camera_at(dataset, name, frame)
             gt = np.asarray(dataset.load_image(cam))[..., :3]
