@@ -134,11 +134,21 @@ def test_a_segment_on_bad_data_fails_the_command_by_name_and_the_others_are_kept
 
 
 def test_a_video_renders_across_its_segments(scene, tmp_path):
+    from stgc.model import STGModel
+
     out = tmp_path / "video"
     assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", *QUICK]) == 0
+    # The scene is static and the segments nearly alike (52 dB apart): segment_002's model is made invisible, so
+    # that a frame drawn by the wrong segment shows.
+    last = Run(out / "segment_002").latest_model_dir()
+    hidden = STGModel.load(last)
+    hidden.params["opacity"].data.fill_(-30.0)
+    hidden.save(last)
     assert main(["render", str(out), "--camera", "0", "--out", str(tmp_path / "all.mp4")]) == 0
     frames = imageio.mimread(tmp_path / "all.mp4")
     assert len(frames) == 5  # frames 0-4 from segments 0, 0, 1, 1, 2
+    # Only segment_002's frame is the bare background.
+    assert np.asarray(frames[4], float).std() < 2 < np.asarray(frames[3], float).std()
     # Frame 4 is segment_002's, frame 1 segment_000's: each as its own segment renders it (up to the video coding).
     for frame, segment in ((4, "segment_002"), (1, "segment_000")):
         model, dataset = load_model_and_dataset(out / segment)
