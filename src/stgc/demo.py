@@ -115,10 +115,10 @@ def run_demo(out_dir: Path, data: Path | None = None) -> int:
     ]
     print()
     if result.report is not None:
-        print(f"report:     {result.report.markdown}")
-        print(f"RD plot:    {result.report.plot_png}")
-    print(f"video:      {video}")
-    print(f"bitstream:  {compacted_run / f'model_q{DEFAULT_QUALITY}.stgc'}")
+        print(f"report:     {_shown(result.report.markdown)}")
+        print(f"RD plot:    {_shown(result.report.plot_png)}")
+    print(f"video:      {_shown(video)}")
+    print(f"bitstream:  {_shown(compacted_run / f'model_q{DEFAULT_QUALITY}.stgc')}")
     print()
     print(f"{'model':<26} {'Gaussians':>10} {'MiB':>8} {'Mbps':>9} {'PSNR dB':>8}")
     for label, outcome in rows:
@@ -128,3 +128,13 @@ def run_demo(out_dir: Path, data: Path | None = None) -> int:
             f"{_fmt(rec, 'mbps', '.2f'):>9} {_fmt(rec, 'psnr', '.2f'):>8}"
         )
     return 0
+
+
+def _shown(path: Path | None) -> str:
+    """`path` as the user would type it from here: relative to the working directory when inside it."""
+    if path is None:
+        return "-"
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
