@@ -60,7 +60,7 @@ from stgc.options import (
     resolve_configs,
 )
 from stgc.run import Run
-from stgc.train.config import WINDOW_PREFIX, TrainConfig, idle_window_options, refuse_unused_window_options
+from stgc.train.config import idle_window_options, refuse_unused_window_options
 from stgc.train.continuation import check_window_fits, continuation_configs
 
 _log = logging.getLogger(__name__)
@@ -136,24 +136,14 @@ def idle_options(options: Mapping[str, str]) -> set[str]:
     (a plan's `stg` baseline), rate-aware options `idle_window_options` names, a lite model's decoder options.
     --set applies to every run of a plan, so its such options are left out of those runs (and out of what their
     reuse compares)."""
-    idle = set()
-    compaction = {k.removeprefix("compaction."): v for k, v in options.items() if k.startswith("compaction.")}
-    window = {k.removeprefix("train."): v for k, v in options.items() if k.startswith(WINDOW_PREFIX)}
-    try:  # on the defaults a plan's run starts from (no compaction)
-        idle |= set(options) & idle_compaction_options(
-            apply_overrides(default_configs()["compaction"], compaction, "compaction"))
-    except ConfigError:  # a bad value: check_plan_options names it
-        pass
-    try:
-        idle |= set(options) & idle_window_options(apply_overrides(TrainConfig(), window, "train"))
-    except ConfigError:
-        pass
-    model = {k.removeprefix("model."): v for k, v in options.items() if k.startswith("model.")}
-    try:
-        idle |= set(options) & idle_model_options(apply_overrides(default_configs()["model"], model, "model"))
-    except ConfigError:
-        pass
-    return idle
+    configs = default_configs()  # what a plan's run starts from (no compaction)
+    for section in list(configs):
+        values = {k.partition(".")[2]: v for k, v in options.items() if k.partition(".")[0] == section}
+        try:
+            configs[section] = apply_overrides(configs[section], values, section)
+        except ConfigError:  # a bad value: check_plan_options names it
+            pass
+    return set(options) & _idle_in(configs)
 
 
 def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str], out_dir: Path) -> None:
