@@ -3,6 +3,7 @@
 `write_panoptic_scene` renders a known static STG model (a textured shell of Gaussians around a small solid
 ball) from cameras on a ring and writes the Dynamic 3D Gaussians layout: train_meta.json, test_meta.json,
 ims/<cam>/<frame>.png and, optionally, seg/<cam>/<frame>.png foreground masks of the ball.
+`write_n3dv_scene` writes a Neural 3D Video layout of noise images, for what only needs a valid dataset.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from stgc.data.cameras import Camera
+from stgc.data.cameras import Camera, w2c_to_llff
 from stgc.model import STGModel
 
 BALL_CENTRE = np.array([0.0, 0.0, 0.0])
@@ -159,3 +160,20 @@ def moving_model(model: STGModel) -> STGModel:
         moving.params["trbf_scale"].fill_(float(np.log(0.15)))
         moving.params["trbf_center"].uniform_(0, 1, generator=torch.Generator().manual_seed(2))
     return moving
+
+
+def write_n3dv_scene(root: Path, cams: int = 3, frames: int = 2, width: int = 16, height: int = 12) -> Path:
+    """poses_bounds.npy (camera k at x = 0.3k, 4 units from the origin, focal 20) + cam<k>/<frame>.png noise."""
+    rng = np.random.default_rng(0)
+    root.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for k in range(cams):
+        w2c = np.eye(4)
+        w2c[:3, 3] = [0.3 * k, 0.0, 4.0]
+        rows.append(np.concatenate([w2c_to_llff(w2c, height, width, 20.0).ravel(), [1.0, 10.0]]))
+        for f in range(frames):
+            path = root / f"cam{k:02d}" / f"{f:04d}.png"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            Image.fromarray(rng.integers(0, 256, size=(height, width, 3), dtype=np.uint8)).save(path)
+    np.save(root / "poses_bounds.npy", np.array(rows))
+    return root

@@ -10,8 +10,9 @@ import pytest
 from PIL import Image
 
 from stgc.data import open_dataset
-from stgc.data.cameras import w2c_to_llff
 from stgc.errors import DataError
+
+from scenes import write_n3dv_scene as make_n3dv
 
 W, H = 16, 12
 rng = np.random.default_rng(0)
@@ -40,16 +41,6 @@ def make_panoptic(root: Path, frames: int = 2, cams: tuple[int, ...] = (0, 1, 2,
             for c in ids:
                 _image(root / "ims" / f"{c}/{t:06d}.jpg")
         (root / name).write_text(json.dumps(meta))
-    return root
-
-
-def make_n3dv(root: Path, cams: int = 3, frames: int = 2) -> Path:
-    root.mkdir(parents=True, exist_ok=True)
-    rows = [np.concatenate([w2c_to_llff(_w2c(k), H, W, 20.0).ravel(), [1.0, 10.0]]) for k in range(cams)]
-    np.save(root / "poses_bounds.npy", np.array(rows))
-    for k in range(cams):
-        for f in range(frames):
-            _image(root / f"cam{k:02d}" / f"{f:04d}.png")
     return root
 
 

@@ -722,3 +722,45 @@ def test_the_compress_command_writes_with_the_codec_options_it_is_built_from() -
         cmd = build_compress_command("RUN", "RUN/model.stgc", config, python="py")
         assert cmd[:3] == ["py", "-m", "stgc.cli"]
         assert compress_config(build_parser().parse_args(cmd[3:])) == config
+
+
+def test_options_left_to_the_data_are_compared_as_the_data_resolves_them(tmp_path: Path) -> None:
+    """A plan leaves the scaling lr to the data's official config (N3DV: 1.5e-3): a run saved with another value,
+    as every run was before the per-dataset values, is another run; one saved with the data's value is this one."""
+    from stgc.experiment.runner import reuse_mismatch
+    from scenes import write_n3dv_scene
+
+    data = write_n3dv_scene(tmp_path / "n3dv")
+    sets = {"compaction.method": "none", "data.preprocess": "none", "data.init_source": "random"}
+
+    def saved_with(name: str, changes: dict[str, dict]) -> str | None:
+        run = tmp_path / name / "stg"
+        _trained_config(run, "cpu", sets)
+        saved = json.loads((run / "config.json").read_text())
+        saved["data"].update(path=str(data), start=0, duration=2, format="n3dv", near_plane=0.2)
+        saved["train"]["densify"].update(interval=500, rounds=20, prune_in_rounds=True, max_growth=2.0)
+        saved["model"].update(trbf_scale_init=0.0, decoder_activation="sigmoid")
+        for section, values in changes.items():
+            saved[section].update(values)
+        (run / "config.json").write_text(json.dumps(saved))
+        return reuse_mismatch(run, data, "cpu", sets)
+
+    assert saved_with("n3dv", {"train": {"lr": {**_lr(), "scaling": 1.5e-3}}}) is None
+    assert "train.lr.scaling: 0.005 in its config.json, 0.0015 in the plan" in (
+        saved_with("old", {"train": {"lr": {**_lr(), "scaling": 5e-3}}}) or "")
+    assert "train.densify.rounds: 6 in its config.json, 20 in the plan" in (saved_with("rounds", {
+        "train": {"lr": {**_lr(), "scaling": 1.5e-3}, "densify": {**_densify(), "rounds": 6}}}) or "")
+
+
+def _lr() -> dict:
+    from stgc.train.config import LearningRates
+    from stgc.train.loop import _config_dict
+
+    return _config_dict(LearningRates())
+
+
+def _densify() -> dict:
+    from stgc.train.config import DensifyConfig
+    from stgc.train.loop import _config_dict
+
+    return _config_dict(DensifyConfig().resolved(sparse_cloud=True))

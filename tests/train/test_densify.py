@@ -35,7 +35,7 @@ def _model(n: int = 40, seed: int = 0) -> STGModel:
 
 def _optimizer_with_moments(model: STGModel) -> torch.optim.Adam:
     """An optimizer whose per-row moments encode the row identity: row i has exp_avg == i (+ column offset)."""
-    opt = model.make_optimizer(learning_rates(TrainConfig(), model.scene_extent), 1e-4)
+    opt = model.make_optimizer(learning_rates(TrainConfig().resolved(sparse_cloud=False, family=None), model.scene_extent), 1e-4)
     for p in model.params.values():
         p.grad = torch.ones_like(p)
     opt.step()

@@ -89,7 +89,7 @@ def test_the_window_is_the_run_s_last_iterations(scene, tmp_path):
     for i in (50, 51, 80):
         expected = xyz_learning_rate(config, trainer.extent, i, 80) * (0.01 if i > 50 else 1.0)
         assert rates[i] == pytest.approx(expected)
-    assert all(g["lr"] == pytest.approx(0.01 * learning_rates(config, trainer.extent)[g["name"]])
+    assert all(g["lr"] == pytest.approx(0.01 * learning_rates(trainer.cfg, trainer.extent)[g["name"]])
                for g in trainer.optimizer.param_groups if g["name"] != "xyz")
     with pytest.raises(ValueError, match="quantization_aware.iterations"):
         from stgc.config import validate_config

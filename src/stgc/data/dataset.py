@@ -108,6 +108,8 @@ class SourceScene:
         not evenly spaced (monocular D-NeRF, whose test images' times fall between the training images'); None:
         frame f lies at f. Time is then t = (position - start) / duration, so that every image is rendered at the
         moment its file names, not at its rank.
+    official_config: the family of the official STG code's per-dataset training configs that trains this source's
+        scenes ('n3dv', 'technicolor': `stgc.official`), or None for a source without one.
     """
 
     name: str
@@ -128,6 +130,7 @@ class SourceScene:
     notes: list[str] = field(default_factory=list)
     frame_positions: dict[int, float] | None = None
     static_points: bool = False
+    official_config: str | None = None
 
     def time_of(self, frame: int, start: int, duration: int) -> float:
         """Normalised time of `frame` in the segment [start, start + duration) (the one rule; see Dataset).
@@ -237,6 +240,11 @@ class Dataset:
     def view_dependent_colour(self) -> bool:
         """Whether this source's reference method models colour that changes with the viewing direction."""
         return self._scene.view_dependent_colour
+
+    @property
+    def official_config(self) -> str | None:
+        """The official STG config family that trains this source's scenes (SourceScene.official_config)."""
+        return self._scene.official_config
 
     @property
     def near_plane(self) -> float:

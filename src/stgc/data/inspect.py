@@ -20,6 +20,7 @@ def inspect(path: str | Path, format: str = "auto", decode: bool = False, **kwar
     info["decoded_files"] = dataset.verify_images(progress=True) if decode else None
     info["masks"] = dataset.has_masks
     info["near_plane"] = dataset.near_plane
+    info["official_config"] = dataset.official_config
     if dataset.has_points:
         counts = []
         for frame in dataset.frames:
@@ -65,6 +66,8 @@ def inspect_text(path: str | Path, **kwargs: Any) -> str:
          f"{info['points']}: {pts['total']} in all, {pts['min']}..{pts['max']} per frame"),
         ("masks", "foreground masks for the training views" if info["masks"] else "none"),
         ("near plane", f"{info['near_plane']:g}"),
+        ("official config", "none: the official STG defaults" if info["official_config"] is None else
+         f"{info['official_config']} (options left unset train as its official configs: stgc.official)"),
         ("decoded", "not checked (add --decode to decode every file)" if info["decoded_files"] is None
          else f"all {info['decoded_files']} image and mask files decode"),
     ]

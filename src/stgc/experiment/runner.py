@@ -262,7 +262,7 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
         return [f"its config.json cannot be compared with the plan's ({exc})"]
     recorded = Run(run_dir).read_config() or {}
     differences = []
-    frames = _frame_window(asked["data"], data_path)
+    by_data = _resolved_by_data(asked, data_path)
     idle = _idle_in(saved) & _idle_in(asked)  # acted in neither run
     for section in ("data", "model", "train", "compaction"):
         held = _dotted_keys(recorded.get(section))
@@ -276,9 +276,10 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
                     or key in idle):
                 continue
             if key in RESOLVED_AT_TRAINING and now is None:
-                if key not in frames:
+                # A run whose config.json holds None left it to the data too (a whole video's shared options).
+                if then is None or key not in by_data:
                     continue
-                now = frames[key]  # the frame window the plan's data gives
+                now = by_data[key]  # what training resolves it to on the plan's data
             if key == "data.format" and "auto" in (then, now):
                 then, now = (_detected_format(data_path) if v == "auto" else v for v in (then, now))
             if not _same_plan_option(key, then, now, run_dir.parent):
@@ -298,21 +299,34 @@ def _idle_in(configs: Mapping[str, Any]) -> set[str]:
 
 
 # Options left None in a plan that training resolves from the data and saves resolved (the frame window, the near
-# plane, the densification schedule of the initial cloud's kind): their saved values are not the plan's None.
+# plane, the densification schedule of the initial cloud's kind, the official config family's model options and
+# learning rates): their saved values are not the plan's None.
 RESOLVED_AT_TRAINING = frozenset({"data.start", "data.duration", "data.near_plane", "train.densify.interval",
-                                  "train.densify.rounds", "train.densify.prune_in_rounds", "train.densify.max_growth"})
+                                  "train.densify.rounds", "train.densify.prune_in_rounds", "train.densify.max_growth",
+                                  "train.lr.scaling", "model.trbf_scale_init", "model.decoder_activation"})
 
 
-def _frame_window(data: Any, data_path: str | Path) -> dict[str, int]:
-    """{"data.start": first frame, "data.duration": frames} the plan's data options give on `data_path` when they
-    leave the window unset (the whole recording), or {} when the data cannot be opened here."""
-    if data.start is not None and data.duration is not None:
+def _resolved_by_data(asked: Mapping[str, Any], data_path: str | Path) -> dict[str, Any]:
+    """What training resolves the options the plan leaves to the data (RESOLVED_AT_TRAINING, None) to on
+    `data_path`, dotted with their section; {} when there are none or the data cannot be opened here."""
+    data, model, train = asked["data"], asked["model"], asked["train"]
+    unset = {f"data.{f.dotted}" for f in iter_fields(data) if f.default is None} | {
+        f"model.{f.dotted}" for f in iter_fields(model) if f.default is None} | {
+        f"train.{f.dotted}" for f in iter_fields(train) if f.default is None}
+    if not unset & RESOLVED_AT_TRAINING:
         return {}
     try:
         dataset = data.open(data_path)
     except (StgcError, OSError):
         return {}
-    return {"data.start": int(dataset.start), "data.duration": int(dataset.duration)}
+    family = dataset.official_config
+    resolved = {"data.start": int(dataset.start), "data.duration": int(dataset.duration),
+                "data.near_plane": float(dataset.near_plane)}
+    sections = {"model": model.resolved(family),
+                "train": train.resolved(not data.points_ship_with(dataset), family)}
+    for section, cfg in sections.items():
+        resolved.update({f"{section}.{f.dotted}": f.default for f in iter_fields(cfg)})
+    return {key: value for key, value in resolved.items() if key in RESOLVED_AT_TRAINING}
 
 
 def _detected_format(data_path: str | Path) -> str:

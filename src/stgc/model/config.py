@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, Literal, get_args
 
 from stgc.model.layout import VARIANTS, Variant
+from stgc.official import official_value
 
 DecoderActivation = Literal["sigmoid", "clamp", "none"]
 DECODER_ACTIVATIONS = get_args(DecoderActivation)
@@ -20,18 +22,20 @@ class ModelConfig:
             "or 'lite' (29 floats/Gaussian, RGB splatted directly)."
         },
     )
-    decoder_activation: DecoderActivation = field(
-        default="sigmoid",
+    decoder_activation: DecoderActivation | None = field(
+        default=None,
         metadata={
             "help": "Output activation of the full model's decoder: 'sigmoid' (official 'sandwich', N3DV), "
-            "'clamp' (official 'sandwichnoact', Technicolor) or 'none'."
+            "'clamp' (official 'sandwichnoact', Technicolor) or 'none'; default: the official config of the data's "
+            "family (stgc.official: clamp for Technicolor, else sigmoid)."
         },
     )
-    trbf_scale_init: float = field(
-        default=0.0,
+    trbf_scale_init: float | None = field(
+        default=None,
         metadata={
             "help": "Initial stored (log) temporal scale s_t of every Gaussian; the temporal RBF width is exp(s_t). "
-            "Equals minus the official --trbfslinit (N3DV 0, Technicolor -2)."
+            "Equals minus the official --trbfslinit; default: the official config of the data's family "
+            "(stgc.official: -2 for Technicolor, else 0)."
         },
     )
     opacity_init: float = field(
@@ -70,7 +74,7 @@ class ModelConfig:
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
             raise ValueError(f"model.variant must be one of {VARIANTS}, got {self.variant!r}")
-        if self.decoder_activation not in DECODER_ACTIVATIONS:
+        if self.decoder_activation is not None and self.decoder_activation not in DECODER_ACTIVATIONS:
             raise ValueError(
                 f"model.decoder_activation must be one of {DECODER_ACTIVATIONS}, got {self.decoder_activation!r}"
             )
@@ -78,6 +82,22 @@ class ModelConfig:
             raise ValueError(f"model.opacity_init must be in (0, 1), got {self.opacity_init}")
         if self.init_neighbours < 1:
             raise ValueError(f"model.init_neighbours must be >= 1, got {self.init_neighbours}")
+        if self.trbf_scale_init is not None and not math.isfinite(self.trbf_scale_init):
+            raise ValueError(f"model.trbf_scale_init must be finite, got {self.trbf_scale_init}")
+
+    def resolved(self, family: str | None) -> ModelConfig:
+        """This config with every option left unset (None) taken from the official config of the data's `family`
+        (`Dataset.official_config`; stgc.official)."""
+        return replace(self, **{name: official_value(f"model.{name}", family) for name in RESOLVED_BY_DATA
+                                if getattr(self, name) is None})
+
+    @property
+    def is_resolved(self) -> bool:
+        return all(getattr(self, name) is not None for name in RESOLVED_BY_DATA)
+
+
+# Options a run leaves to the data's official config family (ModelConfig.resolved).
+RESOLVED_BY_DATA = ("decoder_activation", "trbf_scale_init")
 
 
 # The full model's decoder options: a lite model has no decoder.

@@ -222,6 +222,9 @@ class STGModel:
         scene_extent: float = 1.0,
         device: str | torch.device | None = None,
     ) -> STGModel:
+        if not config.is_resolved:
+            raise ValueError("the model config has options left to the data (model.decoder_activation, "
+                             "model.trbf_scale_init): resolve them with ModelConfig.resolved(family) first")
         xyz, rgb, time = _cloud_arrays(cloud)
         count = xyz.shape[0]
         log_scale = initial_log_scales(xyz, config.init_neighbours)
@@ -246,7 +249,7 @@ class STGModel:
         decoder = None
         if config.variant == "full":
             generator = torch.Generator().manual_seed(config.decoder_seed)
-            decoder = SandwichDecoder(config.decoder_activation, generator=generator)
+            decoder = SandwichDecoder(str(config.decoder_activation), generator=generator)
         return cls(tensors, config.variant, scene_extent=scene_extent, decoder=decoder)
 
     # ------------------------------------------------------------------ basic properties

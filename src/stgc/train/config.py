@@ -19,7 +19,12 @@ from typing import ClassVar, Literal
 
 from stgc.codec.format import DEFAULT_QUALITY, QUALITY_LEVELS
 from stgc.config import ConfigError, check
+from stgc.official import official_value
 from stgc.render.api import BACKENDS, Backend
+
+
+# Learning rates a run leaves to the data's official config family (TrainConfig.resolved).
+RESOLVED_BY_DATA = ("scaling",)
 
 
 @dataclass(frozen=True)
@@ -34,7 +39,9 @@ class LearningRates:
     features_dc: float = field(default=2.5e-3, metadata={"help": "base colour / feature lr"})
     features_t: float = field(default=1e-3, metadata={"help": "time-feature lr (full variant)"})
     opacity: float = field(default=5e-2, metadata={"help": "opacity logit lr"})
-    scaling: float = field(default=5e-3, metadata={"help": "log-scale lr (official configs use 1.5e-3 to 5e-3)"})
+    scaling: float | None = field(default=None, metadata={
+        "help": "log-scale lr; default: the official config of the data's family (stgc.official: 1.5e-3 for N3DV, "
+                "else 5e-3)"})
     rotation: float = field(default=1e-3, metadata={"help": "quaternion lr"})
     omega: float = field(default=1e-4, metadata={"help": "angular velocity lr"})
     trbf_center: float = field(default=1e-4, metadata={"help": "temporal centre mu_t lr"})
@@ -47,7 +54,10 @@ class LearningRates:
     def validate(self, prefix: str = "") -> None:
         # Zero is allowed: it freezes a group.
         for name, value in dataclasses.asdict(self).items():
-            check(math.isfinite(value) and value >= 0, f"{prefix}{name}", value, "a learning rate >= 0")
+            if value is None and name in RESOLVED_BY_DATA:
+                continue
+            check(value is not None and math.isfinite(value) and value >= 0, f"{prefix}{name}", value,
+                  "a learning rate >= 0")
         check(self.xyz_init > 0 and self.xyz_final > 0, f"{prefix}xyz_final", self.xyz_final,
               "the xyz rates decay log-linearly, so both must be > 0")
 
@@ -130,9 +140,12 @@ class DensifyConfig:
     OFFICIAL: ClassVar[dict] = {"interval": 100, "rounds": 6, "max_growth": 0.0, "prune_in_rounds": False}
     SPARSE_CLOUD: ClassVar[dict] = {"interval": 500, "rounds": 20, "max_growth": 2.0, "prune_in_rounds": True}
 
-    def resolved(self, sparse_cloud: bool) -> DensifyConfig:
-        """This config with every option left to its default (None) set for the initial cloud's kind."""
-        defaults = self.SPARSE_CLOUD if sparse_cloud else self.OFFICIAL
+    def resolved(self, sparse_cloud: bool, family: str | None = None) -> DensifyConfig:
+        """This config with every option left to its default (None) set for the initial cloud's kind: from the
+        clouds a source ships, as the official config of the data's `family` trains (stgc.official)."""
+        defaults = dict(self.SPARSE_CLOUD) if sparse_cloud else {
+            **self.OFFICIAL, **{k: v for k in self.OFFICIAL
+                                if (v := official_value(f"train.densify.{k}", family)) is not None}}
         return dataclasses.replace(self, **{k: v for k, v in defaults.items() if getattr(self, k) is None})
 
     @property
@@ -335,6 +348,18 @@ class TrainConfig:
                                     "densify.max_growth": 0.0, "quantization_aware.remeasure_at_settle": False,
                                     "floaters.scale_min_opacity": 0.0}
 
+    def resolved(self, sparse_cloud: bool, family: str | None) -> TrainConfig:
+        """This config with every option left to the data (None) resolved: the densification schedule for the
+        initial cloud's kind, the learning rates for the official config of the data's `family`
+        (`Dataset.official_config`; stgc.official). config.json records the resolved values."""
+        lr = dataclasses.replace(self.lr, **{name: official_value(f"train.lr.{name}", family)
+                                              for name in RESOLVED_BY_DATA if getattr(self.lr, name) is None})
+        return dataclasses.replace(self, lr=lr, densify=self.densify.resolved(sparse_cloud, family))
+
+    @property
+    def is_resolved(self) -> bool:
+        return self.densify.is_resolved and all(getattr(self.lr, name) is not None for name in RESOLVED_BY_DATA)
+
     def validate(self, prefix: str = "") -> None:
         check(self.iterations >= 1, f"{prefix}iterations", self.iterations, ">= 1")
         check(math.isfinite(self.schedule_scale) and self.schedule_scale > 0, f"{prefix}schedule_scale",
@@ -452,7 +477,7 @@ def resolve_schedule(cfg: TrainConfig) -> Schedule:
     d = cfg.densify
     if not d.is_resolved:
         raise ValueError("train.densify has options left to the data (interval, rounds, max_growth): resolve them "
-                         "with DensifyConfig.resolved(sparse_cloud) first")
+                         "with TrainConfig.resolved(sparse_cloud, family) first")
     assert d.interval is not None and d.rounds is not None
     iterations = int(cfg.iterations)
     start, interval = scaled(d.start), scaled(d.interval)

@@ -104,6 +104,12 @@ def _seed_globals(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def _resolved(value: float | None) -> float:
+    if value is None:
+        raise ValueError("an option left to the data was not resolved")
+    return value
+
+
 def learning_rates(cfg: TrainConfig, extent: float, params: Any = None) -> dict[str, float]:
     """Initial lr per parameter group (position-like groups scale with the scene extent, as official).
 
@@ -111,7 +117,7 @@ def learning_rates(cfg: TrainConfig, extent: float, params: Any = None) -> dict[
     lr = cfg.lr
     rates = {
         "xyz": lr.xyz_init * extent,
-        "scaling": lr.scaling,
+        "scaling": _resolved(lr.scaling),  # TrainConfig.resolved
         "rotation": lr.rotation,
         "omega": lr.omega,
         "opacity": lr.opacity,
@@ -132,9 +138,11 @@ def xyz_learning_rate(cfg: TrainConfig, extent: float, iteration: int, total: in
 
 
 def build_initial_model(dataset: Dataset, data_cfg: DataConfig | None, model_cfg: ModelConfig | None) -> STGModel:
-    """The STG model initialised from the dataset's point cloud as the data config asks."""
+    """The STG model initialised from the dataset's point cloud as the data config asks (the model options left unset
+    resolved for the dataset's official config family)."""
     cloud = initial_points_from_config(dataset, data_cfg)
-    return STGModel.from_config(cloud, model_cfg or ModelConfig(), scene_extent=dataset.scene_extent())
+    model_cfg = (model_cfg or ModelConfig()).resolved(dataset.official_config)
+    return STGModel.from_config(cloud, model_cfg, scene_extent=dataset.scene_extent())
 
 
 class GroundTruth:
@@ -214,10 +222,12 @@ class Trainer:
         evaluator: TestEvaluator | None = None,
     ):
         validate_config(train_cfg, "train")
-        # Densification options left unset follow the initial cloud's kind (DensifyConfig.SPARSE_CLOUD); the
-        # resolved values are what config.json records.
+        # Options left unset follow the data: the densification schedule the initial cloud's kind
+        # (DensifyConfig.SPARSE_CLOUD), the model and learning rates the data's official config family
+        # (stgc.official). The resolved values are what config.json records.
         sparse_cloud = not (data_cfg or DataConfig()).points_ship_with(dataset)
-        train_cfg = dataclasses.replace(train_cfg, densify=train_cfg.densify.resolved(sparse_cloud))
+        train_cfg = train_cfg.resolved(sparse_cloud, dataset.official_config)
+        model_cfg = (model_cfg or ModelConfig()).resolved(dataset.official_config)
         self.dataset, self.data_cfg, self.model_cfg = dataset, data_cfg, model_cfg
         self.cfg, self.compaction_cfg = train_cfg, compaction_cfg
         self.schedule: Schedule = resolve_schedule(train_cfg)
@@ -254,9 +264,8 @@ class Trainer:
             self.metrics_log.clear()
             self.compaction_log.clear()
             self._write_config()
-        model_options = model_cfg or ModelConfig()
-        self.decoder_ray_origin = _chosen(model_options.decoder_ray_origin, dataset.synthetic)
-        self.decoder_ray_direction = _chosen(model_options.decoder_ray_direction, dataset.view_dependent_colour)
+        self.decoder_ray_origin = _chosen(model_cfg.decoder_ray_origin, dataset.synthetic)
+        self.decoder_ray_direction = _chosen(model_cfg.decoder_ray_direction, dataset.view_dependent_colour)
         if self.model.decoder is not None:
             self.model.decoder.ignore_ray_inputs(origin=not self.decoder_ray_origin,
                                                  direction=not self.decoder_ray_direction)
@@ -269,7 +278,7 @@ class Trainer:
         self.colour = self._make_colour_correction()
         self.ems = ErrorGuidedSampler(
             train_cfg.ems, self.schedule.ems_start, self.schedule.ems_min_gap,
-            [str(c.name) for c in dataset.train], (model_cfg or ModelConfig()).trbf_scale_init,
+            [str(c.name) for c in dataset.train], _resolved(model_cfg.trbf_scale_init),
         )
         # After the optimizer step, in this order: density control, error-guided points, compaction.
         self.strategies: list[Strategy] = [DensityStrategy(self.density), ErrorGuidedStrategy(self.ems, self.density)]

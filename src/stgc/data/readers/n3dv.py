@@ -80,7 +80,8 @@ def read_n3dv(path: Path, options: ReaderOptions) -> SourceScene:
         points = lambda frame: _npy_points(points_dir, frame)
         description = "points3d/NNNN.npy (x, y, z, r, g, b) per frame"
     return SourceScene(name=root.name, format="n3dv", root=root, cameras=cameras, default_test=[names[0]],
-                       meta_file=meta_file, fps=fps, points=points, points_description=description, notes=notes)
+                       meta_file=meta_file, fps=fps, points=points, points_description=description, notes=notes,
+                       official_config="n3dv")
 
 
 def _first_source(sources: dict[int, Path | VideoFrame]) -> Path:

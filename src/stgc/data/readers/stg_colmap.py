@@ -78,8 +78,10 @@ def read_stg_colmap(path: Path, options: ReaderOptions) -> SourceScene:
             cameras.append(Camera(name, frame, 0.0, K, w2c, width, height, image))
     names = [v[0] for v in views]
     # STG holds out cam00 (Neural 3D Video), but cam10 for Technicolor, whose prepared folder keeps the source's
-    # cameras_parameters.txt beside the colmap_<t> folders (STG's readColmapSceneInfoTechnicolor).
+    # cameras_parameters.txt beside the colmap_<t> folders (STG's readColmapSceneInfoTechnicolor). A prepared
+    # Neural 3D Video scene keeps its poses_bounds.npy there (STG's pre_n3d.py writes beside the source).
     technicolor = (root / "cameras_parameters.txt").is_file()
+    family = "technicolor" if technicolor else "n3dv" if (root / "poses_bounds.npy").is_file() else None
     held_out = "cam10" if technicolor else "cam00"
     test = [held_out] if held_out in names else [sorted(names)[0]]
     # Without a points3D in any frame the dataset ships no points (init_source=auto then triangulates).
@@ -87,7 +89,8 @@ def read_stg_colmap(path: Path, options: ReaderOptions) -> SourceScene:
     points = (lambda frame: _colmap_points(dirs.get(frame))) if shipped else None
     return SourceScene(name=root.name, format="stg-colmap", root=root, cameras=cameras, default_test=test,
                        meta_file=meta_file, fps=30.0, points=points,
-                       points_description="colmap_<t>/sparse/0/points3D per frame", default_start=default_start)
+                       points_description="colmap_<t>/sparse/0/points3D per frame", default_start=default_start,
+                       official_config=family)
 
 
 def _points_file(frame_dir: Path) -> Path | None:

@@ -66,4 +66,5 @@ def read_technicolor(path: Path, options: ReaderOptions) -> SourceScene:
             cameras.append(Camera(name, frame, 0.0, K, w2c, width, height, f))
     names = [f"cam{i:02d}" for i in range(len(rows))]
     return SourceScene(name=root.name, format="technicolor", root=root, cameras=cameras,
-                       default_test=["cam10"] if "cam10" in names else [names[0]], meta_file=meta_file, fps=30.0)
+                       default_test=["cam10"] if "cam10" in names else [names[0]], meta_file=meta_file, fps=30.0,
+                       official_config="technicolor")
