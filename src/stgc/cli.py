@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from stgc import __version__
-from stgc.codec import CodecConfig, compress_run, decompress
+from stgc.codec import QUALITY_LEVELS, CodecConfig, compress_run, decompress
 from stgc.compaction import plot_compaction
 from stgc.compaction.config import CASE_WINDOWS, METHODS
 from stgc.compaction.criteria import CRITERIA
@@ -282,7 +282,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 def cmd_experiment(args: argparse.Namespace) -> int:
     result = run_plan(
         args.data, args.plan, args.out, preset=args.preset, extra_overrides=args.set or [],
-        codec_qualities=args.codec_quality or [], preprocess=args.preprocess, bd_method=args.bd_method,
+        codec_qualities=sorted(set(args.codec_quality or [])), preprocess=args.preprocess, bd_method=args.bd_method,
         use_ray=not args.no_ray, ray_address=args.ray_address,
     )
     print(result)
@@ -453,7 +453,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="training preset of every run")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override applied to every run")
-    p.add_argument("--codec-quality", type=int, action="append", help="also add .stgc rate points at this quality")
+    p.add_argument("--codec-quality", type=int, action="append", choices=QUALITY_LEVELS,
+                   help="also add .stgc rate points at this quality (repeat for several)")
     add_ray_arguments(p, "run")
 
     p.add_argument("--preprocess", choices=[m for m in PREPROCESS_MODES if m != "none"],

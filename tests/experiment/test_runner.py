@@ -129,6 +129,15 @@ def test_plan_toml_errors(tmp_path: Path) -> None:
     bad.write_text("[[runs\n")
     with pytest.raises(FormatError, match="invalid TOML"):
         load_plan_toml(bad)
+    bad.write_text("basline = 'STG'\n[[runs]]\nname = 'a'\n")
+    with pytest.raises(FormatError, match="unknown key.*did you mean 'baseline'"):
+        load_plan_toml(bad)
+    bad.write_text("baseline = 'STGG'\n[[runs]]\nname = 'a'\nfamily = 'STG'\n")
+    with pytest.raises(FormatError, match="baseline = 'STGG': neither a family of its runs .STG."):
+        load_plan_toml(bad)
+    for fine in ("STG", "a", "STG + codec"):  # a family, a run, a family's codec points
+        bad.write_text(f"baseline = '{fine}'\n[[runs]]\nname = 'a'\nfamily = 'STG'\n")
+        assert load_plan_toml(bad).baseline == fine
 
 
 def test_run_plan_is_resumable(tmp_path: Path) -> None:
@@ -562,6 +571,13 @@ def test_a_run_that_raises_fails_its_row_and_the_runs_that_need_it(tmp_path: Pat
     ('name = "x"\nloss_reference = "later"', "must name a run listed before it"),
     ('name = "x"\nfrom = "stg"\niterations = 5\nloss_reference = "stg"', "keeps its source's compaction"),
     ('name = "x"\nloss_reference = "stg"\noverrides = { "compaction.loss_reference" = "y" }', "not with the"),
+    # A misspelt or mistyped key would be dropped, and the run train something else under its name.
+    ('name = "x"\noveride = { "compaction.method" = "st-knn" }', "unknown key.*'overide' .did you mean 'overrides'"),
+    ('name = "x"\nloss_referense = "stg"', "unknown key.*did you mean 'loss_reference'"),
+    ('name = "x"\nfrom = ["stg"]\niterations = 5', "from = \\['stg'\\]: a string"),
+    ('name = "x"\nfamily = 3', "family = 3: a string"),
+    ('name = "x"\ncodec_qualities = [2, 2]', "distinct codec qualities"),
+    ('name = "x"\nfrom = "stg"\niterations = 5\noverrides = { "train.iterations" = 9 }', "not as the train.iter"),
 ])
 def test_fine_tuning_runs_and_loss_references_in_a_plan_are_checked(tmp_path: Path, run: str, problem: str) -> None:
     bad = tmp_path / "bad.toml"
@@ -764,3 +780,49 @@ def _densify() -> dict:
     from stgc.train.loop import _config_dict
 
     return _config_dict(DensifyConfig().resolved(sparse_cloud=True))
+
+
+def test_a_plan_is_refused_before_training_where_it_would_fail_or_mislead_after(tmp_path: Path) -> None:
+    """A codec baseline without codec points, a --set option acting in no run or of a bad value, a loss reference
+    that is no reference run: each refused before anything trains, not after hours."""
+    from stgc.config import ConfigError
+
+    plan_path = tmp_path / "PLAN.toml"
+    plan_path.write_text(PLAN_TOML.replace('baseline = "STG"', 'baseline = "STG + codec"'))
+    with pytest.raises(ConfigError, match="no codec rate points: give --codec-quality"):
+        run_plan("DATA", plan_path, tmp_path / "a", runner=fake_runner, python=sys.executable, log=lambda m: None)
+    plan_path.write_text(PLAN_TOML)
+    for sets, problem in ((["train.quantization_aware.rate_weight=0.01"], "acts on nothing in any run"),
+                          (["compaction.ratio_max=banana"], "--set: .*ratio_max"),
+                          (["train.iterations=ten"], "--set: .*iterations")):
+        with pytest.raises(ConfigError, match=problem):
+            run_plan("DATA", plan_path, tmp_path / "b", extra_overrides=sets, runner=fake_runner,
+                     python=sys.executable, log=lambda m: None)
+    plan_path.write_text(REFERENCE_TOML.replace('"compaction.method" = "reference", "compaction.case" = 4',
+                                                '"compaction.method" = "none"'))
+    with pytest.raises(ConfigError, match="loss_reference 'ref' trains with compaction.method=none"):
+        run_plan("DATA", plan_path, tmp_path / "c", runner=fake_runner, python=sys.executable, log=lambda m: None)
+    assert not list(tmp_path.glob("*/*/config.json"))  # nothing trained
+
+
+def test_a_report_whose_baseline_failed_says_so_and_no_stale_report_stays(tmp_path: Path) -> None:
+    plan_path = tmp_path / "PLAN.toml"
+    plan_path.write_text(MINI_PLAN)
+    out = tmp_path / "exp"
+    assert _run_mini(out, plan_path, "train.iterations=10")["status"] == "finished"
+    report = out / "report-mini" / "report.md"
+    assert report.is_file()
+    # Now the only run fails (other settings than the finished one): no report can be made, the old one goes.
+    assert _run_mini(out, plan_path, "train.iterations=20")["status"] == "failed"
+    assert not report.exists() and not (out / "report-mini" / "report.json").exists()
+
+
+def test_a_baseline_without_results_gives_a_report_without_bd_deltas(tmp_path: Path) -> None:
+    from stgc.eval.report import ReportRow, make_report
+
+    rows = [ReportRow("c1", "ST-KNN", mbps=1.0, psnr=30.0), ReportRow("c2", "ST-KNN", mbps=0.8, psnr=29.5)]
+    with pytest.raises(ValueError, match="baseline 'STG' is neither"):
+        make_report(rows, tmp_path / "r", "STG")
+    report = make_report(rows, tmp_path / "r", "STG", baseline_may_be_missing=True)
+    assert report.bd == [] and report.baseline is None
+    assert "No BD deltas: baseline 'STG' is neither" in report.markdown.read_text()

@@ -122,6 +122,7 @@ def _front(curve: Sequence[ReportRow]) -> list[ReportRow]:
     return front
 
 
+CODEC_SUFFIX = " + codec"  # a family's codec points (its runs' .stgc files) are the family of this name
 RATE_POINTS = 4  # rp01..rp04, as the MPEG Gaussian-splat-coding test conditions name a curve's points
 
 
@@ -359,16 +360,31 @@ def make_report(
     bd_method: Method = "pchip",
     stem: str = "report",
     notes: Sequence[str] = (),
+    baseline_may_be_missing: bool = False,
 ) -> Report:
-    """Write OUT/<stem>.md (table + BD deltas), OUT/<stem>_rd.png/.svg (RD plot) and OUT/<stem>.json."""
+    """Write OUT/<stem>.md (table + BD deltas), OUT/<stem>_rd.png/.svg (RD plot) and OUT/<stem>.json.
+
+    A `baseline` that names no row is an error, unless `baseline_may_be_missing` (an experiment whose baseline runs
+    failed): then the report has no BD deltas and says why."""
     parsed = [r if isinstance(r, ReportRow) else ReportRow.from_mapping(r) for r in rows]
-    return _write_report(parsed, Path(out_dir), baseline, title, bd_method, stem, notes)
+    return _write_report(parsed, Path(out_dir), baseline, title, bd_method, stem, notes, baseline_may_be_missing)
+
+
+def remove_report(out_dir: str | Path, stem: str = "report") -> None:
+    """Remove the files make_report writes, where no report can be made now: an earlier one must not stand for it."""
+    for suffix in (".md", "_rd.png", "_rd.svg", ".json"):
+        (Path(out_dir) / f"{stem}{suffix}").unlink(missing_ok=True)
 
 
 def _write_report(rows: list[ReportRow], out_dir: Path, baseline: str | None, title: str, bd_method: Method,
-                  stem: str, notes: Sequence[str]) -> Report:
+                  stem: str, notes: Sequence[str], baseline_may_be_missing: bool = False) -> Report:
     out_dir.mkdir(parents=True, exist_ok=True)
-    base = resolve_baseline(rows, baseline)
+    try:
+        base = resolve_baseline(rows, baseline)
+    except ValueError as exc:
+        if not baseline_may_be_missing:
+            raise
+        base, notes = None, [*notes, f"No BD deltas: {exc}; its runs have no results."]
     bd = bd_table(rows, base, bd_method)
     png = svg = None
     if any(r.mbps is not None and r.psnr is not None for r in rows):
@@ -452,7 +468,7 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
                             "ended with (compress and evaluate the run again)", path, bitstream, rec.get("iterations"))
                 continue
             rows.append(_row_of(path, {**record_fields(rec), "name": _named(f"{setting} {point}", rec),
-                                       "family": f"{family} + codec", "run": run_dir.name,
+                                       "family": f"{family}{CODEC_SUFFIX}", "run": run_dir.name,
                                        "run_dir": str(run_dir), "bitstream": bitstream}))
     return rows
 

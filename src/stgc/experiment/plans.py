@@ -29,6 +29,7 @@ PLAN.toml:
 
 from __future__ import annotations
 
+import difflib
 import re
 import tomllib
 from collections.abc import Mapping, Sequence
@@ -39,10 +40,14 @@ from typing import Any
 from stgc.codec.format import QUALITY_LEVELS
 from stgc.config import ConfigError
 from stgc.errors import DataError, FormatError
+from stgc.eval.report import CODEC_SUFFIX
 
 PAPER_PREPROCESS = "stg-isolated"
 CASES = (1, 2, 3, 4)
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+# Every key a PLAN.toml may hold: a misspelt one would otherwise be dropped and change the experiment silently.
+PLAN_KEYS = ("name", "baseline", "title", "runs")
+RUN_KEYS = ("name", "family", "label", "overrides", "from", "iterations", "codec_qualities", "loss_reference")
 
 
 @dataclass(frozen=True)
@@ -140,6 +145,10 @@ def load_plan_toml(path: str | Path) -> Plan:
         raise DataError(path, f"cannot read plan: {exc.strerror or exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise FormatError(path, f"invalid TOML: {exc}") from None
+    _refuse_unknown_keys(data, PLAN_KEYS, path, "the plan")
+    for key in ("name", "baseline", "title"):
+        if key in data and not isinstance(data[key], str):
+            raise FormatError(path, f"{key} = {data[key]!r}: a string")
     runs_data = data.get("runs")
     if not isinstance(runs_data, list) or not runs_data:
         raise FormatError(path, "a plan needs a non-empty [[runs]] list")
@@ -148,6 +157,10 @@ def load_plan_toml(path: str | Path) -> Plan:
         if not isinstance(r, dict) or not isinstance(r.get("name"), str):
             raise FormatError(path, f"runs[{i}] needs a string 'name'")
         name = r["name"]
+        _refuse_unknown_keys(r, RUN_KEYS, path, f"run {name!r}")
+        for key in ("family", "label", "from", "loss_reference"):
+            if key in r and not isinstance(r[key], str):
+                raise FormatError(path, f"run {name!r}: {key} = {r[key]!r}: a string")
         if not _NAME.match(name):
             raise FormatError(path, f"run name {name!r}: use letters, digits, '.', '_' or '-' (it is a folder name)")
         if name in seen:
@@ -163,6 +176,9 @@ def load_plan_toml(path: str | Path) -> Plan:
                 raise FormatError(path, f"run {name!r}: from = {source!r} must name a run listed before it")
             if not isinstance(iterations, int) or isinstance(iterations, bool) or iterations < 1:
                 raise FormatError(path, f"run {name!r}: a run with 'from' needs iterations = N >= 1 (how many more)")
+            if "train.iterations" in overrides:
+                raise FormatError(path, f"run {name!r}: give the fine-tuning's length as iterations = N, not as the "
+                                        "train.iterations override")
             others = sorted(k for k in overrides if not k.startswith("train."))
             if others:
                 raise FormatError(path, f"run {name!r}: {', '.join(others)}: a fine-tuning run changes train.* "
@@ -182,19 +198,53 @@ def load_plan_toml(path: str | Path) -> Plan:
                                         "the compaction.loss_reference override")
         qualities = r.get("codec_qualities")
         if qualities is not None and (not isinstance(qualities, list) or not all(
-                isinstance(q, int) and not isinstance(q, bool) and q in QUALITY_LEVELS for q in qualities)):
-            raise FormatError(path, f"run {name!r}: codec_qualities must be a list of codec qualities "
+                isinstance(q, int) and not isinstance(q, bool) and q in QUALITY_LEVELS for q in qualities)
+                or len(set(qualities)) != len(qualities)):
+            raise FormatError(path, f"run {name!r}: codec_qualities must be a list of distinct codec qualities "
                                     f"({', '.join(map(str, QUALITY_LEVELS))})")
         runs.append(RunSpec(name, overrides, str(r.get("family", name)), str(r.get("label", name)),
                             None if source is None else str(source), int(iterations or 0),
                             None if qualities is None else tuple(qualities),
                             None if reference is None else str(reference)))
     baseline = data.get("baseline")
+    if baseline is not None:
+        _check_baseline(baseline, runs, path)
     plan_name = str(data.get("name", path.stem))
     if not _NAME.match(plan_name):  # it names OUT/results-<plan>.csv and OUT/report-<plan>/
         raise FormatError(path, f"plan name {plan_name!r}: use letters, digits, '.', '_' or '-' (it names files)")
     return Plan(plan_name, tuple(runs), None if baseline is None else str(baseline),
                 str(data.get("title", "")))
+
+
+def _refuse_unknown_keys(table: Mapping[str, Any], known: Sequence[str], path: Path, where: str) -> None:
+    unknown = sorted(set(table) - set(known))
+    if unknown:
+        hints = [f"{k!r}" + (f" (did you mean {close[0]!r}?)" if (close := difflib.get_close_matches(k, known, 1))
+                             else "") for k in unknown]
+        raise FormatError(path, f"{where}: unknown key(s) {', '.join(hints)}; expected {', '.join(known)}")
+
+
+def _check_baseline(baseline: str, runs: Sequence[RunSpec], path: Path) -> None:
+    """The baseline names a family of the plan, a run of it, or a family's codec points (its name + CODEC_SUFFIX),
+    which exist only for runs with codec rate points: the plan's own codec_qualities, or the experiment's
+    --codec-quality (checked when the experiment starts, `check_codec_baseline`)."""
+    names = {r.family for r in runs} | {r.name for r in runs}
+    family = baseline[: -len(CODEC_SUFFIX)] if baseline.endswith(CODEC_SUFFIX) else None
+    if baseline not in names and family not in {r.family for r in runs}:
+        raise FormatError(path, f"baseline = {baseline!r}: neither a family of its runs "
+                                f"({', '.join(sorted({r.family for r in runs}))}), a run name, nor a family's codec "
+                                f"points ('<family>{CODEC_SUFFIX}')")
+
+
+def check_codec_baseline(plan: Plan, codec_qualities: Sequence[int]) -> None:
+    """Refuse, before anything trains, a plan whose baseline is a family's codec points when none of that family's
+    runs will have any (no codec_qualities in the plan and no --codec-quality)."""
+    if plan.baseline is None or not plan.baseline.endswith(CODEC_SUFFIX) or codec_qualities:
+        return
+    family = plan.baseline[: -len(CODEC_SUFFIX)]
+    if not any(r.codec_qualities for r in plan.runs if r.family == family):
+        raise ConfigError(f"plan {plan.name}: its baseline {plan.baseline!r} is the codec points of {family}, which "
+                          "has no codec rate points: give --codec-quality Q")
 
 
 def load_plan(plan: str | Path | Plan, preprocess: str | None = None) -> Plan:

@@ -48,8 +48,16 @@ from stgc.config import (
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.data.readers import detect_format
 from stgc.errors import StgcError
-from stgc.eval.report import Report, ReportRow, make_report, rate_points, record_fields
-from stgc.experiment.plans import Plan, RunSpec, load_plan
+from stgc.eval.report import (
+    CODEC_SUFFIX,
+    Report,
+    ReportRow,
+    make_report,
+    rate_points,
+    record_fields,
+    remove_report,
+)
+from stgc.experiment.plans import Plan, RunSpec, check_codec_baseline, load_plan
 from stgc.fileio import atomic_open, read_json_object, write_json
 from stgc.options import (
     configs_from_run,
@@ -154,10 +162,25 @@ def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str],
         if len(values) > 1:  # --set wins in every run: the runs would train alike under the names of their values
             raise ConfigError(f"--set {key}: plan {plan.name!r} varies it between its runs "
                               f"({', '.join(sorted(values))}); run the plan without it, or write a plan of your own")
+    try:  # every --set value, whether or not it acts in a run: a bad one is a typo wherever it lands
+        resolve_configs(preset or "cpu", {}, {}, dict(extra))
+    except ConfigError as exc:
+        raise ConfigError(f"--set: {exc}") from None
+    by_run = {spec.name: run_overrides(plan, spec, extra, out_dir) for spec in plan.runs}
+    unused = sorted(k for k in extra if not any(k in overrides for overrides in by_run.values()))
+    if unused:
+        raise ConfigError(f"--set {', '.join(unused)}: acts on nothing in any run of plan {plan.name!r} (e.g. "
+                          "compaction options where nothing is pruned, rate-aware options without a window); drop it")
+    methods = {}
     for spec in plan.runs:
         try:
-            overrides = run_overrides(plan, spec, extra, out_dir)
+            overrides = by_run[spec.name]
             configs = resolve_configs(preset or "cpu", {}, {}, overrides)
+            methods[spec.name] = configs["compaction"].method
+            if spec.reference is not None and methods.get(spec.reference) != "reference":
+                raise ConfigError(f"its loss_reference {spec.reference!r} trains with compaction.method="
+                                  f"{methods.get(spec.reference)}: a loss reference is a run trained with "
+                                  "compaction.method=reference")
             refuse_unused_window_options(configs["train"], overrides)  # the entry's own: --set's idle ones are out
             refuse_unused_model_options(configs["model"], overrides)
             if spec.source is None:
@@ -197,8 +220,8 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
         for key in sorted(set(before) | set(wanted)):
             if _same_plan_option(key, before.get(key), wanted.get(key), run_dir.parent):
                 continue
-            if key not in before and _saved_value_is(run_dir, key, wanted[key]):
-                continue  # the plan now names the value the run trained with unnamed (its default then)
+            if _saved_as_planned(run_dir, key, preset, wanted):
+                continue  # spelt otherwise then ("1e-1", "0.1"), or named then and the default now, or the reverse
             differences.append(f"{key}: {before.get(key, 'unset')} then, {wanted.get(key, 'unset')} now")
         if recorded.get("preset") not in (None, preset or "cpu"):
             differences.append(f"preset: {recorded['preset']} then, {preset or 'cpu'} now")
@@ -213,15 +236,19 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
     return "; ".join(differences) or None
 
 
-def _saved_value_is(run_dir: Path, key: str, value: str) -> bool:
-    """Whether the run's config.json (read as it trained: SAVED_BEFORE for keys it lacks) holds `value` for the
-    option `key` (dotted, with its section)."""
+def _saved_as_planned(run_dir: Path, key: str, preset: str | None, wanted: Mapping[str, str]) -> bool:
+    """Whether the run's config.json (read as it trained: SAVED_BEFORE for keys it lacks) holds the value the plan's
+    options (`wanted`) give the option `key` (dotted, with its section) now: the one they name, else its default.
+    A default left to the data (None) is not known here, so it is never taken as held."""
     section, _, name = key.partition(".")
     try:
         saved = configs_from_run(run_dir)[section]
-        return bool(apply_overrides(saved, {name: value}, section) == saved)
+        asked = resolve_configs(preset or "cpu", {}, {}, dict(wanted))[section]
     except (ConfigError, StgcError, KeyError):
         return False
+    then = {f.dotted: f.default for f in iter_fields(saved)}
+    now = {f.dotted: f.default for f in iter_fields(asked)}
+    return name in now and now[name] is not None and then.get(name) == now[name]
 
 
 def _continuation_mismatch(run: Run, spec: RunSpec) -> list[str]:
@@ -549,6 +576,7 @@ def run_plan(
     results_csv = out_dir / f"results-{plan.name}.csv"
     result = PlanResult(plan, out_dir, results_csv=results_csv)
     qualities = [int(q) for q in codec_qualities]
+    check_codec_baseline(plan, qualities)
     if check_options:  # off only for a stand-in trainer with options of its own (tests)
         check_plan_options(plan, preset, extra, out_dir)
 
@@ -612,10 +640,13 @@ def run_plan(
 
     if make_report_files and not dry_run:
         rows = _report_rows(result.outcomes)
+        report_dir = out_dir / f"report-{plan.name}"
         if rows:
-            result.report = make_report(rows, out_dir / f"report-{plan.name}", plan.baseline,
-                                        title=plan.title or f"Plan {plan.name}",
-                                        bd_method=bd_method)  # type: ignore[arg-type]
+            result.report = make_report(rows, report_dir, plan.baseline, title=plan.title or f"Plan {plan.name}",
+                                        bd_method=bd_method,  # type: ignore[arg-type]
+                                        baseline_may_be_missing=True)  # the plan's: its runs may have failed
+        else:
+            remove_report(report_dir)
     return result
 
 
@@ -711,7 +742,7 @@ def _codec_point(spec: RunSpec, run_dir: Path, quality: int, runner: Runner, pyt
                  say: Callable[[str], None], overrides: dict[str, str]) -> RunOutcome:
     stgc = run_dir / f"model_q{quality}.stgc"
     json_path, _ = Run(run_dir).eval_paths(bitstream=stgc)
-    outcome = RunOutcome(f"{spec.name}-q{quality}", f"{spec.family} + codec", f"{spec.label} q{quality}",
+    outcome = RunOutcome(f"{spec.name}-q{quality}", f"{spec.family}{CODEC_SUFFIX}", f"{spec.label} q{quality}",
                          "skipped", run_dir, overrides, bitstream=stgc.name)
     stale = json_path.is_file() and not Run.scored_this_bitstream(_read_json(json_path) or {}, stgc)
     if stale:
