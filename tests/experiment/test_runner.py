@@ -826,3 +826,17 @@ def test_a_baseline_without_results_gives_a_report_without_bd_deltas(tmp_path: P
     report = make_report(rows, tmp_path / "r", "STG", baseline_may_be_missing=True)
     assert report.bd == [] and report.baseline is None
     assert "No BD deltas: baseline 'STG' is neither" in report.markdown.read_text()
+
+
+def test_a_value_spelt_otherwise_or_a_default_dropped_from_the_plan_is_the_same_run(tmp_path: Path) -> None:
+    plan_path = tmp_path / "PLAN.toml"
+    plan_path.write_text(MINI_PLAN.replace('{ "compaction.method" = "none" }',
+                                           '{ "compaction.method" = "st-knn", "compaction.case" = 2 }'))
+    out = tmp_path / "exp"
+    assert _run_mini(out, plan_path, "compaction.criterion=timestamp")["status"] == "finished"
+    assert _run_mini(out, plan_path)["status"] == "skipped"  # the default, named then, unnamed now
+    outcome = _run_mini(out, plan_path, "compaction.criterion=scale")
+    assert "compaction.criterion: timestamp then, scale now" in outcome["message"]
+    out = tmp_path / "exp2"
+    assert _run_mini(out, plan_path, "compaction.case=2")["status"] == "finished"
+    assert _run_mini(out, plan_path, "compaction.case=02")["status"] == "skipped"
