@@ -168,7 +168,7 @@ def test_optimizer_state_stays_aligned_after_pruning_with_a_real_adam():
     values = {k: p.detach().clone() for k, p in model.params.items()}
     cfg = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5, ratio_min=0.5,
                            ratio_max=0.5)
-    event = STKNNCompactor(cfg, 10).step(0, 0.4, model, 1.0)
+    event = STKNNCompactor(cfg, 10).step(1, 0.4, model, 1.0)
     assert event["removed"] > 0
     survivors = torch.nonzero(torch.isin(tag, model.params["xyz"].detach()[:, 0])).squeeze(1)
     assert survivors.numel() == 400 - event["removed"]
@@ -189,10 +189,10 @@ def test_importance_criterion_through_the_compactor():
     params = random_params(200, 8, motion_scale=0.0)
     model = make_model(params)
     with pytest.raises(ValueError, match="importance_fn"):
-        STKNNCompactor(cfg, 10).step(0, 0.5, model, 1.0)
+        STKNNCompactor(cfg, 10).step(1, 0.5, model, 1.0)
     pairs = match_spatiotemporal_pairs(make_model(params), 0.5, cfg.rotation_weight)
     weight = torch.arange(200, dtype=torch.float64)  # the lower index is always the less important one
-    event = STKNNCompactor(cfg, 10).step(0, 0.5, model, 1.0, importance_fn=lambda: weight)
+    event = STKNNCompactor(cfg, 10).step(1, 0.5, model, 1.0, importance_fn=lambda: weight)
     survivors = torch.isin(params["xyz"][:, 0], model.params["xyz"].detach()[:, 0]).numpy()
     removed = np.flatnonzero(~survivors)
     assert removed.size == event["removed"] > 0
@@ -365,3 +365,24 @@ def test_a_reference_that_is_not_one_or_misses_iterations_is_refused_naming_its_
     for bad in (dict(loss_budget_db=0.0), dict(loss_signal="training"), dict(method="none")):
         with pytest.raises(ValueError, match="loss_reference"):
             CompactionConfig(**{**common, "loss_reference": "x", **bad}).validate()
+
+
+def test_a_non_finite_probe_or_reference_is_no_signal():
+    # NaN compared False, so it read as 'no damage' and raised the ratio; a first NaN stuck as the best for ever.
+    ctrl = AdaptiveRatio(0.005, 0.002, 0.001, 0.05, budget=0.035)
+    assert ctrl.update(float("nan")) == 0 and ctrl.ratio == 0.005 and ctrl.best_loss is None
+    assert ctrl.update(1.0) == 0 and ctrl.best_loss == 1.0  # the first signal: nothing to compare with
+    assert ctrl.update(10.0) == -1 and ctrl.ratio == 0.0025  # damage: halved
+    assert ctrl.update(float("inf")) == 0 and ctrl.ratio == 0.0025
+    assert ctrl.update(5.0, reference=float("nan")) == 0 and ctrl.ratio == 0.0025 and ctrl.previous_loss == 10.0
+    paper = AdaptiveRatio(0.02, 0.01, 0.0, 0.1)
+    assert [paper.update(x) for x in (1.0, float("nan"), 1.2)] == [0, 0, -1]
+
+
+def test_a_window_opening_at_zero_prunes_first_at_iteration_one_and_bad_numbers_are_refused():
+    s = resolve_schedule(CompactionConfig(case=0, window_start=0.0, window_end=0.5, interval=10), 100)
+    assert (s.start, s.num_steps) == (1, 5) and list(s.iterations()) == [1, 11, 21, 31, 41]
+    for name in ("loss_tolerance", "ratio_step", "rotation_weight"):
+        for bad in (float("nan"), float("inf"), -1.0):
+            with pytest.raises(ValueError, match=f"compaction.{name}"):
+                CompactionConfig(**{name: bad}).validate()

@@ -133,3 +133,15 @@ def test_canonical_quaternions_sign_and_degenerate():
     f = knn_features(np.ones((4, 3)) * 4.0, q, scene_extent=2.0, rotation_weight=0.5)
     np.testing.assert_allclose(f[:, :3], 2.0)
     np.testing.assert_allclose(f[:, 3:], 0.5 * c)
+
+
+def test_rows_closer_than_a_squared_distance_can_hold_are_not_taken_for_copies():
+    # Squared distances of 1e-170 underflow to 0: the rows are at distance 0 without being equal. Each is alone in
+    # its value group; the tree's neighbour stands (it crashed indexing a group of one).
+    pts = np.array([[0, 0, 0, 1e-170], [0, 0, 0, 2e-170], [0, 0, 0, 3e-170], [1, 1, 1, 0]], dtype=float)
+    nn, d = nearest_other(pts)
+    assert d[:3].tolist() == [0.0, 0.0, 0.0] and set(nn[:3].tolist()) <= {0, 1, 2}
+    assert all(nn[i] != i for i in range(4)) and nn[3] in (0, 1, 2)
+    pts[3] = pts[0]  # a real copy as well: every row still gets another row at distance 0
+    nn, d = nearest_other(pts)
+    assert d.tolist() == [0.0] * 4 and all(nn[i] not in (i, -1) for i in range(4))

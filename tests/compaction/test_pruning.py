@@ -145,3 +145,10 @@ def test_a_registered_criterion_reaches_the_config_and_the_scores():
         CRITERIA.pop("first-index")
     with pytest.raises(ValueError, match="first-index"):
         CompactionConfig(criterion="first-index").validate()
+
+
+def test_a_member_whose_score_is_not_finite_is_the_one_removed():
+    # Under `scale` a diverged (NaN) scale compared False both ways, so row order decided: the finite row could go.
+    scores = np.array([np.nan, 1.0, 2.0, np.inf, np.nan, np.nan])
+    sel = select_removals(_pairs([0, 2, 4], [1, 3, 5], [0.1, 0.2, 0.3]), 1.0, scores)
+    assert sel.remove.tolist() == [0, 3, 5]  # NaN loses, inf loses, two NaN: the larger index, as equal scores

@@ -40,6 +40,13 @@ def test_the_compaction_probe_is_a_fixed_spread_set_of_training_views_and_steers
     views = trainer.probe_views()
     assert views == trainer.probe_views()  # fixed
     assert len(views) == 4 and len({c.name for c in views}) == 4 and len({c.frame for c in views}) == 2
+    # More probe views than cameras (7 training cameras here): several frames of each, every view once.
+    many = Trainer(dataset, None, None, _config(80), dataclasses.replace(compaction, probe_views=12),
+                   tmp_path / "many", model=start).probe_views()
+    assert len(many) == 12 and len({(c.name, c.frame) for c in many}) == 12 and len({c.name for c in many}) == 7
+    everything = Trainer(dataset, None, None, _config(80), dataclasses.replace(compaction, probe_views=99),
+                         tmp_path / "all", model=start).probe_views()
+    assert sorted((c.name, c.frame) for c in everything) == sorted((c.name, c.frame) for c in dataset.train)
     read = []
     probe = trainer.probe_loss
     trainer.strategies[-1].probe = lambda: read.append(probe()) or read[-1]

@@ -408,8 +408,11 @@ def test_a_mask_window_that_density_control_or_compaction_could_edit_is_refused_
     early = dataclasses.replace(config, schedule_scale=0.01)  # low-opacity pruning until iteration 70
     with pytest.raises(ValueError, match=r"overlaps low-opacity pruning \(until iteration 70;"):
         Trainer(dataset, None, None, early, None, tmp_path / "early", model=start)
-    with pytest.raises(ValueError, match="overlaps ST-KNN compaction"):
-        Trainer(dataset, None, None, config, CompactionConfig(method="st-knn"), tmp_path / "stknn", model=start)
+    with pytest.raises(ValueError, match=r"overlaps ST-KNN compaction \(it prunes until iteration 99;"):
+        Trainer(dataset, None, None, config, CompactionConfig(method="st-knn", case=0, window_start=0.3,
+                                                              window_end=1.0), tmp_path / "stknn", model=start)
+    # Pruning that ends before the window (Case 1: iterations 20-39 of 100) leaves the mask's rows alone.
+    Trainer(dataset, None, None, config, CompactionConfig(method="st-knn", case=1), tmp_path / "case1", model=start)
     # Refused before the run's folder is written: the corrected command found "already holds a run".
     assert not (tmp_path / "early").exists() and not (tmp_path / "stknn").exists()
 

@@ -159,10 +159,10 @@ class CompactionConfig:
                 f"compaction.ratio_init {self.ratio_init}: must lie in [ratio_min, ratio_max] = "
                 f"[{self.ratio_min}, {self.ratio_max}]"
             )
-        if self.ratio_step < 0:
-            raise ValueError(f"compaction.ratio_step {self.ratio_step}: must be >= 0")
-        if self.loss_tolerance < 0:
-            raise ValueError(f"compaction.loss_tolerance {self.loss_tolerance}: must be >= 0")
+        for name in ("ratio_step", "loss_tolerance", "rotation_weight"):  # NaN or inf would silently freeze the rule
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"compaction.{name} {value}: must be a finite number >= 0")
         if not (math.isfinite(self.loss_budget_db) and self.loss_budget_db >= 0):
             raise ValueError(f"compaction.loss_budget_db {self.loss_budget_db}: must be a finite number >= 0")
         if self.loss_budget_db > 0 and self.loss_tolerance > 0:
@@ -180,8 +180,6 @@ class CompactionConfig:
             raise ValueError(f"compaction.probe_views {self.probe_views}: must be >= 1")
         if not (0.0 <= self.ema_decay < 1.0):
             raise ValueError(f"compaction.ema_decay {self.ema_decay}: must be in [0, 1)")
-        if self.rotation_weight < 0:
-            raise ValueError(f"compaction.rotation_weight {self.rotation_weight}: must be >= 0")
         if self.sample_times < 0:
             raise ValueError(f"compaction.sample_times {self.sample_times}: must be >= 0")
         if self.min_gaussians < 0:
@@ -259,6 +257,6 @@ def resolve_schedule(config: CompactionConfig, total_iterations: int) -> Pruning
         CASE_WINDOWS[config.case] if config.case else (config.window_start, config.window_end)
     )
     interval = config.interval or max(1, round(total_iterations * PAPER_INTERVAL / PAPER_ITERATIONS))
-    return PruningSchedule(
-        start=round(start_fraction * total_iterations), end=round(end_fraction * total_iterations), interval=interval
-    )
+    # Iterations count from 1: a window opening at 0 prunes first at 1 (iteration 0 is never trained).
+    return PruningSchedule(start=max(1, round(start_fraction * total_iterations)),
+                           end=round(end_fraction * total_iterations), interval=interval)

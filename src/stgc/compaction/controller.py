@@ -94,7 +94,11 @@ class AdaptiveRatio:
 
     def update(self, loss: float | None, reference: float | None = None) -> int:
         """Feed this step's smoothed loss; returns the direction taken (-1, 0, +1). `self.ratio` is the new ratio.
-        `reference` (budget only): the unpruned model's loss at this step, held against instead of the best so far."""
+        `reference` (budget only): the unpruned model's loss at this step, held against instead of the best so far.
+        A non-finite loss or reference is no signal (a diverged probe render must not read as 'no damage'): the
+        ratio stays and nothing is remembered."""
+        if (loss is not None and not math.isfinite(loss)) or (reference is not None and not math.isfinite(reference)):
+            return 0
         direction = 0
         proposed = self.ratio
         if loss is not None and self.budget > 0:

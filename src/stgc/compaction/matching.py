@@ -128,9 +128,17 @@ def nearest_other(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     # Exact duplicates: every copy of the neighbour is equally near, so the smallest index among them that is not
     # the query wins. Only rows at distance 0 from their neighbour have copies; group those rows by value.
     dup = np.flatnonzero(best_d == 0.0)
+    group = np.zeros(0, dtype=np.int64)
     if dup.size:
-        _, group = np.unique(pts[dup] + 0.0, axis=0, return_inverse=True)  # + 0.0 merges -0.0 into 0.0
+        _, group, counts = np.unique(pts[dup] + 0.0, axis=0, return_inverse=True, return_counts=True)  # (-0.0 = 0.0)
         group = group.reshape(-1)
+        # Rows that differ by less than a squared distance can hold (1e-170 apart) are at distance 0 but alone in
+        # their group: the tree's answer stands for them.
+        together = counts[group] >= 2
+        dup = dup[together]
+        _, group = np.unique(group[together], return_inverse=True)
+        group = group.reshape(-1)
+    if dup.size:
         by_group = np.lexsort((dup, group))
         members, sorted_group = dup[by_group], group[by_group]
         starts = np.concatenate([[0], np.flatnonzero(np.diff(sorted_group)) + 1])

@@ -9,7 +9,7 @@ chosen by the criterion, is removed and the other, the *keeper*, must survive:
   of log-scales, which is the same order and cannot overflow);
 - `importance`: the loser has less blending weight accumulated over the training views
 (the registry of criteria: `compaction.criteria`).
-Equal scores: the larger index loses (the older Gaussian of the array survives).
+Equal scores: the larger index loses (the older Gaussian of the array survives). A score that is not finite loses.
 
 Pairs can share Gaussians (chains i->j, j->k, or one Gaussian nearest to several). Selected pairs are resolved
 greedily, closest first, so the closest pairs decide. When a loser is removed, *every* selected pair it belongs to
@@ -66,7 +66,11 @@ def select_removals(
         return PruneSelection(np.zeros(0, dtype=np.int64), n_selected, 0, float("nan"))
     order = np.lexsort((pairs.reference, pairs.distance))[:n_selected]
     a, b = pairs.reference[order], pairs.partner[order]
-    a_loses = (scores[a] > scores[b]) | ((scores[a] == scores[b]) & (a > b))
+    score_a, score_b = scores[a], scores[b]
+    finite_a, finite_b = np.isfinite(score_a), np.isfinite(score_b)
+    # A member whose score is not finite (a diverged scale) loses; comparisons with NaN would keep it by row order.
+    a_loses = np.where(finite_a & finite_b, (score_a > score_b) | ((score_a == score_b) & (a > b)),
+                       np.where(finite_a == finite_b, a > b, ~finite_a))
     losers = np.where(a_loses, a, b).tolist()
     keepers = np.where(a_loses, b, a).tolist()
 

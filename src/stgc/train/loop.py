@@ -28,6 +28,7 @@ import torch
 from stgc import machine
 from stgc.compaction import CompactionConfig, STKNNCompactor
 from stgc.compaction.config import REFERENCE_RUN_OPTIONS
+from stgc.compaction.config import resolve_schedule as resolve_compaction_schedule
 from stgc.config import EXECUTION_OPTIONS, ConfigError, from_saved, same_option_value, validate_config
 from stgc.data import DataConfig
 from stgc.data.cameras import Camera
@@ -188,7 +189,11 @@ def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig |
     step = sched.first_densify_step(first)  # density control acts only at densification steps
     overlapping = []
     if compaction_cfg is not None and compaction_cfg.method == "st-knn":
-        overlapping.append("ST-KNN compaction (compaction.method; compact first, then fine-tune the pruned run)")
+        pruning = resolve_compaction_schedule(compaction_cfg, sched.iterations)
+        last_prune = pruning.iterations()[-1] if pruning.num_steps else 0
+        if last_prune >= first:
+            overlapping.append(f"ST-KNN compaction (it prunes until iteration {last_prune}; compact first, then "
+                               "fine-tune the pruned run)")
     if train_cfg.ems.enabled:
         overlapping.append("error-guided sampling (turn it off for the window: train.ems.enabled=false)")
     if step is not None and sched.densify_end >= step:
@@ -535,10 +540,23 @@ class Trainer:
 
     def probe_views(self) -> list[Any]:
         """The compaction controller's fixed probe set (compaction.probe_views training views): cameras and frames
-        spread evenly (a deterministic pick of one view per camera, as importance_views, thinned to the count)."""
+        spread evenly. With at most one per camera, a deterministic pick of importance_views thinned to the count;
+        with more (fewer cameras than probe views, e.g. one camera's video), several frames of each camera, spread
+        over the segment, so that the probe sees the whole time range."""
         views = self.importance_views()
-        count = min(len(views), self.compaction_cfg.probe_views if self.compaction_cfg else len(views))
-        return [views[(k * len(views)) // count] for k in range(count)]
+        count = self.compaction_cfg.probe_views if self.compaction_cfg else len(views)
+        if count <= len(views):
+            return [views[(k * len(views)) // count] for k in range(count)]
+        by_name: dict[str, list[Any]] = {}
+        for cam in self.dataset.train:
+            by_name.setdefault(str(cam.name), []).append(cam)
+        picked = []
+        for j, name in enumerate(sorted(by_name)):
+            cams = sorted(by_name[name], key=lambda c: c.frame)
+            share = min(len(cams), count // len(by_name) + (1 if j < count % len(by_name) else 0))
+            phase = (j * len(cams)) // len(by_name)  # importance_views' pick comes first
+            picked += [cams[(phase + (i * len(cams)) // share) % len(cams)] for i in range(share)]
+        return picked
 
     def probe_loss(self) -> float:
         """The current model's training loss (as train_step computes it, colour correction included) on the probe
