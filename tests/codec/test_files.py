@@ -12,6 +12,7 @@ from stgc.codec import (
     compress_run,
     decode,
     decompress,
+    encode,
     load_model,
     read_stgc,
     read_stgc_header,
@@ -80,6 +81,39 @@ def test_load_model_gives_a_renderable_model_with_the_stored_activation(run_dir)
     assert header.quality == 2
     assert decode(run / "it500.stgc").metadata["iteration"] == 500  # decode also takes a path
     assert "run_config" not in decode(run / "it500.stgc").metadata
+    # Restored without its run's config, the run still renders with its decoder's activation (it was sigmoid).
+    decompress(run / "it500.stgc", run.parent / "restored")
+    assert STGModel.load(run.parent / "restored").decoder_activation == "clamp"
+
+
+def test_a_component_that_is_one_value_but_a_few_encodes_without_guard_bits(tmp_path):
+    """The outlier guard's central range is 0 when >= 99.8 % of a component is one value: it overflowed to inf
+    (a crash above a full range of 4) or added the full 8 bits (a decoded model's omega, mostly one code)."""
+    from stgc.codec.format import outlier_guard_extra_bits
+
+    values = np.zeros((4, 5000))
+    for spread in (1.0, 3.0, 1e6):
+        values[1, :3] = spread
+        assert outlier_guard_extra_bits(values) == 0
+    values[2] = np.linspace(0, 1, 5000)
+    values[2, 0] = 1e300  # a tiny central spread against a huge one: at most the 8 bits, no overflow
+    assert outlier_guard_extra_bits(values) == 8
+    arrays, decoder = synthetic_model(1000, "full", seed=1)
+    omega = [name for name in arrays if name.startswith("omega")]
+    for name in omega:
+        arrays[name][:] = 0.0
+    arrays[omega[1]][:2] = 3.0
+    decoded = decode(encode(arrays, "full", decoder, quality=3))
+    column = decoded.arrays[omega[1]]
+    assert np.count_nonzero(column) == 2 and np.all(np.abs(column[column != 0] - 3.0) < 0.5)  # the bulk exact
+
+
+def test_only_a_lower_case_stgc_is_written_and_a_device_is_not_read(run_dir, tmp_path):
+    run, _, _ = run_dir
+    with pytest.raises(ValueError, match="lower case"):
+        compress_run(run, tmp_path / "m.STGC")
+    with pytest.raises(FormatError, match="not a regular file"):
+        read_stgc("/dev/zero")
 
 
 def test_failures_leave_no_partial_output_and_name_the_file(run_dir, tmp_path):

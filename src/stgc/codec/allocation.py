@@ -259,6 +259,7 @@ def optimise_allocation(
     *,
     fixed_bits: Mapping[str, int] | None = None,
     outlier_guard: bool = True,
+    adaptive_delta: bool = True,
     progress: Callable[[int, int], None] | None = None,
 ) -> Allocation:
     """Choose the depth and step shape of every attribute group (see the module docstring).
@@ -304,7 +305,7 @@ def optimise_allocation(
         images = list(render(stored, decoded_decoder, views))
         size = None if size_of is None else section_payload_bytes(
             arrays, variant, size_of, zstd_level=_PROBE_ZSTD_LEVEL, group_bits=group_bits, step_scales=step_scales,
-            outlier_guard=outlier_guard, memo=memo)
+            outlier_guard=outlier_guard, adaptive_delta=adaptive_delta, memo=memo)  # the bytes encode would write
         done += 1
         if progress:
             progress(done, max(planned, done))

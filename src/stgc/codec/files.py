@@ -70,9 +70,12 @@ class CodecConfig:
         "help": "zstd compression level 1..22 for every section (higher: a little smaller, slower to encode; "
                 "decoding speed barely changes)"})
     position_bits: int = field(default=0, metadata={
-        "help": "bits per position axis over the bounding box, 2..24; 0 = the quality level's value"})
+        "help": "bits per position axis over the bounding box, 2..24; 0 = chosen with the other depths (the "
+                "ladder allocation: the quality level's value)"})
     adaptive_delta: bool = field(default=True, metadata={
-        "help": "per section, also try delta coding along the Morton order and keep whichever is smaller"})
+        "help": "per section, also try the adaptive layouts (delta along the Morton order, centred, predicted, "
+                "byte-interleaved) and keep the smallest; off: plain planar bytes only (docs/stgc-format.md "
+                "section 8)"})
     outlier_guard: bool = field(default=True, metadata={
         "help": "add bits to an attribute group whose range a few outliers stretch (keeps the bulk's precision)"})
     drop_invisible: bool = field(default=True, metadata={
@@ -175,9 +178,10 @@ class WindowDepths:
 
     def fits(self, config: CodecConfig) -> bool:
         """Whether `config` writes what the window simulated: the same quality and position bits, with the outlier
-        guard and the invisible Gaussians left out of the fits (as the simulation always has them)."""
+        guard, the invisible Gaussians left out of the fits and the adaptive layouts whose sizes it measured (as
+        the simulation always has them)."""
         return (self.quality == config.quality and self.position_bits == config.position_bits
-                and config.outlier_guard and config.drop_invisible)
+                and config.outlier_guard and config.drop_invisible and config.adaptive_delta)
 
 
 def window_depths(source: str | Path) -> WindowDepths | None:
@@ -297,8 +301,9 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
         config.quality = quality
     config.validate()  # before minutes of bit allocation
     out_path = Path(out_path)
-    if out_path.suffix.lower() != ".stgc":
-        raise ValueError(f"{out_path}: the bitstream is written as a .stgc file (the name must end in .stgc)")
+    if out_path.suffix != ".stgc":  # every reader tells a bitstream from a PLY by this suffix, case and all
+        raise ValueError(f"{out_path}: the bitstream is written as a .stgc file (the name must end in .stgc, "
+                         "lower case)")
     source = Path(run_or_model_path)
     if source.is_dir() and Run(source).is_video():
         return _compress_video(Run(source), out_path, config)
@@ -402,7 +407,7 @@ def _encode_model(source: Path, out_path: Path, config: CodecConfig) -> tuple[by
         if dataset is not None:
             allocation = optimise_on_views(model, dataset, config.quality, views=config.allocation_views,
                                            position_bits=config.position_bits, outlier_guard=config.outlier_guard,
-                                           corrections=_corrections_of(source))
+                                           adaptive_delta=config.adaptive_delta, corrections=_corrections_of(source))
             metadata["allocation"] = allocation.summary()
     data = encode_with_config(arrays, model.variant, model.decoder_state(), config, metadata, allocation)
     return data, CompressResult(out_path, model.num_gaussians, model.variant, len(data),
@@ -482,8 +487,12 @@ def _restore(decoded: DecodedModel, model: Any, iteration: int, run: Run, source
     iteration_dir = run.iteration_dir(iteration)
     model.save(iteration_dir)
     run_config = decoded.metadata.get("run_config")
-    if isinstance(run_config, dict):
-        run.write_config(run_config)
+    config = dict(run_config) if isinstance(run_config, dict) else {}
+    if model.decoder_activation is not None:  # renders depend on it, and the official files do not hold it
+        model_section = config.get("model") if isinstance(config.get("model"), dict) else {}
+        config["model"] = {**model_section, "decoder_activation": model.decoder_activation}
+    if config:
+        run.write_config(config)
     write_json(run.path / Run.RESTORED_FROM, {"bitstream": str(source.resolve()), "iteration": iteration})
     return iteration_dir
 

@@ -85,6 +85,8 @@ def read_capped(path: str | os.PathLike) -> bytes:
         raise DataError(path, f"cannot read .stgc file ({exc.strerror})") from None
     if size > MAX_FILE_BYTES:
         raise FormatError(path, f"{size} bytes is larger than any valid .stgc file")
+    if not path.is_file():  # a device or a pipe says size 0 and may never end
+        raise FormatError(path, "not a regular file")
     return path.read_bytes()
 
 
@@ -327,13 +329,16 @@ def outlier_guard_extra_bits(values: np.ndarray) -> int:
     quantized domain). When the full span exceeds _GUARD_RATIO (4) times the
     span of the central 99.8 % (0.1 to 99.9 percentile) of any component, ceil(log2(ratio / 4)) bits are added, up
     to +8 bits (and MAX_BITS in all). Outlier-free heavy-tailed data (ratio ~2) stays below 4 and
-    is unaffected. It depends on the values only, not on the depth (the allocation's trials reuse it)."""
+    is unaffected. A component whose central 99.8 % is one value has no spread to keep: it adds nothing (its
+    ratio would be infinite). It depends on the values only, not on the depth (the allocation's trials reuse it)."""
     if values.shape[1] < 2:
         return 0
     lo, hi = np.quantile(values, [0.001, 0.999], axis=1)
     full = values.max(axis=1) - values.min(axis=1)
-    robust = np.maximum(hi - lo, np.finfo(np.float64).tiny)
-    ratio = float(np.max(np.where(full > 0, full / robust, 1.0)))
+    robust = hi - lo
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+        ratios = np.where((full > 0) & (robust > 0), full / np.where(robust > 0, robust, 1.0), 1.0)
+    ratio = float(min(np.max(ratios), _GUARD_RATIO * 2.0**8))  # (a tiny central spread overflows to inf)
     extra = int(np.ceil(np.log2(ratio / _GUARD_RATIO))) if ratio > _GUARD_RATIO else 0
     return min(extra, 8)
 

@@ -24,7 +24,7 @@ Corrections = Mapping[str, tuple[Any, Any]]
 
 
 def optimise_on_views(model: STGModel, dataset: Dataset, quality: int, *, views: int = 16, position_bits: int = 0,
-                      outlier_guard: bool = True, corrections: Corrections | None = None,
+                      outlier_guard: bool = True, adaptive_delta: bool = True, corrections: Corrections | None = None,
                       show_progress: bool = True) -> Allocation:
     """The rd-optimised allocation of `model` at `quality`'s PSNR budget, measured on
     `views` training views (camera x frame, fixed seed), each rendered as training saw it: with its camera's colour
@@ -81,7 +81,8 @@ def optimise_on_views(model: STGModel, dataset: Dataset, quality: int, *, views:
             bar.refresh()
 
         return optimise_allocation(model.to_ply_arrays(), model.variant, model.decoder_state(), render, truth, budget_db(quality),
-                                   fixed_bits=fixed, outlier_guard=outlier_guard, progress=progress)
+                                   fixed_bits=fixed, outlier_guard=outlier_guard, adaptive_delta=adaptive_delta,
+                                   progress=progress)
 
 
 @contextlib.contextmanager
