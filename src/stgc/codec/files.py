@@ -489,8 +489,9 @@ def _restore(decoded: DecodedModel, model: Any, iteration: int, run: Run, source
     run_config = decoded.metadata.get("run_config")
     config = dict(run_config) if isinstance(run_config, dict) else {}
     if model.decoder_activation is not None:  # renders depend on it, and the official files do not hold it
-        model_section = config.get("model") if isinstance(config.get("model"), dict) else {}
-        config["model"] = {**model_section, "decoder_activation": model.decoder_activation}
+        saved_model = config.get("model")
+        config["model"] = {**(saved_model if isinstance(saved_model, dict) else {}),
+                           "decoder_activation": model.decoder_activation}
     if config:
         run.write_config(config)
     write_json(run.path / Run.RESTORED_FROM, {"bitstream": str(source.resolve()), "iteration": iteration})
