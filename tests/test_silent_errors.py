@@ -657,6 +657,11 @@ def test_compaction_options_for_a_run_that_prunes_nothing_are_refused(scene, tmp
     (["--train.quantization_aware.quality", "1"], "without a rate-aware window"),
     (["--set", "train.quantization_aware.iterations=5", "--set", "train.quantization_aware.rate_weight=0.001",
       "--set", "train.quantization_aware.remeasure_at_settle=false"], "acts only with train.quantization_aware.mask"),
+    # The control (no simulated quantization) has no quality or depths; a run without a mask no mask learning rate.
+    (["--set", "train.quantization_aware.iterations=5", "--set", "train.quantization_aware.simulate=false",
+      "--set", "train.quantization_aware.quality=1"], "quality: acts only where the window simulates"),
+    (["--set", "train.quantization_aware.iterations=5", "--set", "train.quantization_aware.rate_weight=0.001",
+      "--set", "train.quantization_aware.mask_lr=0.1"], "mask_lr: acts only with train.quantization_aware.mask"),
 ])
 def test_options_that_would_act_on_nothing_are_refused(scene, tmp_path, options, words, capsys):
     """A custom pruning window with a case's own window, EMA options with the windowed mean, rate-aware options

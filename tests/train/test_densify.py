@@ -377,3 +377,21 @@ def test_the_official_count_adds_the_views_a_temporally_invisible_gaussian_is_in
         counts[count] = density.stats.count.tolist()
         assert density.stats.grad_sum.tolist() == [0.5, 0, 0, 0]  # the gradient of view 1 of 2, times 2
     assert counts == {"rendered": [1, 0, 0, 0], "in_frustum": [1, 0, 0, 1]}
+
+
+def test_no_clone_split_round_falls_after_the_schedule_s_last_even_where_rounds_are_owed():
+    """A continuation past densify_end whose source owes rounds (densification switched on, more rounds) cloned on
+    at every later densification step, past the end its config.json records and the mask window's check assumes."""
+    from stgc.train.densify import DensityControl
+
+    model = _model(40)
+    cfg = DensifyConfig().resolved(sparse_cloud=False)
+    schedule = resolve_schedule(replace(TrainConfig(), densify=cfg, schedule_scale=0.01, iterations=300))
+    control = DensityControl(cfg, FloaterConfig(max_world_scale=0.0), schedule, model.num_gaussians, np.zeros((0, 3)))
+    assert control.rounds_done == 0 and control.collecting  # as a source trained without densification
+    after = schedule.densify_end + schedule.densify_interval
+    assert schedule.is_densify_step(after)
+    control.stats.grad_sum[:] = 1.0  # every row above the gradient threshold
+    control.stats.count[:] = 1
+    report = control.step(after, model, torch.Generator().manual_seed(0))
+    assert model.num_gaussians == 40 and control.rounds_done == 0 and "cloned" not in report

@@ -4,6 +4,7 @@ when the model is really encoded and decoded than the same training without it."
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 
 import numpy as np
@@ -384,6 +385,10 @@ def test_a_run_killed_while_the_mask_learns_resumes_to_the_same_model(scene, tmp
         train(dataset, None, None, config, None, run, model=start, resume=bool(stops))
         models[name] = STGModel.load(run)
     assert models["whole"].num_gaussians < scene.model.num_gaussians + 50  # the mask removed some
+    # It settled at iteration 52, not a logging one (every 10): metrics.jsonl holds the step anyway.
+    rows = [json.loads(line) for line in (tmp_path / "whole" / "metrics.jsonl").read_text().splitlines()]
+    assert [(r["iteration"], r["mask_dropped"]) for r in rows if "mask_dropped" in r] == [
+        (52, scene.model.num_gaussians + 50 - models["whole"].num_gaussians)]
     assert models["resumed"].num_gaussians == models["whole"].num_gaussians
     for key, value in models["whole"].params.items():
         assert torch.equal(value, models["resumed"].params[key]), key
@@ -493,3 +498,22 @@ def test_a_fine_tuning_of_a_rate_aware_run_opens_its_own_window(scene, tmp_path,
     assert qualities == [2, 2, 1, 1]
     assert first["mask_settled"] and second["mask_settled"]
     assert second["allocation"] != first["allocation"]
+
+
+def test_a_zero_quaternion_gets_no_rate_gradient():
+    """1/|q| gave a zero rotation (official error-guided points) a rate gradient of about 1e12."""
+    from stgc.codec.format import quantized_groups
+    from stgc.codec.synthetic import synthetic_model
+    from stgc.train.quantization import _visible
+
+    arrays, decoder = synthetic_model(500, seed=3)
+    model = STGModel.from_ply_arrays(arrays, "full", decoder, scene_extent=3.0)
+    keep = _visible(model)
+    zero = np.flatnonzero(keep)[:3]
+    with torch.no_grad():
+        model.params["rotation"][torch.from_numpy(zero)] = 0.0
+    groups = quantized_groups({k: v[keep] for k, v in model.to_ply_arrays().items()}, "full", QUALITY)
+    RateTerm.bits_per_gaussian(model, keep, groups).backward()
+    grad = model.params["rotation"].grad
+    assert torch.isfinite(grad).all() and float(grad[torch.from_numpy(zero)].abs().max()) == 0.0
+    assert float(grad.abs().max()) > 0  # the other rows still have one

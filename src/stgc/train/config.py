@@ -440,29 +440,42 @@ WINDOW_PREFIX = "train.quantization_aware."  # the rate-aware window's options, 
 
 
 def idle_window_options(train: TrainConfig) -> set[str]:
-    """The rate-aware options (dotted, with their section) that act on nothing in a run trained with `train`: all
-    but the window's length without a window, remeasure_at_settle without a settling mask measured by the
-    optimised allocation. Two runs that differ only there trained alike; given for such a run, they are refused
+    """The rate-aware options (dotted, with their section) that act on nothing in a run trained with `train`
+    (`_window_idle_reasons`). Two runs that differ only there trained alike; given for such a run, they are refused
     (`refuse_unused_window_options`), and a plan's --set leaves them out of it."""
+    return set(_window_idle_reasons(train))
+
+
+def _window_idle_reasons(train: TrainConfig) -> dict[str, str]:
+    """{idle rate-aware option: why}: all but the window's length without a window; what the codec's quantization
+    is simulated at, in the control (simulate false); the mask's learning rate without a mask; remeasure_at_settle
+    without a settling mask measured by the optimised allocation."""
     window = train.quantization_aware
     if window.iterations == 0:
-        return {f"{WINDOW_PREFIX}{f.name}" for f in dataclasses.fields(window) if f.name != "iterations"}
-    settles = window.mask and window.allocation == "optimised"
-    return set() if settles else {f"{WINDOW_PREFIX}remeasure_at_settle"}
+        return {f"{WINDOW_PREFIX}{f.name}": f"given for a run without a rate-aware window ({WINDOW_PREFIX}iterations "
+                                            "is 0), where it acts on nothing; open a window or drop it"
+                for f in dataclasses.fields(window) if f.name != "iterations"}
+    idle: dict[str, str] = {}
+    if not window.simulate:
+        idle |= {f"{WINDOW_PREFIX}{name}": "acts only where the window simulates the codec's quantization "
+                                           f"({WINDOW_PREFIX}simulate is false: the control)"
+                 for name in ("quality", "allocation", "position_bits")}
+    if not window.mask:
+        idle[f"{WINDOW_PREFIX}mask_lr"] = f"acts only with {WINDOW_PREFIX}mask"
+    if not (window.mask and window.allocation == "optimised"):
+        idle[f"{WINDOW_PREFIX}remeasure_at_settle"] = (f"acts only with {WINDOW_PREFIX}mask and the optimised "
+                                                        "allocation (a settling mask measured again)")
+    return idle
 
 
 def refuse_unused_window_options(train: TrainConfig, given: Iterable[str]) -> None:
     """Raise ConfigError when rate-aware options (`given`: dotted names) are set where they act on nothing
     (`idle_window_options`): they would be recorded, change nothing, and the run would be taken for the rate point
     they name."""
-    unused = sorted(set(given) & idle_window_options(train))
-    if not unused:
-        return
-    if train.quantization_aware.iterations == 0:
-        raise ConfigError(f"{', '.join(unused)}: given for a run without a rate-aware window ({WINDOW_PREFIX}"
-                          "iterations is 0), where they act on nothing; open a window or drop them")
-    raise ConfigError(f"{', '.join(unused)}: acts only with {WINDOW_PREFIX}mask and the optimised allocation (a "
-                      "settling mask measured again)")
+    reasons = _window_idle_reasons(train)
+    unused = sorted(set(given) & set(reasons))
+    if unused:
+        raise ConfigError("; ".join(f"{key}: {reasons[key]}" for key in unused))
 
 
 def resolve_schedule(cfg: TrainConfig) -> Schedule:

@@ -258,7 +258,9 @@ class DensityControl:
         sched, d, fl = self.schedule, self.cfg, self.floaters
         report: dict[str, int] = {}
         if sched.is_densify_step(iteration):
-            if self.collecting:
+            # Rounds are the schedule's up to its last (densify_end), as check_mask_window and config.json say: a
+            # continuation past it that owes rounds (densification switched on, more rounds) clones no more.
+            if self.collecting and iteration <= sched.densify_end:
                 report.update(clone_and_split(model, self.stats, d.grad_threshold, d.percent_dense, d.split_count,
                                               generator, max_gaussians=d.cap(self.initial_gaussians)))
                 self.rounds_done += 1

@@ -105,6 +105,11 @@ def _seed_globals(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+# What a strategy reports once in a run and the metrics must hold whenever it falls (the mask's settling step is
+# rarely a logging iteration).
+ALWAYS_LOGGED = ("mask_dropped",)
+
+
 def _resolved(value: float | None) -> float:
     if value is None:
         raise ValueError("an option left to the data was not resolved")
@@ -624,7 +629,8 @@ class Trainer:
                 # An evaluation writes its metrics row whether or not the iteration is a logging one.
                 evaluate_now = bool(self.evaluator is not None and cfg.eval_every and iteration % cfg.eval_every == 0
                                     and iteration != sched.iterations)
-                if evaluate_now or (cfg.log_every and (iteration % cfg.log_every == 0 or iteration == end)):
+                if evaluate_now or any(key in control for key in ALWAYS_LOGGED) or (
+                        cfg.log_every and (iteration % cfg.log_every == 0 or iteration == end)):
                     now = time.perf_counter()
                     row = {
                         "iteration": iteration,

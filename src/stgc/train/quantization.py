@@ -279,13 +279,20 @@ def _stored_components(model: STGModel, group: QuantizedGroup, rows: torch.Tenso
         quaternion = torch.stack(fields, dim=0)
         largest = torch.from_numpy(group.codes[3].astype(np.int64))
         sign = torch.where(quaternion.detach().gather(0, largest[None])[0] < 0, -1.0, 1.0).to(quaternion)
-        unit = quaternion * (sign / quaternion.norm(dim=0).clamp_min(1e-12))
+        norm = quaternion.norm(dim=0)
+        # A zero quaternion (official error-guided points) has no direction to move: no rate gradient, where 1/|q|
+        # gave it about 1e12 (Adam's second moment then froze that row's rotation).
+        unit = quaternion * torch.where(norm > ZERO_QUATERNION, sign / norm.clamp_min(ZERO_QUATERNION),
+                                        torch.zeros_like(norm))
         others = torch.ones_like(quaternion, dtype=torch.bool)
         others[largest, torch.arange(quaternion.shape[1])] = False
         rest = unit.T[others.T].reshape(-1, 3).T
         return list(rest)
     assert domain == LINEAR, domain
     return fields
+
+
+ZERO_QUATERNION = 1e-6  # a norm below it: a rotation without a direction (drawn as the identity)
 
 
 def _visible(model: STGModel) -> np.ndarray:
