@@ -11,7 +11,7 @@ from pathlib import Path
 SRC = Path(__file__).resolve().parents[1] / "src" / "stgc"
 
 LAYERS = [
-    {"errors", "fileio", "config", "run", "distributed", "machine"},  # foundations: no stgc imports but these
+    {"errors", "fileio", "config", "run", "distributed", "machine", "official"},  # foundations: no stgc imports but these
     {"data", "render", "metrics"},
     {"model"},
     {"train", "compaction", "codec"},
