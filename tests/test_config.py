@@ -98,3 +98,16 @@ def test_path_options_agree_when_they_name_one_place_however_spelled(tmp_path, m
     # Other options compare as values: a string that happens to name a folder is not a place.
     assert not same_option_value("train.backend", "reference", str(run))
     assert same_option_value("train.iterations", 9000, 9000)
+
+
+def test_an_optional_option_whose_value_is_named_none_keeps_it():
+    """model.decoder_activation 'none' (the official immersive configs' sandwichnoactss) is a value, and unset
+    (the data's family decides) is another: 'none' became unset, then sigmoid, on the command line and read back."""
+    from stgc.config import from_saved
+    from stgc.model import ModelConfig
+
+    assert apply_overrides(ModelConfig(), {"decoder_activation": "none"}, "model").decoder_activation == "none"
+    assert apply_overrides(ModelConfig(), {"decoder_activation": "null"}, "model").decoder_activation is None
+    assert from_saved(ModelConfig, {"decoder_activation": "none"}).decoder_activation == "none"
+    assert from_saved(ModelConfig, {"decoder_activation": None}).decoder_activation is None
+    assert apply_overrides(ModelConfig(), {"trbf_scale_init": "none"}, "model").trbf_scale_init is None  # no clash

@@ -741,3 +741,36 @@ def test_a_run_the_trainer_wrote_is_this_plans_run_however_its_data_is_named(sce
         assert reuse_mismatch(trained_run, data, "cpu", options) is None
     assert "train.iterations" in (reuse_mismatch(trained_run, scene.root, "cpu", {**options, "train.iterations": "12"})
                                   or "")
+
+
+@pytest.mark.parametrize("options, words", [
+    (["--set", "train.backend=gsplat"], "train.backend: backend 'gsplat' needs CUDA"),
+    (["--set", "train.densify.max_growth=inf"], "max_growth"),
+    (["--set", "data.triangulation_upsample=inf"], "triangulation_upsample"),
+    (["--data.seed", "-1"], "data.seed"),
+    (["--set", "train.floaters.until=-100"], "floaters.until"),
+    (["--variant", "lite", "--model.variant", "full"], "model.variant: given twice, as lite"),
+])
+def test_options_that_fail_later_or_conflict_are_refused_before_the_run_folder(scene, tmp_path, options, words,
+                                                                               capsys):
+    """Each was accepted and then failed with a traceback after config.json was written (gsplat on the CPU, inf
+    caps), went unchecked (a negative seed or iteration became another one), or was settled silently by a rule that
+    differed between verbs (a shortcut flag and its option)."""
+    run = tmp_path / "run"
+    assert main(_train_args(scene, run, "10", *options)) == 2
+    assert words in capsys.readouterr().err and not run.exists()
+
+
+def test_resume_without_a_checkpoint_does_not_remove_a_decoded_or_official_model(scene, trained_run, tmp_path,
+                                                                                 capsys):
+    """--resume with nothing to resume restarted the run from scratch, which removed a model that `stgc
+    decompress` restored (or an official run's point_cloud/): worse than no flag, which refuses the folder."""
+    assert main(["compress", str(trained_run), "--out", str(tmp_path / "m.stgc"), "--quality", "1",
+                 "--set", "codec.allocation=ladder"]) == 0
+    assert main(["decompress", str(tmp_path / "m.stgc"), "--out", str(tmp_path / "restored")]) == 0
+    before = sorted(p.relative_to(tmp_path) for p in (tmp_path / "restored").rglob("*"))
+    assert main(["train", "--out", str(tmp_path / "restored"), "--resume"]) == 2
+    assert "nothing to resume" in capsys.readouterr().err
+    assert sorted(p.relative_to(tmp_path) for p in (tmp_path / "restored").rglob("*")) == before
+    assert main(["compress", str(trained_run), "--out", str(tmp_path / "m.STGC")]) == 2
+    assert "lower case" in capsys.readouterr().err

@@ -44,6 +44,7 @@ from stgc.model.layout import VARIANTS
 from stgc.options import (
     configs_from_run,
     default_configs,
+    refuse_conflicting_flags,
     refuse_unused_compaction_options,
     refuse_unused_model_options,
     resolve_configs,
@@ -60,7 +61,7 @@ from stgc.viewer import serve
 SECTION_TITLES = {
     "data": "data options (stgc.data.DataConfig)",
     "model": "model options (stgc.model.ModelConfig)",
-    "train": "training options (stgc.train.TrainConfig; defaults shown are the preset's)",
+    "train": "training options (stgc.train.TrainConfig; defaults shown are the cpu preset's)",
     "compaction": "compaction options (stgc.compaction.CompactionConfig)",
 }
 
@@ -248,9 +249,11 @@ def cmd_view(args: argparse.Namespace) -> int:
 def compress_config(args: argparse.Namespace) -> CodecConfig:
     """The codec options `stgc compress` writes with: defaults < --codec.* < --quality < --set."""
     overrides = collect_overrides(args).get("codec", {})
+    sets = split_sections(parse_set_arguments(args.set), {"codec"}).get("codec", {})
     if args.quality is not None:
+        refuse_conflicting_flags({"codec": {"quality": args.quality}}, [{"codec": overrides}, {"codec": sets}])
         overrides["quality"] = str(args.quality)
-    overrides.update(split_sections(parse_set_arguments(args.set), {"codec"}).get("codec", {}))
+    overrides.update(sets)
     return validate_config(apply_overrides(CodecConfig(), overrides, "codec"), "codec")
 
 
@@ -303,13 +306,23 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------- parser
+class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Adds an option's default to its help, unless the help already says it (or there is none to say)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        help_text = action.help or ""
+        if "default" in help_text or action.default in (None, False, argparse.SUPPRESS):
+            return help_text
+        return super()._get_help_string(action)
+
+
 def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "train",
         help="train an STG model (optionally with ST-KNN compaction) into a run directory",
         description="Train Spacetime Gaussians on DATA into RUN. Presets: cpu (2-core CPU schedule), paper "
         "(official 30k). Any option below can also be given as --set section.field=value.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("data", nargs="?", help="dataset directory (any supported layout; see `stgc data inspect`)")
     p.add_argument("--out", required=True, help="run directory to write (or to resume)")

@@ -110,13 +110,20 @@ def _type_name(tp: Any) -> str:
         s = inner.__name__
     else:
         s = str(inner).replace("typing.", "")
-    return f"{s}|none" if optional else s
+    return f"{s}|{_unset_word(inner)}" if optional else s
+
+
+def _unset_word(inner: Any) -> str:
+    """How an optional option is left unset on the command line: 'none', or 'null' where 'none' is one of its values
+    (model.decoder_activation)."""
+    return "null" if get_origin(inner) is Literal and "none" in get_args(inner) else "none"
 
 
 def coerce(value: Any, tp: Any, name: str) -> Any:
     """Convert a command-line string (or a JSON value) to the field type `tp`."""
     inner, optional = _unwrap_optional(tp)
-    if isinstance(value, str) and optional and value.lower() in ("none", "null", ""):
+    unset = ("null", "") if _unset_word(inner) == "null" else ("none", "null", "")
+    if isinstance(value, str) and optional and value.lower() in unset:  # a value named 'none' stays that value
         return None
     if value is None:
         if optional:
@@ -266,13 +273,15 @@ def add_config_arguments(parser: argparse.ArgumentParser, section: str, cls_or_o
     for spec in iter_fields(cls_or_obj):
         default = spec.default
         shown = "none" if default is None else (str(default).lower() if isinstance(default, bool) else default)
+        # Where the help says what the default is (an unset option that something else decides), it is not repeated.
+        says_default = "default" in spec.help.lower() and default is None
         group.add_argument(
             f"--{section}.{spec.dotted}",
             dest=f"cfg:{section}:{spec.dotted}",
             metavar=_type_name(spec.type).upper() if get_origin(_unwrap_optional(spec.type)[0]) is not Literal
             else "{" + _type_name(spec.type) + "}",
             default=argparse.SUPPRESS,
-            help=f"{spec.help} (default: {shown})".strip(),
+            help=spec.help if says_default else f"{spec.help} (default: {shown})".strip(),
         )
 
 

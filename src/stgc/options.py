@@ -51,7 +51,9 @@ def resolve_configs(
     options: dict[str, dict[str, str]],
     sets: dict[str, str],
 ) -> dict[str, Any]:
-    """preset < shortcut flags < --section.field options < --set overrides."""
+    """preset < shortcut flags < --section.field options < --set overrides. A shortcut flag and an option naming
+    one option with two values is refused (which should win is a guess)."""
+    refuse_conflicting_flags(shortcuts, [options, split_sections(sets, set(section_classes()))])
     configs = default_configs(preset)
     for layer in (shortcuts, options, split_sections(sets, set(configs))):
         for section, overrides in layer.items():
@@ -59,6 +61,18 @@ def resolve_configs(
     for section, cfg in configs.items():
         validate_config(cfg, section)
     return configs
+
+
+def refuse_conflicting_flags(shortcuts: dict[str, dict[str, Any]], layers: Iterable[dict[str, dict[str, Any]]]) -> None:
+    """Raise ConfigError where a shortcut flag (--variant, --quality, ...) and an option (--section.key, --set) give
+    one option two values."""
+    for layer in layers:
+        for section, values in shortcuts.items():
+            for key, value in values.items():
+                given = (layer.get(section) or {}).get(key)
+                if given is not None and str(given).strip() != str(value).strip():
+                    raise ConfigError(f"{section}.{key}: given twice, as {value} (its shortcut flag) and as {given}; "
+                                      "give it once")
 
 
 def configs_from_run(run_dir: Path) -> dict[str, Any]:

@@ -88,7 +88,9 @@ class DataConfig:
         check(self.max_points_per_frame is None or self.max_points_per_frame >= 1, f"{prefix}max_points_per_frame",
               self.max_points_per_frame, ">= 1, or none")
         check(self.mask_points_per_frame >= 0, f"{prefix}mask_points_per_frame", self.mask_points_per_frame, ">= 0")
-        check(self.triangulation_upsample > 0, f"{prefix}triangulation_upsample", self.triangulation_upsample, "> 0")
+        check(math.isfinite(self.triangulation_upsample) and self.triangulation_upsample > 0,
+              f"{prefix}triangulation_upsample", self.triangulation_upsample, "a finite number > 0")
+        check(self.seed >= 0, f"{prefix}seed", self.seed, ">= 0")
         check(self.min_track_length >= 2, f"{prefix}min_track_length", self.min_track_length, ">= 2")
         modes = get_args(PreprocessMode)
         check(self.preprocess in modes, f"{prefix}preprocess", self.preprocess, f"one of {', '.join(modes)}")

@@ -570,7 +570,6 @@ def run_plan(
     plan = load_plan(plan, preprocess)
     # Absolute: a worker on another node reads relative paths against its own working directory.
     data_path, out_dir = Path(data_path).resolve(), Path(out_dir).resolve()
-    out_dir.mkdir(parents=True, exist_ok=True)
     extra = parse_overrides(extra_overrides)
     say = log or _log.info  # stgc's one channel for messages: stderr, silenced by -q
     results_csv = out_dir / f"results-{plan.name}.csv"
@@ -579,6 +578,7 @@ def run_plan(
     check_codec_baseline(plan, qualities)
     if check_options:  # off only for a stand-in trainer with options of its own (tests)
         check_plan_options(plan, preset, extra, out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)  # after the checks: a refused plan leaves no folder
 
     per_spec: list[list[RunOutcome]] = [[] for _ in plan.runs]
     index_of = {spec.name: index for index, spec in enumerate(plan.runs)}

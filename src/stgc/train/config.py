@@ -164,8 +164,9 @@ class DensifyConfig:
         check(0 <= self.prune_opacity < 1, f"{prefix}prune_opacity", self.prune_opacity, "in [0, 1)")
         check(0 < self.opacity_reset_value < 1, f"{prefix}opacity_reset_value", self.opacity_reset_value, "in (0, 1)")
         check(self.max_gaussians >= 0, f"{prefix}max_gaussians", self.max_gaussians, ">= 0 (0 = no cap)")
-        check(self.max_growth is None or self.max_growth == 0 or self.max_growth >= 1, f"{prefix}max_growth",
-              self.max_growth, "0 (no cap) or >= 1 (or unset)")
+        check(self.max_growth is None or self.max_growth == 0 or (math.isfinite(self.max_growth)
+                                                                   and self.max_growth >= 1),
+              f"{prefix}max_growth", self.max_growth, "0 (no cap) or a finite number >= 1 (or unset)")
 
     def cap(self, initial_gaussians: int) -> int:
         """The Gaussian count clone/split may not exceed (0 = none) for a model that started with this many."""
@@ -204,6 +205,7 @@ class FloaterConfig:
             check(math.isfinite(value) and value >= 0, f"{prefix}{name}", value, ">= 0 (0 = off)")
         check(0 <= self.scale_min_opacity <= 1, f"{prefix}scale_min_opacity", self.scale_min_opacity,
               "in [0, 1] (0 = any opacity)")
+        check(self.until >= 0, f"{prefix}until", self.until, ">= 0")
 
 
 @dataclass(frozen=True)
@@ -373,6 +375,8 @@ class TrainConfig:
         for name in ("checkpoint_every", "log_every", "eval_every"):
             check(getattr(self, name) >= 0, f"{prefix}{name}", getattr(self, name), ">= 0 (0 = never)")
         check(self.stop_after is None or self.stop_after >= 1, f"{prefix}stop_after", self.stop_after, ">= 1")
+        check(all(i >= 1 for i in self.save_iterations), f"{prefix}save_iterations", self.save_iterations,
+              "iterations >= 1")
         check(self.backend in BACKENDS, f"{prefix}backend", self.backend, f"one of {', '.join(BACKENDS)}")
         check(self.quantization_aware.iterations <= self.iterations, f"{prefix}quantization_aware.iterations",
               self.quantization_aware.iterations, f"at most the run's {self.iterations} iterations")

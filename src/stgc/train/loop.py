@@ -34,7 +34,7 @@ from stgc.data import DataConfig
 from stgc.data.cameras import Camera
 from stgc.data.config import initial_points_from_config
 from stgc.data.dataset import Dataset
-from stgc.errors import DataError
+from stgc.errors import DataError, StgcError
 from stgc.fileio import write_json
 from stgc.metrics import ssim
 from stgc.model import ModelConfig, STGModel
@@ -182,6 +182,17 @@ class ForegroundMasks:
         return self._masks[key]
 
 
+def _refuse_restarting_a_model_of_value(run: Run) -> None:
+    """A resume without a checkpoint restarts the run from scratch, removing what the folder holds: refuse that
+    where it holds a model no training of this run made (a decoded bitstream's, an official run's)."""
+    why = ("a model restored from a bitstream (stgc decompress)" if (run.path / Run.RESTORED_FROM).is_file()
+           else "a model without a config.json (an official STG run?)"
+           if not run.has_config() and run.latest_model_dir() is not None else None)
+    if why is not None:
+        raise StgcError(f"{run.path}: nothing to resume (no {Run.CHECKPOINT}): it holds {why}, which restarting would "
+                        "remove; fine-tune it into a new folder (stgc finetune) or give --overwrite")
+
+
 def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig | None) -> None:
     """The learned mask keeps one logit per row: refuse, before training (and before the run's folder is written),
     a run in which something else may add or remove Gaussians inside the rate-aware window (the mask would lose
@@ -245,9 +256,15 @@ class Trainer:
         self.compactor = self._make_compactor()
         self._check_loss_reference()
         check_mask_window(train_cfg, compaction_cfg)
+        try:  # a backend the trainer's device (the CPU) cannot run: refused before anything is written
+            select_backend(train_cfg.backend, torch.device("cpu"))
+        except ValueError as exc:
+            raise ConfigError(f"train.backend: {exc}") from None
         self.out_run = Run(out_dir)
         resuming = resume and self.out_run.checkpoint_path.exists()
         if not resuming:
+            if resume and not overwrite:
+                _refuse_restarting_a_model_of_value(self.out_run)
             # A resume with nothing to resume restarts the same run, so its own partial files may go.
             self.out_run = Run.create(out_dir, overwrite=overwrite or resume)
         self.callback = callback
