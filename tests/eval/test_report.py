@@ -102,7 +102,7 @@ def test_report_from_runs(tmp_path: Path) -> None:
     fams = {r.family for r in report.rows}
     assert fams == {"STG", "ST-KNN (scale)", "ST-KNN (scale) + codec", "Custom"}
     names = {r.name for r in report.rows}
-    assert {"no preprocessing", "preprocessing stg-isolated", "Case 1", "Case 1 model_q5", "mine"} <= names
+    assert {"no preprocessing", "preprocessing stg-isolated", "Case 1", "Case 1 q5", "mine"} <= names
     md = report.markdown.read_text()
     assert "unfinished" in md and report.baseline == "STG"
     assert report.plot_png.is_file() and str(report).startswith("report written")
@@ -134,7 +134,7 @@ def test_a_record_made_before_the_run_finished_is_not_its_result(tmp_path: Path,
         assert [r.name for r in rows_from_run(run)] == [row.name]
     assert "holds the model of iteration 3000" in caplog.text
     (run / "eval_model_q2.json").write_text(json.dumps({**earlier, "iterations": 9000, "training_finished": True}))
-    assert [r.name for r in rows_from_run(run)] == [row.name, f"{row.name} model_q2"]
+    assert [r.name for r in rows_from_run(run)] == [row.name, f"{row.name} q2"]
 
 
 def test_rate_axis_turns_logarithmic_when_the_rates_span_more_than_ten_times(tmp_path):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import textwrap
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
@@ -467,7 +468,9 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
                 log.warning("%s: left out of the report: %s holds the model of iteration %s, not the one the run "
                             "ended with (compress and evaluate the run again)", path, bitstream, rec.get("iterations"))
                 continue
-            rows.append(_row_of(path, {**record_fields(rec), "name": _named(f"{setting} {point}", rec),
+            # The experiment runner's model_q<Q>.stgc is its "q<Q>" point, as the runner's own rows name it.
+            label = point.removeprefix("model_") if re.fullmatch(r"model_q\d+", point) else point
+            rows.append(_row_of(path, {**record_fields(rec), "name": _named(f"{setting} {label}", rec),
                                        "family": f"{family}{CODEC_SUFFIX}", "run": run_dir.name,
                                        "run_dir": str(run_dir), "bitstream": bitstream}))
     return rows
