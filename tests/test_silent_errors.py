@@ -772,5 +772,9 @@ def test_resume_without_a_checkpoint_does_not_remove_a_decoded_or_official_model
     assert main(["train", "--out", str(tmp_path / "restored"), "--resume"]) == 2
     assert "nothing to resume" in capsys.readouterr().err
     assert sorted(p.relative_to(tmp_path) for p in (tmp_path / "restored").rglob("*")) == before
+    # Compressed again, it is measured without the colour correction the bitstream does not hold: said, not hidden.
+    assert main(["compress", str(tmp_path / "restored"), "--out", str(tmp_path / "again.stgc"), "--quality", "1",
+                 "--set", "codec.allocation_views=2"]) == 0
+    assert "does not hold the training cameras' colour correction" in capsys.readouterr().err
     assert main(["compress", str(trained_run), "--out", str(tmp_path / "m.STGC")]) == 2
     assert "lower case" in capsys.readouterr().err

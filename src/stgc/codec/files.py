@@ -405,9 +405,15 @@ def _encode_model(source: Path, out_path: Path, config: CodecConfig) -> tuple[by
     if allocation is None and config.allocation != "ladder":
         dataset = _training_dataset(run_dir, source, required=config.allocation == "optimised")
         if dataset is not None:
+            corrections = _corrections_of(source)
+            if not corrections and run is not None and (run.path / Run.RESTORED_FROM).is_file() \
+                    and not dataset.synthetic:
+                log.warning("%s is restored from a bitstream, which does not hold the training cameras' colour "
+                            "correction: the allocation measures its renders without it, so the depths it picks may "
+                            "differ from those of a compression of the trained run", source)
             allocation = optimise_on_views(model, dataset, config.quality, views=config.allocation_views,
                                            position_bits=config.position_bits, outlier_guard=config.outlier_guard,
-                                           adaptive_delta=config.adaptive_delta, corrections=_corrections_of(source))
+                                           adaptive_delta=config.adaptive_delta, corrections=corrections)
             metadata["allocation"] = allocation.summary()
     data = encode_with_config(arrays, model.variant, model.decoder_state(), config, metadata, allocation)
     return data, CompressResult(out_path, model.num_gaussians, model.variant, len(data),
