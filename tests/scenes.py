@@ -3,7 +3,8 @@
 `write_panoptic_scene` renders a known static STG model (a textured shell of Gaussians around a small solid
 ball) from cameras on a ring and writes the Dynamic 3D Gaussians layout: train_meta.json, test_meta.json,
 ims/<cam>/<frame>.png and, optionally, seg/<cam>/<frame>.png foreground masks of the ball.
-`write_n3dv_scene` writes a Neural 3D Video layout of noise images, for what only needs a valid dataset.
+`write_n3dv_scene` writes a Neural 3D Video layout of noise images, for what only needs a valid dataset;
+`write_dnerf_scene` a monocular D-NeRF one whose test images lie between the training images' times.
 """
 
 from __future__ import annotations
@@ -176,4 +177,26 @@ def write_n3dv_scene(root: Path, cams: int = 3, frames: int = 2, width: int = 16
             path.parent.mkdir(parents=True, exist_ok=True)
             Image.fromarray(rng.integers(0, 256, size=(height, width, 3), dtype=np.uint8)).save(path)
     np.save(root / "poses_bounds.npy", np.array(rows))
+    return root
+
+
+def write_dnerf_scene(root: Path, times: dict[str, list[float]] | None = None) -> Path:
+    """transforms_train/test.json (camera_angle_x only, file_path without extension) + RGBA images whose left half
+    is opaque orange, the right transparent; the camera at z = -(3 + t), looking at the origin. Default times:
+    train 0, 0.5, 1; test 0.25, 0.75 (frames 1 and 3: only a test image holds them)."""
+    from stgc.data.cameras import w2c_to_opengl_c2w
+
+    times = times or {"train": [0.0, 0.5, 1.0], "test": [0.25, 0.75]}
+    for split, ts in times.items():
+        frames = []
+        for i, t in enumerate(ts):
+            rgba = np.zeros((8, 10, 4), np.uint8)
+            rgba[:, :5] = [200, 100, 50, 255]
+            (root / split).mkdir(parents=True, exist_ok=True)
+            Image.fromarray(rgba).save(root / split / f"r_{i:03d}.png")
+            w2c = np.eye(4)
+            w2c[:3, 3] = [0, 0, 3 + t]
+            frames.append({"file_path": f"./{split}/r_{i:03d}", "time": t,
+                           "transform_matrix": w2c_to_opengl_c2w(w2c).tolist()})
+        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
     return root

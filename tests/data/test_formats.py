@@ -264,24 +264,11 @@ def test_technicolor_round_trip(toys, blender_toys, tmp_path):
 
 def test_dnerf_monocular(tmp_path):
     """D-NeRF: camera_angle_x only, file_path without extension, RGBA images, one view per image."""
-    from PIL import Image
+    from scenes import write_dnerf_scene
 
-    from stgc.data.cameras import fov_to_focal, w2c_to_opengl_c2w
+    from stgc.data.cameras import fov_to_focal
 
-    times = {"train": [0.0, 0.5, 1.0], "test": [0.25, 0.75]}
-    for split, ts in times.items():
-        frames = []
-        for i, t in enumerate(ts):
-            rgba = np.zeros((8, 10, 4), np.uint8)
-            rgba[:, :5] = [200, 100, 50, 255]  # left half opaque, right half transparent
-            (tmp_path / split).mkdir(exist_ok=True)
-            Image.fromarray(rgba).save(tmp_path / split / f"r_{i:03d}.png")
-            w2c = np.eye(4)
-            w2c[:3, 3] = [0, 0, 3 + t]
-            frames.append({"file_path": f"./{split}/r_{i:03d}", "time": t,
-                           "transform_matrix": w2c_to_opengl_c2w(w2c).tolist()})
-        (tmp_path / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
-    data = open_dataset(tmp_path, background="white")
+    data = open_dataset(write_dnerf_scene(tmp_path), background="white")
     assert data.format == "blender" and data.frames == [0, 1, 2, 3, 4] and data.duration == 5
     assert [c.name for c in data.test] == ["test_r_000", "test_r_001"]
     assert [c.frame for c in data.test] == [1, 3]  # ranks of the distinct times 0, .25, .5, .75, 1
@@ -301,12 +288,16 @@ def test_images_txt_reads_pose_lines_with_and_without_their_keypoint_lines(tmp_p
         "with keypoint lines": [pose.format(i, i, i) + "\n" + keypoints for i in range(1, 5)],
         "with empty keypoint lines": [pose.format(i, i, i) + "\n" for i in range(1, 5)],
         "without keypoint lines": [pose.format(i, i, i) for i in range(1, 5)],  # every second image was lost
+        # A name that is a number, where a pose line is due (it was taken for a keypoint line and refused).
+        "numeric names": [pose.replace("cam{:02d}.png", "{:04d}").format(i, i, i) + "\n" + keypoints
+                          for i in range(1, 5)],
     }
     for case, records in cases.items():
         path = tmp_path / f"{case}.txt"
         path.write_text("# Image list\n" + "\n".join(records) + "\n")
         images = _read_images_txt(path)
-        assert [images[i].name for i in sorted(images)] == [f"cam{i:02d}.png" for i in range(1, 5)], case
+        names = [f"{i:04d}" if case == "numeric names" else f"cam{i:02d}.png" for i in range(1, 5)]
+        assert [images[i].name for i in sorted(images)] == names, case
         assert images[3].tvec[0] == pytest.approx(0.3), case
 
 

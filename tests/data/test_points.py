@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -175,3 +177,55 @@ def test_shipped_colours_slightly_over_one_are_clipped_not_read_as_0_to_255():
     renderer = np.array([[0.5, 0.25, 1.003], [0.2, 0.4, 0.6]])
     assert np.allclose(_rgb01(renderer), [[0.5, 0.25, 1.0], [0.2, 0.4, 0.6]])
     assert np.allclose(_rgb01(np.array([[255.0, 51.0, 0.0]])), [[1.0, 0.2, 0.0]])
+
+
+def test_the_viewing_region_lies_ahead_of_a_rig_that_looks_outwards(tmp_path):
+    """The point closest to the optical axes of cameras on a ring looking outwards is the ring's centre, behind
+    every camera: random points and the hull box were centred there."""
+    from scenes import ring_camera
+
+    from stgc.data.cameras import Camera
+    from stgc.data.points import viewing_region
+
+    cameras = [ring_camera(f"c{k}", 2 * np.pi * k / 8, 0, 32, 24) for k in range(8)]
+    focus, _ = viewing_region(SimpleNamespace(train=cameras, scene_extent=lambda: 3.3))
+    assert np.linalg.norm(focus) < 1e-6  # looking in: the centre, in front of each camera
+    # The same cameras turned around (the camera's z axis flipped, x too to stay right-handed).
+    flip = np.diag([-1.0, 1.0, -1.0, 1.0])
+    cameras = [Camera(c.name, 0, 0.0, c.K, flip @ c.w2c, c.width, c.height) for c in cameras]
+    focus, radius = viewing_region(SimpleNamespace(train=cameras, scene_extent=lambda: 3.3))
+    for cam in cameras:  # the region reaches well ahead of every camera (it was wholly behind them)
+        ahead = cam.center + cam.c2w[:3, 2] * 3.0
+        assert np.all(np.abs(ahead - focus) <= radius)
+
+
+def test_a_damaged_or_non_finite_point_file_is_an_error_naming_it(tmp_path):
+    import struct
+
+    from stgc.data.colmap_io import read_points
+    from stgc.data.readers.panoptic import _panoptic_points
+
+    (tmp_path / "sparse").mkdir()
+    (tmp_path / "sparse" / "points3D.bin").write_bytes(struct.pack("<Q", 10**12))  # a count no file holds
+    for name in ("cameras.bin", "images.bin"):
+        (tmp_path / "sparse" / name).write_bytes(struct.pack("<Q", 0))
+    with pytest.raises(DataError, match="points3D.bin.*10+ points, more than its 8 bytes"):
+        read_points(tmp_path / "sparse")
+    data = np.zeros((5, 7))
+    data[2, 1] = np.nan
+    np.savez(tmp_path / "init_pt_cld.npz", data=data)
+    with pytest.raises(DataError, match="init_pt_cld.npz.*non-finite"):
+        _panoptic_points(tmp_path / "init_pt_cld.npz")
+
+
+def test_auto_points_of_monocular_data_refuse_frames_only_a_test_image_holds(tmp_path):
+    """source='auto' became 'random' after the check for frames without a training camera: such frames got points
+    at their times with NaN colours."""
+    from scenes import write_dnerf_scene
+
+    dataset = open_dataset(write_dnerf_scene(tmp_path))
+    assert dataset.frames != dataset.train_frames
+    with pytest.raises(DataError, match="have no training camera"):
+        initial_points(dataset, source="auto")
+    cloud = initial_points(dataset, source="auto", frames=dataset.train_frames, random_points_per_frame=20)
+    assert np.isfinite(cloud.rgb).all()

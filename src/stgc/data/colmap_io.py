@@ -157,6 +157,8 @@ _POINT_DTYPE = np.dtype([("id", "<u8"), ("xyz", "<f8", 3), ("rgb", "u1", 3), ("e
 def _read_points_bin(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     r = _Reader(path)
     count = r.take("<Q")[0]
+    if count * _POINT_DTYPE.itemsize > len(r.data):  # before allocating for a damaged count
+        raise DataError(path, f"says it holds {count} points, more than its {len(r.data)} bytes can")
     xyz = np.zeros((count, 3))
     rgb = np.zeros((count, 3), np.uint8)
     error = np.zeros(count)
@@ -231,14 +233,15 @@ def _read_images_txt(path: Path) -> dict[int, ColmapImage]:
     images = {}
     # Records are two lines: the pose line and a (possibly empty) keypoint line. Empty keypoint lines are easy to
     # lose in hand-written files, so a line shaped like a pose line (IMAGE_ID, seven numbers, CAMERA_ID, a name that
-    # is not a number) is a pose line even where a keypoint line was due; keypoint lines are all numbers.
+    # is not a number) is a pose line even where a keypoint line was due; keypoint lines are all numbers. Where a
+    # pose line is due, its name may be a number ("0001").
     expect_pose = True
     for number, line in _data_lines(path):
         parts = line.split()
         if not parts:
             expect_pose = True
             continue
-        pose = _image_pose(parts)
+        pose = _image_pose(parts, name_may_be_number=expect_pose)
         if pose is None:
             if expect_pose:
                 raise DataError(path, f"line {number}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME")
@@ -249,8 +252,9 @@ def _read_images_txt(path: Path) -> dict[int, ColmapImage]:
     return images
 
 
-def _image_pose(parts: list[str]) -> ColmapImage | None:
-    """The image record of a pose line's tokens, or None when they are not one."""
+def _image_pose(parts: list[str], name_may_be_number: bool = False) -> ColmapImage | None:
+    """The image record of a pose line's tokens, or None when they are not one. A numeric name is taken only where
+    a pose line is due (`name_may_be_number`), or where the line cannot be keypoints (not whole triples)."""
     if len(parts) < 10:
         return None
     try:
@@ -259,11 +263,12 @@ def _image_pose(parts: list[str]) -> ColmapImage | None:
         cam_id = int(parts[8])
     except ValueError:
         return None
-    try:
-        float(parts[9])
-        return None  # a keypoint line: X Y POINT3D_ID triples, all numbers
-    except ValueError:
-        pass
+    if not name_may_be_number and len(parts) % 3 == 0:
+        try:
+            float(parts[9])
+            return None  # a keypoint line: X Y POINT3D_ID triples, all numbers
+        except ValueError:
+            pass
     return ColmapImage(image_id, np.array(values[:4]), np.array(values[4:]), cam_id, " ".join(parts[9:]))
 
 

@@ -104,11 +104,6 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
                                       f"{dataset.start + dataset.duration})")
     if not frames:
         raise DataError(dataset.root, "empty frame list for initial points")
-    if source in ("triangulate", "random"):
-        unseen = [f for f in frames if not dataset.train_at(f)]
-        if unseen:
-            raise DataError(dataset.root, f"frames {unseen} have no training camera: {source} points need one "
-                                          f"(Dataset.train_frames lists the frames that have)")
     if source == "auto":
         if dataset.has_points:
             source = "data"
@@ -123,6 +118,11 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
                 source = "triangulate"
             except ImportError:
                 source = "random"
+    if source in ("triangulate", "random"):  # (auto resolved first: monocular data's test-only frames too)
+        unseen = [f for f in frames if not dataset.train_at(f)]
+        if unseen:
+            raise DataError(dataset.root, f"frames {unseen} have no training camera: {source} points need one "
+                                          f"(Dataset.train_frames lists the frames that have)")
     rng = np.random.default_rng(seed)
     hull = mask_points_per_frame > 0 and dataset.has_masks
     if hull:
@@ -153,12 +153,13 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
         else:
             count = max_points_per_frame or random_points_per_frame
             xyz, rgb = random_points(dataset, frame, count, rng)
-        xyz, rgb = _subsample(np.asarray(xyz), np.asarray(rgb), max_points_per_frame, rng)
-        clouds.append(PointCloud(xyz, rgb, np.full(len(xyz), t)))
+        xyz, rgb = np.asarray(xyz), np.asarray(rgb)
         if hull:
             hull_xyz, hull_rgb = mask_hull_points(dataset, frame, mask_points_per_frame, rng)
             log.info("frame %d: %d points inside the masks' visual hull", frame, len(hull_xyz))
-            clouds.append(PointCloud(hull_xyz, hull_rgb, np.full(len(hull_xyz), t)))
+            xyz, rgb = np.concatenate([xyz, hull_xyz]), np.concatenate([rgb, hull_rgb])
+        xyz, rgb = _subsample(xyz, rgb, max_points_per_frame, rng)  # the frame's cap covers its hull points
+        clouds.append(PointCloud(xyz, rgb, np.full(len(xyz), t)))
     if without and len(without) < len(frames):
         log.warning("%s: frames %s ship no points (%s); they start without initial points of their own",
                     dataset.name, _frame_list(without), dataset.points_description or "the data's points")
@@ -196,7 +197,8 @@ def mask_hull_points(dataset: Dataset, frame: int, count: int, rng: np.random.Ge
 
 def viewing_region(dataset: Dataset) -> tuple[np.ndarray, float]:
     """(centre, radius) of the region the training cameras look at: the point closest (least squares)
-    to all optical axes, and the median camera distance to it."""
+    to all optical axes, and the median camera distance to it; where that point is no region they look at (parallel
+    axes, or axes that cross behind the cameras), a point ahead of them along their mean viewing direction."""
     cams = {c.name: c for c in dataset.train}.values()
     A = np.zeros((3, 3))
     b = np.zeros(3)
@@ -208,11 +210,25 @@ def viewing_region(dataset: Dataset) -> tuple[np.ndarray, float]:
         b += P @ cam.center
         centre_list.append(cam.center)
     centres = np.array(centre_list)
+    axes = np.array([c.c2w[:3, 2] for c in cams])
     try:
-        focus = np.linalg.solve(A, b)
-    except np.linalg.LinAlgError:  # all axes parallel
-        focus = centres.mean(axis=0) + np.mean([c.c2w[:3, 2] for c in cams], axis=0) * dataset.scene_extent()
-    radius = float(np.median(np.linalg.norm(centres - focus, axis=1)))
+        focus = np.linalg.solve(A, b) if np.linalg.cond(A) < 1e8 else None
+    except np.linalg.LinAlgError:
+        focus = None
+    # Axes (nearly) parallel, or crossing behind the cameras: the point of least squares is no region they look at.
+    # Cameras that agree on a direction (a forward-facing rig, one camera): ahead of them along it, by the rig's
+    # size (1 unit for a single camera, which has no scale of its own). Cameras looking outwards: a region around the
+    # rig reaching past it, which each camera sees part of.
+    if focus is None or np.median(np.einsum("ij,ij->i", focus - centres, axes)) <= 0:
+        direction = axes.mean(axis=0)
+        norm = float(np.linalg.norm(direction))
+        size = dataset.scene_extent() or 1.0
+        if norm > 0.5:
+            focus = centres.mean(axis=0) + direction / norm * size
+        else:
+            focus = centres.mean(axis=0)
+            return focus, 2.0 * size
+    radius = float(np.median(np.linalg.norm(centres - focus, axis=1))) or 1.0
     return focus, radius
 
 
@@ -224,6 +240,8 @@ def random_points(dataset: Dataset, frame: int, count: int,
                   "triangulation); expect slower, worse training", stacklevel=3)
     focus, radius = viewing_region(dataset)
     cams = dataset.train_at(frame)
+    if not cams:
+        raise DataError(dataset.root, f"frame {frame} has no training camera to see random points")
     xyz_out, rgb_out = [], []
     got = 0
     for _ in range(50):

@@ -13,6 +13,7 @@ import argparse
 import hashlib
 import json
 import os
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -22,7 +23,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from ..errors import DataError
+from ..errors import DataError, StgcError
 from ..fileio import atomic_path
 from .cameras import Camera
 from .dataset import Dataset
@@ -226,6 +227,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="one JSON object per frame instead of a table")
     parser.add_argument("--no-cache", action="store_true", help="recompute even when a cached result exists")
     args = parser.parse_args(argv)
+    if args.views_every < 1:
+        parser.error(f"--views-every {args.views_every}: at least 1")
+    try:
+        return _print_triangulation(args)
+    except StgcError as exc:  # a bad dataset is one line naming the file, as in `stgc`
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _print_triangulation(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.data, format=args.format, start=args.start, duration=args.duration)
     views = dataset.train_views[:: args.views_every]
     columns = ["frame", "views", "keypoints_per_image", "points_all_tracks", "points", "mean_track_length",

@@ -108,6 +108,8 @@ def _panoptic_points(npz: Path) -> tuple[np.ndarray, np.ndarray]:
         raise DataError(npz, f"unreadable point cloud: {exc}") from None
     if data.ndim != 2 or data.shape[1] < 6:
         raise DataError(npz, f"'data' is {list(data.shape)}; expected [N, 7] (x, y, z, r, g, b, seg)")
+    if not np.all(np.isfinite(data[:, :6])):
+        raise DataError(npz, "non-finite (NaN or inf) point coordinates or colours")
     return data[:, :3].astype(np.float32), _rgb01(data[:, 3:6])
 
 

@@ -103,4 +103,6 @@ def _colmap_points(frame_dir: Path | None) -> tuple[np.ndarray, np.ndarray] | No
     if frame_dir is None or _points_file(frame_dir) is None:
         return None
     xyz, rgb, _, _ = read_points(frame_dir / "sparse" / "0")
+    if not np.all(np.isfinite(xyz)):
+        raise DataError(_points_file(frame_dir), "non-finite (NaN or inf) point coordinates")
     return xyz.astype(np.float32), rgb.astype(np.float32) / 255.0
