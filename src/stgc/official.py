@@ -31,6 +31,14 @@ PER_FAMILY: dict[str, dict[str, Any]] = {
                     "train.densify.rounds": 12},
 }
 FAMILIES = tuple(PER_FAMILY)
+# Every option (dotted, with its section) whose unset value the data's family decides.
+FAMILY_OPTIONS = frozenset(OFFICIAL_DEFAULTS) | frozenset(key for values in PER_FAMILY.values() for key in values)
+
+
+def family_options(prefix: str) -> tuple[str, ...]:
+    """The names under `prefix` ("model.", "train.lr.") of the options the data's family decides."""
+    return tuple(sorted(key.removeprefix(prefix) for key in FAMILY_OPTIONS
+                        if key.startswith(prefix) and "." not in key.removeprefix(prefix)))
 
 
 def official_value(option: str, family: str | None) -> Any:

@@ -84,6 +84,8 @@ def test_load_model_gives_a_renderable_model_with_the_stored_activation(run_dir)
     # Restored without its run's config, the run still renders with its decoder's activation (it was sigmoid).
     decompress(run / "it500.stgc", run.parent / "restored")
     assert STGModel.load(run.parent / "restored").decoder_activation == "clamp"
+    # ... read from restored_from.json: a config.json holding only that would read its data options as defaults
+    assert not (run.parent / "restored" / "config.json").exists()
 
 
 def test_a_component_that_is_one_value_but_a_few_encodes_without_guard_bits(tmp_path):

@@ -766,6 +766,11 @@ def test_options_left_to_the_data_are_compared_as_the_data_resolves_them(tmp_pat
         saved_with("old", {"train": {"lr": {**_lr(), "scaling": 5e-3}}}) or "")
     assert "train.densify.rounds: 6 in its config.json, 20 in the plan" in (saved_with("rounds", {
         "train": {"lr": {**_lr(), "scaling": 1.5e-3}, "densify": {**_densify(), "rounds": 6}}}) or "")
+    # A plan that named the data's value then and leaves it to the data now asks for the same run.
+    run = tmp_path / "n3dv" / "stg"
+    (run / "experiment.json").write_text(json.dumps({"name": "stg", "preset": "cpu", "data": str(data),
+                                                     "overrides": {**sets, "train.lr.scaling": "0.0015"}}))
+    assert reuse_mismatch(run, data, "cpu", sets) is None
 
 
 def _lr() -> dict:
@@ -793,8 +798,8 @@ def test_a_plan_is_refused_before_training_where_it_would_fail_or_mislead_after(
         run_plan("DATA", plan_path, tmp_path / "a", runner=fake_runner, python=sys.executable, log=lambda m: None)
     plan_path.write_text(PLAN_TOML)
     for sets, problem in ((["train.quantization_aware.rate_weight=0.01"], "acts on nothing in any run"),
-                          (["compaction.ratio_max=banana"], "--set: .*ratio_max"),
-                          (["train.iterations=ten"], "--set: .*iterations")):
+                          (["compaction.ratio_max=banana"], "--set compaction.ratio_max=banana: .*float"),
+                          (["train.iterations=ten"], "--set train.iterations=ten")):
         with pytest.raises(ConfigError, match=problem):
             run_plan("DATA", plan_path, tmp_path / "b", extra_overrides=sets, runner=fake_runner,
                      python=sys.executable, log=lambda m: None)
@@ -840,3 +845,21 @@ def test_a_value_spelt_otherwise_or_a_default_dropped_from_the_plan_is_the_same_
     out = tmp_path / "exp2"
     assert _run_mini(out, plan_path, "compaction.case=2")["status"] == "finished"
     assert _run_mini(out, plan_path, "compaction.case=02")["status"] == "skipped"
+
+
+def test_set_values_valid_with_a_run_s_own_options_and_a_fine_tuned_loss_reference(tmp_path: Path) -> None:
+    """--set values are checked for their names and types alone (a window longer than the preset's run is fine
+    where the plan's runs are longer), while a loss reference that is a fine-tuning run (which trains without
+    compaction) is refused before anything trains."""
+    from stgc.config import ConfigError
+
+    plan_path = tmp_path / "long.toml"
+    plan_path.write_text(MINI_PLAN.replace('{ "compaction.method" = "none" }',
+                                           '{ "compaction.method" = "none", "train.iterations" = 20000 }'))
+    result = run_plan("DATA", plan_path, tmp_path / "long", extra_overrides=["train.quantization_aware.iterations=10000"],
+                      runner=fake_runner, python=sys.executable, log=lambda m: None, dry_run=True)
+    assert [o.status for o in result.outcomes] == ["dry-run"]
+    plan_path.write_text(REFERENCE_TOML.replace('loss_reference = "ref"', 'loss_reference = "ref-ft"').replace(
+        '[[runs]]\nname = "budget"', '[[runs]]\nname = "ref-ft"\nfrom = "ref"\niterations = 5\n[[runs]]\nname = "budget"'))
+    with pytest.raises(ConfigError, match="loss_reference 'ref-ft' trains with compaction.method=none"):
+        run_plan("DATA", plan_path, tmp_path / "ft", runner=fake_runner, python=sys.executable, log=lambda m: None)

@@ -397,7 +397,7 @@ def _encode_model(source: Path, out_path: Path, config: CodecConfig) -> tuple[by
             "the model did not train through a rate-aware window (train.quantization_aware) as a finished run's "
             "final model" if window is None else
             f"its rate-aware window trained quality {window.quality}, position_bits {window.position_bits}, with "
-            "the outlier guard and invisible Gaussians left out; compress with those"))
+            "the outlier guard, invisible Gaussians left out and the adaptive layouts; compress with those"))
     elif window is not None and window.quality != config.quality:
         log.info("%s trained through a rate-aware window at quality %d: compress at that quality to store the "
                  "depths it learned; at quality %d the depths are chosen again", source, window.quality,
@@ -493,14 +493,13 @@ def _restore(decoded: DecodedModel, model: Any, iteration: int, run: Run, source
     iteration_dir = run.iteration_dir(iteration)
     model.save(iteration_dir)
     run_config = decoded.metadata.get("run_config")
-    config = dict(run_config) if isinstance(run_config, dict) else {}
-    if model.decoder_activation is not None:  # renders depend on it, and the official files do not hold it
-        saved_model = config.get("model")
-        config["model"] = {**(saved_model if isinstance(saved_model, dict) else {}),
-                           "decoder_activation": model.decoder_activation}
-    if config:
-        run.write_config(config)
-    write_json(run.path / Run.RESTORED_FROM, {"bitstream": str(source.resolve()), "iteration": iteration})
+    if isinstance(run_config, dict):
+        run.write_config(run_config)
+    # Renders depend on the decoder's activation, which the official files do not hold: without an embedded run
+    # config (a bitstream of a bare or official model) restored_from.json says it (STGModel.load reads it there).
+    activation = {} if model.decoder_activation is None else {"decoder_activation": model.decoder_activation}
+    write_json(run.path / Run.RESTORED_FROM, {"bitstream": str(source.resolve()), "iteration": iteration,
+                                              **activation})
     return iteration_dir
 
 

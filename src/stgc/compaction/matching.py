@@ -132,8 +132,8 @@ def nearest_other(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if dup.size:
         _, group, counts = np.unique(pts[dup] + 0.0, axis=0, return_inverse=True, return_counts=True)  # (-0.0 = 0.0)
         group = group.reshape(-1)
-        # Rows that differ by less than a squared distance can hold (1e-170 apart) are at distance 0 but alone in
-        # their group: the tree's answer stands for them.
+        # Rows that differ by less than a squared distance can hold (below about 1.5e-154, the square root of the
+        # smallest float64) are at distance 0 but alone in their group: the tree's answer stands for them.
         together = counts[group] >= 2
         dup = dup[together]
         _, group = np.unique(group[together], return_inverse=True)

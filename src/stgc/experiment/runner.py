@@ -68,7 +68,8 @@ from stgc.options import (
     resolve_configs,
 )
 from stgc.run import Run
-from stgc.train.config import idle_window_options, refuse_unused_window_options
+from stgc.official import FAMILY_OPTIONS
+from stgc.train.config import DensifyConfig, idle_window_options, refuse_unused_window_options
 from stgc.train.continuation import check_window_fits, continuation_configs
 
 _log = logging.getLogger(__name__)
@@ -162,10 +163,15 @@ def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str],
         if len(values) > 1:  # --set wins in every run: the runs would train alike under the names of their values
             raise ConfigError(f"--set {key}: plan {plan.name!r} varies it between its runs "
                               f"({', '.join(sorted(values))}); run the plan without it, or write a plan of your own")
-    try:  # every --set value, whether or not it acts in a run: a bad one is a typo wherever it lands
-        resolve_configs(preset or "cpu", {}, {}, dict(extra))
-    except ConfigError as exc:
-        raise ConfigError(f"--set: {exc}") from None
+    defaults = default_configs(preset or "cpu")
+    for key, value in extra.items():  # each --set value's name and type, whether or not it acts in a run (values
+        section, _, name = key.partition(".")  # that only a run's other options make valid are checked per run)
+        try:
+            if section not in defaults:
+                raise ConfigError(f"{key}: unknown section {section!r} (one of {', '.join(defaults)})")
+            apply_overrides(defaults[section], {name: value}, section)
+        except ValueError as exc:
+            raise ConfigError(f"--set {key}={value}: {exc}") from None
     by_run = {spec.name: run_overrides(plan, spec, extra, out_dir) for spec in plan.runs}
     unused = sorted(k for k in extra if not any(k in overrides for overrides in by_run.values()))
     if unused:
@@ -176,7 +182,8 @@ def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str],
         try:
             overrides = by_run[spec.name]
             configs = resolve_configs(preset or "cpu", {}, {}, overrides)
-            methods[spec.name] = configs["compaction"].method
+            # A fine-tuning run trains without compaction (stgc finetune switches it off), whatever its source did.
+            methods[spec.name] = "none" if spec.source is not None else configs["compaction"].method
             if spec.reference is not None and methods.get(spec.reference) != "reference":
                 raise ConfigError(f"its loss_reference {spec.reference!r} trains with compaction.method="
                                   f"{methods.get(spec.reference)}: a loss reference is a run trained with "
@@ -187,7 +194,7 @@ def check_plan_options(plan: Plan, preset: str | None, extra: Mapping[str, str],
                 refuse_unused_compaction_options(configs["compaction"], overrides)
             else:
                 check_window_fits(configs["train"].quantization_aware.iterations, spec.iterations)
-        except ConfigError as exc:
+        except ValueError as exc:  # ConfigError, and a section's own validation
             raise ConfigError(f"plan {plan.name!r}, run {spec.name!r}: {exc}") from None
 
 
@@ -220,7 +227,7 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
         for key in sorted(set(before) | set(wanted)):
             if _same_plan_option(key, before.get(key), wanted.get(key), run_dir.parent):
                 continue
-            if _saved_as_planned(run_dir, key, preset, wanted):
+            if _saved_as_planned(run_dir, key, preset, wanted, data_path):
                 continue  # spelt otherwise then ("1e-1", "0.1"), or named then and the default now, or the reverse
             differences.append(f"{key}: {before.get(key, 'unset')} then, {wanted.get(key, 'unset')} now")
         if recorded.get("preset") not in (None, preset or "cpu"):
@@ -236,19 +243,23 @@ def reuse_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, ove
     return "; ".join(differences) or None
 
 
-def _saved_as_planned(run_dir: Path, key: str, preset: str | None, wanted: Mapping[str, str]) -> bool:
+def _saved_as_planned(run_dir: Path, key: str, preset: str | None, wanted: Mapping[str, str],
+                      data_path: str | Path) -> bool:
     """Whether the run's config.json (read as it trained: SAVED_BEFORE for keys it lacks) holds the value the plan's
-    options (`wanted`) give the option `key` (dotted, with its section) now: the one they name, else its default.
-    A default left to the data (None) is not known here, so it is never taken as held."""
+    options (`wanted`) give the option `key` (dotted, with its section) now: the one they name, else its default,
+    where the default is left to the data the value training resolves it to on `data_path` (_resolved_by_data)."""
     section, _, name = key.partition(".")
     try:
         saved = configs_from_run(run_dir)[section]
-        asked = resolve_configs(preset or "cpu", {}, {}, dict(wanted))[section]
+        asked = resolve_configs(preset or "cpu", {}, {}, dict(wanted))
     except (ConfigError, StgcError, KeyError):
         return False
     then = {f.dotted: f.default for f in iter_fields(saved)}
-    now = {f.dotted: f.default for f in iter_fields(asked)}
-    return name in now and now[name] is not None and then.get(name) == now[name]
+    now = {f.dotted: f.default for f in iter_fields(asked[section])}
+    value = now.get(name)
+    if value is None and key in RESOLVED_AT_TRAINING:
+        value = _resolved_by_data(asked, data_path).get(key)
+    return name in now and value is not None and then.get(name) == value
 
 
 def _continuation_mismatch(run: Run, spec: RunSpec) -> list[str]:
@@ -328,9 +339,8 @@ def _idle_in(configs: Mapping[str, Any]) -> set[str]:
 # Options left None in a plan that training resolves from the data and saves resolved (the frame window, the near
 # plane, the densification schedule of the initial cloud's kind, the official config family's model options and
 # learning rates): their saved values are not the plan's None.
-RESOLVED_AT_TRAINING = frozenset({"data.start", "data.duration", "data.near_plane", "train.densify.interval",
-                                  "train.densify.rounds", "train.densify.prune_in_rounds", "train.densify.max_growth",
-                                  "train.lr.scaling", "model.trbf_scale_init", "model.decoder_activation"})
+RESOLVED_AT_TRAINING = frozenset({"data.start", "data.duration", "data.near_plane",
+                                  *(f"train.densify.{name}" for name in DensifyConfig.OFFICIAL)}) | FAMILY_OPTIONS
 
 
 def _resolved_by_data(asked: Mapping[str, Any], data_path: str | Path) -> dict[str, Any]:

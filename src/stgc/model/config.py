@@ -7,7 +7,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, Literal, get_args
 
 from stgc.model.layout import VARIANTS, Variant
-from stgc.official import official_value
+from stgc.official import family_options, official_value
 
 DecoderActivation = Literal["sigmoid", "clamp", "none"]
 DECODER_ACTIVATIONS = get_args(DecoderActivation)
@@ -97,7 +97,7 @@ class ModelConfig:
 
 
 # Options a run leaves to the data's official config family (ModelConfig.resolved).
-RESOLVED_BY_DATA = ("decoder_activation", "trbf_scale_init")
+RESOLVED_BY_DATA = family_options("model.")
 
 
 # The full model's decoder options: a lite model has no decoder.

@@ -19,12 +19,12 @@ from typing import ClassVar, Literal
 
 from stgc.codec.format import DEFAULT_QUALITY, QUALITY_LEVELS
 from stgc.config import ConfigError, check
-from stgc.official import official_value
+from stgc.official import family_options, official_value
 from stgc.render.api import BACKENDS, Backend
 
 
 # Learning rates a run leaves to the data's official config family (TrainConfig.resolved).
-RESOLVED_BY_DATA = ("scaling",)
+RESOLVED_BY_DATA = family_options("train.lr.")
 
 
 @dataclass(frozen=True)
@@ -75,8 +75,9 @@ class DensifyConfig:
     )
     rounds: int | None = field(
         default=None,
-        metadata={"help": "number of clone/split rounds (official desicnt: 6 N3D, 12 Technicolor); default: 6 when the "
-                          "data ships its initial points, 20 when they are sparse"},
+        metadata={"help": "number of clone/split rounds (official desicnt: 6 N3D, 12 Technicolor); default: when the "
+                          "data ships its initial points, its official config's (12 Technicolor, else 6), 20 when "
+                          "they are sparse"},
     )
     grad_threshold: float = field(
         default=2e-4, metadata={"help": "mean NDC screen-space gradient norm above which a Gaussian is densified"}

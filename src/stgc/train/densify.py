@@ -228,11 +228,13 @@ class DensityControl:
         self.stats = DensificationStats(initial_gaussians)
         self.initial_gaussians = initial_gaussians
         self.rounds_done = 0
+        self.past_rounds = False  # a densification step after the schedule's last round has passed
 
     @property
     def collecting(self) -> bool:
-        """Whether clone/split rounds are still ahead (the statistics only matter until then)."""
-        return self.rounds_done < self.schedule.densify_rounds
+        """Whether clone/split rounds are still ahead (the statistics only matter until then): rounds owed, and the
+        schedule's last round not passed (a continuation that owes rounds clones no more)."""
+        return self.rounds_done < self.schedule.densify_rounds and not self.past_rounds
 
     def observe(self, render: Any, view_index: int, batch: int, model: STGModel | None = None,
                 camera: Camera | None = None, t: float = 0.0) -> None:
@@ -260,7 +262,8 @@ class DensityControl:
         if sched.is_densify_step(iteration):
             # Rounds are the schedule's up to its last (densify_end), as check_mask_window and config.json say: a
             # continuation past it that owes rounds (densification switched on, more rounds) clones no more.
-            if self.collecting and iteration <= sched.densify_end:
+            self.past_rounds = self.past_rounds or iteration > sched.densify_end
+            if self.collecting:
                 report.update(clone_and_split(model, self.stats, d.grad_threshold, d.percent_dense, d.split_count,
                                               generator, max_gaussians=d.cap(self.initial_gaussians)))
                 self.rounds_done += 1

@@ -105,8 +105,8 @@ def _seed_globals(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-# What a strategy reports once in a run and the metrics must hold whenever it falls (the mask's settling step is
-# rarely a logging iteration).
+# What a strategy reports once in a run and the metrics (when logged at all) must hold whenever it falls (the mask's
+# settling step is rarely a logging iteration).
 ALWAYS_LOGGED = ("mask_dropped",)
 
 
@@ -646,8 +646,8 @@ class Trainer:
                 # An evaluation writes its metrics row whether or not the iteration is a logging one.
                 evaluate_now = bool(self.evaluator is not None and cfg.eval_every and iteration % cfg.eval_every == 0
                                     and iteration != sched.iterations)
-                if evaluate_now or any(key in control for key in ALWAYS_LOGGED) or (
-                        cfg.log_every and (iteration % cfg.log_every == 0 or iteration == end)):
+                if evaluate_now or (cfg.log_every and (any(key in control for key in ALWAYS_LOGGED)
+                                                       or iteration % cfg.log_every == 0 or iteration == end)):
                     now = time.perf_counter()
                     row = {
                         "iteration": iteration,

@@ -292,7 +292,7 @@ def _stored_components(model: STGModel, group: QuantizedGroup, rows: torch.Tenso
     return fields
 
 
-ZERO_QUATERNION = 1e-6  # a norm below it: a rotation without a direction (drawn as the identity)
+ZERO_QUATERNION = 1e-6  # a norm below it: a rotation too short to have a direction worth pricing
 
 
 def _visible(model: STGModel) -> np.ndarray:
