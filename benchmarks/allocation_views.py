@@ -17,6 +17,7 @@ from pathlib import Path
 
 import torch
 
+from stgc import machine
 from stgc.codec import allocation
 from stgc.codec.files import compress_run
 from stgc.eval.evaluate import evaluate_run
@@ -30,7 +31,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--keep", action="store_true")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    machine.use_threads(args.threads)  # torch's and numba's (numba alone kept every core)
     print("| run | table views | probe views | negligible | wall s | CPU s | bytes | test PSNR dB | bytes vs first | "
           "PSNR vs first |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")

@@ -22,6 +22,9 @@ def _fmt(x: float | None) -> str:
 
 
 def main() -> int:
+    import argparse
+
+    argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None).parse_args()
     print("| report | curve | baseline | BD-rate written | now | BD-PSNR written | now | note |")
     print("|---|---|---|---:|---:|---:|---:|---|")
     for path in sorted((REPO / "benchmarks" / "results").glob("*/*/results-*.csv")):

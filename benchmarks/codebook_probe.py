@@ -21,6 +21,7 @@ import torch
 import zstandard
 from scipy.cluster.vq import kmeans2
 
+from stgc import machine
 from stgc.codec.format import read_header
 from stgc.eval.evaluate import evaluate, open_run_dataset
 from stgc.model import STGModel
@@ -42,7 +43,7 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=3, help="score every n-th test view")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    machine.use_threads(args.threads)  # torch's and numba's (numba alone kept every core)
 
     dataset = open_run_dataset(args.run)
     background = torch.tensor(dataset.background, dtype=torch.float32)

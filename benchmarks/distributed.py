@@ -4,7 +4,7 @@ local Ray, in one run.
 Each segment asks for the whole machine (train.threads=0), so on Ray too they run one at a time and the two wall
 times compare like with like. A warm-up first fills stgc's triangulation cache, so neither timed run triangulates. Overhead = Ray wall - in-process wall: starting Ray, a worker per task (importing
 torch and stgc, loading numba's cache), scheduling, and shutting down. It is mostly fixed per command and per
-segment, so the share is also given for a real segment (the `cpu` preset's 6,000 iterations, from the measured
+segment, so the share is also given for a real segment (the `cpu` preset's iterations, 9,000, from the measured
 iteration rate).
 
     .venv/bin/python benchmarks/distributed.py ../shared/data/panoptic_basketball --frames 20 --segment-frames 10 \\
@@ -23,9 +23,10 @@ from pathlib import Path
 from stgc import machine
 from stgc.options import resolve_configs
 from stgc.run import Run
+from stgc.train.config import train_preset
 from stgc.train.video import train_video
 
-CPU_PRESET_ITERATIONS = 6000
+CPU_PRESET_ITERATIONS = train_preset("cpu").iterations
 
 
 def main() -> None:

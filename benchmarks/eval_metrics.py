@@ -25,6 +25,7 @@ from collections.abc import Callable
 import torch
 import torch.nn.functional as F
 
+from stgc import machine
 from stgc.metrics import psnr, ssim
 
 
@@ -77,7 +78,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--json", action="store_true", help="print one JSON object per row instead of a table")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    machine.use_threads(args.threads)  # torch's and numba's (numba alone kept every core)
     gen = torch.Generator().manual_seed(0)
     rows = []
     for size in args.sizes:

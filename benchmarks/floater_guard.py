@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from stgc import machine
 from stgc.eval.evaluate import evaluate, open_run_dataset
 from stgc.model import STGModel
 from stgc.train.densify import prune_mask_floaters
@@ -31,7 +32,7 @@ def main() -> None:
                         help="drop only Gaussians at least this opaque (train.floaters.scale_min_opacity)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    machine.use_threads(args.threads)  # torch's and numba's (numba alone kept every core)
     print("| run | rule | Gaussians | removed | test PSNR dB | per camera |")
     print("|---|---|---:|---:|---:|---|")
     for run in args.runs:

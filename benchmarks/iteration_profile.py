@@ -24,7 +24,6 @@ from collections import defaultdict
 import torch
 from torch.profiler import ProfilerActivity, profile, record_function
 
-import stgc.render.api as render_api
 import stgc.render.numba_backend as numba_backend
 from stgc import machine
 from stgc.options import default_configs
@@ -36,7 +35,8 @@ from stgc.train import Trainer
 # (scope label, owner, attribute): functions whose forward time becomes a labelled part.
 SCOPES = [
     ("render (per-Gaussian formulas, culling)", STGModel, "render"),
-    ("projection", render_api, "project_gaussians"),
+    ("projection", numba_backend, "project_numba"),  # what the numba backend calls (api.project_gaussians is torch's)
+    ("depth sort", numba_backend, "depth_order"),
     ("tile binning", numba_backend.kernels, "bin_tiles"),
     ("compositing forward", numba_backend.kernels, "composite_forward"),
     ("decoder forward", SandwichDecoder, "forward"),
@@ -46,10 +46,12 @@ SCOPES = [
 ]
 # The parent of each nested scope, so that every part is reported exclusive of the parts inside it.
 PARENT = {"projection": "render (per-Gaussian formulas, culling)",
+          "depth sort": "render (per-Gaussian formulas, culling)",
           "tile binning": "render (per-Gaussian formulas, culling)",
           "compositing forward": "render (per-Gaussian formulas, culling)",
           "decoder forward": "render (per-Gaussian formulas, culling)"}
-BACKWARD_NODES = {"_NumbaCompositeBackward": "rasterizer backward", "_SeparableBlurBackward": "SSIM backward",
+BACKWARD_NODES = {"_NumbaCompositeBackward": "rasterizer backward", "_NumbaProjectionBackward": "projection backward",
+                  "_SeparableBlurBackward": "SSIM backward",
                   "_SSIMMeanBackward": "SSIM backward"}
 
 
@@ -103,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
 
-    torch.set_num_threads(args.threads)
+    machine.use_threads(args.threads)  # torch's and numba's (numba alone kept every core)
     configs = default_configs("cpu")
     overrides = parse_set_arguments(args.set)
     for section in configs:
@@ -114,8 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as out:
         train_cfg = apply_overrides(configs["train"], {"progress": "false", "tensorboard": "false"})
         trainer = Trainer(dataset, configs["data"], configs["model"], train_cfg, None, out, model=model)
-        # Past densification: the profile is of the steady state.
-        trainer.densify_rounds_done = train_cfg.densify.rounds
+        # Past densification (half-way through the cpu schedule its rounds are done): the steady state.
         start = trainer.schedule.iterations // 2
         for i in range(start, start + args.warmup):
             trainer.train_step(i)

@@ -96,9 +96,11 @@ def main() -> None:
                 with torch.no_grad():
                     model.render(camera, backend=args.backend)
 
-            def unculled_fwd():
+            def unculled_fwd():  # with the decoder, as culled_fwd (model.render) and unculled_bwd have it
                 with torch.no_grad():
-                    render_unculled(model, camera, t, args.backend)
+                    rgb = render_unculled(model, camera, t, args.backend)
+                    if model.decoder is not None:
+                        model.decoder(rgb, model._rays(camera, model._camera_tensors(camera)))
 
             def culled_bwd():
                 model.render(camera, backend=args.backend).rgb.sum().backward()

@@ -264,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     import numba
 
-    numba.set_num_threads(args.threads)
+    numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))  # (NUMBA_NUM_THREADS caps it)
     if args.tile_size is not None:
         from stgc.render import numba_backend
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from stgc import machine
 from stgc.eval.evaluate import open_run_dataset
 from stgc.metrics.image import psnr
 from stgc.model import STGModel
@@ -44,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    machine.use_threads(args.threads)  # torch's and numba's (numba alone kept every core)
 
     dataset = open_run_dataset(args.run)
     model = STGModel.load(args.run)

@@ -46,8 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
 
-    torch.set_num_threads(args.threads)
-    os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
+    machine.use_threads(args.threads)  # torch's and numba's (numba alone kept every core)
     preset_data = PRESET_DATA_OVERRIDES[args.preset]
     init_every = args.init_every or int(preset_data.get("init_frames_every", 1))
     points_per_frame = args.points_per_frame or (int(preset_data["max_points_per_frame"])
@@ -57,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     dataset = data_cfg.open(args.data)
     model_cfg = ModelConfig(variant=args.variant)
     cfg = apply_overrides(train_preset(args.preset), parse_set_arguments(args.set))
-    overrides = {"progress": "false"} if args.iterations else {}
+    overrides = {"threads": str(args.threads), **({"progress": "false"} if args.iterations else {})}
     if args.iterations:
         overrides.update({"stop_after": str(args.iterations), "checkpoint_every": "0"})
     cfg = apply_overrides(cfg, overrides)
