@@ -112,32 +112,27 @@ def test_the_resume_command_is_accepted_by_the_cli(tmp_path: Path, monkeypatch: 
     assert kwargs["resume"] is True and args[4].case == 3
 
 
-def test_plan_toml_errors(tmp_path: Path) -> None:
+@pytest.mark.parametrize("text, problem", [
+    ("[[runs]]\nname = 'a b'\n", "folder name"),
+    ("name = 'x'\n", "runs"),
+    ("[[runs]]\nname = 'a'\n[[runs]]\nname = 'a'\n", "twice"),
+    ("name = '../x'\n[[runs]]\nname = 'a'\n", "names files"),
+    ("[[runs\n", "invalid TOML"),
+    ("basline = 'STG'\n[[runs]]\nname = 'a'\n", "unknown key.*did you mean 'baseline'"),
+    ("baseline = 'STGG'\n[[runs]]\nname = 'a'\nfamily = 'STG'\n", "baseline = 'STGG': neither a family of its runs .STG."),
+])
+def test_plan_toml_errors(tmp_path: Path, text: str, problem: str) -> None:
     bad = tmp_path / "bad.toml"
-    bad.write_text("[[runs]]\nname = 'a b'\n")
-    with pytest.raises(FormatError, match="folder name"):
+    bad.write_text(text)
+    with pytest.raises(FormatError, match=problem):
         load_plan_toml(bad)
-    bad.write_text("name = 'x'\n")
-    with pytest.raises(FormatError, match="runs"):
-        load_plan_toml(bad)
-    bad.write_text("[[runs]]\nname = 'a'\n[[runs]]\nname = 'a'\n")
-    with pytest.raises(FormatError, match="twice"):
-        load_plan_toml(bad)
-    bad.write_text("name = '../x'\n[[runs]]\nname = 'a'\n")
-    with pytest.raises(FormatError, match="names files"):
-        load_plan_toml(bad)
-    bad.write_text("[[runs\n")
-    with pytest.raises(FormatError, match="invalid TOML"):
-        load_plan_toml(bad)
-    bad.write_text("basline = 'STG'\n[[runs]]\nname = 'a'\n")
-    with pytest.raises(FormatError, match="unknown key.*did you mean 'baseline'"):
-        load_plan_toml(bad)
-    bad.write_text("baseline = 'STGG'\n[[runs]]\nname = 'a'\nfamily = 'STG'\n")
-    with pytest.raises(FormatError, match="baseline = 'STGG': neither a family of its runs .STG."):
-        load_plan_toml(bad)
-    for fine in ("STG", "a", "STG + codec"):  # a family, a run, a family's codec points
-        bad.write_text(f"baseline = '{fine}'\n[[runs]]\nname = 'a'\nfamily = 'STG'\n")
-        assert load_plan_toml(bad).baseline == fine
+
+
+def test_a_plan_s_baseline_is_a_family_a_run_or_a_family_s_codec_points(tmp_path: Path) -> None:
+    for fine in ("STG", "a", "STG + codec"):
+        path = tmp_path / "plan.toml"
+        path.write_text(f"baseline = '{fine}'\n[[runs]]\nname = 'a'\nfamily = 'STG'\n")
+        assert load_plan_toml(path).baseline == fine
 
 
 def test_run_plan_is_resumable(tmp_path: Path) -> None:

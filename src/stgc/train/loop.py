@@ -551,14 +551,15 @@ class Trainer:
     def importance_views(self) -> list[Any]:
         """One view per training camera, their frames spread evenly over the segment: every view and every part of
         the time range is covered once, at (#cameras) renders instead of (#cameras x #frames)."""
+        by_camera = self._training_views_by_camera()
+        return [cams[(k * len(cams)) // max(len(by_camera), 1) % len(cams)] for k, cams in enumerate(by_camera)]
+
+    def _training_views_by_camera(self) -> list[list[Any]]:
+        """The training views grouped by camera (cameras by name, each camera's views by frame)."""
         by_name: dict[str, list[Any]] = {}
         for cam in self.dataset.train:
             by_name.setdefault(str(cam.name), []).append(cam)
-        views = []
-        for k, name in enumerate(sorted(by_name)):
-            cams = sorted(by_name[name], key=lambda c: c.frame)
-            views.append(cams[(k * len(cams)) // max(len(by_name), 1) % len(cams)])
-        return views
+        return [sorted(by_name[name], key=lambda c: c.frame) for name in sorted(by_name)]
 
     def probe_views(self) -> list[Any]:
         """The compaction controller's fixed probe set (compaction.probe_views training views): cameras and frames
@@ -569,14 +570,11 @@ class Trainer:
         count = self.compaction_cfg.probe_views if self.compaction_cfg else len(views)
         if count <= len(views):
             return [views[(k * len(views)) // count] for k in range(count)]
-        by_name: dict[str, list[Any]] = {}
-        for cam in self.dataset.train:
-            by_name.setdefault(str(cam.name), []).append(cam)
+        by_camera = self._training_views_by_camera()
         picked = []
-        for j, name in enumerate(sorted(by_name)):
-            cams = sorted(by_name[name], key=lambda c: c.frame)
-            share = min(len(cams), count // len(by_name) + (1 if j < count % len(by_name) else 0))
-            phase = (j * len(cams)) // len(by_name)  # importance_views' pick comes first
+        for j, cams in enumerate(by_camera):
+            share = min(len(cams), count // len(by_camera) + (1 if j < count % len(by_camera) else 0))
+            phase = (j * len(cams)) // len(by_camera)  # importance_views' pick comes first
             picked += [cams[(phase + (i * len(cams)) // share) % len(cams)] for i in range(share)]
         return picked
 
