@@ -86,6 +86,19 @@ def test_evaluate_accepts_model_render_objects_and_rejects_size_mismatch() -> No
         evaluate(lambda c: torch.zeros(8, 8, 3), CAMS[:1], _gt)
 
 
+def test_a_render_holding_nan_is_refused_naming_its_view() -> None:
+    """One NaN pixel scored PSNR null (a perfect render's), SSIM NaN (invalid JSON) and a plausible YUV-PSNR."""
+    from stgc.errors import StgcError
+
+    def broken(cam: FakeCam) -> torch.Tensor:
+        rgb = torch.from_numpy(_gt(cam) / 255.0)
+        rgb[0, 0, 0] = float("nan")
+        return rgb
+
+    with pytest.raises(StgcError, match=f"camera {CAMS[0].name} frame {CAMS[0].frame}: the render holds non-finite"):
+        evaluate(broken, CAMS[:1], _gt)
+
+
 def test_write_eval_files(tmp_path: Path) -> None:
     (tmp_path / "train_summary.json").write_text(json.dumps({"iterations": 50, "wall_seconds": 3.0, "finished": True}))
     result = evaluate(_noisy_render, CAMS, _gt)
@@ -117,8 +130,12 @@ def test_eval_paths_for_bitstreams(tmp_path: Path) -> None:
 class FakeModel:
     num_gaussians, variant = 7, "lite"
 
-    def render(self, cam: FakeCam, t: float, background: torch.Tensor) -> torch.Tensor:
+    def __init__(self) -> None:
+        self.backends: set[str] = set()
+
+    def render(self, cam: FakeCam, t: float, background: torch.Tensor, backend: str = "auto") -> torch.Tensor:
         assert t == cam.time
+        self.backends.add(backend)
         return _noisy_render(cam)
 
 
@@ -158,6 +175,11 @@ def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
                           measure_fps=False)
     assert record["size_bytes"] == stgc.stat().st_size and record["fps"] is None
     assert (tmp_path / "eval_model_q3.json").is_file()
+    # Rendered with the backend the run trained with, as its trainer's evaluation (FPS of one table compare).
+    (tmp_path / "config.json").write_text(json.dumps({"train": {"backend": "torch"}}))
+    model = FakeModel()
+    evaluate_run(stgc, load_model=lambda p: model, open_dataset=lambda p: FakeDataset(), measure_fps=False)
+    assert model.backends == {"torch"}
 
 
 def _bitstream(metadata: dict) -> bytes:

@@ -3,6 +3,8 @@ the 3DGS formula."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -194,3 +196,17 @@ def test_yuv_psnr_matches_bt709_written_out_and_weights_6_1_1():
     assert got["u"] != pytest.approx(got["y"], abs=0.5)  # the planes are scored apart
     same = yuv_psnr(ref, ref)
     assert all(np.isinf(v) for v in same.values())
+
+
+def test_an_exact_chroma_plane_counts_at_the_ceiling_in_the_yuv_combination():
+    """Grey content has exact U and V: the combination was +inf (then 100 dB in the means), hiding the luma's error."""
+    from stgc.metrics import yuv_psnr
+    from stgc.metrics.image import PSNR_CEILING_DB
+
+    rng = np.random.default_rng(0)
+    grey = np.repeat(rng.uniform(0.1, 0.9, size=(16, 16, 1)), 3, axis=2)
+    noisy = np.repeat(np.clip(grey[..., :1] + rng.normal(0, 0.02, size=(16, 16, 1)), 0, 1), 3, axis=2)
+    scores = yuv_psnr(noisy, grey)
+    assert math.isinf(scores["u"]) and math.isinf(scores["v"]) and math.isfinite(scores["y"])
+    assert scores["yuv"] == pytest.approx((6 * scores["y"] + 2 * PSNR_CEILING_DB) / 8)
+    assert math.isinf(yuv_psnr(grey, grey)["yuv"])  # a wholly exact picture stays exact

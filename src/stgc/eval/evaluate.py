@@ -36,7 +36,7 @@ from stgc.data.cameras import Camera
 from stgc.data.config import DataConfig, data_config_from_saved, saved_run_data
 from stgc.data.config import open_run_dataset as open_saved_run_dataset
 from stgc.data.dataset import Dataset
-from stgc.errors import DataError
+from stgc.errors import DataError, StgcError
 from stgc.eval.accounting import (
     ModelSize,
     RenderSpeed,
@@ -49,7 +49,9 @@ from stgc.eval.accounting import (
 )
 from stgc.fileio import atomic_open, atomic_path, file_sha256, read_json_object, write_json
 from stgc.metrics import LPIPS, psnr, ssim, yuv_psnr
+from stgc.metrics.image import PSNR_CEILING_DB
 from stgc.model import STGModel
+from stgc.render import BACKENDS
 from stgc.run import Run
 
 log = logging.getLogger(__name__)
@@ -92,7 +94,6 @@ class EvalResult:
 # A view rendered exactly has an infinite PSNR, which would make every mean it enters infinite (and the record
 # null). Means count such a view at this ceiling (an MSE of 1e-10 on [0, 1] images), as video-coding tools cap
 # identical pictures; the per-view CSV keeps the exact value.
-PSNR_CEILING_DB = 100.0
 
 
 def _mean(values: Iterable[float | None], ceiling: float = math.inf) -> float | None:
@@ -150,6 +151,9 @@ def evaluate(
         rendered = _as_image(render_fn(cam))
         elapsed = time.perf_counter() - start
         times.append(elapsed)
+        if not bool(torch.isfinite(rendered).all()):  # NaN scored null PSNR (a perfect render's), NaN SSIM, real YUV
+            raise StgcError(f"camera {cam.name} frame {cam.frame}: the render holds non-finite values (a diverged "
+                            "model?); nothing scored")
         if clamp:
             rendered = rendered.clamp(0.0, 1.0)
         gt = torch.from_numpy(np.ascontiguousarray(load_image(cam)))
@@ -492,9 +496,11 @@ def evaluate_run(
         info = bitstream_size(target, model.num_gaussians, model.variant, duration_s)
     else:
         info = size_of_saved_model(target, duration_s)
-    # With the threads the run trained with, as its trainer's own evaluation: one table's FPS are then comparable.
+    # With the threads and backend the run trained with, as its trainer's own evaluation: one table's FPS are then
+    # comparable (its .stgc points' too).
     with machine.threads(_run_threads(config_dir)):
-        result = _score_model(model, dataset, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
+        result = _score_model(model, dataset, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps,
+                              backend=_run_backend(config_dir))
     other_data = _other_data(run_dir, data_path, target if target.suffix == ".stgc" else None, config_dir)
     extra = {"data": str(dataset.root), **({"other_data": other_data} if other_data else {})}
     return write_eval(run_dir, result, info, target=target, other_data=other_data, extra=extra)
@@ -507,11 +513,20 @@ def _run_threads(run_dir: Path) -> int:
     return threads if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0 else 0
 
 
-def _score_model(model: Any, dataset: Dataset, *, lpips_net: str | None, warmup: int, measure_fps: bool) -> EvalResult:
-    """`evaluate` of a model on its dataset's test views, on the background the trainer rendered on."""
+def _run_backend(run_dir: Path) -> str:
+    """The run's `train.backend` ('auto' when none is saved)."""
+    saved = Run(run_dir).read_config(strict=False) or {}
+    backend = (saved.get("train") or {}).get("backend")
+    return backend if isinstance(backend, str) and backend in BACKENDS else "auto"
+
+
+def _score_model(model: Any, dataset: Dataset, *, lpips_net: str | None, warmup: int, measure_fps: bool,
+                 backend: str = "auto") -> EvalResult:
+    """`evaluate` of a model on its dataset's test views, on the background and with the rasterizer backend the
+    trainer rendered with."""
     background = torch.tensor(dataset.background, dtype=torch.float32)
-    result = evaluate(lambda cam: model.render(cam, t=float(cam.time), background=background), dataset.test,
-                      dataset.load_image, lpips_net=lpips_net, warmup=warmup)
+    result = evaluate(lambda cam: model.render(cam, t=float(cam.time), background=background, backend=backend),
+                      dataset.test, dataset.load_image, lpips_net=lpips_net, warmup=warmup)
     if not measure_fps:
         result.speed = None
     return result
@@ -554,7 +569,7 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
     for segment in video_bitstream_segments(target, data_path):
         with machine.threads(_run_threads(target.parent)):  # the video's folder holds its run's config
             result = _score_model(segment.model, segment.dataset, lpips_net=lpips_net, warmup=warmup,
-                                  measure_fps=measure_fps)
+                                  measure_fps=measure_fps, backend=_run_backend(target.parent))
         summary = segment.run.read_summary(strict=False) if segment.run else None
         records.append((segment.name, eval_record(result, segment.size, {"train_seconds": training_seconds(summary)})))
         curves.append((segment.name, [(v.frame, v.psnr) for v in result.views]))

@@ -34,6 +34,9 @@ SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
 
 
+# The PSNR an exact view counts at in a mean (its own is infinite): means of views, and YUV's weighted combination.
+PSNR_CEILING_DB = 100.0
+
 def _as_float_tensor(x: Any) -> torch.Tensor:
     if isinstance(x, np.ndarray):
         x = torch.from_numpy(np.ascontiguousarray(x))
@@ -109,7 +112,11 @@ def yuv_psnr(img: Any, ref: Any, bit_depth: int = YUV_BIT_DEPTH, color_range: st
     for name, a, b in zip(("y", "u", "v"), planes(img), planes(ref)):
         err = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
         scores[name] = math.inf if err == 0 else 10.0 * math.log10(peak * peak / err)
-    scores["yuv"] = sum(YUV_WEIGHTS[k] * scores[k] for k in YUV_WEIGHTS) / sum(YUV_WEIGHTS.values())
+    # An exact plane counts at the ceiling in the combination: one exact chroma plane (grey content) made it inf,
+    # which hid the luma's error. Only a wholly exact picture combines to inf.
+    exact = all(math.isinf(scores[k]) for k in YUV_WEIGHTS)
+    scores["yuv"] = math.inf if exact else sum(
+        YUV_WEIGHTS[k] * min(scores[k], PSNR_CEILING_DB) for k in YUV_WEIGHTS) / sum(YUV_WEIGHTS.values())
     return scores
 
 
