@@ -778,3 +778,34 @@ def test_resume_without_a_checkpoint_does_not_remove_a_decoded_or_official_model
     assert "does not hold the training cameras' colour correction" in capsys.readouterr().err
     assert main(["compress", str(trained_run), "--out", str(tmp_path / "m.STGC")]) == 2
     assert "lower case" in capsys.readouterr().err
+
+
+def test_resume_without_a_checkpoint_does_not_remove_a_finished_run(trained_run, tmp_path, capsys):
+    """A finished run whose checkpoint was removed (to save space, or copied without it) was deleted, model,
+    evaluation and bitstreams, and trained again from scratch."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    (run / "checkpoint.pt").unlink()
+    before = sorted(p.relative_to(run) for p in run.rglob("*"))
+    assert main(["train", "--out", str(run), "--resume"]) == 2
+    assert "nothing to resume" in capsys.readouterr().err
+    assert sorted(p.relative_to(run) for p in run.rglob("*")) == before
+
+
+def test_data_without_test_views_is_refused_before_training_when_the_run_evaluates(tmp_path, capsys):
+    """It trained, then failed at its first evaluation with a generic message (before any checkpoint with
+    eval_every)."""
+    scene = write_panoptic_scene(tmp_path / "scene", views=4, frames=2, width=32, height=24, test_views=())
+    run = tmp_path / "run"
+    assert main(_train_args(scene, run, "10")) == 2
+    assert "no test views to evaluate on" in capsys.readouterr().err and not run.exists()
+    assert main(_train_args(scene, run, "10", "--set", "train.eval_at_end=false")) == 0
+
+
+def test_eval_every_scores_the_last_iteration_when_the_end_of_run_evaluation_is_off(scene, tmp_path):
+    run = tmp_path / "run"
+    assert main(_train_args(scene, run, "10", "--set", "train.eval_every=5", "--set", "train.eval_at_end=false")) == 0
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows if "test_psnr" in r] == [5, 10]  # the final model was scored nowhere

@@ -523,7 +523,8 @@ def main(argv: list[str] | None = None) -> int:
             print("(set STGC_DEBUG=1 for a traceback)", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("\nstgc: interrupted; run the same command again to continue (for stgc train, add --resume)", file=sys.stderr)
+        print("\nstgc: interrupted; run the same command again to continue (a training: stgc train --out RUN "
+              "--resume, with no other options than how it runs)", file=sys.stderr)
         return 130
     except OSError as exc:
         # What the verbs' own checks did not foresee (a folder that vanished, a device error): the system's words,

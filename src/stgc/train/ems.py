@@ -2,7 +2,7 @@
 
 Official behaviour (kept): from `ems.start`, record each training camera's SSIM the first time it is rendered; once
 every training camera has been seen, the (at most) 2 worst with SSIM < `select_ssim` become candidates (none when
-fewer than 2 qualify). When a candidate is rendered again at least `min_gap` iterations after the previous insertion
+fewer than 2 qualify). When a candidate is rendered again more than `min_gap` iterations after the previous insertion
 and its SSIM is below `trigger_ssim`, error pixels are found (brightness-normalised absolute error above its
 `error_quantile`), 16x16 patches with more than 85 % error pixels are kept (a 10 % border of patches ignored), 3 of
 every 4 pixels inside them (even-even positions skipped) each get 2 Gaussians on their ray at depths
@@ -10,9 +10,10 @@ every 4 pixels inside them (even-even positions skipped) each get 2 Gaussians on
 New Gaussians: colour = ground-truth pixel (full variant: with a zero specular feature), opacity 0.1, mu_t ~ U[0,1],
 motion/omega/time features 0, scale from the 3-NN distance among the new and the existing points.
 
-Deviations (documented in docs/training.md): the camera depth D is measured when EMS starts (the official code
-renders frame 0 before training, from the untrained initial points), and new rotations are the identity quaternion
-(the official code writes a zero quaternion, which only its CUDA rasterizer's normalisation tolerates).
+Deviations (documented in docs/training.md): the camera depth D is measured when EMS first inserts for that camera
+(the official code renders frame 0 before training, from the untrained initial points), and new rotations are the
+identity quaternion (the official code writes a zero quaternion, which only its CUDA rasterizer's normalisation
+tolerates).
 """
 
 from __future__ import annotations

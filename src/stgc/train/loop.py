@@ -184,10 +184,15 @@ class ForegroundMasks:
 
 def _refuse_restarting_a_model_of_value(run: Run) -> None:
     """A resume without a checkpoint restarts the run from scratch, removing what the folder holds: refuse that
-    where it holds a model no training of this run made (a decoded bitstream's, an official run's)."""
+    where it holds a saved model (a decoded bitstream's, an official run's, a finished run's whose checkpoint was
+    removed) or a fine-tuning (it would restart as a run of its own). Only a start killed before its first
+    checkpoint and first saved model is restarted."""
     why = ("a model restored from a bitstream (stgc decompress)" if (run.path / Run.RESTORED_FROM).is_file()
            else "a model without a config.json (an official STG run?)"
-           if not run.has_config() and run.latest_model_dir() is not None else None)
+           if not run.has_config() and run.latest_model_dir() is not None
+           else "a fine-tuning of another run" if (run.path / Run.CONTINUED_FROM).is_file()
+           else "a finished training" if run.training_finished()
+           else f"a saved model ({run.latest_model_dir()})" if run.latest_model_dir() is not None else None)
     if why is not None:
         raise StgcError(f"{run.path}: nothing to resume (no {Run.CHECKPOINT}): it holds {why}, which restarting would "
                         "remove; fine-tune it into a new folder (stgc finetune) or give --overwrite")
@@ -256,6 +261,10 @@ class Trainer:
         self.compactor = self._make_compactor()
         self._check_loss_reference()
         check_mask_window(train_cfg, compaction_cfg)
+        if evaluator is not None and (train_cfg.eval_every or train_cfg.eval_at_end) and not dataset.test:
+            # It trained, then failed at its first evaluation (with eval_every, before any checkpoint).
+            raise DataError(dataset.root, "no test views to evaluate on (data.test_cameras): name some, or train "
+                                          "without evaluating (train.eval_at_end=false, train.eval_every=0)")
         try:  # a backend the trainer's device (the CPU) cannot run: refused before anything is written
             select_backend(train_cfg.backend, torch.device("cpu"))
         except ValueError as exc:
@@ -643,7 +652,7 @@ class Trainer:
                     self.callback(iteration, {**step, **control})
                 # An evaluation writes its metrics row whether or not the iteration is a logging one.
                 evaluate_now = bool(self.evaluator is not None and cfg.eval_every and iteration % cfg.eval_every == 0
-                                    and iteration != sched.iterations)
+                                    and (iteration != sched.iterations or not cfg.eval_at_end))
                 if evaluate_now or (cfg.log_every and (any(key in control for key in ALWAYS_LOGGED)
                                                        or iteration % cfg.log_every == 0 or iteration == end)):
                     now = time.perf_counter()
