@@ -809,3 +809,34 @@ def test_eval_every_scores_the_last_iteration_when_the_end_of_run_evaluation_is_
     assert main(_train_args(scene, run, "10", "--set", "train.eval_every=5", "--set", "train.eval_at_end=false")) == 0
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in rows if "test_psnr" in r] == [5, 10]  # the final model was scored nowhere
+
+
+def test_a_start_killed_before_its_first_checkpoint_restarts_on_resume_even_with_a_saved_model(scene, tmp_path):
+    """Its own partial state (a PLY saved before any checkpoint, checkpoint_every 0): a segment's retry resumes so."""
+    run = tmp_path / "run"
+    assert main(_train_args(scene, run, "10", "--set", "train.save_iterations=[4,10]", "--set",
+                            "train.checkpoint_every=0", "--set", "train.stop_after=6")) == 0
+    (run / "checkpoint.pt").unlink()  # as a kill before the first checkpoint
+    assert (run / "point_cloud" / "iteration_4").is_dir()
+    assert main(["train", "--out", str(run), "--resume"]) == 0
+    assert json.loads((run / "train_summary.json").read_text())["finished"] is True
+
+
+def test_a_run_restored_inside_another_runs_folder_keeps_its_own_decoder_activation(tmp_path):
+    from stgc.codec import compress_run, decompress
+    from stgc.codec.synthetic import synthetic_model
+    from stgc.codec.files import CodecConfig
+    from stgc.model import STGModel
+
+    arrays, decoder = synthetic_model(300, "full", seed=2)
+    outer = tmp_path / "outer"
+    STGModel.from_ply_arrays(arrays, "full", decoder, decoder_activation="sigmoid").save(
+        outer / "point_cloud" / "iteration_5")
+    (outer / "config.json").write_text(json.dumps({"model": {"decoder_activation": "sigmoid"}}))
+    bare = tmp_path / "bare" / "point_cloud" / "iteration_5"
+    STGModel.from_ply_arrays(arrays, "full", decoder, decoder_activation="clamp").save(bare)
+    (tmp_path / "bare" / "config.json").write_text(json.dumps({"model": {"decoder_activation": "clamp"}}))
+    compress_run(bare / "point_cloud.ply", tmp_path / "m.stgc",
+                 config=CodecConfig(allocation="ladder", embed_run_config=False))
+    decompress(tmp_path / "m.stgc", outer / "restored")  # no embedded run config: no config.json of its own
+    assert STGModel.load(outer / "restored").decoder_activation == "clamp"  # not the enclosing run's sigmoid

@@ -335,15 +335,6 @@ def prepare_new_run(path: str | Path, *, overwrite: bool = False, keep: Path | N
 OFFICIAL_ARGS = "cfg_args"
 
 
-def restored_record(path: str | Path) -> dict[str, Any] | None:
-    """RUN/restored_from.json of the restored run holding `path` (the run, an iteration dir or its PLY), found as
-    `official_run_args` finds cfg_args; None where there is none."""
-    path = Path(path)
-    found = next((p / Run.RESTORED_FROM for p in [path, *path.parents][:4] if (p / Run.RESTORED_FROM).is_file()),
-                 None)
-    return None if found is None else read_json_object(found, strict=False)
-
-
 def official_run_args(path: str | Path) -> dict[str, Any] | None:
     """The options an official STG run saved (RUN/cfg_args, `Namespace(key=value, ...)`), found from the run, an
     iteration dir or its PLY; None where there is none. Read as Python literals, never executed; FormatError when

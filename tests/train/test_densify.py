@@ -395,4 +395,7 @@ def test_no_clone_split_round_falls_after_the_schedule_s_last_even_where_rounds_
     control.stats.count[:] = 1
     report = control.step(after, model, torch.Generator().manual_seed(0))
     assert model.num_gaussians == 40 and control.rounds_done == 0 and "cloned" not in report
-    assert not control.collecting  # nor are statistics gathered any more
+    assert not control.collecting  # nor are statistics gathered any more, a resume included
+    resumed = DensityControl(cfg, FloaterConfig(max_world_scale=0.0), schedule, 40, np.zeros((0, 3)))
+    resumed.load_state_dict(control.state_dict())
+    assert not resumed.collecting

@@ -91,9 +91,6 @@ class EvalResult:
         return float(self.overall["ssim"])  # type: ignore[arg-type]
 
 
-# A view rendered exactly has an infinite PSNR, which would make every mean it enters infinite (and the record
-# null). Means count such a view at this ceiling (an MSE of 1e-10 on [0, 1] images), as video-coding tools cap
-# identical pictures; the per-view CSV keeps the exact value.
 
 
 def _mean(values: Iterable[float | None], ceiling: float = math.inf) -> float | None:

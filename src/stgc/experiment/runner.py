@@ -67,8 +67,8 @@ from stgc.options import (
     section_classes,
     resolve_configs,
 )
-from stgc.run import Run
 from stgc.official import FAMILY_OPTIONS
+from stgc.run import Run
 from stgc.train.config import DensifyConfig, idle_window_options, refuse_unused_window_options
 from stgc.train.continuation import check_window_fits, continuation_configs
 

@@ -34,8 +34,11 @@ SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
 
 
-# The PSNR an exact view counts at in a mean (its own is infinite): means of views, and YUV's weighted combination.
+# A view rendered exactly has an infinite PSNR, which would make every mean it enters infinite (and the record
+# null). Means count such a view at this ceiling (an MSE of 1e-10 on [0, 1] images), as video-coding tools cap
+# identical pictures (the per-view CSV keeps the exact value); so does YUV's weighted combination of its planes.
 PSNR_CEILING_DB = 100.0
+
 
 def _as_float_tensor(x: Any) -> torch.Tensor:
     if isinstance(x, np.ndarray):

@@ -28,12 +28,13 @@ from torch import nn
 from stgc import render as _render
 from stgc.data.cameras import DEFAULT_NEAR_PLANE, Camera
 from stgc.errors import DataError, FormatError
+from stgc.fileio import read_json_object
 from stgc.model import ply as _ply
 from stgc.model.config import DecoderActivation, ModelConfig
 from stgc.model.decoder import SandwichDecoder, camera_rays
 from stgc.model.layout import NORMAL_FIELDS, VARIANTS, Variant, ply_fields
 from stgc.model.optim import replace_group_param
-from stgc.run import Run, official_run_args, restored_record
+from stgc.run import Run, official_run_args
 
 log = logging.getLogger(__name__)
 
@@ -650,17 +651,24 @@ OFFICIAL_DECODERS = {"sandwich": "sigmoid", "sandwichnoact": "clamp", "sandwichn
 
 def _activation_from_run_config(ply_path: Path) -> str | None:
     """The decoder's output activation as the PLY's run saved it: stgc's config.json, else a restored run's
-    restored_from.json, else an official run's cfg_args (`rgbfunction`: N3DV's sandwich is a sigmoid, Technicolor's
-    sandwichnoact a clamp, the immersive configs' sandwichnoactss none); None where none says."""
-    run = Run.of(ply_path.parent)
-    saved = None if run is None else run.read_config(strict=False)
-    model_section = (saved or {}).get("model")
-    activation = model_section.get("decoder_activation") if isinstance(model_section, dict) else None
-    if isinstance(activation, str):
-        return activation
-    restored = restored_record(ply_path.parent)
-    if restored is not None and isinstance(restored.get("decoder_activation"), str):
-        return str(restored["decoder_activation"])  # a bitstream's model restored without its run config
+    restored_from.json, whichever lies nearer (a restored run inside another run's folder is its own); else an
+    official run's cfg_args (`rgbfunction`: N3DV's sandwich is a sigmoid, Technicolor's sandwichnoact a clamp, the
+    immersive configs' sandwichnoactss none); None where none says."""
+    run = None
+    for folder in [ply_path.parent, *ply_path.parent.parents][:4]:
+        if (folder / Run.CONFIG).is_file():
+            run = Run(folder)
+            model_section = (run.read_config(strict=False) or {}).get("model")
+            activation = model_section.get("decoder_activation") if isinstance(model_section, dict) else None
+            if isinstance(activation, str):
+                return activation
+            break
+        restored = read_json_object(folder / Run.RESTORED_FROM, strict=False)
+        if restored is not None:
+            activation = restored.get("decoder_activation")
+            if isinstance(activation, str):  # a bitstream's model restored without its run config
+                return activation
+            break
     official = official_run_args(ply_path.parent) if run is None else None
     if official is None or official.get("rgbfunction") is None:
         return None

@@ -292,10 +292,11 @@ class DensityControl:
 
     def state_dict(self) -> dict[str, Any]:
         return {"densify_stats": self.stats.state_dict(), "densify_rounds_done": self.rounds_done,
-                "initial_gaussians": self.initial_gaussians}
+                "initial_gaussians": self.initial_gaussians, "densify_past_rounds": self.past_rounds}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.stats.load_state_dict(state["densify_stats"])
         self.rounds_done = int(state["densify_rounds_done"])
         # Checkpoints written before the Gaussian budget existed have no count: keep the model's own.
         self.initial_gaussians = int(state.get("initial_gaussians", self.initial_gaussians))
+        self.past_rounds = bool(state.get("densify_past_rounds", False))  # (checkpoints from before session 29)

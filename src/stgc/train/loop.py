@@ -184,18 +184,17 @@ class ForegroundMasks:
 
 def _refuse_restarting_a_model_of_value(run: Run) -> None:
     """A resume without a checkpoint restarts the run from scratch, removing what the folder holds: refuse that
-    where it holds a saved model (a decoded bitstream's, an official run's, a finished run's whose checkpoint was
-    removed) or a fine-tuning (it would restart as a run of its own). Only a start killed before its first
-    checkpoint and first saved model is restarted."""
+    where it holds a model this run's restart would not make again (a decoded bitstream's, an official run's, a
+    finished training's whose checkpoint was removed) or a fine-tuning (it would restart as a run of its own). A
+    start killed before its first checkpoint (a model saved on the way included) restarts, as a segment's retry."""
     why = ("a model restored from a bitstream (stgc decompress)" if (run.path / Run.RESTORED_FROM).is_file()
            else "a model without a config.json (an official STG run?)"
            if not run.has_config() and run.latest_model_dir() is not None
            else "a fine-tuning of another run" if (run.path / Run.CONTINUED_FROM).is_file()
-           else "a finished training" if run.training_finished()
-           else f"a saved model ({run.latest_model_dir()})" if run.latest_model_dir() is not None else None)
+           else "a finished training" if run.training_finished() else None)
     if why is not None:
         raise StgcError(f"{run.path}: nothing to resume (no {Run.CHECKPOINT}): it holds {why}, which restarting would "
-                        "remove; fine-tune it into a new folder (stgc finetune) or give --overwrite")
+                        "remove; train into a new folder, or give --overwrite to replace it")
 
 
 def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig | None) -> None:
