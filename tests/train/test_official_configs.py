@@ -148,7 +148,7 @@ def test_a_resumed_run_keeps_what_it_recorded(tmp_path: Path) -> None:
     _started(data, tmp_path / "run", ModelConfig(), train)
     back = configs_from_run(tmp_path / "run")
     assert back["train"].lr.scaling == 1.5e-3 and back["model"].decoder_activation == "sigmoid"
-    assert back["train"].is_resolved and back["model"].is_resolved
+    assert back["train"].densify.is_resolved and back["model"].is_resolved
     # The same options on Technicolor data are the run's (n3dv's), not Technicolor's.
     shutil.rmtree(data)
     techni = make_stg_colmap(tmp_path / "techni", "cameras_parameters.txt")

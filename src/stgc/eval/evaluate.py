@@ -495,26 +495,22 @@ def evaluate_run(
         info = size_of_saved_model(target, duration_s)
     # With the threads and backend the run trained with, as its trainer's own evaluation: one table's FPS are then
     # comparable (its .stgc points' too).
-    with machine.threads(_run_threads(config_dir)):
+    threads, backend = _run_execution(config_dir)
+    with machine.threads(threads):
         result = _score_model(model, dataset, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps,
-                              backend=_run_backend(config_dir))
+                              backend=backend)
     other_data = _other_data(run_dir, data_path, target if target.suffix == ".stgc" else None, config_dir)
     extra = {"data": str(dataset.root), **({"other_data": other_data} if other_data else {})}
     return write_eval(run_dir, result, info, target=target, other_data=other_data, extra=extra)
 
 
-def _run_threads(run_dir: Path) -> int:
-    """The run's `train.threads` (0: none saved, or the machine's default)."""
-    saved = Run(run_dir).read_config(strict=False) or {}
-    threads = (saved.get("train") or {}).get("threads")
-    return threads if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0 else 0
-
-
-def _run_backend(run_dir: Path) -> str:
-    """The run's `train.backend` ('auto' when none is saved)."""
-    saved = Run(run_dir).read_config(strict=False) or {}
-    backend = (saved.get("train") or {}).get("backend")
-    return backend if isinstance(backend, str) and backend in BACKENDS else "auto"
+def _run_execution(run_dir: Path) -> tuple[int, str]:
+    """How the run rendered when it trained: its `train.threads` (0: none saved, or the machine's default) and its
+    `train.backend` ('auto' when none is saved)."""
+    train = (Run(run_dir).read_config(strict=False) or {}).get("train") or {}
+    threads, backend = train.get("threads"), train.get("backend")
+    return (threads if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0 else 0,
+            backend if isinstance(backend, str) and backend in BACKENDS else "auto")
 
 
 def _score_model(model: Any, dataset: Dataset, *, lpips_net: str | None, warmup: int, measure_fps: bool,
@@ -563,10 +559,11 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
     `video_record` sums it, sized by the container file (its index included); eval_<stem>.json with per-view rows
     of all segments in eval_<stem>_per_view.csv, and the seam figure seams_<stem>.png beside the file."""
     records, curves, rows = [], [], []
+    threads, backend = _run_execution(target.parent)  # the video's folder holds its run's config
     for segment in video_bitstream_segments(target, data_path):
-        with machine.threads(_run_threads(target.parent)):  # the video's folder holds its run's config
+        with machine.threads(threads):
             result = _score_model(segment.model, segment.dataset, lpips_net=lpips_net, warmup=warmup,
-                                  measure_fps=measure_fps, backend=_run_backend(target.parent))
+                                  measure_fps=measure_fps, backend=backend)
         summary = segment.run.read_summary(strict=False) if segment.run else None
         records.append((segment.name, eval_record(result, segment.size, {"train_seconds": training_seconds(summary)})))
         curves.append((segment.name, [(v.frame, v.psnr) for v in result.views]))

@@ -359,10 +359,6 @@ class TrainConfig:
                                               for name in RESOLVED_BY_DATA if getattr(self.lr, name) is None})
         return dataclasses.replace(self, lr=lr, densify=self.densify.resolved(sparse_cloud, family))
 
-    @property
-    def is_resolved(self) -> bool:
-        return self.densify.is_resolved and all(getattr(self.lr, name) is not None for name in RESOLVED_BY_DATA)
-
     def validate(self, prefix: str = "") -> None:
         check(self.iterations >= 1, f"{prefix}iterations", self.iterations, ">= 1")
         check(math.isfinite(self.schedule_scale) and self.schedule_scale > 0, f"{prefix}schedule_scale",
