@@ -149,3 +149,20 @@ def test_monocular_data_renders_its_default_video_and_contact_sheet(tmp_path, ca
     assert iio.imread(tmp_path / "m.mp4").shape[:3] == (5, 12, 16)  # frames 0-4 (ranks of the five times)
     assert main(["render", str(tmp_path / "run"), "--contact-sheet", "--out", str(tmp_path / "cs.png")]) == 0
     assert iio.imread(tmp_path / "cs.png").shape[0] == 2 * 12 + 2  # frames 1 and 3, each its own test view
+
+
+def test_a_gif_plays_at_its_frame_rate_though_the_format_counts_hundredths(tmp_path):
+    from PIL import Image
+
+    from stgc.eval.video import write_video
+
+    frames = [np.full((8, 8, 3), 8 * k, dtype=np.uint8) for k in range(30)]
+    path = write_video(tmp_path / "clip.gif", frames, fps=30)
+    with Image.open(path) as gif:
+        delays = []
+        for k in range(gif.n_frames):
+            gif.seek(k)
+            delays.append(gif.info["duration"])
+    assert len(delays) == 30
+    assert sum(delays) == 1000  # one second, not 30 x 30 ms
+    assert set(delays) <= {30, 40}

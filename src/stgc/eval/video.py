@@ -115,7 +115,8 @@ def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> P
         named = tmp.with_name(tmp.name + suffix)
         try:
             if suffix == ".gif":
-                imageio.mimsave(named, [np.asarray(f) for f in frames], duration=1000.0 / fps, loop=0)
+                images = [np.asarray(f) for f in frames]
+                imageio.mimsave(named, images, duration=_gif_delays_ms(len(images), fps), loop=0)
             else:
                 # macro_block_size=2 keeps imageio from rescaling small frames to multiples of 16.
                 writer = imageio.get_writer(named, fps=fps, codec="libx264", quality=8,
@@ -130,6 +131,13 @@ def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> P
             if named.exists():
                 named.unlink()
     return path
+
+
+def _gif_delays_ms(count: int, fps: float) -> list[int]:
+    """Per-frame GIF delays: the format stores hundredths of a second, so one delay 1000/fps ms would round (30 fps:
+    30 ms, an 11 % faster video); delays that alternate keep every frame within 10 ms of its time."""
+    ends = np.round(np.arange(1, count + 1) * 100.0 / fps)
+    return [int(10 * d) for d in np.diff(ends, prepend=0.0)]
 
 
 # ------------------------------------------------------------------------------------------------ paths

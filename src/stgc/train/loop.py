@@ -632,7 +632,7 @@ class Trainer:
         if cfg.stop_after is not None:
             end = min(end, start + int(cfg.stop_after)) if start < end else end
         progress = Progress(sched.iterations, start, cfg.progress)
-        tb = TensorBoard(self.out_run.path / "tensorboard", cfg.tensorboard)
+        tb = TensorBoard(self.out_run.path / "tensorboard", cfg.tensorboard, first_step=start + 1)
         t0 = time.perf_counter()
         elapsed = self.elapsed_before
         last_log_time, last_log_it = t0, start

@@ -81,16 +81,18 @@ class Progress:
 
 
 class TensorBoard:
-    """TensorBoard scalars when `torch.utils.tensorboard` (the tensorboard package) is importable; else a no-op."""
+    """TensorBoard scalars when `torch.utils.tensorboard` (the tensorboard package) is importable; else a no-op.
+    `first_step`: the first iteration this writer logs; events a killed run left at or after it are purged, as
+    metrics.jsonl is truncated on resume (else its curves would hold both runs' points)."""
 
-    def __init__(self, log_dir: str | Path, enabled: bool):
+    def __init__(self, log_dir: str | Path, enabled: bool, first_step: int = 1):
         self.writer = None
         if enabled:
             try:
                 from torch.utils.tensorboard import SummaryWriter
             except Exception:  # tensorboard is optional
                 return
-            self.writer = SummaryWriter(log_dir=str(log_dir))
+            self.writer = SummaryWriter(log_dir=str(log_dir), purge_step=first_step)
 
     def scalars(self, iteration: int, values: dict[str, float]) -> None:
         if self.writer is not None:
