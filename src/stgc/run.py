@@ -126,9 +126,12 @@ class Run:
     @classmethod
     def of(cls, path: str | Path) -> Run | None:
         """The run holding `path` (the run itself, RUN/point_cloud/iteration_<N>, its PLY, or a file in RUN): the
-        nearest of path and its three parents that has a config.json; None if there is none."""
+        nearest of path and its three parents that has a config.json, or a restored_from.json (a run `stgc
+        decompress` restored from a file without its run's config: a run of its own, though it has no config.json,
+        never the run whose folder it was restored into); None if there is none."""
         path = Path(path)
-        found = next((p for p in [path, *path.parents][:4] if (p / cls.CONFIG).is_file()), None)
+        found = next((p for p in [path, *path.parents][:4]
+                      if (p / cls.CONFIG).is_file() or (p / cls.RESTORED_FROM).is_file()), None)
         return None if found is None else cls(found)
 
     # ------------------------------------------------------------------ files

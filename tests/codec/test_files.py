@@ -187,3 +187,20 @@ def test_a_whole_video_is_written_again_when_a_segment_measured_the_depths_its_w
     assert not written_without_window_depths(path, q2)
     path.write_bytes(container({"allocation_option": "optimised"}))
     assert not written_without_window_depths(path, q2)
+
+
+def test_a_run_restored_without_its_config_inside_another_run_is_its_own(run_dir, tmp_path):
+    """A file written without its run's config, restored into a folder inside another run: evaluating or
+    compressing the restored model took the outer run's config.json (its data, its decoder activation)."""
+    from stgc.codec.files import read_stgc_metadata
+    from stgc.eval import evaluate_run
+    from stgc.run import Run
+
+    run, _, _ = run_dir
+    compress_run(run, tmp_path / "bare.stgc", config=CodecConfig(embed_run_config=False))
+    model_dir = decompress(tmp_path / "bare.stgc", run / "restored")
+    assert Run.of(model_dir) == Run(run / "restored")
+    with pytest.raises(DataError, match="no run config found.*--data"):
+        evaluate_run(model_dir, measure_fps=False)  # not the outer run's data, "scene"
+    compress_run(model_dir, tmp_path / "again.stgc")
+    assert "run_config" not in read_stgc_metadata(tmp_path / "again.stgc")

@@ -380,7 +380,7 @@ def _encode_model(source: Path, out_path: Path, config: CodecConfig) -> tuple[by
         metadata["dropped_invisible"] = input_gaussians - model.num_gaussians
     run = Run.of(source)
     run_dir = None if run is None else run.path
-    if config.embed_run_config and run is not None:
+    if config.embed_run_config and run is not None and run.has_config():
         saved = run.read_config() or {}
         # What evaluating the restored run needs (its dataset and model options); training options would only
         # add bytes: a compressed model cannot resume training anyway.
