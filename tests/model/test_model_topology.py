@@ -173,6 +173,26 @@ def test_reset_opacity_caps_values_and_zeroes_only_the_opacity_moments():
     )
 
 
+def test_reset_opacity_keeps_very_low_opacities_finite_and_others_bit_identical(tmp_path):
+    """The reset went through sigmoid and back: sigmoid(o) underflows to 0 below o = -88.7, whose logit is -inf, and
+    the next save() refused the model."""
+    model = random_model("lite", count=4000)
+    generator = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        model.params["opacity"][:, 0] = torch.randn(4000, generator=generator) * 8.0  # about -30 to 30
+        model.params["opacity"][:4, 0] = torch.tensor([-120.0, -90.0, -88.8, -1e30])
+    before = model.params["opacity"].detach().clone()
+    with torch.no_grad():  # what the reset computed before, which is right wherever sigmoid does not underflow
+        capped = torch.clamp(torch.sigmoid(before), max=0.01)
+        round_trip = torch.log(capped / (1.0 - capped))
+    model.reset_opacity(0.01)
+    after = model.params["opacity"].detach()
+    assert torch.equal(after[:4], before[:4])
+    assert torch.equal(after[4:], round_trip[4:])  # bit-identical, capped rows and the others
+    assert bool((before[4:] < -4.6).any() and (before[4:] > -4.5).any())  # both kinds of rows were there
+    model.save(tmp_path)
+
+
 def test_topology_edits_validate_their_input_and_work_without_an_optimizer():
     model = random_model("lite", count=6)
     model.prune(torch.tensor([True, False, True, True, True, True]))

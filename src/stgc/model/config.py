@@ -11,6 +11,8 @@ from stgc.official import family_options, official_value
 
 DecoderActivation = Literal["sigmoid", "clamp", "none"]
 DECODER_ACTIVATIONS = get_args(DecoderActivation)
+DecoderRayInput = Literal["auto", "on", "off"]
+DECODER_RAY_INPUTS = get_args(DecoderRayInput)
 
 
 @dataclass
@@ -50,7 +52,7 @@ class ModelConfig:
         default=0,
         metadata={"help": "Seed of the decoder's random initial weights (full variant)."},
     )
-    decoder_ray_origin: Literal["auto", "on", "off"] = field(
+    decoder_ray_origin: DecoderRayInput = field(
         default="auto",
         metadata={"help": "let the decoder see the ray origin, i.e. the camera centre (official STG: on). Off, its "
                           "weights on the origin are zero and stay zero: colour may still depend on the viewing "
@@ -59,7 +61,7 @@ class ModelConfig:
                           "that held-out cameras do not share; the colour correction takes that role), on for "
                           "synthetic renders (docs/model.md)"},
     )
-    decoder_ray_direction: Literal["auto", "on", "off"] = field(
+    decoder_ray_direction: DecoderRayInput = field(
         default="auto",
         metadata={"help": "let the decoder see the viewing direction (official STG: on). Off, its weights on the "
                           "direction are zero and stay zero: the colour of a point at a time is the same from every "
@@ -78,6 +80,10 @@ class ModelConfig:
             raise ValueError(
                 f"model.decoder_activation must be one of {DECODER_ACTIVATIONS}, got {self.decoder_activation!r}"
             )
+        for name in ("decoder_ray_origin", "decoder_ray_direction"):
+            # The trainer takes every value but 'on' and 'auto' as off: a typo would drop the input silently.
+            if getattr(self, name) not in DECODER_RAY_INPUTS:
+                raise ValueError(f"model.{name} must be one of {DECODER_RAY_INPUTS}, got {getattr(self, name)!r}")
         if not 0.0 < self.opacity_init < 1.0:
             raise ValueError(f"model.opacity_init must be in (0, 1), got {self.opacity_init}")
         if self.init_neighbours < 1:

@@ -6,12 +6,13 @@ Arrays are exchanged as {official field name: float32 [N]} in `layout.ply_fields
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from plyfile import PlyData, PlyElement
+from plyfile import PlyData, PlyElement, PlyElementParseError, PlyListProperty
 
 from stgc.errors import FormatError
 from stgc.fileio import atomic_open, atomic_path
@@ -78,14 +79,24 @@ def read_ply(path: str | Path) -> tuple[dict[str, np.ndarray], str]:
     """(arrays, variant) of an STG PLY; FormatError for anything we cannot use as is."""
     path = Path(path)
     try:
-        ply = PlyData.read(str(path))
+        with open(path, "rb") as stream:
+            ply = PlyData.read(stream)
+            end, size = stream.tell(), os.fstat(stream.fileno()).st_size
     except FileNotFoundError:
         raise FormatError(path, "file not found") from None
+    except PlyElementParseError as exc:
+        if exc.message == "early end-of-file" and exc.element is not None and exc.row is not None:
+            rows = "vertices" if exc.element.name == "vertex" else f"{exc.element.name!r} rows"
+            raise FormatError(path, f"its header counts {exc.element.count} {rows} but its body holds only "
+                                    f"{exc.row}: a truncated or damaged file") from None
+        raise FormatError(path, f"not a readable PLY file ({type(exc).__name__}: {exc})") from None
     except Exception as exc:  # plyfile raises several types for malformed headers and bodies
         raise FormatError(path, f"not a readable PLY file ({type(exc).__name__}: {exc})") from None
     if "vertex" not in ply:
         raise FormatError(path, "PLY has no 'vertex' element")
     vertex = ply["vertex"]
+    if not ply.text and end != size:
+        _refuse_trailing_bytes(path, ply, size - end)
     names = [prop.name for prop in vertex.properties]
     variant = detect_variant(names, path)
     unknown = [name for name in names if name not in ply_fields(variant)]
@@ -101,6 +112,19 @@ def read_ply(path: str | Path) -> tuple[dict[str, np.ndarray], str]:
     for name in NORMAL_FIELDS:
         arrays.setdefault(name, np.zeros(len(arrays["x"]), dtype=np.float32))
     return {name: arrays[name] for name in ply_fields(variant)}, variant
+
+
+def _refuse_trailing_bytes(path: Path, ply: PlyData, extra: int) -> None:
+    """FormatError for a binary PLY longer than its header says: plyfile reads the rows the header counts and
+    ignores the rest, so a damaged count would load a prefix of the model."""
+    vertex = ply["vertex"]
+    if len(ply.elements) == 1 and not any(isinstance(prop, PlyListProperty) for prop in vertex.properties):
+        row = vertex.dtype(ply.byte_order).itemsize
+        rows = vertex.count + extra / row
+        held = f"{rows:.0f}" if rows.is_integer() else f"{rows:.2f}"
+        raise FormatError(path, f"its header counts {vertex.count} vertices but its body holds {held} (rows of "
+                                f"{row} bytes): a damaged file")
+    raise FormatError(path, f"{extra} byte(s) after the rows its header counts: a damaged file")
 
 
 def write_decoder(path: str | Path, state: dict[str, torch.Tensor]) -> None:
@@ -136,12 +160,24 @@ def validate_decoder_state(state: dict[str, Any], path: Path | None = None) -> d
         if key not in state:
             raise FormatError(path, f"decoder state has no {key!r} (keys: {sorted(state)})")
         value = state[key]
-        array = value.detach().cpu().numpy() if torch.is_tensor(value) else np.asarray(value)
+        try:
+            if torch.is_tensor(value):
+                value = value.detach().cpu()
+                # numpy has no bfloat16: floating tensors of every width become float32, the decoder's own width
+                array = (value.float() if value.is_floating_point() else value).numpy()
+            else:
+                array = np.asarray(value)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise FormatError(path, f"decoder {key!r} is not an array of numbers "
+                                    f"({type(exc).__name__}: {exc})") from None
         if tuple(array.shape) not in (shape, shape[:2]):
             raise FormatError(path, f"decoder {key!r} has shape {tuple(array.shape)}, expected {shape}")
+        if array.dtype.kind not in "iuf":  # complex, bool, strings, objects: no weights a float32 conv can take
+            raise FormatError(path, f"decoder {key!r} holds {array.dtype} values, expected real numbers")
+        array = array.astype(np.float32)
         if not np.all(np.isfinite(array)):
             raise FormatError(path, f"decoder {key!r} has non-finite values")
-        out[key] = array.astype(np.float32).reshape(shape)
+        out[key] = array.reshape(shape)
     return out
 
 

@@ -34,7 +34,7 @@ from stgc.model.config import DecoderActivation, ModelConfig
 from stgc.model.decoder import SandwichDecoder, camera_rays
 from stgc.model.layout import NORMAL_FIELDS, VARIANTS, Variant, ply_fields
 from stgc.model.optim import replace_group_param
-from stgc.run import Run, official_run_args
+from stgc.run import OFFICIAL_ARGS, Run, official_run_args
 
 log = logging.getLogger(__name__)
 
@@ -462,8 +462,12 @@ class STGModel:
     def reset_opacity(self, max_value: float = 0.01) -> None:
         """3DGS opacity reset: sigmoid(o) <- min(sigmoid(o), max_value), with the opacity moments zeroed."""
         with torch.no_grad():
-            capped = torch.clamp(torch.sigmoid(self.params["opacity"]), max=max_value)
-            self.replace_param("opacity", torch.log(capped / (1.0 - capped)), reset_moments=True)
+            # min(o, logit(max_value)) as sigmoid is monotonic: the round trip through sigmoid underflows to 0 for
+            # o below about -88.7, whose log is -inf (a model that no longer saves). The cap is computed in the
+            # parameter's dtype on its device, as the round trip computed it, so capped rows keep their values.
+            opacity = self.params["opacity"]
+            cap = torch.tensor(max_value, dtype=opacity.dtype, device=opacity.device)
+            self.replace_param("opacity", torch.clamp(opacity, max=torch.log(cap / (1.0 - cap))), reset_moments=True)
 
     def _swap(self, key: str, value: torch.Tensor,
               edit_rows: Callable[[torch.Tensor], torch.Tensor] | None) -> None:
@@ -530,13 +534,22 @@ class STGModel:
         return {key: value.detach().cpu().numpy().copy() for key, value in self.decoder.state_dict().items()}
 
     def save(self, iteration_dir: str | Path) -> Path:
-        """Write iteration_dir/point_cloud.ply (+ point_cloud.pt for full) atomically; return the PLY path."""
+        """Write iteration_dir/point_cloud.ply (+ point_cloud.pt for full); return the PLY path.
+
+        Each file is replaced atomically. Everything is checked before anything is written, so a model the files
+        cannot hold (NaN or inf) leaves the folder's earlier pair as it was; only a write error between the two
+        files (disk full) leaves the new decoder beside the old PLY."""
         iteration_dir = Path(iteration_dir)
         ply_path = iteration_dir / _ply.PLY_NAME
-        # Decoder first: readers find a checkpoint through its PLY, which then never pairs with a stale decoder.
-        if self.decoder is not None:
-            _ply.write_decoder(iteration_dir / _ply.DECODER_NAME, self.decoder.state_dict())
-        _ply.write_ply(ply_path, self.to_ply_arrays(), self.variant)
+        decoder_path = iteration_dir / _ply.DECODER_NAME
+        arrays = self.to_ply_arrays()
+        decoder_state = None if self.decoder is None else self.decoder.state_dict()
+        _ply.validate_arrays(arrays, self.variant, ply_path)
+        if decoder_state is not None:
+            _ply.validate_decoder_state(decoder_state, decoder_path)
+            # Decoder first: readers find a checkpoint through its PLY, which then never pairs with a stale decoder.
+            _ply.write_decoder(decoder_path, decoder_state)
+        _ply.write_ply(ply_path, arrays, self.variant)
         return ply_path
 
     @classmethod
@@ -549,8 +562,9 @@ class STGModel:
     ) -> STGModel:
         """Load a run dir (its highest iteration), an iteration dir or a .ply file; full/lite from the fields.
 
-        The decoder activation is not stored in the official files: it comes from the argument, else from the run's
-        config.json (model.decoder_activation) when the PLY sits in a run dir, else 'sigmoid'.
+        The decoder activation is not stored in the official files: it comes from the argument, else from the run the
+        PLY sits in (`_activation_from_run_config`: the nearest config.json, restored_from.json or official
+        cfg_args), else 'sigmoid', with a warning.
         """
         ply_path = _ply.resolve_ply_path(path)
         arrays, variant = _ply.read_ply(ply_path)
@@ -650,26 +664,31 @@ OFFICIAL_DECODERS = {"sandwich": "sigmoid", "sandwichnoact": "clamp", "sandwichn
 
 
 def _activation_from_run_config(ply_path: Path) -> str | None:
-    """The decoder's output activation as the PLY's run saved it: stgc's config.json, else a restored run's
-    restored_from.json, whichever lies nearer (a restored run inside another run's folder is its own); else an
-    official run's cfg_args (`rgbfunction`: N3DV's sandwich is a sigmoid, Technicolor's sandwichnoact a clamp, the
-    immersive configs' sandwichnoactss none); None where none says."""
-    run = None
-    for folder in [ply_path.parent, *ply_path.parent.parents][:4]:
+    """The decoder's output activation as the PLY's run saved it; None where none says.
+
+    The run is the nearest of the PLY's folder and the three above it that holds stgc's config.json
+    (model.decoder_activation), a restored run's restored_from.json (decoder_activation) or an official run's
+    cfg_args (`rgbfunction`: N3DV's sandwich is a sigmoid, Technicolor's sandwichnoact a clamp, the immersive
+    configs' sandwichnoactss none), in that order within one folder. Nearest wins: a run kept inside another run's
+    folder is its own, whichever kinds the two are."""
+    # Resolved: the parents of a relative path ('.', 'point_cloud.ply') stop at the working directory.
+    start = ply_path.parent.resolve()
+    for folder in [start, *start.parents][:4]:
         if (folder / Run.CONFIG).is_file():
-            run = Run(folder)
-            model_section = (run.read_config(strict=False) or {}).get("model")
+            # Strict: a damaged config.json would otherwise read as one that says nothing (sigmoid assumed).
+            model_section = (Run(folder).read_config() or {}).get("model")
             activation = model_section.get("decoder_activation") if isinstance(model_section, dict) else None
-            if isinstance(activation, str):
-                return activation
-            break
-        restored = read_json_object(folder / Run.RESTORED_FROM, strict=False)
-        if restored is not None:
-            activation = restored.get("decoder_activation")
-            if isinstance(activation, str):  # a bitstream's model restored without its run config
-                return activation
-            break
-    official = official_run_args(ply_path.parent) if run is None else None
+            return activation if isinstance(activation, str) else None
+        if (folder / Run.RESTORED_FROM).is_file():  # a bitstream's model restored without its run config
+            activation = (read_json_object(folder / Run.RESTORED_FROM) or {}).get("decoder_activation")
+            return activation if isinstance(activation, str) else None
+        if (folder / OFFICIAL_ARGS).is_file():
+            return _official_activation(folder, ply_path)
+    return None
+
+
+def _official_activation(run_dir: Path, ply_path: Path) -> str | None:
+    official = official_run_args(run_dir)
     if official is None or official.get("rgbfunction") is None:
         return None
     rgbfunction = str(official["rgbfunction"])
