@@ -250,3 +250,136 @@ def test_a_metadata_file_is_detected_as_its_folder_is(tmp_path):
     root = make_n3dv(tmp_path / "n")
     assert open_dataset(root / "poses_bounds.npy").format == "n3dv"
     assert open_dataset(make_panoptic(tmp_path / "p") / "train_meta.json").format == "panoptic"
+
+
+def _miv(root: Path, names=("v00", "v01", "v02", "v06"), frames: int = 2, **sequence) -> Path:
+    """An MIV sequence: seq.json and one 10-bit 16x12 texture of `frames` frames per view in `names`."""
+    from stgc.data.yuv import write_yuv420
+
+    root.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for i, name in enumerate(names):
+        entries.append({"Name": name, "Position": [0, 0.1 * i, 0], "Rotation": [0, 0, 0], "Projection": "Perspective",
+                        "Focal": [10, 10], "Principle_point": [8, 6], "Resolution": [W, H], "BitDepthColor": 10})
+        write_yuv420(root / f"{name}_texture_{W}x{H}_yuv420p10le.yuv", [np.full((H, W, 3), 100, np.uint8)] * frames)
+    (root / "seq.json").write_text(json.dumps({"Fps": 30, "Frames_number": frames, "cameras": entries, **sequence}))
+    return root
+
+
+def test_an_empty_miv_texture_is_refused_not_dropped_with_its_view(tmp_path):
+    """A 0-byte texture (an interrupted copy) counted 0 frames: its view vanished from the data without a word, and
+    where it was v06 the default test view moved to v00, a training view."""
+    root = _miv(tmp_path)
+    assert open_dataset(root).test_views == ["v06"]
+    (root / f"v06_texture_{W}x{H}_yuv420p10le.yuv").write_bytes(b"")
+    expect_error("v06_texture", "holds no frames", open_dataset, root)
+    # A texture named without its bit depth and declared without one: the same refusal, not a size puzzle.
+    plain = _miv(tmp_path / "plain", names=("v00", "v01"))
+    sequence = json.loads((plain / "seq.json").read_text())
+    for entry in sequence["cameras"]:
+        del entry["BitDepthColor"]
+        (plain / f"{entry['Name']}_texture_{W}x{H}_yuv420p10le.yuv").rename(plain / f"{entry['Name']}.yuv")
+    (plain / "seq.json").write_text(json.dumps(sequence))
+    assert open_dataset(plain).train_views == ["v01"]
+    (plain / "v01.yuv").write_bytes(b"")
+    expect_error("v01.yuv", "holds no frames", open_dataset, plain)
+
+
+def test_a_camera_in_both_panoptic_files_is_refused_not_held_out_whole(tmp_path):
+    """Camera 1 in train_meta.json and test_meta.json was held out whole (its training images too) and listed twice
+    among the test views of every frame."""
+    root = make_panoptic(tmp_path)
+    test = json.loads((root / "test_meta.json").read_text())
+    train = json.loads((root / "train_meta.json").read_text())
+    for key in ("k", "w2c", "fn", "cam_id"):
+        for t in range(len(test[key])):
+            test[key][t].append(train[key][t][0])
+    (root / "test_meta.json").write_text(json.dumps(test))
+    expect_error("test_meta.json", "camera.s. 1 also in train_meta.json", open_dataset, root)
+
+
+def test_a_view_listed_twice_for_one_frame_is_refused_in_every_format(tmp_path):
+    """Only the multi-view Blender reader refused a (view, frame) listed twice; elsewhere the view trained twice on
+    that frame, or was tested twice, and both copies shared one cache entry."""
+    root = make_panoptic(tmp_path / "p")
+    train = json.loads((root / "train_meta.json").read_text())
+    for key in ("k", "w2c", "fn", "cam_id"):
+        train[key][0].append(train[key][0][0])
+    (root / "train_meta.json").write_text(json.dumps(train))
+    expect_error("train_meta.json", "camera 1 frame 0 appears twice", open_dataset, root)
+
+    root = _miv(tmp_path / "m")
+    sequence = json.loads((root / "seq.json").read_text())
+    sequence["cameras"].append(dict(sequence["cameras"][1]))
+    (root / "seq.json").write_text(json.dumps(sequence))
+    expect_error("seq.json", "camera v01 frame 0 appears twice", open_dataset, root)
+
+    root = _blender_multiview(tmp_path / "b", {("camC", 0), ("camC", 1)})
+    meta = json.loads((root / "transforms_train.json").read_text())
+    meta["frames"].append(meta["frames"][0])
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    expect_error("transforms_train.json", "camera camA frame 0 appears twice", open_dataset, root)
+
+
+def _edit_json(path: Path, edit) -> None:
+    data = json.loads(path.read_text())
+    edit(data)
+    path.write_text(json.dumps(data))
+
+
+@pytest.mark.parametrize("edit, file, match", [
+    (lambda m: m.update(fps="30fps"), "transforms_train.json", "fps '30fps' is not a positive number"),
+    (lambda m: m.update(fps=-30), "transforms_train.json", "fps -30 is not a positive number"),
+    (lambda m: m.update(fps=float("inf")), "transforms_train.json", "fps inf is not a positive number"),
+    (lambda m: m.update(fps=[30]), "transforms_train.json", r"fps \[30\] is not a positive number"),
+], ids=["fps-text", "fps-negative", "fps-infinite", "fps-list"])
+def test_bad_blender_metadata_values_name_the_file(tmp_path, edit, file, match):
+    """fps '30fps' was a ValueError traceback; a negative or infinite fps was accepted, and failed (or misled) later
+    where a duration is computed from it."""
+    root = _blender_multiview(tmp_path, {("camC", 0), ("camC", 1)})
+    _edit_json(root / file, edit)
+    expect_error(file, match, open_dataset, root)
+
+
+def test_a_metadata_file_that_is_not_a_json_object_names_the_file(tmp_path):
+    """A top-level list or string was an AttributeError traceback from the reader's first `.get`."""
+    root = _blender_multiview(tmp_path / "b", {("camC", 0), ("camC", 1)})
+    (root / "transforms_test.json").write_text("[]")
+    expect_error("transforms_test.json", "top level is not a JSON object", open_dataset, root)
+    root = make_panoptic(tmp_path / "p")
+    (root / "train_meta.json").write_text('"train"')
+    expect_error("train_meta.json", "top level is not a JSON object", open_dataset, root)
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda s: s.update(Fps="abc"), "Fps 'abc' is not a positive number"),
+    (lambda s: s.update(Fps=[[1, 2]]), "Fps .* is not a positive number"),
+    (lambda s: s.update(Fps=0), "Fps 0 is not a positive number"),
+    (lambda s: s["cameras"][1].update(Position=[1, 2]), "camera v01: Position and Rotation must be 3 numbers"),
+    (lambda s: s["cameras"][1].update(Rotation=[]), "camera v01: Position and Rotation must be 3 numbers"),
+    (lambda s: s["cameras"][1].update(Resolution=[W, H, 3]), "camera v01: Resolution .* is not a size"),
+    (lambda s: s["cameras"][1].update(BitDepthColor="abc"), "camera v01: BitDepthColor 'abc' is not a bit depth"),
+    (lambda s: s["cameras"][1].update(BitDepthColor=-3), "camera v01: BitDepthColor -3 is not a bit depth"),
+    (lambda s: s.update(sourceCameraNames=-3), "sourceCameraNames -3 is not a list of camera names"),
+    (lambda s: s.update(sourceCameraNames=["v00", "v09"]), "sourceCameraNames lists v09, which no camera entry"),
+    (lambda s: s["cameras"].__setitem__(1, "x"), r"cameras\[1\] is a string, not an object"),
+    (lambda s: s.update(Frames_number="abc"), "Frames_number 'abc' is not a positive whole number"),
+], ids=["fps-text", "fps-list", "fps-zero", "position-2", "rotation-empty", "resolution-3", "bit-depth-text",
+        "bit-depth-negative", "source-names-number", "source-names-unknown", "camera-string", "frames-text"])
+def test_bad_miv_metadata_values_name_the_file(tmp_path, edit, match):
+    """Each was a raw ValueError, TypeError or AttributeError from inside the reader, or (a negative bit depth, an
+    unknown source camera, a text frame count) accepted: a warning 'using -3', a view silently left out."""
+    root = _miv(tmp_path, names=("v00", "v01"))
+    _edit_json(root / "seq.json", edit)
+    expect_error("seq.json", match, open_dataset, root)
+
+
+def test_poses_bounds_of_text_values_name_the_file(tmp_path):
+    """A poses_bounds.npy of strings was a TypeError from np.isfinite (and a complex one was read, its imaginary
+    part dropped with a ComplexWarning)."""
+    root = make_n3dv(tmp_path)
+    rows = np.load(root / "poses_bounds.npy")
+    np.save(root / "poses_bounds.npy", rows.astype(str))
+    expect_error("poses_bounds.npy", "holds <U.* values, not real numbers", open_dataset, root)
+    np.save(root / "poses_bounds.npy", rows.astype(complex))
+    expect_error("poses_bounds.npy", "holds complex128 values, not real numbers", open_dataset, root)

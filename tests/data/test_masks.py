@@ -99,3 +99,83 @@ def test_every_segment_of_a_video_starts_from_the_static_cloud(masked_scene, tmp
     segment = open_dataset(root, start=1, duration=1)
     cloud = initial_points(segment, source="data", mask_points_per_frame=80)
     assert cloud.counts_per_time() == {0.0: 300 + 80}
+
+
+def _rewrite_masks(root, write) -> None:
+    """Every mask of the scene at `root` stored again by `write(foreground bool [H, W], path)`."""
+    for path in sorted((root / "seg").rglob("*.png")):
+        write(np.asarray(Image.open(path)) > 0, path)
+
+
+def _as_palette(foreground, path) -> None:
+    image = Image.fromarray(foreground.astype(np.uint8), mode="P")
+    image.putpalette([0, 0, 0, 128, 0, 0] + [0] * 762)  # DAVIS: index 1 is dark red, grey level 38
+    image.save(path)
+
+
+@pytest.mark.parametrize("write", [
+    pytest.param(lambda fg, path: Image.fromarray(fg.astype(np.uint8)).save(path), id="0-1-grey"),
+    pytest.param(_as_palette, id="palette-dark-index-1"),
+    pytest.param(lambda fg, path: Image.fromarray(fg).convert("1").save(path), id="1-bit"),
+    pytest.param(lambda fg, path: Image.fromarray(fg.astype(np.uint8) * 255).save(path), id="0-255-grey"),
+])
+def test_masks_stored_as_0_1_or_palette_images_read_as_their_foreground(masked_scene, tmp_path, write):
+    """A 0/1 greyscale mask (Dynamic 3D Gaussians' seg values) and a palette mask whose foreground index has a dark
+    colour were read through their grey level: every pixel below 128, all background, and the visual hull empty
+    with only an INFO line. 0/255 and 1-bit masks read as before."""
+    import shutil
+
+    root = tmp_path / "scene"
+    shutil.copytree(masked_scene.root, root)
+    reference = open_dataset(masked_scene.root)
+    _rewrite_masks(root, write)
+    dataset = open_dataset(root)
+    for camera, original in zip(dataset.train_at(0), reference.train_at(0)):
+        mask, expected = dataset.load_mask(camera), reference.load_mask(original)
+        assert mask is not None and expected is not None and expected.any()
+        assert np.array_equal(mask, expected), camera.name
+    # Downscaled, the 0/1 and palette masks are averaged as the 0/255 ones are.
+    small, small_reference = open_dataset(root, downscale=2), open_dataset(masked_scene.root, downscale=2)
+    camera = small.train_at(0)[0]
+    assert np.array_equal(small.load_mask(camera), small_reference.load_mask(small_reference.train_at(0)[0]))
+    xyz, _ = mask_hull_points(dataset, 0, 500, np.random.default_rng(0), resolution=48)
+    assert len(xyz) > 100
+
+
+def test_masks_that_are_all_background_are_warned_about_once(masked_scene, tmp_path, caplog):
+    """Masks that read as all background (the wrong encoding, or an empty export) left the visual hull empty with
+    only an INFO line per frame: the run trained without the subjects' points and said nothing of it."""
+    import shutil
+
+    root = tmp_path / "scene"
+    shutil.copytree(masked_scene.root, root)
+    _rewrite_masks(root, lambda fg, path: Image.fromarray(np.zeros(fg.shape, np.uint8)).save(path))
+    dataset = open_dataset(root)
+    with caplog.at_level("WARNING", logger="stgc.data.points"):
+        initial_points(dataset, source="random", random_points_per_frame=50, mask_points_per_frame=80)
+    said = [r for r in caplog.records if "mask at frame" in r.getMessage()]
+    assert len(said) == 1 and "is empty (all background" in said[0].getMessage()  # two frames, said once
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="stgc.data.points"):
+        initial_points(open_dataset(masked_scene.root), source="random", random_points_per_frame=50,
+                       mask_points_per_frame=80)
+    assert not [r for r in caplog.records if "mask at frame" in r.getMessage()]
+
+
+def test_masks_are_used_when_only_the_first_training_view_has_none(masked_scene, tmp_path, caplog):
+    """`has_masks` looked at the first training view alone: without its mask, the other views' masks were all
+    ignored, silently (no hull points, no mask term), where the docs promise the view is left out and said so."""
+    import shutil
+
+    root = tmp_path / "scene"
+    shutil.copytree(masked_scene.root, root)
+    first = open_dataset(root).train[0].name
+    shutil.rmtree(root / "seg" / first)
+    dataset = open_dataset(root)
+    assert dataset.has_masks
+    with caplog.at_level("WARNING", logger="stgc.data.points"):
+        cloud = initial_points(dataset, source="random", random_points_per_frame=50, mask_points_per_frame=80)
+    assert len(cloud) == 2 * (50 + 80)
+    assert f"training views {first} have no foreground mask" in caplog.text
+    shutil.rmtree(root / "seg")
+    assert not open_dataset(root).has_masks

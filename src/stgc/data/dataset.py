@@ -101,7 +101,8 @@ class SourceScene:
     synthetic: rendered images (every camera has the same response), not a real rig's.
     view_dependent_colour: whether this source's reference method lets colour change with the viewing direction
         (official STG: yes; Dynamic 3D Gaussians, Panoptic's reference, keeps one colour per Gaussian and time).
-    masks: camera -> path of its foreground mask (0 background, 255 foreground), or None where it has none.
+    masks: camera -> path of its foreground mask (0 background; 255, or 1 in a 0/1 or palette mask, foreground:
+        masks.read_mask), or None where it has none.
     static_points: `points` is one cloud for the whole capture (not one per frame): it is given to the first frame
         of whichever segment is opened, so that every segment of a video starts from it.
     frame_positions: frame -> where it lies on the frame axis, for sources whose frames are ranks of times that are
@@ -213,9 +214,12 @@ class Dataset:
 
     @property
     def has_masks(self) -> bool:
-        """Whether the source ships foreground masks (judged by the first training view; views without one are left
-        out where masks are used)."""
-        return bool(self.train) and self.mask_path(self.train[0]) is not None
+        """Whether the source ships foreground masks: some training view of the first training frame has one (views
+        without one are left out where masks are used, and the run says so). Judged by the first view alone, a
+        missing mask of that view turned every other view's mask off, silently."""
+        if self._scene.masks is None or not self.train:
+            return False
+        return any(self.mask_path(c) is not None for c in self.train_at(self.train[0].frame))
 
     def mask_path(self, camera: Camera) -> Path | None:
         """The file of `camera`'s foreground mask, or None where it has none."""
@@ -430,6 +434,7 @@ def assemble(scene: SourceScene, *, downscale: float = 1, start: int | None = No
     near_plane: the culling depth of every camera (None: the format's, `scene.near_plane`)."""
     if not scene.cameras:
         raise DataError(scene.meta_file, "no cameras found")
+    _check_unique(scene)
     available = sorted({c.frame for c in scene.cameras})
     if start is None:
         start = scene.default_start if scene.default_start is not None else available[0]
@@ -488,6 +493,16 @@ def assemble(scene: SourceScene, *, downscale: float = 1, start: int | None = No
     if check_images:
         _check_image_headers(dataset, native_size)
     return dataset
+
+
+def _check_unique(scene: SourceScene) -> None:
+    """One camera per (view, frame): a view listed twice for a frame would train (or be tested) twice on it, and
+    both share one cache entry, so one of them shows the other's image."""
+    seen = set()
+    for c in scene.cameras:
+        if (c.name, c.frame) in seen:
+            raise DataError(scene.meta_file, f"camera {c.name} frame {c.frame} appears twice")
+        seen.add((c.name, c.frame))
 
 
 def _check_complete(scene: SourceScene, cameras: list[Camera], views: list[str], frames: list[int]) -> None:

@@ -51,8 +51,9 @@ def read_image(path: Path, background: tuple[float, float, float] = (0.0, 0.0, 0
 def resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
     """Resample uint8 RGB to (width, height).
 
-    Whole-number reductions use an area average (box filter: each output pixel is the exact mean of
-    its block, which keeps pixel-centre geometry and adds no ringing); other sizes use Lanczos."""
+    Reductions by a whole number that divides both sides use an area average (box filter: each output pixel is
+    the exact mean of its block, which keeps pixel-centre geometry and adds no ringing); other sizes, a whole factor
+    that leaves a remainder included (1014 / 4), use Lanczos."""
     h, w = image.shape[:2]
     if (w, h) == (width, height):
         return image

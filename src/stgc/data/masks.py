@@ -22,11 +22,25 @@ FOREGROUND_LEVEL = 128
 
 def read_mask(path: Path, width: int, height: int) -> np.ndarray:
     """bool [height, width]: the foreground of the mask image at `path`, area-averaged to the camera's size when it
-    is larger with the same aspect (the downscaled dataset), else a DataError naming the file."""
+    is larger with the same aspect (the downscaled dataset), else a DataError naming the file.
+
+    Read as 0 (background) .. 255 (foreground): a 1-bit or 0/255 greyscale mask as stored; a palette ('P') mask by
+    its indices (0 background, any other foreground, whatever their colours: DAVIS-style masks give index 1 a dark
+    colour); a greyscale mask whose largest value is 1 as a 0/1 mask (Dynamic 3D Gaussians' seg values). Both were
+    read through their grey level, so every pixel fell below FOREGROUND_LEVEL and the mask was all background."""
     try:
         with Image.open(path) as im:
             im.load()
-            mask = np.asarray(im.convert("L"), dtype=np.float32)
+            if im.mode == "P":
+                mask = np.where(np.asarray(im) != 0, 255.0, 0.0).astype(np.float32)
+            else:
+                mask = np.asarray(im.convert("L"), dtype=np.float32)
+                # A 0/1 mask, not a threshold at half the file's own maximum: that would also change masks that
+                # hold a 255 scale (soft edges, a faint one whose maximum is low, compression noise in an empty
+                # one read as foreground), while a maximum of 1 can only be a 0/1 mask: on the 0..255 scale it
+                # was all background. 0/255 and 1-bit masks (maximum 0 or 255) read exactly as before.
+                if mask.max(initial=0.0) == 1.0:
+                    mask *= 255.0
     except FileNotFoundError:
         raise DataError(path, "mask file is missing") from None
     except (UnidentifiedImageError, OSError, ValueError) as exc:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import warnings
+import weakref
 from dataclasses import dataclass
 from typing import Literal, get_args
 
@@ -169,6 +170,10 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
     return cloud
 
 
+# The datasets whose empty masks were reported (`mask_hull_points` says so once per dataset, not once per frame).
+_SAID_EMPTY_MASKS: weakref.WeakSet[Dataset] = weakref.WeakSet()
+
+
 def mask_hull_points(dataset: Dataset, frame: int, count: int, rng: np.random.Generator,
                      resolution: int = 96) -> tuple[np.ndarray, np.ndarray]:
     """Up to `count` voxel centres of the visual hull of the training views' masks at `frame` (a cube of side twice
@@ -180,6 +185,11 @@ def mask_hull_points(dataset: Dataset, frame: int, count: int, rng: np.random.Ge
         if mask is not None:
             cameras.append(cam)
             masks.append(mask)
+    if masks and not any(mask.any() for mask in masks) and dataset not in _SAID_EMPTY_MASKS:
+        _SAID_EMPTY_MASKS.add(dataset)
+        log.warning("%s: every training view's foreground mask at frame %d is empty (all background, e.g. %s): the "
+                    "visual hull adds no points there. Masks are read as 0/255 or 0/1 greyscale, 1-bit, or palette "
+                    "images (index 0 background); said once", dataset.name, frame, dataset.mask_path(cameras[0]))
     if len(cameras) < 2:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
     focus, radius = viewing_region(dataset)

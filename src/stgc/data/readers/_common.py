@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any, cast
 
@@ -15,12 +16,43 @@ IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 
 
 def _load_json(path: Path) -> dict[str, Any]:
+    """The JSON object in `path`; every reader's metadata file is one (a list or a string at the top level was an
+    AttributeError from the reader's first `.get`)."""
     try:
-        return cast(dict[str, Any], json.loads(path.read_text(encoding="utf-8")))
+        data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise DataError(path, "file is missing") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataError(path, f"not valid JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise DataError(path, f"top level is not a JSON object (it is a {_json_type(data)})")
+    return cast(dict[str, Any], data)
+
+
+def _json_type(value: Any) -> str:
+    """The JSON name of a decoded value's type, for messages."""
+    for kind, name in ((bool, "boolean"), (dict, "object"), (list, "list"), (str, "string"), (int, "number"),
+                       (float, "number")):
+        if isinstance(value, kind):
+            return name
+    return "null" if value is None else type(value).__name__
+
+
+def _fps(meta_file: Path, value: Any, key: str = "fps") -> float | None:
+    """A metadata file's frame rate: None where it states none, else a positive finite number (a number or a
+    numeric string), else a DataError naming the file ('30fps' was a ValueError traceback, and a negative or
+    infinite rate was accepted until a later step divided by it)."""
+    if value is None:
+        return None
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        fps = float(value)
+    except (TypeError, ValueError):
+        fps = math.nan
+    if not (math.isfinite(fps) and fps > 0):
+        raise DataError(meta_file, f"{key} {value!r} is not a positive number (frames per second)")
+    return fps
 
 
 def _checked(meta: Path, name: str, frame: int, K: np.ndarray, w2c: np.ndarray) -> None:

@@ -11,7 +11,7 @@ from ...errors import DataError
 from ..cameras import Camera, fov_to_focal, intrinsics, opengl_c2w_to_w2c
 from ..dataset import SourceScene
 from ..images import image_size
-from ._common import _checked, _find_image, _load_json, _npy_points
+from ._common import _checked, _find_image, _fps, _load_json, _npy_points
 from .registry import ReaderOptions, register_reader
 
 
@@ -60,10 +60,9 @@ def read_blender(path: Path, options: ReaderOptions) -> SourceScene:
         cameras.append(camera)
         if split == "test" and camera.name not in test_names:
             test_names.append(camera.name)
-    if multiview:
-        _check_duplicates(cameras, meta_file)
+    if multiview:  # (a view listed twice for one frame is refused by `assemble`, for every format)
         _check_held_out_whole(entries, splits)
-    fps = first_meta.get("fps")
+    fps = _fps(meta_file, first_meta.get("fps"))
     points_dir = root / "points3d"
     points, description = None, None
     if points_dir.is_dir() and any(points_dir.glob("*.npy")):
@@ -72,7 +71,7 @@ def read_blender(path: Path, options: ReaderOptions) -> SourceScene:
     notes = [] if multiview else ["monocular: each image is its own view"]
     ranked = not multiview or not any("frame_index" in e[3] for e in entries)
     return SourceScene(name=root.name, format="blender", root=root, cameras=cameras, default_test=test_names,
-                       meta_file=meta_file, fps=float(fps) if fps else None, multiview=multiview, points=points,
+                       meta_file=meta_file, fps=fps, multiview=multiview, points=points,
                        points_description=description, notes=notes, synthetic=True,
                        frame_positions=_positions_of_ranks(all_times) if ranked else None)
 
@@ -149,14 +148,6 @@ def _check_held_out_whole(entries: list[tuple[str, Path, Any, Any]], splits: dic
     if both:
         raise DataError(splits["test"][0], f"camera(s) {', '.join(both)} also in transforms_train.json: a multi-view "
                         "scene holds out whole cameras (all their frames), so list each camera in one file")
-
-
-def _check_duplicates(cameras: list[Camera], meta: Path) -> None:
-    seen = set()
-    for c in cameras:
-        if (c.name, c.frame) in seen:
-            raise DataError(meta, f"camera {c.name} frame {c.frame} appears twice")
-        seen.add((c.name, c.frame))
 
 
 # Lens models nerfstudio and instant-ngp write into transforms files; stgc's cameras are pinholes.

@@ -30,6 +30,8 @@ def read_n3dv(path: Path, options: ReaderOptions) -> SourceScene:
         raise DataError(meta_file, "file is missing") from None
     except (ValueError, OSError) as exc:
         raise DataError(meta_file, f"unreadable: {exc}") from None
+    if poses.dtype.kind not in "fiu":
+        raise DataError(meta_file, f"holds {poses.dtype} values, not real numbers (an [N_cams, 17] float array)")
     if poses.ndim != 2 or poses.shape[1] != 17:
         raise DataError(meta_file, f"expected an [N_cams, 17] array, got shape {poses.shape}")
     frame_dirs = {d.name: d for d in sorted(root.glob("cam*")) if d.is_dir() and _frame_files(d)}

@@ -28,6 +28,7 @@ def read_panoptic(path: Path, options: ReaderOptions) -> SourceScene:
     root = path.parent if path.is_file() else path
     cameras: list[Camera] = []
     test_names: list[str] = []
+    train_names: set[str] = set()
     meta_files = [root / "train_meta.json", root / "test_meta.json"]
     for meta_file in meta_files:
         if not meta_file.is_file():
@@ -62,8 +63,11 @@ def read_panoptic(path: Path, options: ReaderOptions) -> SourceScene:
                     raise DataError(meta_file, f"camera {name} frame {t}: k must be 3x3 and w2c 4x4") from None
                 _checked(meta_file, name, frame, K, w2c)
                 cameras.append(Camera(name, frame, 0.0, K, w2c, width, height, root / "ims" / fns[t][c]))
-                if meta_file.name == "test_meta.json" and name not in test_names:
+                if meta_file.name == "train_meta.json":
+                    train_names.add(name)
+                elif name not in test_names:
                     test_names.append(name)
+    _check_held_out_whole(train_names, test_names, meta_files[1])
     _check_no_extra_images(root / "ims", {c.image for c in cameras if isinstance(c.image, Path)}, meta_files[0])
     points, description = None, None
     npz = root / "init_pt_cld.npz"
@@ -111,6 +115,16 @@ def _panoptic_points(npz: Path) -> tuple[np.ndarray, np.ndarray]:
     if not np.all(np.isfinite(data[:, :6])):
         raise DataError(npz, "non-finite (NaN or inf) point coordinates or colours")
     return data[:, :3].astype(np.float32), _rgb01(data[:, 3:6])
+
+
+def _check_held_out_whole(train_names: set[str], test_names: list[str], test_meta: Path) -> None:
+    """The held-out views are whole cameras (every frame of a camera in test_meta.json is a test view): a camera
+    also in train_meta.json had its training images held out with it, and its test frames listed twice, so it is
+    refused (as the Blender reader refuses one in both transforms files)."""
+    both = [name for name in test_names if name in train_names]
+    if both:
+        raise DataError(test_meta, f"camera(s) {', '.join(both)} also in train_meta.json: the held-out views are "
+                        "whole cameras (all their frames), so list each camera in one file")
 
 
 def _check_no_extra_images(folder: Path, used: set[Path], meta: Path) -> None:
