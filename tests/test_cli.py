@@ -104,3 +104,21 @@ def test_version_and_verbosity_flags(capsys):
             assert [line.removeprefix("stgc: ") for line in err.splitlines()] == shown, (verbosity, err)
     finally:
         configure_logging(0)
+
+
+def test_render_names_gif_among_its_outputs(capsys):
+    """`stgc render` writes a .gif as it writes an .mp4, but its --out help and its error named only .png and .mp4."""
+    render = build_parser()._subparsers._group_actions[0].choices["render"]  # type: ignore[union-attr]
+    assert "FILE.gif" in " ".join(render.format_help().split())
+    assert main(["render", "nowhere", "--out", "clip.webm"]) == 2
+    err = capsys.readouterr().err
+    assert "clip.webm" in err and ".gif" in err and ".mp4" in err
+
+
+def test_export_to_a_splatv_name_without_format_splatv_is_refused(tmp_path, capsys):
+    """`stgc export RUN --out x.splatv` without `--format splatv` silently wrote a folder of PLY files named x.splatv;
+    it is refused, before anything is read or written, with the flag it wants."""
+    assert main(["export", "nowhere", "--out", str(tmp_path / "x.splatv")]) == 2
+    err = capsys.readouterr().err
+    assert "x.splatv" in err and "--format splatv" in err and "Traceback" not in err
+    assert not (tmp_path / "x.splatv").exists()

@@ -40,3 +40,32 @@ def test_a_folder_is_replaced_whole_or_not_at_all(tmp_path):
         (tmp / "c").write_text("2")
     assert sorted(p.name for p in out.iterdir()) == ["c"]  # not mixed with the earlier write
     assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no temporary folder left
+
+
+def test_a_folder_whose_swap_fails_keeps_the_earlier_write(tmp_path, monkeypatch):
+    """The earlier folder was removed before the new one was renamed onto its name: when that rename failed (a full
+    quota, a busy mount), neither the old write nor the new one was left."""
+    import stgc.fileio
+    from stgc.errors import OutputError
+    from stgc.fileio import atomic_folder
+
+    out = tmp_path / "out"
+    with atomic_folder(out) as tmp:
+        (tmp / "a").write_text("old")
+    real_replace = os.replace
+
+    def failing_onto_out(src, dst):
+        if os.fspath(dst) == os.fspath(out) and not os.fspath(src).endswith(".old"):
+            raise OSError(28, "No space left on device")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(stgc.fileio.os, "replace", failing_onto_out)
+    with pytest.raises(OutputError, match="no space left"):
+        with atomic_folder(out) as tmp:
+            (tmp / "b").write_text("new")
+    monkeypatch.setattr(stgc.fileio.os, "replace", real_replace)
+    assert sorted(p.name for p in out.iterdir()) == ["a"] and (out / "a").read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no temporary or backup folder left
+    with atomic_folder(out) as tmp:  # and a later swap that succeeds replaces it, leaving nothing beside it
+        (tmp / "c").write_text("new")
+    assert sorted(p.name for p in out.iterdir()) == ["c"] and [p.name for p in tmp_path.iterdir()] == ["out"]

@@ -170,6 +170,87 @@ def test_a_port_in_use_gives_a_clear_error_with_a_free_port():
             check_port("127.0.0.1", port)
 
 
+def test_a_host_that_cannot_be_listened_on_is_named_not_taken_for_a_port_in_use():
+    """`stgc view --host 10.255.255.1` (not this machine's address) or a host name that does not resolve printed a
+    bare OSError naming neither the host nor --host: the error was read as a port in use, and finding a free port on
+    that host failed in turn. A port in use (only then) still gets a free port to try."""
+    port = free_port()
+    with pytest.raises(StgcError, match=r"--host 10\.255\.255\.1: cannot listen there") as info:
+        check_port("10.255.255.1", port)
+    assert "in use" not in str(info.value) and "127.0.0.1" in str(info.value)
+    with pytest.raises(StgcError, match=r"--host no-such-host\.invalid: cannot resolve") as info:
+        check_port("no-such-host.invalid", port)
+    assert "in use" not in str(info.value)
+
+
+def test_the_speed_slider_holds_the_datas_frame_rate_outside_its_usual_range(run):
+    """The frames-per-second slider ran from 0.5 to 60 and started at the data's rate, which viser refuses outside
+    that range: `stgc view` failed on data at 120 or 0.25 fps."""
+    from stgc.viewer import Viewer
+
+    for fps in (120.0, 0.25):
+        viewed = ViewerScene.open(run)
+        viewed.segments[0].dataset.fps = fps
+        viewer = Viewer(viewed, port=free_port())
+        try:
+            assert viewer.speed.value == fps and viewer.speed.min <= 0.5 and viewer.speed.max >= 60.0
+        finally:
+            viewer.stop()
+
+
+def test_with_ground_truth_on_the_picture_keeps_its_size_when_the_camera_stops(run):
+    """With `ground truth` on, the moving (coarse) image was sized for the pair render | ground truth, but at rest the
+    pair is shown only where an image exists (never between frames): stopping at frame 1.5 doubled the picture's
+    size. Pair or single is now decided once per frame: the render covers the same part of the canvas moving and
+    still, the left half beside the ground truth at a dataset frame, the whole between frames."""
+    from types import SimpleNamespace
+
+    from stgc.viewer import _ClientView
+
+    viewed = ViewerScene.open(run)
+    mark = np.array([255, 0, 255], np.uint8)
+    viewed.render = lambda cam, frame: np.tile(mark, (cam.height, cam.width, 1))  # the render's pixels, found below
+    sent = []
+
+    class BrowserCamera:
+        image_width, image_height, fov, update_timestamp = 640, 480, 1.0, 1.0
+        position, wxyz = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
+
+        def on_update(self, callback):
+            pass
+
+    client = SimpleNamespace(client_id=1, camera=BrowserCamera(),
+                             scene=SimpleNamespace(set_background_image=lambda image, format: sent.append(image)))
+    viewer = SimpleNamespace(scene=viewed, frame=1.0, show_ground_truth=True, max_side=64, near=0.2,
+                             show_stats=lambda *args: None)
+    view = _ClientView(viewer, client)
+    view.closed = True  # the test draws; the render loop stops
+    view.wake.set()
+    view.thread.join()
+    position, wxyz, _ = view_of_camera(viewed.cameras["0"])
+    client.camera.position, client.camera.wxyz = position, wxyz
+    view.snapped = ("0", position, wxyz)
+
+    def shown():
+        """Where the render lies on the canvas, as shares of the image the browser stretches over it."""
+        image = sent[-1]
+        rows, cols = np.nonzero((image == mark).all(axis=2))
+        h, w = image.shape[:2]
+        return np.array([cols.min() / w, (cols.max() + 1) / w, rows.min() / h, (rows.max() + 1) / h])
+
+    for frame, width_share in ((1.0, 0.5), (1.5, 1.0)):
+        viewer.frame = frame
+        view.changed_at = time.perf_counter()  # moving
+        view.draw()
+        moving = shown()
+        view.changed_at = time.perf_counter() - 10.0  # at rest
+        view.draw()
+        still = shown()
+        np.testing.assert_allclose(moving, still, atol=0.04, err_msg=f"frame {frame}")
+        assert still[1] - still[0] == pytest.approx(width_share, abs=0.02)  # the pair at a dataset frame only
+    assert np.array_equal(sent[-1].shape, (480, 640, 3))
+
+
 def test_a_missing_source_gives_the_usual_clear_error(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nothing")]) != 0
     assert "nothing" in capsys.readouterr().err

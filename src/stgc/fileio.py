@@ -92,8 +92,9 @@ def _renamed_into_place(tmp: Path, path: Path, mode: int) -> Iterator[Path]:
             os.umask(umask)
             os.chmod(tmp, mode & ~umask)
             if tmp.is_dir() and path.exists():
-                shutil.rmtree(path)
-            os.replace(tmp, path)
+                _swap_folder(tmp, path)
+            else:
+                os.replace(tmp, path)
         except OSError as exc:
             raise output_error(path, exc) from None
     finally:
@@ -101,6 +102,25 @@ def _renamed_into_place(tmp: Path, path: Path, mode: int) -> Iterator[Path]:
             shutil.rmtree(tmp, ignore_errors=True)
         elif tmp.exists():
             tmp.unlink()
+
+
+def _swap_folder(new: Path, path: Path) -> None:
+    """Put the folder `new` where the folder `path` is. The old one is renamed aside first and removed only once
+    `new` is in place; when that rename fails it is renamed back, so `path` holds the old write or the new one,
+    never neither (removing the old folder first lost both where the rename then failed)."""
+    backup = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
+    os.rmdir(backup)  # a free name beside `path`: rename needs it empty or absent
+    os.replace(path, backup)
+    try:
+        os.replace(new, path)
+    except OSError:
+        try:
+            os.replace(backup, path)
+        except OSError as exc:
+            raise OutputError(path, f"cannot write ({exc.strerror}), nor put the earlier write back: it is in "
+                                    f"{backup}") from None
+        raise
+    shutil.rmtree(backup, ignore_errors=True)
 
 
 @contextlib.contextmanager

@@ -18,6 +18,7 @@ what the bitstream holds.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import logging
 import math
 import socket
@@ -252,6 +253,12 @@ def pad_like_still(image: np.ndarray, full_width: int, full_height: int, width: 
     return _centred(image, canvas_w, canvas_h, fill)
 
 
+def _fitted(image: np.ndarray, shape: tuple[int, ...], fill: tuple[float, float, float]) -> np.ndarray:
+    """`image` cut or padded (in the middle of the fill colour) to `shape` [H, W, 3]."""
+    cut = image[: shape[0], : shape[1]]
+    return cut if cut.shape == tuple(shape) else _centred(cut, shape[1], shape[0], fill)
+
+
 def _centred(image: np.ndarray, width: int, height: int, fill: tuple[float, float, float]) -> np.ndarray:
     canvas = np.empty((height, width, 3), dtype=np.uint8)
     canvas[:] = (np.asarray(fill) * 255.0 + 0.5).astype(np.uint8)
@@ -274,17 +281,39 @@ def _shrink(image: np.ndarray, factor: int) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------- server
 def check_port(host: str, port: int) -> None:
-    """A clear error, with a free port to use instead, when `port` on `host` is taken."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+    """A clear error when the viewer cannot listen on `host`:`port`: a host name that does not resolve or an
+    address that is not this machine's names --host; a port that is taken (only then) gets a free one to use."""
+    family, address = _listen_address(host, port)
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
         try:
-            probe.bind((host, port))
+            probe.bind(address)
         except OSError as exc:
-            raise StgcError(f"port {port} on {host} is in use ({exc.strerror}); try --port {free_port(host)}") from None
+            if exc.errno == errno.EADDRINUSE:
+                raise StgcError(f"port {port} on {host} is in use ({exc.strerror}); "
+                                f"try --port {free_port(host)}") from None
+            if exc.errno in (errno.EACCES, errno.EPERM):
+                raise StgcError(f"--port {port} on {host}: permission denied ({exc.strerror}; ports below 1024 "
+                                f"need privileges); try --port {free_port(host)}") from None
+            raise StgcError(f"--host {host}: cannot listen there ({exc.strerror}); give an address of this "
+                            "machine: 127.0.0.1 (this machine only) or 0.0.0.0 (every network interface)") from None
+
+
+def _listen_address(host: str, port: int) -> tuple[socket.AddressFamily, Any]:
+    """The socket family and address to bind for `host` (a name or an IPv4/IPv6 address); a clear error, naming
+    --host, when the name does not resolve."""
+    try:
+        family, _, _, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except (socket.gaierror, UnicodeError) as exc:
+        reason = exc.strerror if isinstance(exc, socket.gaierror) else str(exc)
+        raise StgcError(f"--host {host}: cannot resolve that host name ({reason}); give a name or address of "
+                        "this machine: 127.0.0.1 (this machine only) or 0.0.0.0 (every network interface)") from None
+    return family, address
 
 
 def free_port(host: str = "127.0.0.1") -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind((host, 0))
+    family, address = _listen_address(host, 0)
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.bind(address)
         return int(probe.getsockname()[1])
 
 
@@ -365,18 +394,23 @@ class _ClientView:
             dataset_camera = scene.dataset_camera(name, frame)
             rendered = scene.render(dataset_camera if still else dataset_camera.scaled(MOVING_PIXEL_SCALE), frame)
             numbers = scene.stats(frame, name, rendered if still else None)
-            picture = rendered
-            if viewer.show_ground_truth and still:
-                gt = scene.ground_truth(name, frame)
-                if gt is not None and gt.shape == rendered.shape:
-                    picture = np.concatenate([rendered, gt], axis=1)
+            # The pair (render | ground truth) or the render alone, decided once for this frame, moving or still:
+            # deciding apart (the pair's scale while moving, the pair at rest only where an image exists) made the
+            # picture jump in size when the camera stopped between dataset frames.
+            gt = scene.ground_truth(name, frame) if viewer.show_ground_truth else None
+            pair = gt is not None and gt.shape == (dataset_camera.height, dataset_camera.width, 3)
+            shown_width = dataset_camera.width * (2 if pair else 1)
+            if pair and gt is not None:
+                # While moving, the ground truth subsampled to the coarse render's size (a preview).
+                step = 1 if still else round(1.0 / MOVING_PIXEL_SCALE)
+                picture = np.concatenate([rendered, _fitted(gt[::step, ::step], rendered.shape, scene.background)],
+                                         axis=1)
+            else:
+                picture = rendered
             # At rest every pixel exact; while moving padded so the browser shows it as large as at rest (an
             # upscaled coarse image would cost the encoding time the coarse render saves).
             image = (letterbox(picture, width, height, scene.background) if still
-                     else pad_like_still(picture, dataset_camera.width, dataset_camera.height, width, height,
-                                         scene.background, letterbox_scale(
-                                             dataset_camera.width * (2 if viewer.show_ground_truth else 1),
-                                             dataset_camera.height, width, height)))
+                     else pad_like_still(picture, shown_width, dataset_camera.height, width, height, scene.background))
         else:
             scale = min(1.0, viewer.max_side / max(width, height)) * (1.0 if still else MOVING_PIXEL_SCALE)
             w, h = max(1, round(width * scale)), max(1, round(height * scale))
@@ -415,7 +449,9 @@ class Viewer:
         self.frame_slider = gui.add_slider("frame", min=scene.frames[0], max=scene.frames[-1], step=0.1,
                                            initial_value=scene.frames[0])
         self.play = gui.add_checkbox("play", initial_value=False)
-        self.speed = gui.add_slider("frames per second", min=0.5, max=60.0, step=0.5, initial_value=float(first.fps))
+        fps = float(first.fps)  # viser refuses an initial value outside the slider's range: the range holds it
+        self.speed = gui.add_slider("frames per second", min=min(0.5, fps), max=max(60.0, fps), step=0.5,
+                                    initial_value=fps)
         self.truth = gui.add_checkbox("ground truth", initial_value=False,
                                       hint="the dataset's image beside the render (at a dataset camera and frame)")
         self.numbers = gui.add_markdown("")

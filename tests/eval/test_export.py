@@ -161,6 +161,94 @@ def test_splatv_file_holds_the_model_as_an_independent_reader_sees_it(scene, tmp
     np.testing.assert_allclose(splat["cameras"][0]["position"], first.center, atol=1e-9)
 
 
+def _splatv_view_matrix(camera):
+    """splaTV's getViewMatrix (its viewer's main.js / hybrid.js), written out: a column-major 4 x 4 from the camera's
+    `rotation` rows R and `position` t; its columns are R's rows and -(t R[:, j])."""
+    R = np.asarray(camera["rotation"], np.float64).ravel()
+    t = np.asarray(camera["position"], np.float64)
+    flat = [R[0], R[1], R[2], 0.0,
+            R[3], R[4], R[5], 0.0,
+            R[6], R[7], R[8], 0.0,
+            -t[0] * R[0] - t[1] * R[3] - t[2] * R[6],
+            -t[0] * R[1] - t[1] * R[4] - t[2] * R[7],
+            -t[0] * R[2] - t[1] * R[5] - t[2] * R[8],
+            1.0]
+    return np.asarray(flat).reshape(4, 4).T  # column-major: each group of four is a column
+
+
+def test_splatv_cameras_give_splatvs_viewer_the_datasets_view_matrices(scene, tmp_path):
+    """splaTV builds each camera's view matrix from the JSON's `rotation` and `position` (getViewMatrix). The test
+    checked only the names and the first centre, so a transposed rotation (world-to-camera rows, the other common
+    convention) or swapped focal lengths would have passed; here the viewer's matrix must be the camera's w2c."""
+    from stgc.eval.export import export_splatv
+
+    dataset = open_dataset(scene.root)
+    splat, _, _ = _read_splatv(export_splatv(scene.model, tmp_path / "m.splatv", dataset=dataset))
+    by_name = {str(c.name): c for c in [*dataset.test, *dataset.train]}
+    assert len(splat["cameras"]) == len(by_name)
+    for entry in splat["cameras"]:
+        cam = by_name[entry["img_name"]]
+        np.testing.assert_allclose(_splatv_view_matrix(entry), cam.w2c, atol=1e-9)
+        assert (entry["fx"], entry["fy"]) == (float(cam.K[0, 0]), float(cam.K[1, 1]))
+        assert (entry["width"], entry["height"]) == (cam.width, cam.height)
+    # The rotation is not symmetric in these cameras: the transposed convention would fail above.
+    assert not np.allclose(np.asarray(splat["cameras"][0]["rotation"]), np.asarray(splat["cameras"][0]["rotation"]).T)
+    # These cameras have square pixels (fx = fy); one whose focal lengths differ shows a swap.
+    import dataclasses
+
+    from stgc.eval.export import splatv_cameras
+
+    K = dataset.test[0].K.copy()
+    K[1, 1] *= 1.25
+    entry = splatv_cameras(SimpleNamespace(test=[dataclasses.replace(dataset.test[0], K=K)], train=[]))[0]
+    assert (entry["fx"], entry["fy"]) == (K[0, 0], K[1, 1]) and K[0, 0] != K[1, 1]
+
+
+def _write_run(root, model, data_root, **data):
+    (root / "point_cloud" / "iteration_1").mkdir(parents=True)
+    model.save(root / "point_cloud" / "iteration_1")
+    (root / "config.json").write_text(json.dumps({"data": {"path": str(data_root), **data}, "model": {}, "train": {},
+                                                 "compaction": None}))
+    return root
+
+
+def test_exports_record_the_models_near_plane_and_warn_where_viewers_cull_nearer(scene, tmp_path, capsys):
+    """The model culls Gaussians closer than its near plane to a camera (1.0 on Panoptic data); gsplat and nerfstudio
+    cull at 0.01, the INRIA viewers at 0.2, so Gaussians the model never showed a camera fog the exported views from
+    near it (27.86 against 6.90 dB on a Panoptic camera). The exports did not say which near plane the model used, and
+    nothing warned."""
+    run = _write_run(tmp_path / "run", scene.model, scene.root, near_plane=None)  # the format's: Panoptic's 1.0
+    assert main(["export", str(run), "--out", str(tmp_path / "frames"), "--frames", "0:1"]) == 0
+    err = capsys.readouterr().err
+    assert "near plane" in err and "0.01" in err and "near_plane" in err and "export.json" in err
+    assert json.loads((tmp_path / "frames" / "export.json").read_text())["near_plane"] == 1.0
+    assert main(["export", str(run), "--format", "splatv", "--out", str(tmp_path / "m.splatv")]) == 0
+    assert "near plane" in capsys.readouterr().err
+    splat, _, _ = _read_splatv(tmp_path / "m.splatv")
+    assert splat["near_plane"] == 1.0
+    # A model with STG's own 0.2: the viewers show what it shows (INRIA's) or cull nearer by little; recorded, no
+    # warning.
+    official = _write_run(tmp_path / "official", scene.model, scene.root, near_plane=0.2)
+    assert main(["export", str(official), "--out", str(tmp_path / "frames02"), "--frames", "0:1"]) == 0
+    assert "near plane" not in capsys.readouterr().err
+    assert json.loads((tmp_path / "frames02" / "export.json").read_text())["near_plane"] == 0.2
+
+
+def test_a_frame_listed_twice_is_exported_once(scene, tmp_path, capsys):
+    """`--frames 2,0,2` said it wrote 3 files (2 exist: the second frame 2 replaced the first) and export.json listed
+    frame 2 twice; each frame is exported once, in the order first given."""
+    from stgc.eval.video import frame_selection
+
+    assert frame_selection("2,0,2", [0, 1, 2]) == [2, 0] and frame_selection([1, 1], [0, 1, 2]) == [1]
+    run = _write_run(tmp_path / "run", scene.model, scene.root)
+    assert main(["export", str(run), "--out", str(tmp_path / "out"), "--frames", "2,0,2"]) == 0
+    assert "wrote 2 static 3DGS PLY" in capsys.readouterr().out
+    record = json.loads((tmp_path / "out" / "export.json").read_text())
+    assert [f["frame"] for f in record["frames"]] == [2, 0]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["export.json", "frame_000000.ply",
+                                                                    "frame_000002.ply"]
+
+
 def test_a_full_models_splatv_colour_is_its_decoded_colour_at_its_own_time():
     """splaTV has one colour per Gaussian: the full model's decoder output at the Gaussian's mu_t (its time feature
     zero there), along the ray from the origin given; the same as the decoded colour of the frame export at that
@@ -184,3 +272,26 @@ def test_a_full_models_splatv_colour_is_its_decoded_colour_at_its_own_time():
         checked += 1
     assert checked > 20
     assert np.ptp(colours, axis=0).max() > 0.05  # the colours differ between Gaussians: a comparison that can fail
+
+
+def test_a_splatv_temporal_scale_beyond_half_range_is_written_as_the_largest_half(scene, tmp_path):
+    """exp(s_t) above 65504 (the largest half float; 421 Gaussians of a trained Panoptic model) was cast to inf, with a
+    numpy overflow warning that `stgc export` printed. Written as 65504 instead: the viewer's temporal factor
+    exp(-(dt / 65504)^2) is 1 there to 2.4e-10, as it is for the model's scale."""
+    import warnings
+
+    from stgc.eval.export import export_splatv
+
+    dataset = open_dataset(scene.root)
+    model = moving_model(scene.model)
+    with torch.no_grad():
+        model.params["trbf_scale"][:5, 0] = torch.tensor([11.0, 12.0, 30.0, 100.0, 11.09])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow warning
+        path = export_splatv(model, tmp_path / "m.splatv", dataset=dataset)
+    _, words, halves = _read_splatv(path)
+    stored = halves(words[: 16 * model.num_gaussians].reshape(-1, 16)[:, 15])[:, 1]
+    assert np.isfinite(stored).all()
+    np.testing.assert_array_equal(stored[1:4], 65504.0)
+    np.testing.assert_allclose(stored[[0, 4]], np.exp([11.0, 11.09]), rtol=5e-4)
+    np.testing.assert_allclose(stored[5:], np.exp(model.params["trbf_scale"].detach().numpy()[5:, 0]), rtol=5e-4)

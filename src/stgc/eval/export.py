@@ -19,11 +19,18 @@ Colour is where a static splat loses something:
   each Gaussian instead of on the composited features, so where Gaussians overlap the colours differ.
 Higher SH bands are written as zeros (45 `f_rest_*` fields, degree 3) because readers of the INRIA layout expect
 them.
+
+The near plane: stgc culls a Gaussian whose centre is closer to the camera than the camera's near plane (1.0 on
+Panoptic data, STG's 0.2 by default), and a model is trained and evaluated so. The tools that read the exports cull
+nearer (gsplat and nerfstudio at 0.01, the INRIA viewers at 0.2, splaTV at about 0.09-0.2), so Gaussians that the
+model never showed to a camera, in front of it, can fog that camera's view there. Each export records the model's
+near plane (`near_plane` in export.json and in the .splatv header), and a warning says so when it is above 0.2.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import re
 from dataclasses import dataclass
@@ -40,6 +47,8 @@ from stgc.eval.video import ModelSource, frame_selection, load_model_and_dataset
 from stgc.fileio import atomic_folder, atomic_path, write_json
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel
 
+log = logging.getLogger(__name__)
+
 SH_C0 = 0.28209479177387814  # the degree-0 real spherical harmonic, 1 / (2 sqrt(pi))
 SH_REST = 45  # degree-3 bands 1-3, three colours
 INRIA_FIELDS = (
@@ -50,6 +59,9 @@ INRIA_FIELDS = (
 EXPORT_FORMATS = ("ply-frames", "splatv")
 # Opacity logits of (almost) transparent or opaque Gaussians stay finite.
 _OPACITY_EPS = 1e-6
+# The largest near plane among the tools that read the exports (the INRIA viewers'; gsplat and nerfstudio use 0.01,
+# splaTV about 0.09-0.2): a model that culls farther than this shows them Gaussians it never showed its cameras.
+VIEWER_NEAR_PLANE = 0.2
 
 
 @dataclass
@@ -131,6 +143,19 @@ def read_inria_ply(path: str | Path) -> StaticGaussians:
     )
 
 
+def model_near_plane(dataset: Dataset, written: str | Path) -> float:
+    """The near plane the model renders with (its dataset's cameras'); a warning, naming `written`, when the tools
+    that read the export cull nearer than it (see the module docstring)."""
+    near = float(dataset.near_plane)
+    if near > VIEWER_NEAR_PLANE:
+        log.warning("%s: the model culls Gaussians closer than %g to a camera (its near plane), and the viewers of "
+                    "this export cull nearer (gsplat and nerfstudio at 0.01, the INRIA viewers at 0.2, splaTV at "
+                    "about 0.09-0.2): Gaussians the model never showed to a camera can fog the views from near its "
+                    "cameras. Set the viewer's near plane to %g where it has one (recorded as near_plane in %s), or "
+                    "look from farther in front of the cameras", written, near, near, written)
+    return near
+
+
 def training_view_origin(dataset: Dataset) -> np.ndarray:
     """The centroid of the training cameras' centres (the viewpoint a full model's static colours are decoded for)."""
     return np.mean([np.asarray(c.center, np.float64) for c in dataset.train], axis=0)
@@ -150,6 +175,7 @@ def export_ply_frames(source: ModelSource, out_dir: str | Path, frames: Any = No
         raise DataError(out, f"holds files that are not an earlier export ({', '.join(foreign[:3])}"
                              f"{', ...' if len(foreign) > 3 else ''}); choose a new or empty folder")
     origin = training_view_origin(dataset)
+    near = model_near_plane(dataset, out / "export.json")
     entries: list[dict[str, Any]] = []
     with atomic_folder(out) as tmp:  # an earlier export's frames are not left beside this one's
         for frame in chosen:
@@ -165,7 +191,7 @@ def export_ply_frames(source: ModelSource, out_dir: str | Path, frames: Any = No
             "format": "ply-frames", "layout": "INRIA 3DGS (SH degree 3, bands 1-3 zero)",
             "source": str(source) if isinstance(source, (str, Path)) else "in-memory model",
             "variant": model.variant, "colour": colour, "frames": entries,
-            "sh_c0": SH_C0, "min_opacity": float(MIN_VISIBLE_OPACITY)})
+            "sh_c0": SH_C0, "min_opacity": float(MIN_VISIBLE_OPACITY), "near_plane": near})
     return [out / str(entry["file"]) for entry in entries]
 
 
@@ -250,11 +276,15 @@ def write_splatv(path: str | Path, model: STGModel, dataset: Dataset) -> Path:
     for k in range(5):
         rows[:, 8 + k] = _half_pairs(motion[:, 2 * k], motion[:, 2 * k + 1])
     rows[:, 13], rows[:, 14] = _half_pairs(p["omega"][:, 0], p["omega"][:, 1]), _half_pairs(p["omega"][:, 2], p["omega"][:, 3])
-    rows[:, 15] = _half_pairs(p["trbf_center"][:, 0], np.exp(p["trbf_scale"][:, 0]))
+    # A temporal scale beyond the largest half float (65504, e^11.09) would be written as inf; that large, the
+    # temporal factor exp(-(dt / scale)^2) is 1 within 2.4e-10 for any |dt| <= 1 either way.
+    temporal_scale = np.minimum(np.exp(p["trbf_scale"][:, 0].astype(np.float64)), float(np.finfo(np.float16).max))
+    rows[:, 15] = _half_pairs(p["trbf_center"][:, 0], temporal_scale)
     payload = texels.astype("<u4").tobytes()
-    header = json.dumps([{"type": "splat", "size": len(payload), "texwidth": SPLATV_TEXWIDTH, "texheight": height,
-                          "cameras": splatv_cameras(dataset)}]).encode("utf-8")
     path = Path(path)
+    near = model_near_plane(dataset, path)  # splaTV reads type, size, texwidth, texheight, cameras: not this key
+    header = json.dumps([{"type": "splat", "size": len(payload), "texwidth": SPLATV_TEXWIDTH, "texheight": height,
+                          "cameras": splatv_cameras(dataset), "near_plane": near}]).encode("utf-8")
     with atomic_path(path) as tmp:
         Path(tmp).write_bytes(np.array([SPLATV_MAGIC, len(header)], "<u4").tobytes() + header + payload)
     return path
@@ -269,6 +299,6 @@ def export_splatv(source: ModelSource, out_path: str | Path, dataset: Dataset | 
     return write_splatv(out_path, model, dataset)
 
 
-__all__ = ["EXPORT_FORMATS", "INRIA_FIELDS", "SH_C0", "StaticGaussians", "export_ply_frames", "gaussians_at",
-           "export_splatv", "read_inria_ply", "splatv_cameras", "splatv_colours", "static_render_inputs",
-           "training_view_origin", "write_inria_ply", "write_splatv"]
+__all__ = ["EXPORT_FORMATS", "INRIA_FIELDS", "SH_C0", "VIEWER_NEAR_PLANE", "StaticGaussians", "export_ply_frames",
+           "export_splatv", "gaussians_at", "model_near_plane", "read_inria_ply", "splatv_cameras", "splatv_colours",
+           "static_render_inputs", "training_view_origin", "write_inria_ply", "write_splatv"]

@@ -115,7 +115,7 @@ def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> P
         named = tmp.with_name(tmp.name + suffix)
         try:
             if suffix == ".gif":
-                images = [np.asarray(f) for f in frames]
+                images: list[Any] = [np.asarray(f) for f in frames]
                 imageio.mimsave(named, images, duration=_gif_delays_ms(len(images), fps), loop=0)
             else:
                 # macro_block_size=2 keeps imageio from rescaling small frames to multiples of 16.
@@ -198,7 +198,9 @@ def orbit_cameras(dataset: Dataset, num_frames: int) -> list[Camera]:
 
 def frame_selection(frames: Any, available: Sequence[int]) -> list[int]:
     """The frames of `available` that `frames` picks: None (all), "A:B", "A,B,...", a slice or a list; a
-    DataError names a selection outside the dataset."""
+    DataError names a selection outside the dataset. A list keeps its order, each frame once (at its first place):
+    a repeat would export one file twice (the second replacing the first, listed twice) and repeat a contact
+    sheet's rows, and a whole video's render plays each frame once whatever the list."""
     if frames is None:
         return list(available)
     if isinstance(frames, str):
@@ -218,7 +220,7 @@ def frame_selection(frames: Any, available: Sequence[int]) -> list[int]:
                                   f"{min(available)}:{max(available) + 1}")
         chosen = [f for f in available if lo <= f < hi]
     else:
-        chosen = [int(f) for f in frames]
+        chosen = list(dict.fromkeys(int(f) for f in frames))
         missing = [f for f in chosen if f not in set(available)]
         if missing:
             raise DataError(None, f"frames {missing} are not in the dataset (frames {min(available)}..{max(available)})")
