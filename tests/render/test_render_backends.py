@@ -63,6 +63,8 @@ def _fake_gsplat():
     def fully_fused_projection(means, covars, quats, scales, viewmats, Ks, width, height, eps2d=0.3,
                                near_plane=0.01, opacities=None):  # fmt: skip
         assert covars is None and opacities is not None and opacities.shape == means.shape[:1]
+        if means.shape[0] == 0:  # gsplat 1.5.3 divides by N on the host: a SIGFPE that kills the process
+            raise ZeroDivisionError("fully_fused_projection with no Gaussians")
         covars, _ = impl._quat_scale_to_covar_preci(quats, scales, True, False)
         return impl._fully_fused_projection(means, covars, viewmats, Ks, width, height, eps2d, near_plane)
 
@@ -135,6 +137,25 @@ def test_a_zero_quaternion_is_drawn_unrotated_on_the_gsplat_path_as_on_the_other
         images[backend] = rasterize(*scene.args(), backend=backend, alpha_max=0.999).image
     assert torch.isfinite(images["gsplat"]).all()
     assert (images["gsplat"] - images["numba"]).abs().max() < 1e-3
+
+
+def test_no_gaussians_and_a_camera_to_optimise_never_reach_gsplat(fresh_gsplat_state, monkeypatch):
+    """gsplat dies on N = 0 (a model's render culls to none at a time far from all its Gaussians), and its
+    projection drops K's gradient silently: both go to torch, and gsplat asked for by name refuses K's gradient."""
+    monkeypatch.setattr(gsplat_backend, "_import_gsplat", _fake_gsplat)
+    empty = make_scene(0, 16, 12)
+    background = torch.tensor([0.25, 0.5, 0.75])
+    out = rasterize(*empty.args(), background, backend="auto")
+    assert out.backend == "torch" and torch.allclose(out.image, background.expand(12, 16, 3))
+    scene = make_scene(30, 16, 16)
+    args = list(scene.args())
+    args[5] = args[5].clone().requires_grad_(True)  # K
+    out = rasterize(*args, backend="auto")
+    assert out.backend == "torch"
+    out.image.sum().backward()
+    assert args[5].grad is not None and torch.isfinite(args[5].grad).all()
+    with pytest.raises(ValueError, match="no gradient for K"):
+        rasterize(*args, backend="gsplat")
 
 
 def test_gsplat_asked_for_by_name_refuses_float64_instead_of_running_torch_silently(fresh_gsplat_state,
@@ -211,3 +232,20 @@ def test_means2d_grad_ndc_norm_scales_by_half_image_size():
     expected = torch.sqrt((g[:, 0] * 20.0) ** 2 + (g[:, 1] * 12.0) ** 2) * out.visible
     assert torch.allclose(out.means2d_grad_ndc_norm(), expected)
     assert out.means2d_grad_ndc_norm()[out.visible].gt(0).float().mean() > 0.5
+
+
+def test_numba_backward_uses_the_colours_of_its_forward_though_the_caller_changes_them_after(monkeypatch):
+    """The numba forward kept a view of the caller's features for the backward: changed in place in between
+    (autograd's version check does not see numpy views), the gradients came from the new values."""
+    monkeypatch.setattr(api, "select_backend", lambda requested, device: "numba")
+    scene = make_scene(80, 24, 16, seed=6)
+    grads = []
+    for change_after_forward in (False, True):
+        s = scene.leaves()
+        out = rasterize(*s.args(), backend="numba")
+        if change_after_forward:
+            with torch.no_grad():
+                s.features.mul_(2.0)
+        out.image.sum().backward()
+        grads.append(s.opacities.grad.clone())
+    assert torch.equal(grads[0], grads[1])

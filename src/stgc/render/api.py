@@ -131,10 +131,19 @@ def rasterize(
         raise ValueError(f"near_plane: expected a positive finite value, got {near_plane}")
     if not (float(eps2d) >= 0 and np.isfinite(eps2d)):
         raise ValueError(f"eps2d: expected a finite value >= 0, got {eps2d}")
-    if float(K[0, 0]) <= 0 or float(K[1, 1]) <= 0:
+    if float(K[0, 0].detach()) <= 0 or float(K[1, 1].detach()) <= 0:
         raise ValueError(f"K: focal lengths must be positive, got fx={float(K[0, 0])}, fy={float(K[1, 1])}")
 
     chosen = select_backend(backend, device)
+    if chosen == "gsplat" and N == 0:
+        # gsplat divides by N on the host (a SIGFPE that kills the process); a model's render culls to no
+        # Gaussians at a time far from all of them.
+        chosen = "torch"
+    if chosen == "gsplat" and K.requires_grad and backend == "gsplat":
+        raise ValueError("backend='gsplat' has no gradient for K (its projection drops it); use backend='torch' "
+                         "to optimise cameras")
+    if chosen == "gsplat" and K.requires_grad:
+        chosen = "torch"  # 'auto': the backend that differentiates the camera
     if chosen == "gsplat" and backend == "gsplat" and dtype != torch.float32:
         raise ValueError(f"backend='gsplat' renders float32 only (got {dtype}); use backend='auto' (falls back "
                          "to torch for float64) or 'torch'")

@@ -121,7 +121,9 @@ class _NumbaComposite(torch.autograd.Function):
                 offsets: np.ndarray, flat: np.ndarray, width: int, height: int, tile_size: int, consts: np.ndarray,
                 want_depth: bool, want_weights: bool) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:  # fmt: skip
         np_dtype = gdata.dtype.type
-        col = np.ascontiguousarray(colors.detach().numpy(), dtype=np_dtype)
+        # A copy: the backward replays these colours, and a view of the caller's tensor changed in place in between
+        # would give wrong gradients that autograd's version check never sees.
+        col = np.array(colors.detach().numpy(), dtype=np_dtype, order="C", copy=True)
         N, C = col.shape
         tiles_x, _ = tile_grid(width, height, tile_size)
         centers_x = np.arange(width, dtype=np_dtype) + np_dtype(0.5)
