@@ -443,3 +443,29 @@ def test_a_plan_on_ray_gives_the_in_process_table_and_survives_a_killed_worker(c
 def _rows(path: Path) -> list[dict[str, str]]:
     with open(path) as f:
         return list(csv.DictReader(f))
+
+
+def test_a_task_s_log_file_gets_its_messages_while_a_quiet_console_stays_quiet(tmp_path):
+    """The task log needs INFO; lowering the stgc logger for it also un-silenced `stgc -q`'s console handler for as
+    long as a segment trained in this process."""
+    import io
+
+    from stgc.cli import configure_logging
+    from stgc.distributed import run_logged
+
+    logger, warnings_logger = logging.getLogger("stgc"), logging.getLogger("py.warnings")
+    saved = [(lg, lg.handlers[:], lg.level, lg.propagate) for lg in (logger, warnings_logger)]
+    configure_logging(-1)  # stgc -q
+    console = logger.handlers[0]
+    shown = io.StringIO()
+    console.setStream(shown)  # type: ignore[attr-defined]
+    try:
+        run_logged(lambda: logging.getLogger("stgc.train").info("initial points: 200"), tmp_path / "task.log")
+        assert "initial points" in (tmp_path / "task.log").read_text()
+        assert shown.getvalue() == ""
+        assert console.level == logging.NOTSET and logger.level == logging.ERROR  # restored after
+    finally:
+        logging.captureWarnings(False)
+        for lg, handlers, level, propagate in saved:
+            lg.handlers[:], lg.propagate = handlers, propagate
+            lg.setLevel(level)

@@ -133,9 +133,20 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.segment_frames is not None or (args.resume and Run(out).is_video()):
         train_video(data_path, configs, out, args.segment_frames, resume=args.resume, overwrite=args.overwrite,
                     evaluator=RunEvaluator(), use_ray=not args.no_ray, ray_address=args.ray_address)
-        print(f"whole video written to {out} ({len(Run(out).segments())} segments)")
+        segments = Run(out).segments()
+        unfinished = [s for s in segments if not s.training_finished()]
+        if unfinished:  # train.stop_after: no whole video yet to evaluate
+            print(f"{out}: {len(unfinished)} of {len(segments)} segments stopped before their end, unfinished "
+                  f"(continue them with stgc train --out {out} --resume)")
+            return 0
+        print(f"whole video written to {out} ({len(segments)} segments)")
         if configs["train"].eval_at_end:
-            print(format_eval_table(write_video_eval(out)))
+            # A video trained without evaluation and resumed with it has finished segments that never scored
+            # themselves: score them now rather than fail on their missing records.
+            if all(s.evaluated_finished_model() for s in segments):
+                print(format_eval_table(write_video_eval(out)))
+            else:
+                print(format_eval_table(evaluate_run(out)))
         return 0
     if args.ray_address is not None:
         raise StgcError("--ray-address spreads a whole video's segments over a cluster; give --segment-frames")
@@ -207,7 +218,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         contact_sheet(model, dataset, frames, out, cameras=[args.camera] if args.camera else None)
     elif out.suffix.lower() == ".png":
         if args.orbit or args.frames:
-            raise StgcError(f"{out}: a .png is one still; use .mp4 for --orbit or --frames")
+            raise StgcError(f"{out}: a .png is one still; use .mp4 or .gif for --orbit or --frames")
 
         model, dataset = load_model_and_dataset(args.run, data_path=args.data)
         camera = args.camera or str((dataset.test or dataset.train)[0].name)
@@ -220,7 +231,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         render_video(args.run, out, camera_name=args.camera, frames=args.frames, orbit=args.orbit,
                      data_path=args.data)
     else:
-        raise StgcError(f"{out}: output must end in .png or .mp4")
+        raise StgcError(f"{out}: output must end in .png (a still or a contact sheet), .mp4 or .gif (a video)")
     print(f"wrote {out}")
     return 0
 
@@ -231,6 +242,9 @@ def cmd_export(args: argparse.Namespace) -> int:
             raise StgcError("--frames applies to ply-frames; a .splatv file holds the whole model over time")
         print(f"wrote {export_splatv(args.source, args.out, data_path=args.data)}")
         return 0
+    if Path(args.out).suffix.lower() == ".splatv":
+        raise StgcError(f"--out {args.out}: a .splatv file is written with --format splatv ({args.format} writes a "
+                        "folder of PLY files)")
     written = export_ply_frames(args.source, args.out, frames=args.frames, data_path=args.data)
     print(f"wrote {len(written)} static 3DGS PLY file(s) to {args.out} (what each holds: {Path(args.out) / 'export.json'})")
     return 0
@@ -396,7 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("render", help="render a still or a video from a run")
     p.add_argument("run", help="run directory or .stgc file (a whole video's plays across its segments)")
-    p.add_argument("--out", required=True, help="FILE.png (still) or FILE.mp4 (video)")
+    p.add_argument("--out", required=True, help="FILE.png (still) or FILE.mp4 or FILE.gif (video)")
     p.add_argument("--camera", help="camera name (default: the first test camera)")
     p.add_argument("--orbit", action="store_true", help="smooth camera path through the training cameras")
     p.add_argument("--time", type=float, help="normalised time of a still (default 0)")

@@ -75,8 +75,13 @@ def run_logged(function: Callable[..., Any], log_file: Path | None, *args: Any) 
     handler.setFormatter(logging.Formatter(LOG_FORMAT))
     handler.setLevel(logging.INFO)
     stgc_logger, warnings_logger = logging.getLogger("stgc"), logging.getLogger("py.warnings")
-    saved_level = stgc_logger.level
-    if stgc_logger.getEffectiveLevel() > logging.INFO:  # a fresh Ray worker: nothing configured its logging
+    saved_level, shown_level = stgc_logger.level, stgc_logger.getEffectiveLevel()
+    # The logger's own handlers keep showing what they showed: the level drops for the log file alone (a fresh Ray
+    # worker configured nothing; `stgc -q` in this process must stay quiet while its segments train here).
+    handler_levels = [(h, h.level) for h in stgc_logger.handlers]
+    if shown_level > logging.INFO:
+        for existing, level in handler_levels:
+            existing.setLevel(max(level, shown_level))
         stgc_logger.setLevel(logging.INFO)
     stgc_logger.addHandler(handler)
     shown = warnings.showwarning
@@ -97,6 +102,8 @@ def run_logged(function: Callable[..., Any], log_file: Path | None, *args: Any) 
         stgc_logger.removeHandler(handler)
         handler.close()
         stgc_logger.setLevel(saved_level)
+        for existing, level in handler_levels:
+            existing.setLevel(level)
 
 
 class TasksFailed(StgcError):

@@ -129,7 +129,7 @@ class Run:
         nearest of path and its three parents that has a config.json, or a restored_from.json (a run `stgc
         decompress` restored from a file without its run's config: a run of its own, though it has no config.json,
         never the run whose folder it was restored into); None if there is none."""
-        path = Path(path)
+        path = Path(path).resolve()  # "." or a bare file name has no parents to climb
         found = next((p for p in [path, *path.parents][:4]
                       if (p / cls.CONFIG).is_file() or (p / cls.RESTORED_FROM).is_file()), None)
         return None if found is None else cls(found)
@@ -314,7 +314,9 @@ def prepare_new_run(path: str | Path, *, overwrite: bool = False, keep: Path | N
             break
     existing = run_contents(path) if path.is_dir() else []
     if path.is_dir():
-        existing += sorted(p for p in path.glob(f"{SEGMENT_PREFIX}*") if p.is_dir() and run_contents(p))
+        # A segment that failed before saving anything holds only its task log: the old video's all the same.
+        existing += sorted(p for p in path.glob(f"{SEGMENT_PREFIX}*")
+                           if p.is_dir() and (run_contents(p) or (p / Run.TASK_LOG).is_file()))
     if existing and not overwrite:
         names = ", ".join(p.name for p in existing[:4]) + (", ..." if len(existing) > 4 else "")
         raise RunExistsError(f"{path}: already holds a run ({names}); use --resume to continue it or --overwrite to "
@@ -342,7 +344,7 @@ def official_run_args(path: str | Path) -> dict[str, Any] | None:
     """The options an official STG run saved (RUN/cfg_args, `Namespace(key=value, ...)`), found from the run, an
     iteration dir or its PLY; None where there is none. Read as Python literals, never executed; FormatError when
     the file is not such a Namespace."""
-    path = Path(path)
+    path = Path(path).resolve()  # the parents of a relative path ('.', 'point_cloud.ply') stop at the working dir
     found = next((p / OFFICIAL_ARGS for p in [path, *path.parents][:4] if (p / OFFICIAL_ARGS).is_file()), None)
     if found is None:
         return None

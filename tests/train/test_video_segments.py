@@ -326,3 +326,83 @@ def test_a_segment_that_raises_anything_fails_alone_and_the_others_still_run(tmp
     with pytest.raises(TasksFailed, match="ZeroDivisionError: a bug"):
         run_tasks(tasks, on_done=lambda i, r: done.append(r))
     assert done == [0, 2]
+
+
+def test_a_video_evaluated_on_two_datasets_of_one_folder_name_keeps_each_one_s_scores(scene, tmp_path, capsys):
+    """Each segment filed the second dataset under a name of its own (its earlier record named the first), while
+    the video combined the records filed under the plain name: the first dataset's scores, printed and saved as the
+    second's. Also: the video's duration is its five frames' (Mbps follows it)."""
+    from stgc.data import open_dataset
+
+    out = tmp_path / "video"
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", *QUICK]) == 0
+    own = json.loads((out / "eval.json").read_text())
+    assert own["duration_s"] == pytest.approx(5 / open_dataset(scene.root).fps)
+    first, second = tmp_path / "d1" / "moved", tmp_path / "d2" / "moved"
+    shutil.copytree(scene.root, first)
+    shutil.copytree(scene.root, second)
+    for image_file in (second / "ims").rglob("*.*"):
+        image = imageio.imread(image_file)
+        imageio.imwrite(image_file, (image // 2).astype(image.dtype))
+    scores = {}
+    for data in (first, second):
+        assert main(["eval", str(out), "--data", str(data), "--no-fps"]) == 0
+        records = sorted(out.glob("eval_on_moved*.json"))
+        scores[data] = {json.loads(p.read_text())["data"]: json.loads(p.read_text())["psnr"] for p in records}
+    after = scores[second]
+    assert set(after) == {str(first.resolve()), str(second.resolve())}
+    assert after[str(first.resolve())] > after[str(second.resolve())] + 1  # the darkened copy scores lower
+    capsys.readouterr()
+
+
+def test_a_video_restored_from_a_file_without_its_run_config_keeps_each_segment_s_frames(scene, tmp_path, capsys):
+    """Restored without an embedded run config, each segment opened the data with every frame of the video: scored
+    on all five frames (three times the views), its times scaled by the whole length, with a wrong duration."""
+    from stgc.data import open_dataset
+
+    out = tmp_path / "video"
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", *QUICK]) == 0
+    bare = out / "bare.stgc"
+    assert main(["compress", str(out), "--out", str(bare), "--set", "codec.embed_run_config=false"]) == 0
+    assert main(["decompress", str(bare), "--out", str(tmp_path / "restored")]) == 0
+    assert main(["eval", str(tmp_path / "restored"), "--data", str(scene.root), "--no-fps"]) == 0
+    # No config names the data the restored video trained on: the given data is other data to it.
+    record = json.loads((tmp_path / "restored" / f"eval_on_{scene.root.name}.json").read_text())
+    assert record["num_views"] == 5
+    assert record["duration_s"] == pytest.approx(5 / open_dataset(scene.root).fps)
+    capsys.readouterr()
+
+
+def test_a_video_stopped_early_says_so_and_resumes_to_its_evaluation(scene, tmp_path, capsys):
+    """train.stop_after on a whole video printed "whole video written", then failed on segments without an
+    evaluation with advice (stgc eval) that refuses unfinished segments."""
+    out = tmp_path / "video"
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "2", *QUICK,
+                 "--set", "train.stop_after=2"]) == 0
+    said = capsys.readouterr().out
+    assert "3 of 3 segments stopped before their end" in said and "--resume" in said
+    assert not (out / "eval.json").exists()
+    assert main(["train", "--out", str(out), "--resume", "--no-ray"]) == 0
+    assert "whole video written" in capsys.readouterr().out
+    assert json.loads((out / "eval.json").read_text())["segments"] == 3
+
+
+def test_a_whole_video_loss_reference_gives_each_segment_its_own(scene, tmp_path, capsys):
+    """Every segment was handed the video's reference folder, which holds no compaction log of its own: the run
+    folder was written, then every segment failed. Segment k now compares with the reference's segment k, and a
+    reference cut into other segments is refused before anything is written."""
+    reference = tmp_path / "reference"
+    quiet = ["--set", "train.eval_at_end=false"]
+    assert main(["train", str(scene.root), "--out", str(reference), "--segment-frames", "3", *QUICK, *quiet,
+                 "--set", "compaction.method=reference"]) == 0
+    budget = ["--compaction", "st-knn", "--set", "compaction.loss_budget_db=0.5", "--set",
+              "compaction.loss_signal=probe", "--set", f"compaction.loss_reference={reference}"]
+    out = tmp_path / "pruned"
+    assert main(["train", str(scene.root), "--out", str(out), "--segment-frames", "3", *QUICK, *quiet, *budget]) == 0
+    for k, segment in enumerate(Run(out).segments()):
+        assert segment.read_config()["compaction"]["loss_reference"] == str(reference.resolve() / f"segment_{k:03d}")
+    other = tmp_path / "other"
+    assert main(["train", str(scene.root), "--out", str(other), "--segment-frames", "2", *QUICK, *quiet,
+                 *budget]) == 2
+    assert "cut into other segments" in capsys.readouterr().err
+    assert not other.exists()

@@ -489,7 +489,11 @@ def _restorable(decoded: DecodedModel, source: str) -> tuple[Any, int]:
     return _model_from_decoded(decoded, source), iteration
 
 
-def _restore(decoded: DecodedModel, model: Any, iteration: int, run: Run, source: Path) -> Path:
+def _restore(decoded: DecodedModel, model: Any, iteration: int, run: Run, source: Path,
+             frames: tuple[int, int] | None = None) -> Path:
+    """Write the decoded model as `run`'s, with the run config the file embeds; `frames` (start, duration): a
+    whole video's segment, whose frames restored_from.json keeps when no run config is embedded (else its data would
+    open with every frame of the video, its times scaled by the whole length)."""
     iteration_dir = run.iteration_dir(iteration)
     model.save(iteration_dir)
     run_config = decoded.metadata.get("run_config")
@@ -498,8 +502,9 @@ def _restore(decoded: DecodedModel, model: Any, iteration: int, run: Run, source
     # Renders depend on the decoder's activation, which the official files do not hold: without an embedded run
     # config (a bitstream of a bare or official model) restored_from.json says it (STGModel.load reads it there).
     activation = {} if model.decoder_activation is None else {"decoder_activation": model.decoder_activation}
+    window = {} if frames is None or isinstance(run_config, dict) else {"start": frames[0], "duration": frames[1]}
     write_json(run.path / Run.RESTORED_FROM, {"bitstream": str(source.resolve()), "iteration": iteration,
-                                              **activation})
+                                              **activation, **window})
     return iteration_dir
 
 
@@ -512,7 +517,7 @@ def _decompress_video(stgc_path: Path, out_run_dir: Path, overwrite: bool) -> Pa
     plan = []
     for k, (entry, segment, (model, iteration)) in enumerate(zip(index.entries, decoded, restored)):
         segment_run = run.segment(k)
-        _restore(segment, model, iteration, segment_run, stgc_path)
+        _restore(segment, model, iteration, segment_run, stgc_path, (entry.first_frame, entry.num_frames))
         plan.append({"name": segment_run.path.name, "start": entry.first_frame, "duration": entry.num_frames})
     run_config = decoded[0].metadata.get("run_config")
     data = run_config.get("data") if isinstance(run_config, dict) else None

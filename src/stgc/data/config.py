@@ -10,6 +10,7 @@ from typing import Any, ClassVar, Literal, get_args
 
 from stgc.config import ConfigError, check, from_saved, validate_config
 from stgc.errors import DataError, FormatError
+from stgc.fileio import read_json_object
 from stgc.run import Run, official_run_args
 
 from .dataset import Dataset
@@ -27,7 +28,8 @@ class DataConfig:
     format: str = field(default="auto", metadata={
         "help": "dataset layout: auto (detect from the files), panoptic, blender, n3dv, stg-colmap, technicolor, miv"})
     downscale: float = field(default=1.0, metadata={
-        "help": "divide image width and height by this (area average for whole numbers); K is scaled to match"})
+        "help": "divide image width and height by this, rounded to whole pixels (an area average where a whole "
+                "number divides both; Lanczos otherwise); K is scaled by the ratios achieved"})
     start: int | None = field(default=None, metadata={
         "help": "first frame of the segment (absolute index); default: the first frame of the data"})
     duration: int | None = field(default=None, metadata={
@@ -172,7 +174,13 @@ def open_run_dataset(run_dir: str | Path, data_path: str | Path | None = None) -
 def _official_run_data_config(run_dir: str | Path) -> DataConfig:
     """Data options for a model without stgc's config.json: default ones, except that an official STG run's
     cfg_args gives its `duration` (its model's times are (frame - start) / duration: opened with every frame of the
-    folder, t would be scaled by the wrong length)."""
+    folder, t would be scaled by the wrong length), and a whole video's segment restored from a file without its
+    run's config keeps its frames (restored_from.json: `start`, `duration`)."""
+    restored = read_json_object(Path(run_dir) / Run.RESTORED_FROM) or {}
+    first, length = restored.get("start"), restored.get("duration")
+    if (isinstance(first, int) and isinstance(length, int) and not isinstance(first, bool)
+            and not isinstance(length, bool) and first >= 0 and length > 0):
+        return DataConfig(start=first, duration=length)
     official = official_run_args(run_dir)
     duration = None if official is None else official.get("duration")
     if isinstance(duration, int) and not isinstance(duration, bool) and duration > 0:

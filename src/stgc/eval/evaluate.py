@@ -446,13 +446,15 @@ def evaluate_run(
     measure_fps: bool = True,
     load_model: Callable[[Path], Any] | None = None,
     open_dataset: Callable[[Path], Any] | None = None,
+    filed_as: str | None = None,
 ) -> dict[str, Any]:
     """Evaluate a run directory (its latest iteration) or a `.stgc` bitstream inside a run directory, write
     the eval files (`Run.eval_paths`), and return the eval.json record (`format_eval_table` prints it). What
     `stgc eval RUN` does. With measure_fps=False the record's fps is null.
 
     `load_model` / `open_dataset` default to `stgc.model.STGModel.load` (or `stgc.codec.load_model` for .stgc)
-    and the dataset named in RUN/config.json; tests inject fakes."""
+    and the dataset named in RUN/config.json; tests inject fakes. `filed_as`: the name a whole video's segments file
+    an evaluation on other data under (the video's, so that the video's record combines theirs)."""
     target = Path(target)
     # A file (a bitstream, or a saved model's PLY) is scored into the folder it lies in.
     run_dir = target.parent if target.is_file() or target.suffix == ".stgc" else target
@@ -468,10 +470,14 @@ def evaluate_run(
                 # video (as `stgc compress` refuses it).
                 raise DataError(segment.path, "segment has not finished training (finish it with stgc train "
                                               "--resume)")
-        other = _other_data(target, data_path)  # the segments share the video's data, and so file alike
+        # The segments share the video's data, so they file alike: under the video's name for it, never under one
+        # their own earlier records chose (a second dataset of the same folder name made the video's record
+        # combine the first's scores).
+        other = _other_data(target, data_path)
         for segment in segments:
-            evaluate_run(segment.path, data_path, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps)
-        return write_video_eval(target, other)
+            evaluate_run(segment.path, data_path, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps,
+                         filed_as=other)
+        return write_video_eval(target, other, data=None if other is None else Path(str(data_path)).resolve())
     if target.suffix == ".stgc" and is_video_stgc(target):
         if load_model is not None or open_dataset is not None:
             raise DataError(target, "a whole-video bitstream is evaluated segment by segment on its own data")
@@ -499,7 +505,8 @@ def evaluate_run(
     with machine.threads(threads):
         result = _score_model(model, dataset, lpips_net=lpips_net, warmup=warmup, measure_fps=measure_fps,
                               backend=backend)
-    other_data = _other_data(run_dir, data_path, target if target.suffix == ".stgc" else None, config_dir)
+    other_data = filed_as if filed_as is not None else _other_data(
+        run_dir, data_path, target if target.suffix == ".stgc" else None, config_dir)
     extra = {"data": str(dataset.root), **({"other_data": other_data} if other_data else {})}
     return write_eval(run_dir, result, info, target=target, other_data=other_data, extra=extra)
 
@@ -574,7 +581,7 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
                    "mbps": index.file_bytes * 8 / record["duration_s"] / 1e6 if record["duration_s"] else None,
                    "container_overhead_bytes": index.overhead_bytes, "target": str(target),
                    "bitstream": target.name, "bitstream_sha256": file_sha256(target),
-                   "data": str(data_path) if data_path is not None else None})
+                   "data": str(Path(data_path).resolve()) if data_path is not None else None})
     seams = [seam_of(name, curve) for name, curve in curves]
     record["seams"] = [{k: v for k, v in seam.items() if k != "frames"} for seam in seams if seam]
     other = _other_data(target.parent, data_path, target)
@@ -716,14 +723,17 @@ def seam_plot(seams: Sequence[Mapping[str, Any]], png: Path) -> None:
     plt.close(fig)
 
 
-def write_video_eval(run_dir: str | Path, other_data: str | None = None) -> dict[str, Any]:
+def write_video_eval(run_dir: str | Path, other_data: str | None = None, data: Path | None = None) -> dict[str, Any]:
     """Write the whole video's record (`video_record`, with its `seams`) as RUN/eval.json and the seam figure as
-    RUN/seams.png (on `other_data`: RUN/eval_on_<name>.json and RUN/seams_on_<name>.png), and return the record."""
+    RUN/seams.png (on `other_data`: RUN/eval_on_<name>.json and RUN/seams_on_<name>.png, the record naming the
+    `data` folder, which the next evaluation on a folder of the same name tells apart), and return the record."""
     record = video_record(run_dir, other_data)
     seams = segment_seams(run_dir, other_data)
     record["seams"] = [{k: v for k, v in seam.items() if k != "frames"} for seam in seams]
     if other_data is not None:
         record["other_data"] = other_data
+        if data is not None:
+            record["data"] = str(data)
     if seams:
         png = Path(run_dir) / SEAMS_PNG
         seam_plot(seams, png if other_data is None else png.with_name(f"{png.stem}_on_{other_data}.png"))

@@ -76,12 +76,14 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
         plan = plan_segments(list(whole.frames), int(segment_frames))
         if configs["train"].eval_at_end or configs["train"].eval_every:
             _refuse_segments_without_test_views(plan, whole, data_path)
+        _segment_loss_references(configs, plan)  # refused before anything is written
         run = Run.create(out_dir, overwrite=overwrite)
         # video.json first: a start killed before config.json is still a video that --resume recognises.
         run.write_video({"segment_frames": int(segment_frames), "data_path": str(Path(data_path).resolve()),
                          "segments": plan})
         run.write_config(run_config(whole, configs, data_path=data_path))
     train_cfg: TrainConfig = configs["train"]
+    references = _segment_loss_references(configs, plan)
     tasks = []
     for index, segment in enumerate(plan):
         segment_run = Run(run.path / str(segment["name"]))
@@ -92,12 +94,36 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
                  segment["start"] + segment["duration"] - 1)
         segment_configs = {**configs, "data": dataclasses.replace(
             configs["data"], start=int(segment["start"]), duration=int(segment["duration"]))}
+        if references is not None:
+            segment_configs["compaction"] = dataclasses.replace(configs["compaction"], loss_reference=references[index])
         tasks.append(Task(name=segment_run.path.name, function=train_segment,
                           args=(str(data_path), segment_configs, str(segment_run.path), evaluator),
                           num_cpus=cpus_for_threads(train_cfg.threads), progress=segment_run.progress,
                           log_file=segment_run.task_log_path))
     run_tasks(tasks, use_ray=use_ray, address=ray_address)
     return [segment_run.read_summary() or {} for segment_run in run.segments()]
+
+
+def _segment_loss_references(configs: dict[str, Any], plan: list[dict[str, Any]]) -> list[str] | None:
+    """Each segment's compaction.loss_reference when the video's names a whole-video reference run: its segment
+    of the same frames (a video holds its logs per segment; every segment was handed the video's folder, and
+    failed after the run folder was written). None when there is no reference or it is a single run (each
+    segment's own check then says whether it fits)."""
+    compaction = configs.get("compaction")
+    reference = getattr(compaction, "loss_reference", None)
+    if not reference:
+        return None
+    reference_run = Run(Path(reference))
+    if not reference_run.is_video():
+        return None
+    segments = reference_run.read_video()["segments"]
+    theirs = [(int(s["start"]), int(s["duration"])) for s in segments]
+    mine = [(int(s["start"]), int(s["duration"])) for s in plan]
+    if theirs != mine:
+        raise StgcError(f"{reference_run.path}: compaction.loss_reference is a whole video cut into other segments "
+                        f"(frames {theirs}, this video {mine}); train the reference with the same data window and "
+                        "--segment-frames")
+    return [str(reference_run.path.resolve() / str(s["name"])) for s in segments]
 
 
 def _refuse_segments_without_test_views(plan: list[dict[str, Any]], whole: Any, data_path: Path) -> None:
