@@ -30,6 +30,9 @@ from .dataset import Dataset
 from .readers import open_dataset
 
 
+TRIANGULATION_SEED = 0  # COLMAP's random generator (RANSAC), fixed so that every run triangulates the same points
+
+
 @dataclass
 class TriangulationResult:
     xyz: np.ndarray  # float32 [M, 3]
@@ -65,7 +68,7 @@ def _cache_key(cameras: list[Camera], upsample: float, min_track_length: int,
                background: tuple[float, float, float]) -> str:
     """Digest of everything the result depends on: cameras, image files (path, size, mtime), how they decode (the
     background RGBA images are composited on, a YUV file's range and depth) and options."""
-    h = hashlib.sha256(f"v3 {upsample} {min_track_length} {tuple(background)}".encode())
+    h = hashlib.sha256(f"v4 {upsample} {min_track_length} {tuple(background)}".encode())
     for cam in cameras:
         h.update(cam.name.encode())
         h.update(np.ascontiguousarray(cam.K).tobytes() + np.ascontiguousarray(cam.w2c).tobytes())
@@ -136,9 +139,14 @@ def _triangulate(dataset: Dataset, frame: int, cameras: list[Camera], upsample: 
 
         db_path = tmp / "database.db"
         t0 = time.perf_counter()
+        # Reproducible: COLMAP's RANSAC draws from a time-seeded generator unless seeded, and its thread pools
+        # finish in any order; two runs on one machine triangulated 505 and 504 points (a different initial cloud,
+        # a different training). One thread and fixed seeds give the same points on every run.
+        pycolmap.set_random_seed(TRIANGULATION_SEED)
         pycolmap.extract_features(
             db_path, image_dir, image_names=sorted(names), camera_mode=pycolmap.CameraMode.PER_IMAGE,
-            reader_options=pycolmap.ImageReaderOptions(camera_model="PINHOLE"), device=pycolmap.Device.cpu)
+            reader_options=pycolmap.ImageReaderOptions(camera_model="PINHOLE"),
+            extraction_options=pycolmap.FeatureExtractionOptions(num_threads=1), device=pycolmap.Device.cpu)
         timings["extract_s"] = time.perf_counter() - t0
 
         rec = pycolmap.Reconstruction()
@@ -159,7 +167,10 @@ def _triangulate(dataset: Dataset, frame: int, cameras: list[Camera], upsample: 
                     pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id),
                     pycolmap.Rigid3d(cam.w2c[:3, :4]))
         t0 = time.perf_counter()
-        pycolmap.match_exhaustive(db_path, device=pycolmap.Device.cpu)
+        verification = pycolmap.TwoViewGeometryOptions()
+        verification.ransac.random_seed = TRIANGULATION_SEED
+        pycolmap.match_exhaustive(db_path, matching_options=pycolmap.FeatureMatchingOptions(num_threads=1),
+                                  verification_options=verification, device=pycolmap.Device.cpu)
         timings["match_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         out_dir = tmp / "sparse"
