@@ -858,3 +858,35 @@ def test_set_values_valid_with_a_run_s_own_options_and_a_fine_tuned_loss_referen
         '[[runs]]\nname = "budget"', '[[runs]]\nname = "ref-ft"\nfrom = "ref"\niterations = 5\n[[runs]]\nname = "budget"'))
     with pytest.raises(ConfigError, match="loss_reference 'ref-ft' trains with compaction.method=none"):
         run_plan("DATA", plan_path, tmp_path / "ft", runner=fake_runner, python=sys.executable, log=lambda m: None)
+
+
+def test_a_run_trained_before_a_behaviour_change_that_acts_on_it_is_not_reused(tmp_path: Path) -> None:
+    """config.json records the behaviour changes its code had (stgc.train.behaviour): an ST-KNN run whose capped
+    clone/split rounds reach its window trained before 'compaction-not-refilled' is another run; a run the change
+    cannot move (no compaction, or no cap) is still reused."""
+    from stgc.experiment.runner import reuse_mismatch
+    from stgc.train.behaviour import BEHAVIOUR_KEY, recorded_behaviour
+
+    def saved_run(name: str, sets: dict[str, str], behaviour: list[str] | None) -> Path:
+        run = tmp_path / name / "stg"
+        _trained_config(run, "cpu", sets)
+        saved = json.loads((run / "config.json").read_text())
+        saved["train"]["densify"].update(interval=500, rounds=20, prune_in_rounds=True, max_growth=2.0)
+        if behaviour is not None:
+            saved[BEHAVIOUR_KEY] = behaviour
+        (run / "config.json").write_text(json.dumps(saved))
+        return run
+
+    pruned = {"compaction.method": "st-knn", "data.preprocess": "none", "train.densify.interval": "500",
+              "train.densify.rounds": "20", "train.densify.max_growth": "2", "train.densify.prune_in_rounds": "true"}
+    assert reuse_mismatch(saved_run("today", pruned, recorded_behaviour()), "DATA", "cpu", pruned) is None
+    before = reuse_mismatch(saved_run("before", pruned, None), "DATA", "cpu", pruned) or ""
+    assert "compaction-not-refilled" in before
+    unpruned = {**pruned, "compaction.method": "none"}
+    assert reuse_mismatch(saved_run("unpruned", unpruned, None), "DATA", "cpu", unpruned) is None
+    uncapped = {**pruned, "train.densify.max_growth": "0"}
+    run = saved_run("uncapped", uncapped, None)
+    saved = json.loads((run / "config.json").read_text())
+    saved["train"]["densify"]["max_growth"] = 0.0
+    (run / "config.json").write_text(json.dumps(saved))
+    assert reuse_mismatch(run, "DATA", "cpu", uncapped) is None

@@ -399,3 +399,33 @@ def test_no_clone_split_round_falls_after_the_schedule_s_last_even_where_rounds_
     resumed = DensityControl(cfg, FloaterConfig(max_world_scale=0.0), schedule, 40, np.zeros((0, 3)))
     resumed.load_state_dict(control.state_dict())
     assert not resumed.collecting
+
+
+def test_clone_split_does_not_refill_what_compaction_removed():
+    """A sparse cloud's capped rounds run into the ST-KNN window: refilling to the cap undid the window's first
+    pruning steps (panoptic Case 2, session 30: every Gaussian removed before iteration 3150 came back)."""
+    from stgc.train.densify import DensityControl
+
+    model = _model(40)
+    cfg = replace(DensifyConfig(max_growth=1.5).resolved(sparse_cloud=True), prune_in_rounds=False)
+    schedule = resolve_schedule(replace(TrainConfig(), densify=cfg, schedule_scale=0.01, iterations=300))
+    control = DensityControl(cfg, FloaterConfig(max_world_scale=0.0), schedule, model.num_gaussians, np.zeros((0, 3)))
+    assert control.cap() == 60
+    keep = torch.ones(40, dtype=torch.bool)
+    keep[:10] = False  # a compaction step removes ten
+    model.prune(keep)
+    control.rows_kept(keep)
+    assert control.cap() == 50
+    resumed = DensityControl(cfg, FloaterConfig(max_world_scale=0.0), schedule, 40, np.zeros((0, 3)))
+    resumed.load_state_dict(control.state_dict())
+    assert resumed.cap() == 50
+    control.stats.grad_sum[:] = 1.0  # every row above the gradient threshold
+    control.stats.count[:] = 1
+    first_round = schedule.first_densify_step(1)
+    control.step(first_round, model, torch.Generator().manual_seed(0))
+    assert model.num_gaussians == 50  # 30 + 20, not back to 60
+    # Without a cap, nothing changes.
+    uncapped = DensityControl(replace(cfg, max_growth=0.0), FloaterConfig(max_world_scale=0.0), schedule, 40,
+                              np.zeros((0, 3)))
+    uncapped.rows_kept(keep)
+    assert uncapped.cap() == 0

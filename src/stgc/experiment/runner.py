@@ -69,6 +69,7 @@ from stgc.options import (
 )
 from stgc.official import FAMILY_OPTIONS
 from stgc.run import Run
+from stgc.train.behaviour import missing_behaviour
 from stgc.train.config import DensifyConfig, idle_window_options, refuse_unused_window_options
 from stgc.train.continuation import check_window_fits, continuation_configs
 
@@ -322,6 +323,8 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
                 then, now = (_detected_format(data_path) if v == "auto" else v for v in (then, now))
             if not _same_plan_option(key, then, now, run_dir.parent):
                 differences.append(f"{key}: {then} in its config.json, {now} in the plan")
+    differences += [f"{change.name}: {change.what}; it acts on this run, trained before it"
+                    for change in missing_behaviour(recorded, saved)]
     saved_data = saved.get("data_path")
     if saved_data is not None and not same_place(saved_data, data_path):
         differences.append(f"data: {saved_data} in its config.json, {Path(data_path).resolve()} in the plan")

@@ -218,8 +218,10 @@ class DensityControl:
     """The official density control as a strategy around the training step (in the manner of gsplat's
     `Strategy`): it watches each view's render for the screen-space gradient statistics (`observe`), and after the
     optimizer step clones/splits, prunes and resets opacities when the schedule says so (`step`). Gaussians that
-    others remove (compaction) are reported to it (`rows_kept`), so its statistics stay aligned with the model's
-    rows; when others add some (EMS) every statistic starts again (`restart_statistics`), as officially. Its state goes into the training checkpoint under the keys it always had."""
+    others remove (compaction, the learned mask) are reported to it (`rows_kept`), so its statistics stay aligned with
+    the model's rows, and a capped schedule's cap drops by as many: clone/split does not refill what compaction
+    removed (a sparse cloud's rounds run into the ST-KNN window, and refilling to the cap undid its first steps);
+    when others add some (EMS) every statistic starts again (`restart_statistics`), as officially. Its state goes into the training checkpoint under the keys it always had."""
 
     def __init__(self, cfg: DensifyConfig, floaters: FloaterConfig, schedule: Schedule, initial_gaussians: int,
                  train_centers: np.ndarray):
@@ -229,6 +231,7 @@ class DensityControl:
         self.initial_gaussians = initial_gaussians
         self.rounds_done = 0
         self.past_rounds = False  # a densification step after the schedule's last round has passed
+        self.removed_by_others = 0  # Gaussians compaction removed: they lower the cap
 
     @property
     def collecting(self) -> bool:
@@ -265,7 +268,7 @@ class DensityControl:
             self.past_rounds = self.past_rounds or iteration > sched.densify_end
             if self.collecting:
                 report.update(clone_and_split(model, self.stats, d.grad_threshold, d.percent_dense, d.split_count,
-                                              generator, max_gaussians=d.cap(self.initial_gaussians)))
+                                              generator, max_gaussians=self.cap()))
                 self.rounds_done += 1
                 if d.prune_in_rounds:
                     report["pruned_opacity"] = apply_prune(model, self.stats,
@@ -287,12 +290,19 @@ class DensityControl:
         """Every row's gradient statistic from zero (what the official code does whenever it adds Gaussians)."""
         self.stats.reset(num_gaussians)
 
+    def cap(self) -> int:
+        """The count clone/split may not exceed now (0 = none): the configured cap less what others removed."""
+        cap = self.cfg.cap(self.initial_gaussians)
+        return max(cap - self.removed_by_others, 1) if cap else 0
+
     def rows_kept(self, keep: torch.Tensor) -> None:
+        self.removed_by_others += int((~torch.as_tensor(keep, dtype=torch.bool)).sum())
         self.stats.keep(keep)
 
     def state_dict(self) -> dict[str, Any]:
         return {"densify_stats": self.stats.state_dict(), "densify_rounds_done": self.rounds_done,
-                "initial_gaussians": self.initial_gaussians, "densify_past_rounds": self.past_rounds}
+                "initial_gaussians": self.initial_gaussians, "densify_past_rounds": self.past_rounds,
+                "densify_removed_by_others": self.removed_by_others}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.stats.load_state_dict(state["densify_stats"])
@@ -300,3 +310,4 @@ class DensityControl:
         # Checkpoints written before the Gaussian budget existed have no count: keep the model's own.
         self.initial_gaussians = int(state.get("initial_gaussians", self.initial_gaussians))
         self.past_rounds = bool(state.get("densify_past_rounds", False))  # (checkpoints from before session 29)
+        self.removed_by_others = int(state.get("densify_removed_by_others", 0))  # (before session 30)

@@ -47,6 +47,7 @@ from stgc.train.checkpoint import (
 )
 from stgc.train.colour import COLOUR_CORRECTION_NAME, ColourCorrection
 from stgc.train.config import Schedule, TrainConfig, idle_window_options, resolve_schedule
+from stgc.train.behaviour import BEHAVIOUR_KEY, recorded_behaviour
 from stgc.train.densify import DensityControl
 from stgc.train.ems import ErrorGuidedSampler
 from stgc.train.monitor import JsonLines, Progress, TensorBoard
@@ -738,7 +739,7 @@ def run_config(dataset: Dataset, configs: dict[str, Any], schedule: Schedule | N
     unset, then the data options as given, the frame window and the near plane as resolved, and the data's absolute
     path: `data_path` as the user gave it, else the dataset's folder), each other config section as given, and the
     training schedule in real iterations when there is one (a whole video's shared config has none: each segment
-    resolves its own)."""
+    resolves its own), and the behaviour changes this code has (stgc.train.behaviour)."""
     data = {"format": dataset.format, "downscale": dataset.downscale}
     data.update(_config_dict(configs["data"]) or {})
     # The frame window as resolved, never an unset option: reopened with the options alone, a reader's own default
@@ -752,7 +753,7 @@ def run_config(dataset: Dataset, configs: dict[str, Any], schedule: Schedule | N
     if schedule is not None:
         train["resolved_schedule"] = schedule.to_dict()
     return {"data": _jsonable(data), "model": _config_dict(configs["model"]), "train": train,
-            "compaction": _config_dict(configs["compaction"])}
+            "compaction": _config_dict(configs["compaction"]), BEHAVIOUR_KEY: recorded_behaviour()}
 
 
 def _chosen(mode: str, auto: bool) -> bool:

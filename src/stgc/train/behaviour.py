@@ -1,0 +1,62 @@
+"""Changes to what training does with the same options. config.json records the ones its code had
+(`behaviour`), so that a run trained before a change that acts on it is never taken for one trained today: the
+experiment runner's reuse check names the change instead of reusing the run's numbers.
+
+Add a change here whenever a fix moves the result of some runs without a new option. `acts` answers from the run's
+own configs (as `stgc.options.configs_from_run` reads them back, schedule options resolved) whether the change can
+move that run; runs it cannot move stay reusable."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from stgc.compaction.config import resolve_schedule as resolve_pruning_schedule
+from stgc.train.config import TrainConfig, resolve_schedule
+
+BEHAVIOUR_KEY = "behaviour"
+
+
+@dataclass(frozen=True)
+class BehaviourChange:
+    name: str
+    what: str  # one line, for the message that refuses to reuse a run
+    acts: Callable[[Mapping[str, Any]], bool]
+
+
+def _rounds_refill_compaction(configs: Mapping[str, Any]) -> bool:
+    train, compaction = configs["train"], configs.get("compaction")
+    if compaction is None or compaction.method != "st-knn" or not isinstance(train, TrainConfig):
+        return False
+    densify = train.densify
+    if not densify.enabled:
+        return False
+    if densify.max_growth is None or densify.interval is None or densify.rounds is None:
+        return True  # left to the data and not recorded: it may have acted
+    if not densify.cap(1):
+        return False  # no cap, nothing refilled to it
+    schedule = resolve_schedule(train)
+    pruning = resolve_pruning_schedule(compaction, schedule.iterations)
+    return pruning.num_steps > 0 and pruning.iterations()[0] <= schedule.densify_end
+
+
+CHANGES: tuple[BehaviourChange, ...] = (
+    BehaviourChange(
+        "compaction-not-refilled",
+        "since 2026-11-27 capped clone/split rounds inside the ST-KNN window no longer refill what compaction removed",
+        _rounds_refill_compaction,
+    ),
+)
+
+
+def recorded_behaviour() -> list[str]:
+    """What config.json records: every change this code has."""
+    return [change.name for change in CHANGES]
+
+
+def missing_behaviour(saved: Mapping[str, Any], configs: Mapping[str, Any]) -> list[BehaviourChange]:
+    """The changes that act on a run (its configs read back) and that its config.json (`saved`, as read) lacks."""
+    have = saved.get(BEHAVIOUR_KEY)
+    have = set(have) if isinstance(have, Iterable) and not isinstance(have, (str, bytes)) else set()
+    return [change for change in CHANGES if change.name not in have and change.acts(configs)]
