@@ -469,3 +469,31 @@ def test_a_task_s_log_file_gets_its_messages_while_a_quiet_console_stays_quiet(t
         for lg, handlers, level, propagate in saved:
             lg.handlers[:], lg.propagate = handlers, propagate
             lg.setLevel(level)
+
+
+def test_a_task_s_log_file_leaves_an_application_s_warning_level_root_handler_quiet(tmp_path):
+    """A library user's logging.basicConfig(level=WARNING): the stgc logger propagates to root, and lowering it for
+    the task log sent every INFO record to the root handler while the task ran; warnings still reach it."""
+    import io
+
+    from stgc.distributed import run_logged
+
+    root, logger = logging.getLogger(), logging.getLogger("stgc")
+    saved = (root.handlers[:], root.level, logger.handlers[:], logger.level, logger.propagate)
+    shown = io.StringIO()
+    root.handlers[:], logger.handlers[:], logger.propagate = [logging.StreamHandler(shown)], [], True
+    root.setLevel(logging.WARNING)
+    logger.setLevel(logging.NOTSET)
+    try:
+        def task() -> None:
+            logging.getLogger("stgc.train").info("initial points: 200")
+            logging.getLogger("stgc.train").warning("a camera without a mask")
+
+        run_logged(task, tmp_path / "task.log")
+        assert "initial points" in (tmp_path / "task.log").read_text()
+        assert "initial points" not in shown.getvalue() and "without a mask" in shown.getvalue()
+        assert logger.propagate and logger.level == logging.NOTSET and len(logger.handlers) == 0
+    finally:
+        root.handlers[:], logger.handlers[:], logger.propagate = saved[0], saved[2], saved[4]
+        root.setLevel(saved[1])
+        logger.setLevel(saved[3])

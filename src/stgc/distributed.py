@@ -75,13 +75,19 @@ def run_logged(function: Callable[..., Any], log_file: Path | None, *args: Any) 
     handler.setFormatter(logging.Formatter(LOG_FORMAT))
     handler.setLevel(logging.INFO)
     stgc_logger, warnings_logger = logging.getLogger("stgc"), logging.getLogger("py.warnings")
-    saved_level, shown_level = stgc_logger.level, stgc_logger.getEffectiveLevel()
-    # The logger's own handlers keep showing what they showed: the level drops for the log file alone (a fresh Ray
-    # worker configured nothing; `stgc -q` in this process must stay quiet while its segments train here).
+    saved_level, shown_level, saved_propagate = stgc_logger.level, stgc_logger.getEffectiveLevel(), stgc_logger.propagate
+    # Every other handler keeps showing what it showed: the level drops for the log file alone (a fresh Ray worker
+    # configured nothing; `stgc -q`, or an application's WARNING-level root handler, must stay quiet while segments
+    # train in this process). The logger's own handlers are raised; its ancestors' get what propagation would give
+    # them, from the previous level up.
     handler_levels = [(h, h.level) for h in stgc_logger.handlers]
+    forward = _Propagate(stgc_logger, shown_level) if saved_propagate and stgc_logger.parent is not None else None
     if shown_level > logging.INFO:
         for existing, level in handler_levels:
             existing.setLevel(max(level, shown_level))
+        if forward is not None:
+            stgc_logger.propagate = False
+            stgc_logger.addHandler(forward)
         stgc_logger.setLevel(logging.INFO)
     stgc_logger.addHandler(handler)
     shown = warnings.showwarning
@@ -101,9 +107,29 @@ def run_logged(function: Callable[..., Any], log_file: Path | None, *args: Any) 
     finally:
         stgc_logger.removeHandler(handler)
         handler.close()
+        if forward is not None:
+            stgc_logger.removeHandler(forward)
         stgc_logger.setLevel(saved_level)
+        stgc_logger.propagate = saved_propagate
         for existing, level in handler_levels:
             existing.setLevel(level)
+
+
+class _Propagate(logging.Handler):
+    """What propagation from `logger` would do, for records at `level` and up: each ancestor's handlers, up to the
+    first ancestor that does not propagate."""
+
+    def __init__(self, logger: logging.Logger, level: int):
+        super().__init__(level)
+        self.start = logger.parent
+
+    def emit(self, record: logging.LogRecord) -> None:
+        ancestor = self.start
+        while ancestor is not None:
+            for target in ancestor.handlers:
+                if record.levelno >= target.level:
+                    target.handle(record)
+            ancestor = ancestor.parent if ancestor.propagate else None
 
 
 class TasksFailed(StgcError):

@@ -113,9 +113,19 @@ def _as_palette(foreground, path) -> None:
     image.save(path)
 
 
+def _as_grey_palette_white_first(foreground, path) -> None:
+    """A black and white mask as Pillow's quantize may store it: white at index 0, read by its grey level."""
+    image = Image.fromarray((~foreground).astype(np.uint8), mode="P")
+    image.putpalette([255, 255, 255, 0, 0, 0] + [0] * 762)
+    image.save(path)
+
+
 @pytest.mark.parametrize("write", [
     pytest.param(lambda fg, path: Image.fromarray(fg.astype(np.uint8)).save(path), id="0-1-grey"),
     pytest.param(_as_palette, id="palette-dark-index-1"),
+    pytest.param(_as_grey_palette_white_first, id="grey-palette-white-index-0"),
+    pytest.param(lambda fg, path: Image.fromarray(fg.astype(np.uint8) * 255).quantize(2).save(path),
+                 id="pillow-quantize"),
     pytest.param(lambda fg, path: Image.fromarray(fg).convert("1").save(path), id="1-bit"),
     pytest.param(lambda fg, path: Image.fromarray(fg.astype(np.uint8) * 255).save(path), id="0-255-grey"),
 ])

@@ -249,3 +249,17 @@ def test_numba_backward_uses_the_colours_of_its_forward_though_the_caller_change
         out.image.sum().backward()
         grads.append(s.opacities.grad.clone())
     assert torch.equal(grads[0], grads[1])
+
+
+def test_auto_renders_a_camera_to_optimise_with_the_backend_that_differentiates_it():
+    """On CPU, 'auto' chose numba, which refuses a K or viewmat that requires grad; numba by name still refuses."""
+    scene = make_scene(30, 16, 16)
+    for index in (5, 6):  # K, viewmat
+        args = list(scene.args())
+        args[index] = args[index].clone().requires_grad_(True)
+        out = rasterize(*args, backend="auto")
+        assert out.backend == "torch"
+        out.image.sum().backward()
+        assert args[index].grad is not None and torch.isfinite(args[index].grad).all()
+        with pytest.raises(ValueError, match="no gradient for K or viewmat"):
+            rasterize(*args, backend="numba")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -146,6 +147,9 @@ def test_compress_stores_the_depths_the_window_trained_through(scene, tmp_path, 
     written = compress_run(run, run / "model_q1.stgc", quality=QUALITY)
     assert read_stgc_metadata(written.path)["allocation"]["mode"] == WINDOW_MODE
     assert not written_without_window_depths(written.path, CodecConfig(quality=QUALITY))
+    monkeypatch.chdir(tmp_path)  # a run named as the user types it, relative: the same depths
+    assert files.window_depths(Path("run")) is not None
+    assert files.window_depths(Path("run") / "point_cloud" / "iteration_40") is not None
     final = STGModel.load(run)
     visible = (final.peak_temporal_opacity() >= MIN_VISIBLE_OPACITY * (1 - 1e-3)).numpy()  # as compress drops
     arrays = {k: v[visible] for k, v in final.to_ply_arrays().items()}

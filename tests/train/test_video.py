@@ -166,3 +166,20 @@ def test_a_gif_plays_at_its_frame_rate_though_the_format_counts_hundredths(tmp_p
     assert len(delays) == 30
     assert sum(delays) == 1000  # one second, not 30 x 30 ms
     assert set(delays) <= {30, 40}
+
+
+def test_a_gif_above_fifty_fps_keeps_delays_browsers_honour(tmp_path):
+    """Browsers play a GIF delay of 10 ms or less as 100 ms: at 120 fps every delay was 0 or 10 ms, a clip ten
+    times too slow. One frame in three is kept there, at 40 fps, in one second."""
+    from PIL import Image
+
+    from stgc.eval.video import write_video
+
+    frames = [np.full((8, 8, 3), 2 * k, dtype=np.uint8) for k in range(120)]
+    path = write_video(tmp_path / "fast.gif", frames, fps=120)
+    with Image.open(path) as gif:
+        delays = []
+        for k in range(gif.n_frames):
+            gif.seek(k)
+            delays.append(gif.info["duration"])
+    assert len(delays) == 40 and min(delays) >= 20 and sum(delays) == 1000

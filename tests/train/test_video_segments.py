@@ -406,3 +406,10 @@ def test_a_whole_video_loss_reference_gives_each_segment_its_own(scene, tmp_path
                  *budget]) == 2
     assert "cut into other segments" in capsys.readouterr().err
     assert not other.exists()
+    single = tmp_path / "single"
+    assert main(["train", str(scene.root), "--out", str(single), *QUICK, *quiet,
+                 "--set", "compaction.method=reference"]) == 0
+    assert main(["train", str(scene.root), "--out", str(other), "--segment-frames", "3", *QUICK, *quiet,
+                 *budget[:-1], f"compaction.loss_reference={single}"]) == 2
+    assert "is a single run" in capsys.readouterr().err
+    assert not other.exists()

@@ -194,7 +194,8 @@ def window_depths(source: str | Path) -> WindowDepths | None:
     latest = run.latest_model_dir()
     summary = run.read_summary(strict=False) or {}
     try:
-        if latest is None or resolve_ply_path(latest) != resolve_ply_path(source):
+        # Resolved: Run.of gives the run's absolute path, the source is as the user typed it.
+        if latest is None or resolve_ply_path(latest).resolve() != resolve_ply_path(source).resolve():
             return None  # an earlier iteration: saved before the window, or inside it
     except FormatError:
         return None

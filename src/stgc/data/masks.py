@@ -24,14 +24,15 @@ def read_mask(path: Path, width: int, height: int) -> np.ndarray:
     """bool [height, width]: the foreground of the mask image at `path`, area-averaged to the camera's size when it
     is larger with the same aspect (the downscaled dataset), else a DataError naming the file.
 
-    Read as 0 (background) .. 255 (foreground): a 1-bit or 0/255 greyscale mask as stored; a palette ('P') mask by
-    its indices (0 background, any other foreground, whatever their colours: DAVIS-style masks give index 1 a dark
-    colour); a greyscale mask whose largest value is 1 as a 0/1 mask (Dynamic 3D Gaussians' seg values). Both were
+    Read as 0 (background) .. 255 (foreground): a 1-bit or 0/255 greyscale mask as stored; a palette ('P') mask of
+    colours by its indices (0 background, any other foreground, whatever their colours: DAVIS-style masks give
+    index 1 a dark colour), one whose colours in use are all grey by its grey level (Pillow's own quantize of a
+    black and white mask may put white at index 0); a greyscale mask whose largest value is 1 as a 0/1 mask (Dynamic 3D Gaussians' seg values). Both were
     read through their grey level, so every pixel fell below FOREGROUND_LEVEL and the mask was all background."""
     try:
         with Image.open(path) as im:
             im.load()
-            if im.mode == "P":
+            if im.mode == "P" and not _grey_palette(im):
                 mask = np.where(np.asarray(im) != 0, 255.0, 0.0).astype(np.float32)
             else:
                 mask = np.asarray(im.convert("L"), dtype=np.float32)
@@ -57,6 +58,15 @@ def read_mask(path: Path, width: int, height: int) -> np.ndarray:
             raise DataError(path, f"mask is {w}x{h} but its image is {width}x{height} (masks must have the "
                             "images' full size or their aspect at a larger size)")
     return mask >= FOREGROUND_LEVEL
+
+
+def _grey_palette(image: Image.Image) -> bool:
+    """Whether every palette entry the image uses is a grey (r == g == b)."""
+    palette = np.asarray(image.getpalette() or [], dtype=np.int64)
+    colours = palette[: len(palette) // 3 * 3].reshape(-1, 3)
+    used = np.unique(np.asarray(image))
+    used = used[used < len(colours)]
+    return bool(np.all(colours[used, 0] == colours[used, 1]) and np.all(colours[used, 1] == colours[used, 2]))
 
 
 def visual_hull(cameras: list[Camera], masks: list[np.ndarray], lower: np.ndarray, upper: np.ndarray,

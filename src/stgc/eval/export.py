@@ -166,7 +166,9 @@ def export_ply_frames(source: ModelSource, out_dir: str | Path, frames: Any = No
     """Write OUT/frame_<NNNNNN>.ply (one static 3DGS per selected frame, at that frame's time) and OUT/export.json
     (times, counts, the colour approximation); returns the PLY paths."""
     model, dataset = load_model_and_dataset(source, dataset, data_path)
-    chosen = frame_selection(frames, list(dataset.frames))
+    # One file per frame: a frame listed twice is written once, at its first place (a repeat replaced the file and
+    # was counted and listed twice).
+    chosen = list(dict.fromkeys(frame_selection(frames, list(dataset.frames))))
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise DataError(out, "exists and is not a directory")

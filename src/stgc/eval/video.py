@@ -11,6 +11,8 @@ Every file is written through `stgc.fileio.atomic_path`, so a reader never sees 
 from __future__ import annotations
 
 import dataclasses
+import logging
+import math
 import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -31,6 +33,8 @@ from stgc.eval.evaluate import open_run_dataset, video_bitstream_segments
 from stgc.fileio import atomic_path
 from stgc.model import STGModel
 from stgc.run import Run
+
+log = logging.getLogger(__name__)
 
 # A model to render: a run directory, an iteration folder, a PLY or a .stgc bitstream, or one in memory.
 ModelSource = str | Path | STGModel
@@ -115,8 +119,13 @@ def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> P
         named = tmp.with_name(tmp.name + suffix)
         try:
             if suffix == ".gif":
-                images: list[Any] = [np.asarray(f) for f in frames]
-                imageio.mimsave(named, images, duration=_gif_delays_ms(len(images), fps), loop=0)
+                # Browsers play a delay under 20 ms as 100 ms: above 50 fps every k-th frame is kept, at fps / k.
+                step = max(1, math.ceil(fps / GIF_MAX_FPS - 1e-9))
+                if step > 1:
+                    log.info("%s: browsers play a GIF at up to %d fps: one frame in %d kept (%.3g fps)", path,
+                             GIF_MAX_FPS, step, fps / step)
+                images: list[Any] = [np.asarray(f) for k, f in enumerate(frames) if k % step == 0]
+                imageio.mimsave(named, images, duration=_gif_delays_ms(len(images), fps / step), loop=0)
             else:
                 # macro_block_size=2 keeps imageio from rescaling small frames to multiples of 16.
                 writer = imageio.get_writer(named, fps=fps, codec="libx264", quality=8,
@@ -131,6 +140,9 @@ def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> P
             if named.exists():
                 named.unlink()
     return path
+
+
+GIF_MAX_FPS = 50  # delays of 20 ms; browsers show 10 ms or less as 100 ms
 
 
 def _gif_delays_ms(count: int, fps: float) -> list[int]:
@@ -198,9 +210,8 @@ def orbit_cameras(dataset: Dataset, num_frames: int) -> list[Camera]:
 
 def frame_selection(frames: Any, available: Sequence[int]) -> list[int]:
     """The frames of `available` that `frames` picks: None (all), "A:B", "A,B,...", a slice or a list; a
-    DataError names a selection outside the dataset. A list keeps its order, each frame once (at its first place):
-    a repeat would export one file twice (the second replacing the first, listed twice) and repeat a contact
-    sheet's rows, and a whole video's render plays each frame once whatever the list."""
+    DataError names a selection outside the dataset. A list keeps its order and its repeats (a clip may play a
+    frame again); callers that write one file per frame drop the repeats themselves."""
     if frames is None:
         return list(available)
     if isinstance(frames, str):
@@ -220,7 +231,7 @@ def frame_selection(frames: Any, available: Sequence[int]) -> list[int]:
                                   f"{min(available)}:{max(available) + 1}")
         chosen = [f for f in available if lo <= f < hi]
     else:
-        chosen = list(dict.fromkeys(int(f) for f in frames))
+        chosen = [int(f) for f in frames]
         missing = [f for f in chosen if f not in set(available)]
         if missing:
             raise DataError(None, f"frames {missing} are not in the dataset (frames {min(available)}..{max(available)})")

@@ -142,8 +142,9 @@ def rasterize(
     if chosen == "gsplat" and K.requires_grad and backend == "gsplat":
         raise ValueError("backend='gsplat' has no gradient for K (its projection drops it); use backend='torch' "
                          "to optimise cameras")
-    if chosen == "gsplat" and K.requires_grad:
-        chosen = "torch"  # 'auto': the backend that differentiates the camera
+    camera_gradient = K.requires_grad or (chosen == "numba" and viewmat.requires_grad)
+    if backend == "auto" and chosen in ("gsplat", "numba") and camera_gradient:
+        chosen = "torch"  # the backend that differentiates the camera (numba refuses both, gsplat drops K's)
     if chosen == "gsplat" and backend == "gsplat" and dtype != torch.float32:
         raise ValueError(f"backend='gsplat' renders float32 only (got {dtype}); use backend='auto' (falls back "
                          "to torch for float64) or 'torch'")

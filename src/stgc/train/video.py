@@ -107,14 +107,18 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
 def _segment_loss_references(configs: dict[str, Any], plan: list[dict[str, Any]]) -> list[str] | None:
     """Each segment's compaction.loss_reference when the video's names a whole-video reference run: its segment
     of the same frames (a video holds its logs per segment; every segment was handed the video's folder, and
-    failed after the run folder was written). None when there is no reference or it is a single run (each
-    segment's own check then says whether it fits)."""
+    failed after the run folder was written). None when there is no reference, or a single run for a video of one
+    segment (whose own check then says whether it fits); a single run for more segments is refused."""
     compaction = configs.get("compaction")
     reference = getattr(compaction, "loss_reference", None)
     if not reference:
         return None
     reference_run = Run(Path(reference))
     if not reference_run.is_video():
+        if len(plan) > 1:  # one run's frames cannot be every segment's: each would fail after the folder is written
+            raise StgcError(f"{reference_run.path}: compaction.loss_reference is a single run; a video of "
+                            f"{len(plan)} segments compares each with the same segment of a reference video (train "
+                            "it with compaction.method=reference and the same --segment-frames)")
         return None
     segments = reference_run.read_video()["segments"]
     theirs = [(int(s["start"]), int(s["duration"])) for s in segments]
