@@ -56,10 +56,8 @@ def main(argv: list[str]) -> int:
         # mask_points_per_frame: a data section without it is read as a config from before it existed (0).
         data = {"path": argv[1], "preprocess": preprocess,
                 "mask_points_per_frame": int(sets.get("data.mask_points_per_frame", 1000))}
-        from stgc.train.behaviour import BEHAVIOUR_KEY, recorded_behaviour  # as the trainer records them
-
-        (out / "config.json").write_text(json.dumps({"data": data, "compaction": compaction, "sets": sets,
-                                                     BEHAVIOUR_KEY: recorded_behaviour()}))
+        (out / "config.json").write_text(json.dumps({"data": data,
+                                                     "compaction": compaction, "sets": sets}))
         (out / "checkpoint.pt").write_bytes(b"fake")
         if "--resume" not in argv:
             time.sleep(float(sets.get("fake.sleep", 0)))

@@ -33,7 +33,7 @@ def _rounds_refill_compaction(configs: Mapping[str, Any]) -> bool:
     if not densify.enabled:
         return False
     if densify.max_growth is None or densify.interval is None or densify.rounds is None:
-        return True  # left to the data and not recorded: it may have acted
+        return False  # a training records them resolved: this config.json was written by something else
     if not densify.cap(1):
         return False  # no cap, nothing refilled to it
     schedule = resolve_schedule(train)
