@@ -75,7 +75,8 @@ def run_logged(function: Callable[..., Any], log_file: Path | None, *args: Any) 
     handler.setFormatter(logging.Formatter(LOG_FORMAT))
     handler.setLevel(logging.INFO)
     stgc_logger, warnings_logger = logging.getLogger("stgc"), logging.getLogger("py.warnings")
-    saved_level, shown_level, saved_propagate = stgc_logger.level, stgc_logger.getEffectiveLevel(), stgc_logger.propagate
+    saved_level, saved_propagate = stgc_logger.level, stgc_logger.propagate
+    shown_level = stgc_logger.getEffectiveLevel()
     # Every other handler keeps showing what it showed: the level drops for the log file alone (a fresh Ray worker
     # configured nothing; `stgc -q`, or an application's WARNING-level root handler, must stay quiet while segments
     # train in this process). The logger's own handlers are raised; its ancestors' get what propagation would give

@@ -27,8 +27,9 @@ def read_mask(path: Path, width: int, height: int) -> np.ndarray:
     Read as 0 (background) .. 255 (foreground): a 1-bit or 0/255 greyscale mask as stored; a palette ('P') mask of
     colours by its indices (0 background, any other foreground, whatever their colours: DAVIS-style masks give
     index 1 a dark colour), one whose colours in use are all grey by its grey level (Pillow's own quantize of a
-    black and white mask may put white at index 0); a greyscale mask whose largest value is 1 as a 0/1 mask (Dynamic 3D Gaussians' seg values). Both were
-    read through their grey level, so every pixel fell below FOREGROUND_LEVEL and the mask was all background."""
+    black and white mask may put white at index 0); a greyscale mask whose largest value is 1 as a 0/1 mask
+    (Dynamic 3D Gaussians' seg values). The colour palettes and 0/1 masks were read through their grey level, so
+    every pixel fell below FOREGROUND_LEVEL and the mask was all background."""
     try:
         with Image.open(path) as im:
             im.load()

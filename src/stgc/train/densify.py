@@ -221,7 +221,8 @@ class DensityControl:
     others remove (compaction, the learned mask) are reported to it (`rows_kept`), so its statistics stay aligned with
     the model's rows, and a capped schedule's cap drops by as many: clone/split does not refill what compaction
     removed (a sparse cloud's rounds run into the ST-KNN window, and refilling to the cap undid its first steps);
-    when others add some (EMS) every statistic starts again (`restart_statistics`), as officially. Its state goes into the training checkpoint under the keys it always had."""
+    when others add some (EMS) every statistic starts again (`restart_statistics`), as officially. Its state goes
+    into the training checkpoint under the keys it always had."""
 
     def __init__(self, cfg: DensifyConfig, floaters: FloaterConfig, schedule: Schedule, initial_gaussians: int,
                  train_centers: np.ndarray):

@@ -40,6 +40,7 @@ from stgc.metrics import ssim
 from stgc.model import ModelConfig, STGModel
 from stgc.render import BACKENDS, select_backend
 from stgc.run import Run
+from stgc.train.behaviour import BEHAVIOUR_KEY, recorded_behaviour
 from stgc.train.checkpoint import (
     load_checkpoint,
     restore_rng_states,
@@ -47,7 +48,6 @@ from stgc.train.checkpoint import (
 )
 from stgc.train.colour import COLOUR_CORRECTION_NAME, ColourCorrection
 from stgc.train.config import Schedule, TrainConfig, idle_window_options, resolve_schedule
-from stgc.train.behaviour import BEHAVIOUR_KEY, recorded_behaviour
 from stgc.train.densify import DensityControl
 from stgc.train.ems import ErrorGuidedSampler
 from stgc.train.monitor import JsonLines, Progress, TensorBoard

@@ -64,6 +64,7 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
             raise StgcError(f"{run.path}: the video was cut into {video['segment_frames']}-frame segments; a resumed "
                             "run keeps them")
         plan = video["segments"]
+        references = _segment_loss_references(configs, plan)
     else:
         if segment_frames is None:
             raise StgcError(f"{run.path}: not a whole-video run; give --segment-frames to start one")
@@ -76,14 +77,13 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
         plan = plan_segments(list(whole.frames), int(segment_frames))
         if configs["train"].eval_at_end or configs["train"].eval_every:
             _refuse_segments_without_test_views(plan, whole, data_path)
-        _segment_loss_references(configs, plan)  # refused before anything is written
+        references = _segment_loss_references(configs, plan)  # refused before anything is written
         run = Run.create(out_dir, overwrite=overwrite)
         # video.json first: a start killed before config.json is still a video that --resume recognises.
         run.write_video({"segment_frames": int(segment_frames), "data_path": str(Path(data_path).resolve()),
                          "segments": plan})
         run.write_config(run_config(whole, configs, data_path=data_path))
     train_cfg: TrainConfig = configs["train"]
-    references = _segment_loss_references(configs, plan)
     tasks = []
     for index, segment in enumerate(plan):
         segment_run = Run(run.path / str(segment["name"]))
