@@ -204,3 +204,24 @@ def test_a_run_restored_without_its_config_inside_another_run_is_its_own(run_dir
         evaluate_run(model_dir, measure_fps=False)  # not the outer run's data, "scene"
     compress_run(model_dir, tmp_path / "again.stgc")
     assert "run_config" not in read_stgc_metadata(tmp_path / "again.stgc")
+
+
+def test_a_bitstream_without_its_run_config_names_the_frames_it_is_scored_on(tmp_path, caplog):
+    """A file written without its run config does not say which frames its model was trained on: opened on a
+    dataset, the frames the default options give are named in the warning (a model of other frames would be
+    scored on the wrong ones, and only the warning can say so)."""
+    import logging
+
+    from scenes import write_panoptic_scene
+
+    from stgc.eval.evaluate import open_embedded_dataset
+
+    scene = write_panoptic_scene(tmp_path / "scene", frames=3)
+    with caplog.at_level(logging.WARNING, logger="stgc"):
+        dataset = open_embedded_dataset({}, tmp_path / "bare.stgc", scene.root)
+    assert dataset.frames == [0, 1, 2]
+    assert "frames 0-2" in caplog.text and "embed_run_config" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="stgc"):
+        segment = open_embedded_dataset({}, tmp_path / "bare.stgc", scene.root, frames=(1, 2))
+    assert segment.frames == [1, 2] and "frames 1-2" in caplog.text

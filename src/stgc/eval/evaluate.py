@@ -378,9 +378,15 @@ def open_embedded_dataset(metadata: Mapping[str, Any], source: str | Path, data_
         if data_path is None:
             raise DataError(source, "no run config found beside or inside the bitstream; pass the dataset with "
                                     "--data")
-        log.warning("%s: no run config beside or inside it: %s opened with default data options", source, data_path)
         config = DataConfig() if frames is None else DataConfig(start=frames[0], duration=frames[1])
-        return config.open(data_path)
+        dataset = config.open(data_path)
+        # The file does not say which frames the model was trained on (its config is what would): a model of
+        # another window is scored here on the wrong frames, so the frames used are named.
+        log.warning("%s: no run config beside or inside it: %s opened with default data options, frames %s-%s "
+                    "(a model trained on other frames or options needs its run config: compress with "
+                    "codec.embed_run_config=true)", source, data_path, dataset.frames[0] if dataset.frames else "?",
+                    dataset.frames[-1] if dataset.frames else "?")
+        return dataset
     config, path = data_config_from_saved(section, source)
     target = data_path if data_path is not None else path
     if target is None:
