@@ -105,10 +105,21 @@ def test_a_budget_run_reads_its_unpruned_reference_run_at_the_same_iterations(sc
                                         rf"trained with {trained_with}"):
         Trainer(dataset, None, None, dataclasses.replace(_config(80), threads=trained_with + 1), budgeted,
                 tmp_path / "other", model=start())
-    with pytest.raises(DataError, match=r"train.backend: this run 'torch', the reference 'auto'"):
+    with pytest.raises(DataError, match=r"train.backend: this run renders with 'torch', the reference with numba"):
         Trainer(dataset, None, None, dataclasses.replace(_config(80), backend="torch"), budgeted, tmp_path / "other",
                 model=start())
     assert not (tmp_path / "other").exists()
+    # A reference resumed with another thread count drifted between its sessions: the last session's count
+    # (the summary's "threads", all that was checked before) does not describe it.
+    ref_summary = json.loads((tmp_path / "ref" / "train_summary.json").read_text())
+    assert ref_summary["executions"] == [{"from_iteration": 0, "threads": trained_with, "backend": "numba"}]
+    resumed = {**ref_summary, "executions": [{"from_iteration": 0, "threads": trained_with + 1, "backend": "numba"},
+                                             {"from_iteration": 40, "threads": trained_with, "backend": "numba"}]}
+    (tmp_path / "ref" / "train_summary.json").write_text(json.dumps(resumed))
+    with pytest.raises(DataError, match=rf"resumed with another thread count \({trained_with} and "
+                                        rf"{trained_with + 1}: its losses drifted"):
+        Trainer(dataset, None, None, _config(80), budgeted, tmp_path / "other", model=start())
+    (tmp_path / "ref" / "train_summary.json").write_text(json.dumps(ref_summary))
     Trainer(dataset, None, None, dataclasses.replace(_config(80), backend="numba", threads=trained_with), budgeted,
             tmp_path / "numba", model=start())  # what "auto" means on CPU, and the count it trained with
     # A reference saved before an option existed trained as its SAVED_BEFORE value says (here the densification

@@ -106,6 +106,11 @@ def test_a_killed_finetune_resumes_like_any_run(source, tmp_path, capsys):
     # Options of how it runs may be given to a resume (the others stay refused).
     assert main(["train", "--out", str(new), "--resume", "--set", "train.threads=1"]) == 0
     assert Run(new).training_finished() and Run(new).latest_model_dir().name == "iteration_40"
+    # Each session's execution is kept (a loss reference's check reads them): the source's, the fine-tuning's
+    # first 5 iterations, and the resume at 1 thread.
+    sessions = (Run(new).read_summary() or {})["executions"]
+    assert [s["from_iteration"] for s in sessions][-2:] == [20, 25] and sessions[-1]["threads"] == 1
+    assert sessions[0]["from_iteration"] == 0 and len(sessions) == 3
     assert "run written to" in capsys.readouterr().out
     again = tmp_path / "again"
     assert main(["finetune", str(new), "--out", str(again), "--iterations", "3"]) == 0

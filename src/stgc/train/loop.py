@@ -290,6 +290,9 @@ class Trainer:
         self.background = torch.tensor(dataset.background, dtype=torch.float32)
         self.elapsed_before = 0.0
         self.start_iteration = 0
+        # How each session of the run executed (resumes may change the threads or the backend): rounding follows
+        # them, so a loss reference's check reads every session's, not only the last one's.
+        self.executions: list[dict[str, Any]] = []
 
         checkpoint = None
         if resuming:
@@ -386,20 +389,34 @@ class Trainer:
         """How this run and its loss reference would execute differently enough to round differently: the numba
         rasterizer sums per-thread partial rows, so other thread counts (or another backend) drift apart within a
         few hundred iterations, and the budget would count that drift as pruning damage. The reference's threads
-        are the count it trained with (its train_summary.json), else its config's when that names one."""
+        are the counts its sessions trained with (its train_summary.json: a resume may have changed them), else its
+        config's when that names one."""
         differences = []
         summary = Run(reference_dir).read_summary() or {}
+        sessions = [s for s in summary.get("executions") or [] if isinstance(s, dict)]
         saved_threads = (theirs.get("train") or {}).get("threads")
-        their_threads = summary.get("threads") or saved_threads or None
         my_threads = self.cfg.threads or torch.get_num_threads()
-        if isinstance(their_threads, int) and their_threads != my_threads:
+        if sessions:
+            their_counts = {s.get("threads") for s in sessions}
+        else:  # a summary written before the sessions were recorded: its last session's, else the config's
+            their_counts = {summary.get("threads") or saved_threads or None}
+        if len(their_counts) > 1:
+            known = [str(n) for n in sorted(n for n in their_counts if isinstance(n, int))]
+            differences.append(f"train.threads: the reference was resumed with another thread count ("
+                               f"{' and '.join(known) or 'unknown'}{', and an unrecorded one' if None in their_counts else ''}"
+                               ": its losses drifted from one session to the next)")
+        elif isinstance(their := next(iter(their_counts)), int) and their != my_threads:
             differences.append(f"train.threads: this run trains with {my_threads}, the reference trained with "
-                               f"{their_threads} (other thread counts round differently and drift apart)")
-        their_backend = (theirs.get("train") or {}).get("backend")
+                               f"{their} (other thread counts round differently and drift apart)")
         cpu = torch.device("cpu")
-        if isinstance(their_backend, str) and their_backend in BACKENDS and (
-                select_backend(their_backend, cpu) != select_backend(self.cfg.backend, cpu)):
-            differences.append(f"train.backend: this run {self.cfg.backend!r}, the reference {their_backend!r}")
+        mine = select_backend(self.cfg.backend, cpu)
+        their_backend = (theirs.get("train") or {}).get("backend")
+        their_backends = {s.get("backend") for s in sessions} - {None} or (
+            {select_backend(their_backend, cpu)} if isinstance(their_backend, str) and their_backend in BACKENDS
+            else set())
+        if their_backends - {mine}:
+            differences.append(f"train.backend: this run renders with {mine!r}, the reference with "
+                               f"{' and '.join(sorted(their_backends))}")
         return differences
 
     def _make_compactor(self) -> STKNNCompactor | None:
@@ -437,6 +454,8 @@ class Trainer:
             strategy.load_state_dict(ckpt)
         self.start_iteration = int(ckpt["iteration"])
         self.elapsed_before = float(ckpt["elapsed_s"])
+        # A checkpoint written before the history was kept: its sessions' execution is unknown (None).
+        self.executions = list(ckpt.get("executions") or [{"from_iteration": 0, "threads": None, "backend": None}])
         if self.colour is not None and ckpt.get("colour_correction") is not None:
             self.colour.load_state_dict(ckpt["colour_correction"])
         if self.quantization is not None and self.in_quantization_window(self.start_iteration):
@@ -458,6 +477,7 @@ class Trainer:
             **{key: value for strategy in self.strategies for key, value in strategy.state_dict().items()},
             "colour_correction": None if self.colour is None else self.colour.state_dict(),
             "quantization_aware": None if self.quantization is None else self.quantization.state_dict(),
+            "executions": self.executions,
         }
 
     # ------------------------------------------------------------------------------------------- one step
@@ -632,6 +652,9 @@ class Trainer:
         end = sched.iterations
         if cfg.stop_after is not None:
             end = min(end, start + int(cfg.stop_after)) if start < end else end
+        if start < end:
+            self.executions.append({"from_iteration": start, "threads": torch.get_num_threads(),
+                                    "backend": select_backend(cfg.backend, torch.device("cpu"))})
         progress = Progress(sched.iterations, start, cfg.progress)
         tb = TensorBoard(self.out_run.path / "tensorboard", cfg.tensorboard, first_step=start + 1)
         t0 = time.perf_counter()
@@ -699,6 +722,7 @@ class Trainer:
             "finished": finished,
             "started_from_iteration": start,  # > 0: this session resumed from a checkpoint
             "threads": torch.get_num_threads(),
+            "executions": self.executions,  # every session's threads and backend, from the iteration it started at
             "machine": machine.describe(),  # the times above mean little without it
         }
         if self.colour is not None:
