@@ -233,6 +233,20 @@ def test_bd_deltas_use_each_familys_pareto_front(tmp_path):
     assert "Reference for the last two columns: base / b3." in report.markdown.read_text()
 
 
+def test_an_exact_render_counts_at_the_psnr_ceiling_and_a_point_without_a_psnr_is_said_to_be_left_out(tmp_path):
+    """An infinite PSNR (identical images) read as "no PSNR" dropped the curve's best point without a word; it
+    counts at the ceiling the evaluation uses (100 dB), and a point left out for want of a PSNR is named."""
+    base = [ReportRow(f"b{i}", "base", m, p) for i, (m, p) in enumerate([(10.0, 30.0), (20.0, 33.0)])]
+    exact = ReportRow.from_mapping({"name": "t1", "family": "test", "mbps": 25.0, "psnr": "inf"})
+    assert exact.psnr == 100.0
+    rows = [*base, ReportRow("t0", "test", 12.0, 31.0), exact]
+    (bd,) = make_report(rows, tmp_path / "a", baseline="base").bd
+    assert bd.points == 2
+    unscored = ReportRow.from_mapping({"name": "t1", "family": "test", "mbps": 25.0, "psnr": "nan"})
+    (bd,) = make_report([*base, ReportRow("t0", "test", 12.0, 31.0), unscored], tmp_path / "b", baseline="base").bd
+    assert bd.points == 1 and "1 point(s) of this curve without a rate and a finite PSNR left out" in bd.note
+
+
 def test_a_rate_aware_run_without_experiment_json_is_not_reported_as_stg(tmp_path) -> None:
     from stgc.eval.report import describe_run
 

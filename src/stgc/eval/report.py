@@ -23,6 +23,7 @@ from stgc.config import same_place
 from stgc.errors import DataError, FormatError
 from stgc.eval.bjontegaard import BDError, Method, bd_psnr, bd_rate
 from stgc.fileio import atomic_open, atomic_path, read_json_object, write_json
+from stgc.metrics.image import PSNR_CEILING_DB
 from stgc.run import Run
 
 log = logging.getLogger(__name__)
@@ -55,7 +56,7 @@ class ReportRow:
             name=str(m["name"]),
             family=str(m.get("family") or m["name"]),
             mbps=_num(m.get("mbps")),
-            psnr=_num(m.get("psnr")),
+            psnr=_psnr(m.get("psnr")),
             num_gaussians=None if m.get("num_gaussians") in (None, "") else int(float(m["num_gaussians"])),
             size_mb=_num(m.get("size_mb")),
             ssim=_num(m.get("ssim")),
@@ -69,6 +70,14 @@ def _num(x: Any) -> float | None:
         return None
     v = float(x)
     return v if math.isfinite(v) else None
+
+
+def _psnr(x: Any) -> float | None:
+    """A row's PSNR; an exact render (+inf) counts at the ceiling the evaluation itself uses, so that the best
+    point of a curve is not the one left out."""
+    if x is not None and x != "" and float(x) == math.inf:
+        return PSNR_CEILING_DB
+    return _num(x)
 
 
 @dataclass
@@ -180,6 +189,9 @@ def bd_table(rows: Sequence[ReportRow], baseline: str | None, method: Method = "
         result = BDResult(name, baseline, len(curve), None, None)
         dropped = [f"{n} dominated point(s) of {what} left out" for n, what in
                    ((len(curve_all) - len(curve), "this curve"), (len(base_all) - len(base), "the baseline")) if n]
+        dropped += [f"{n} point(s) of {what} without a rate and a finite PSNR left out" for n, what in
+                    ((len(members) - len(curve_all), "this curve"),
+                     (len(families.get(baseline, [])) - len(base_all), "the baseline")) if n]
         try:
             if len(base) < 2 or len(curve) < 2:
                 raise BDError(f"needs >= 2 rate points per curve (baseline {len(base)}, this {len(curve)})")
