@@ -890,3 +890,10 @@ def test_a_run_trained_before_a_behaviour_change_that_acts_on_it_is_not_reused(t
     saved["train"]["densify"]["max_growth"] = 0.0
     (run / "config.json").write_text(json.dumps(saved))
     assert reuse_mismatch(run, "DATA", "cpu", uncapped) is None
+    # The importance criterion's views (every frame since 'importance-every-frame') move only its own runs.
+    importance = {**uncapped, "compaction.criterion": "importance"}
+    run = saved_run("importance", importance, ["compaction-not-refilled"])
+    saved = json.loads((run / "config.json").read_text())
+    saved["train"]["densify"]["max_growth"] = 0.0
+    (run / "config.json").write_text(json.dumps(saved))
+    assert "importance-every-frame" in (reuse_mismatch(run, "DATA", "cpu", importance) or "")

@@ -138,6 +138,22 @@ def test_importance_sums_blending_weights_over_one_view_per_camera(tiny_toys, ma
     assert float(weights.sum()) == pytest.approx(total_alpha, rel=1e-4)
 
 
+def test_importance_covers_every_frame_when_there_are_more_frames_than_cameras(tmp_path):
+    """With one view per camera, two training cameras of a five-frame video saw two frames: a Gaussian living
+    between them scored 0 and lost every pair it was in. Every frame is covered now, the cameras taking turns."""
+    from scenes import scene_model, write_panoptic_scene
+
+    from stgc.data import open_dataset
+
+    scene = write_panoptic_scene(tmp_path / "scene", views=3, frames=5, width=16, height=12)
+    dataset = open_dataset(scene.root)
+    trainer = Trainer(dataset, None, None, _short_config(), None, tmp_path / "imp", model=scene_model())
+    views = trainer.importance_views()
+    assert sorted(v.frame for v in views) == [0, 1, 2, 3, 4]
+    assert {str(v.name) for v in views} == set(dataset.train_views)
+    assert len(trainer.probe_views()) <= 2  # the probe set keeps its one view per camera
+
+
 def test_lite_variant_trains_and_densifies(tiny_toys, make_model, tmp_path):
     # Lite has no features_t: its optimizer must get exactly its own parameter groups.
     cfg = _short_config(iterations=12, save_iterations=(), checkpoint_every=0, eval_at_end=False)

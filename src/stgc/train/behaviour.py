@@ -41,11 +41,22 @@ def _rounds_refill_compaction(configs: Mapping[str, Any]) -> bool:
     return pruning.num_steps > 0 and pruning.iterations()[0] <= schedule.densify_end
 
 
+def _importance_criterion(configs: Mapping[str, Any]) -> bool:
+    compaction = configs.get("compaction")
+    return compaction is not None and compaction.method == "st-knn" and compaction.criterion == "importance"
+
+
 CHANGES: tuple[BehaviourChange, ...] = (
     BehaviourChange(
         "compaction-not-refilled",
         "since 2026-11-27 capped clone/split rounds inside the ST-KNN window no longer refill what compaction removed",
         _rounds_refill_compaction,
+    ),
+    BehaviourChange(
+        "importance-every-frame",
+        "since 2026-11-28 the importance criterion sums the blending weight over every training frame, not over one "
+        "view per camera",
+        _importance_criterion,
     ),
 )
 

@@ -578,8 +578,21 @@ class Trainer:
         return self.quantization.quantized_params(self.model)
 
     def importance_views(self) -> list[Any]:
-        """One view per training camera, their frames spread evenly over the segment: every view and every part of
-        the time range is covered once, at (#cameras) renders instead of (#cameras x #frames)."""
+        """The views the importance criterion sums over: every training camera and every training frame, at
+        max(#cameras, #frames) renders instead of (#cameras x #frames), the cameras taking the frames in turn. With
+        one view per camera (as before 2026-11-28) a Gaussian whose lifetime falls between the sampled frames scored
+        0 however much it showed, and lost every pair it was in."""
+        by_camera = self._training_views_by_camera()
+        frames = sorted({cam.frame for cams in by_camera for cam in cams})
+        count = max(len(by_camera), len(frames))
+        views = []
+        for k in range(count):
+            target = frames[(k * len(frames)) // count]
+            views.append(min(by_camera[k % len(by_camera)], key=lambda cam: (abs(cam.frame - target), cam.frame)))
+        return views
+
+    def _one_view_per_camera(self) -> list[Any]:
+        """One view per training camera, their frames spread evenly over the segment."""
         by_camera = self._training_views_by_camera()
         return [cams[(k * len(cams)) // max(len(by_camera), 1) % len(cams)] for k, cams in enumerate(by_camera)]
 
@@ -592,10 +605,10 @@ class Trainer:
 
     def probe_views(self) -> list[Any]:
         """The compaction controller's fixed probe set (compaction.probe_views training views): cameras and frames
-        spread evenly. With at most one per camera, a deterministic pick of importance_views thinned to the count;
+        spread evenly. With at most one per camera, a deterministic pick of one view per camera thinned to the count;
         with more (fewer cameras than probe views, e.g. one camera's video), several frames of each camera, spread
         over the segment, so that the probe sees the whole time range."""
-        views = self.importance_views()
+        views = self._one_view_per_camera()
         count = self.compaction_cfg.probe_views if self.compaction_cfg else len(views)
         if count <= len(views):
             return [views[(k * len(views)) // count] for k in range(count)]
