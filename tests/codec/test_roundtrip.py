@@ -85,12 +85,14 @@ def test_every_attribute_is_within_its_documented_bound(models, round_trips, var
 def test_trajectory_error_is_bounded_while_the_gaussian_is_visible(models, round_trips, quality):
     """The guarantee behind the time-span scaling, checked on the trajectories themselves: at every frame time
     where a Gaussian's temporal opacity is at least exp(-SPAN_SIGMAS**2), its decoded cubic trajectory is within
-    the sum of the three powers' step/2 of the original one (per axis), whatever its lifetime."""
+    the sum over the three powers p of step/2 * max(1, max(|mu|, |1 - mu|))**p of the original one (per axis),
+    whatever its lifetime (docs/stgc-format.md §2.2; the factor is 1 for mu in [0, 1])."""
     arrays, _ = models["full"]
     _, decoded, index = round_trips["full", quality]
     out = {k: v[index].astype(np.float64) for k, v in decoded.arrays.items()}
     step = steps(decoded)["MOTN"]
     mu, scale = out["trbf_center"], np.exp(out["trbf_scale"])
+    reach = np.maximum(1.0, np.maximum(np.abs(mu), np.abs(1.0 - mu)))
     checked = 0
     for t in np.linspace(0.0, 1.0, 41):
         dt = t - mu
@@ -100,9 +102,34 @@ def test_trajectory_error_is_bounded_while_the_gaussian_is_visible(models, round
             def shift(a, dt=dt, axis=axis):
                 return sum(a[f"motion_{axis + 3 * k}"].astype(np.float64) * dt ** (k + 1) for k in range(3))
             err = np.abs(shift(out) - shift(arrays))[visible]
-            bound = sum(step[axis + 3 * k] / 2 for k in range(3))
-            assert err.max(initial=0.0) <= bound * (1 + 1e-6) + 1e-9, (t, axis, err.max(), bound)
+            bound = sum(step[axis + 3 * k] / 2 * reach ** (k + 1) for k in range(3))[visible]
+            assert np.all(err <= bound * (1 + 1e-6) + 1e-9), (t, axis, np.max(err / bound, initial=0.0))
     assert checked > N  # the synthetic lifetimes leave many Gaussians visible at many times
+
+
+def test_a_trajectory_centred_outside_the_sequence_errs_by_its_reach_to_the_power():
+    """The span is clipped to 1, so a Gaussian whose trbf_center mu lies outside [0, 1] is seen at |dt| up to
+    max(|mu|, |1 - mu|) > 1: with each coefficient 0.49 step off the grid (same sign) its trajectory error exceeds
+    the sum of the powers' step/2 (the bound docs/stgc-format.md stated) and stays within each power's step/2 times
+    that reach to the power (the bound it states now)."""
+    from stgc.codec import simulate_quantization
+    from stgc.codec.format import quantized_groups
+
+    arrays = {k: v.copy() for k, v in synthetic_model(500, "full", seed=4)[0].items()}
+    arrays["trbf_center"][0], arrays["trbf_scale"][0] = -0.6, 1.0  # fades in before the first frame, never out
+    step = [q.step for q in next(g for g in quantized_groups(arrays, "full") if g.tag == "MOTN").quantizers]
+    for power in range(3):
+        arrays[f"motion_{3 * power}"][0] = (np.round(0.01 / step[3 * power]) + 0.49) * step[3 * power]
+    assert [q.step for q in next(g for g in quantized_groups(arrays, "full") if g.tag == "MOTN").quantizers] == step
+    out = simulate_quantization(arrays, "full")  # what decoding the file gives (tested below)
+    mu = float(out["trbf_center"][0])
+    dt = np.linspace(0.0, 1.0, 101) - mu
+    assert -0.61 < mu < -0.59 and SPAN_SIGMAS * np.exp(float(out["trbf_scale"][0])) > 1.0 - mu  # seen throughout
+    err = np.abs(sum((float(out[f"motion_{3 * k}"][0]) - float(arrays[f"motion_{3 * k}"][0])) * dt ** (k + 1)
+                     for k in range(3)))
+    reach = max(abs(mu), abs(1.0 - mu))
+    assert err.max() > 1.5 * sum(step[3 * k] / 2 for k in range(3))
+    assert err.max() <= sum(step[3 * k] / 2 * reach ** (k + 1) for k in range(3)) * (1 + 1e-6)
 
 
 def test_canonical_rotation_changes_no_rotation_at_any_time():
@@ -249,7 +276,9 @@ def test_tiny_and_degenerate_models_round_trip():
 def test_a_span_of_a_few_ulps_round_trips_and_what_cannot_be_stored_is_refused_when_encoding():
     """Opacity logits far out differ by float64 ulps after the sigmoid: the quantizer's zero point must stay within
     the 2**53 the decoder accepts (it was written, then refused on decoding). Values whose quantizer would reach
-    beyond float32 are refused by the encoder, never written as a file the decoder refuses."""
+    beyond float32 are refused by the encoder, never written as a file the decoder refuses; a range within it is
+    stored (the decoder bounds the codes' values exactly: version 2 wrote and read +-3e38, a bound 3x too loose
+    refused it)."""
     from stgc.codec import simulate_quantization
 
     arrays = {k: v.copy() for k, v in synthetic_model(3, "lite", seed=4)[0].items()}
@@ -258,9 +287,12 @@ def test_a_span_of_a_few_ulps_round_trips_and_what_cannot_be_stored_is_refused_w
     simulated = simulate_quantization(arrays, "lite")
     assert sorted(decoded["opacity"].tolist()) == sorted(simulated["opacity"].tolist())
     assert sigmoid(decoded["opacity"]) == pytest.approx(sigmoid(arrays["opacity"]), abs=1e-6)
-    far = dict(arrays, x=np.array([-3e38, 0.0, 3e38], np.float32))
+    wide = dict(arrays, x=np.array([-3e38, 0.0, 3e38], np.float32))
+    assert decode(encode(wide, "lite", None)).arrays["x"] == pytest.approx(wide["x"], rel=1e-3)
+    # +-float32 max needs a code one step beyond it (the grid is snapped to multiples of the step)
+    top = np.finfo(np.float32).max
     with pytest.raises(DataError, match="cannot be stored"):
-        encode(far, "lite", None)
+        encode(dict(arrays, x=np.array([-top, 0.0, top], np.float32)), "lite", None)
 
 
 def test_bad_input_is_refused_with_a_clear_error(models):

@@ -13,7 +13,7 @@ from tqdm import tqdm
 from stgc.config import check
 from stgc.data.config import open_run_dataset
 from stgc.errors import DataError, FormatError, StgcError
-from stgc.fileio import atomic_path, write_json
+from stgc.fileio import atomic_open, write_json
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel
 from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
 from stgc.model.ply import resolve_ply_path
@@ -263,8 +263,8 @@ def encode_with_config(arrays: dict, variant: str, decoder_state: dict | None, c
 def write_stgc(path: str | Path, data: bytes) -> Path:
     """Write an encoded bitstream atomically (a failed write leaves no partial file)."""
     path = Path(path)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
+    with atomic_open(path, "wb") as f:  # fsynced before the rename: a crash cannot leave an empty file in place
+        f.write(data)
     return path
 
 

@@ -74,6 +74,9 @@ MAX_META_BYTES = 1 << 20
 # frame cannot expand by more than 32768x; a claimed raw size beyond that is a lie and is rejected unread.
 ZSTD_MAX_EXPANSION = 1 << 15
 ZSTD_SLACK = 1 << 17
+# A frame may ask for a window of up to 2**max(23, min(27, bit_length(raw_size))) bytes (spec §6).
+ZSTD_MIN_WINDOW_LOG = 23
+ZSTD_MAX_WINDOW_LOG = 27
 
 
 def read_capped(path: str | os.PathLike) -> bytes:
@@ -111,6 +114,9 @@ FLAG_CENTRED = 4
 # components before it (coefficients in the section table), wrapped into the same range (quantize.predict_encode).
 FLAG_PREDICT = 8
 KNOWN_FLAGS = FLAG_DELTA | FLAG_INTERLEAVE | FLAG_CENTRED | FLAG_PREDICT
+# The version that introduced each later flag: no encoder of an older version wrote it, and that version's decoder
+# refused it, so an older file holding one is damaged or forged, not a valid file.
+FLAG_SINCE_VERSION = {FLAG_CENTRED: ("CENTRED", 3), FLAG_PREDICT: ("PREDICT", 4)}
 
 # Domains: how a component is mapped before uniform quantization (and back after).
 LINEAR = "linear"
@@ -124,7 +130,8 @@ _OPACITY_CLAMP = 1e-7  # logit(1 - 1e-7) = 16.1: beyond that the opacity is 1 in
 # the Gaussian is visible: temporal opacity exp(-(dt / exp(trbf_scale))**2) is 0.018 at dt = 2 exp(trbf_scale),
 # and t stays in [0, 1]. So c is stored as c * span**p with span = min(max(|mu|, |1 - mu|), 2 exp(s)) clipped to
 # [SPAN_MIN, 1]: a uniform step then bounds the displacement error over the time the Gaussian is seen, instead
-# of spending the levels on coefficients of short-lived Gaussians whose high powers never act. mu and s are the
+# of spending the levels on coefficients of short-lived Gaussians whose high powers never act (for mu outside
+# [0, 1] the clip to 1 lets it grow by max(|mu|, |1 - mu|)**p; part of the format, spec §2.1). mu and s are the
 # *decoded* trbf values, so encoder and decoder compute the same span.
 TIME_SPAN = "time-span"
 SPAN_SIGMAS = 2.0
@@ -175,6 +182,9 @@ GROUP_BY_TAG = {g.tag: g for g in GROUPS}
 GROUP_TAGS = frozenset(g.tag.decode("latin-1") for g in GROUPS)
 TAG_DECODER = b"DECO"
 TAG_META = b"META"
+# The table's `bits` of these sections: fixed by the spec (every version wrote these), checked by the decoder.
+DECODER_BITS = 16
+META_BITS = 8
 _DECO, _META = TAG_DECODER.decode("latin-1"), TAG_META.decode("latin-1")
 
 _DTYPE_CODES: dict[np.dtype, int] = {np.dtype(np.float16): 1, np.dtype(np.float32): 2}
@@ -696,13 +706,13 @@ def encode(
     if decoder_state is not None:
         raw = _pack_decoder(decoder_state)
         codec, payload = _compress(raw, zstd_level)
-        sections.append((TAG_DECODER, 16, _EncodedSection(codec, 0, payload, len(raw), ())))
+        sections.append((TAG_DECODER, DECODER_BITS, _EncodedSection(codec, 0, payload, len(raw), ())))
     if metadata:
         raw = json.dumps(dict(metadata), sort_keys=True, separators=(",", ":")).encode("utf-8")
         if len(raw) > MAX_META_BYTES:
             raise DataError(None, f"metadata is {len(raw)} bytes; the limit is {MAX_META_BYTES}")
         codec, payload = _compress(raw, zstd_level)
-        sections.append((TAG_META, 8, _EncodedSection(codec, 0, payload, len(raw), ())))
+        sections.append((TAG_META, META_BITS, _EncodedSection(codec, 0, payload, len(raw), ())))
 
     table = bytearray()
     for tag, bits, sec in sections:
@@ -797,10 +807,14 @@ def read_header(data: bytes, source: str | None = None) -> StgcHeader:
     return StgcHeader(version, _VARIANT_NAMES[variant_code], quality, n, len(data), tuple(sections))
 
 
-def _check_section(sec: SectionInfo, source: str | None) -> None:
+def _check_section(sec: SectionInfo, version: int, source: str | None) -> None:
     allowed = KNOWN_FLAGS if sec.tag in GROUP_TAGS else 0
     if sec.flags & ~allowed:
         raise _fail(f"section {sec.tag!r} has unknown flags {sec.flags:#04x}", source)
+    for flag, (name, since) in FLAG_SINCE_VERSION.items():
+        if sec.flags & flag and version < since:
+            raise _fail(f"section {sec.tag!r} has the {name} flag, new in version {since}, in a version {version} "
+                        "file", source)
     if sec.flags & FLAG_CENTRED and (sec.flags & FLAG_DELTA or sec.bits >= MAX_BITS
                                      or GROUP_BY_TAG[sec.tag.encode("latin-1")].domain == QUAT_SMALLEST3):
         raise _fail(f"section {sec.tag!r} combines centring with delta coding, a quaternion group or "
@@ -824,8 +838,10 @@ def _unpack_payload(data: bytes, offset: int, sec: SectionInfo, source: str | No
         raise _fail(f"section {sec.tag!r} checksum mismatch (file corrupted)", source)
     if sec.codec == CODEC_STORED:
         return payload
-    # Stream in bounded chunks: memory grows only as real content decodes, never past raw_size + 1.
-    window = 1 << max(20, min(27, max(sec.raw_size, 1).bit_length()))
+    # Stream in bounded chunks: memory grows only as real content decodes, never past raw_size + 1. The window
+    # floor is level 19's default window (8 MiB): a frame written streamed (no content size, so zstd cannot shrink
+    # the window to the content) by an ordinary writer must be accepted. Spec §6.
+    window = 1 << max(ZSTD_MIN_WINDOW_LOG, min(ZSTD_MAX_WINDOW_LOG, max(sec.raw_size, 1).bit_length()))
     out = bytearray()
     try:
         reader = zstandard.ZstdDecompressor(max_window_size=window).stream_reader(payload)
@@ -868,7 +884,11 @@ def _decode_attribute(raw: bytes, sec: SectionInfo, group: AttributeGroup, n: in
 
 
 def _check_quantizers(sec: SectionInfo, group: AttributeGroup, source: str | None) -> None:
-    top = 1 << sec.bits  # |code| bound of every layout (centred codes are signed, in [-2**bits, 2**bits))
+    # The codes decoding can give (_decode_attribute): [0, 2**bits) plain or delta coded, [-2**bits, 2**bits)
+    # centred (predicted or not). The bound is exact, as version 2's was: a looser one refused version 2 files that
+    # version's own decoder read.
+    highest = (1 << sec.bits) - 1
+    lowest = -(1 << sec.bits) if sec.flags & FLAG_CENTRED else 0
     f32_max = float(np.finfo(np.float32).max)
     if group.domain == TIME_SPAN:  # decoding divides by span**p >= SPAN_MIN**p: the result must still fit
         f32_max *= SPAN_MIN ** max(group.span_powers)
@@ -877,7 +897,7 @@ def _check_quantizers(sec: SectionInfo, group: AttributeGroup, source: str | Non
             raise _fail(f"section {sec.tag!r} has an invalid quantizer step {q.step!r}", source)
         if abs(q.zero_point) > 1 << 53:
             raise _fail(f"section {sec.tag!r} has an absurd quantizer zero point {q.zero_point}", source)
-        extreme = (abs(q.zero_point) + top) * q.step
+        extreme = max(abs(q.zero_point + lowest), abs(q.zero_point + highest)) * q.step
         if not extreme <= f32_max:
             raise _fail(f"section {sec.tag!r} quantizer reaches {extreme:.3g}, beyond float32", source)
 
@@ -939,10 +959,12 @@ def decode_metadata(data: bytes, source: str | None = None) -> dict[str, Any]:
     """The JSON metadata of a bitstream ({} without one), unpacking no other section: what a caller needs to find
     the run a file belongs to before (or without) decoding its Gaussians."""
     header = read_header(data, source)
+    # The whole table, as decode checks it (cheap: nothing is decompressed): its size limits are what keep a
+    # crafted META from expanding without bound, and a file decode refuses does not name a run either.
+    _check_section_table(header, source)
     offset = HEADER_SIZE + sum(s.table_bytes for s in header.sections)
     for sec in header.sections:
         if sec.tag == _META:
-            _check_section(sec, source)
             return _parse_metadata(_unpack_payload(data, offset, sec, source), source)
         offset += sec.payload_size
     return {}
@@ -958,7 +980,7 @@ def _check_section_table(header: StgcHeader, source: str | None) -> dict[str, At
         if sec.tag in seen:
             raise _fail(f"section {sec.tag!r} appears twice", source)
         seen.add(sec.tag)
-        _check_section(sec, source)
+        _check_section(sec, header.version, source)
         if sec.tag in expected:
             group = expected[sec.tag]
             want = len(group.fields(variant))
@@ -969,12 +991,14 @@ def _check_section_table(header: StgcHeader, source: str | None) -> dict[str, At
             if sec.raw_size != n * want * _stored_dtype(sec.bits, sec.flags).itemsize:
                 raise _fail(f"section {sec.tag!r} size {sec.raw_size} does not match {n} Gaussians", source)
             _check_quantizers(sec, group, source)
-        elif sec.tag == _DECO:
-            if sec.raw_size > MAX_DECODER_BYTES or sec.components:
-                raise _fail(f"decoder section is malformed ({sec.raw_size} bytes)", source)
-        elif sec.tag == _META:
-            if sec.raw_size > MAX_META_BYTES or sec.components:
-                raise _fail(f"metadata section is malformed ({sec.raw_size} bytes)", source)
+        elif sec.tag in (_DECO, _META):
+            what, limit, bits = (("decoder", MAX_DECODER_BYTES, DECODER_BITS) if sec.tag == _DECO
+                                 else ("metadata", MAX_META_BYTES, META_BITS))
+            if sec.raw_size > limit:
+                raise _fail(f"{what} section claims {sec.raw_size} bytes, above the limit of {limit}", source)
+            if sec.components or sec.bits != bits:
+                raise _fail(f"{what} section is malformed ({sec.components} components and bits {sec.bits}; "
+                            f"it has 0 and {bits})", source)
         else:
             raise _fail(f"unknown section {sec.tag!r}", source)
     missing = sorted(set(expected) - seen)
