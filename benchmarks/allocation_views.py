@@ -32,6 +32,7 @@ def main() -> None:
     parser.add_argument("--keep", action="store_true")
     args = parser.parse_args()
     machine.use_threads(args.threads)  # torch's and numba's (numba alone kept every core)
+    print(f"machine: {machine.one_line()}, {args.threads} threads")
     print("| run | table views | probe views | negligible | wall s | CPU s | bytes | test PSNR dB | bytes vs first | "
           "PSNR vs first |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")

@@ -21,6 +21,7 @@ import argparse
 import json
 import time
 
+from stgc import machine
 from stgc.codec import DEFAULT_QUALITY, QUALITY_LEVELS, decode, encode
 from stgc.codec.format import DEFAULT_ZSTD_LEVEL
 from stgc.codec.synthetic import synthetic_model
@@ -135,13 +136,15 @@ def main() -> None:
     parser.add_argument("--allocations", nargs="+", choices=("optimised", "ladder"), default=["optimised", "ladder"],
                         help="with --runs: how bit depths are chosen (CodecConfig.allocation); each is measured")
     args = parser.parse_args()
+    host = machine.one_line()  # the load before the timings
 
     if args.runs:
         rows = trained_rows(args.runs, allocations=tuple(args.allocations))
         if args.json:
             for row in rows:
-                print(json.dumps(row))
+                print(json.dumps({**row, "machine": host}))
         else:
+            print(f"machine: {host}")
             print_trained(rows)
         return
 
@@ -150,8 +153,9 @@ def main() -> None:
         rows += quality_rows(args.quality_sweep_size, args.zstd_level)
     if args.json:
         for row in rows:
-            print(json.dumps(row))
+            print(json.dumps({**row, "machine": host}))
         return
+    print(f"machine: {host}")
     print(f"Encode/decode speed ({args.variant}, quality {args.quality}, zstd {args.zstd_level}; MB/s of float32 PLY)")
     print(f"{'gaussians':>10} {'file MB':>8} {'B/G':>6} {'x PLY':>6} {'enc s':>7} {'dec s':>7} {'enc MB/s':>9} "
           f"{'dec MB/s':>9}")

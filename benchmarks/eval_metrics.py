@@ -79,6 +79,7 @@ def main() -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON object per row instead of a table")
     args = parser.parse_args()
     machine.use_threads(args.threads)  # torch's and numba's (numba alone kept every core)
+    host = machine.one_line()  # the load before the timings
     gen = torch.Generator().manual_seed(0)
     rows = []
     for size in args.sizes:
@@ -105,8 +106,9 @@ def main() -> None:
                      "fwd_bwd_ms": None, "fwd_bwd_cpu_ms": None, "max_abs_diff": None})
     if args.json:
         for r in rows:
-            print(json.dumps(r))
+            print(json.dumps({**r, "threads": args.threads, "machine": host}))
         return
+    print(f"machine: {host}, {args.threads} threads")
     print(f"{'size':>10} {'implementation':<18} {'fwd ms':>9} {'fwd cpu':>9} {'fwd+bwd ms':>11} {'f+b cpu':>9}"
           f" {'|Δssim|':>9}")
     for r in rows:

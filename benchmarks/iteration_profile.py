@@ -26,10 +26,11 @@ from torch.profiler import ProfilerActivity, profile, record_function
 
 import stgc.render.numba_backend as numba_backend
 from stgc import machine
-from stgc.options import default_configs
 from stgc.config import apply_overrides, parse_set_arguments
+from stgc.errors import StgcError
 from stgc.model import STGModel
 from stgc.model.decoder import SandwichDecoder
+from stgc.options import resolve_configs
 from stgc.train import Trainer
 
 # (scope label, owner, attribute): functions whose forward time becomes a labelled part.
@@ -98,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True)
     ap.add_argument("--model", required=True, help="a trained run (its latest PLY) or a PLY: the Gaussians profiled")
-    ap.add_argument("--set", action="append", default=[], help="config override section.key=value (repeatable)")
+    ap.add_argument("--set", action="append", default=[],
+                    help="config override section.key=value, as `stgc train --set` (repeatable)")
     ap.add_argument("--warmup", type=int, default=10)
     ap.add_argument("--iterations", type=int, default=20)
     ap.add_argument("--threads", type=int, default=2)
@@ -106,10 +108,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     machine.use_threads(args.threads)  # torch's and numba's (numba alone kept every core)
-    configs = default_configs("cpu")
-    overrides = parse_set_arguments(args.set)
-    for section in configs:
-        configs[section] = apply_overrides(configs[section], overrides.get(section, {}), section)
+    try:
+        # As `stgc train --preset cpu --set ...` resolves them: an unknown section or key is refused, not ignored.
+        configs = resolve_configs("cpu", {}, {}, parse_set_arguments(args.set))
+    except StgcError as exc:
+        ap.error(str(exc))
     dataset = configs["data"].open(args.data)
     model = STGModel.load(args.model, scene_extent=dataset.scene_extent())
     install_scopes()

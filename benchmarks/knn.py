@@ -138,11 +138,13 @@ def main() -> None:
                 "threads": args.threads,
                 "cpus": os.cpu_count(),
                 "load_average_1min": round(os.getloadavg()[0], 2),
+                "machine": machine.one_line(),
             }
         )
         if args.json:
             print(json.dumps(rows[-1]), flush=True)
     if not args.json:
+        print(f"machine: {machine.one_line()}")
         print(f"ST-KNN matching step, rotation_weight {args.rotation_weight}, {args.rotations} rotations, "
               f"{args.threads} threads (torch, numba; the k-d tree queries use {_workers()})")
         print(f"{'N':>9} {'match s':>8} {'cpu s':>7} {'brute s':>10} {'speedup':>8} {'agree':>6} {'pairs':>8} {'prune s':>8} {'load':>5}")

@@ -18,6 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
+from stgc import machine
 from stgc.data.cameras import Camera
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel
 from stgc.render import rasterize
@@ -77,13 +78,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch and numba threads (1 makes CPU time robust)")
     parser.add_argument("--json", action="store_true", help="print one JSON object per case instead of the table")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    try:
-        import numba
-
-        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
-    except ImportError:
-        pass
+    machine.use_threads(args.threads)  # torch's and numba's
+    host = machine.one_line()  # the load before the timings
     camera = make_camera(*args.resolution)
     t = camera.time
     rows = []
@@ -118,6 +114,8 @@ def main() -> None:
                 "rasterized": visible,
                 "resolution": f"{camera.width}x{camera.height}",
                 "load_1min": os.getloadavg()[0],
+                "threads": args.threads,
+                "machine": host,
             }
             for name, fn in (("fwd_culled", culled_fwd), ("fwd_all", unculled_fwd),
                              ("fwdbwd_culled", culled_bwd), ("fwdbwd_all", unculled_bwd)):
@@ -126,6 +124,7 @@ def main() -> None:
             if args.json:
                 print(json.dumps(row), flush=True)
     if not args.json:
+        print(f"machine: {host}")
         print(f"STGModel.render, {args.variant}, {camera.width}x{camera.height}, t=0.5, min of {args.repeats}, "
               f"torch threads {torch.get_num_threads()}; wall ms / process CPU ms")
         print("| N | exp(s_t) | rasterized | fwd culled | fwd all | fwd+bwd culled | fwd+bwd all | load |")

@@ -4,12 +4,17 @@
 
 From a finished run (its checkpoint), three models per quality: the run as it is; the run trained N more
 iterations at the window's lower learning rates (`train.quantization_aware` with simulate=false: the control); and
-the same N iterations through the codec's quantization at that quality (simulate=true). Each is compressed at that
-quality with the same kind of depths the window simulated (`--allocation`: the fixed ladder, or the rd-optimised
-allocation, measured again on each final model as `stgc compress` does) and evaluated on the test views, float and
-decoded. Prints one table: test PSNR float / decoded, the quantization loss, the file size and the extra training
-time. The continuation extends the run's schedule (xyz decay over the new total); a run trained with compaction is
-refused, since a longer schedule would move its compaction window.
+the same N iterations through the codec's quantization at that quality (simulate=true), at the depths `--allocation`
+names (the fixed ladder, or the rd-optimised allocation measured when the window opens). Each is compressed at that
+quality with `codec.allocation` set to `--compress-allocation`: `auto` (the default, what `stgc compress` does
+since session 27: the rate-aware model's file stores the depths its window trained, the other two, which have no
+such depths, are measured with the rd-optimised allocation, or get the ladder where the run's dataset cannot be
+opened), `optimised` (measured again on each final model, the rate-aware one included: `stgc compress` before
+session 27) or `ladder` (the quality's fixed depths for all three).
+Each file is evaluated on the test views, float and decoded. Prints one table: test PSNR float / decoded, the
+quantization loss, the file size and the extra training time. The continuation extends the run's schedule (xyz
+decay over the new total); a run trained with compaction is refused, since a longer schedule would move its
+compaction window.
 """
 
 from __future__ import annotations
@@ -21,8 +26,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+from stgc.config import to_dict
 from stgc.model import STGModel
 from stgc.model.layout import bytes_per_gaussian
+from stgc.train.config import QuantizationAwareConfig
 
 STGC = [sys.executable, "-m", "stgc.cli"]
 
@@ -39,8 +46,10 @@ def continue_run(run: Path, out: Path, iterations: int, quality: int, simulate: 
     base = int((train.get("resolved_schedule") or train)["iterations"])
     train["iterations"] = base + iterations
     train.pop("resolved_schedule", None)  # recomputed from the options (it would restore the old total)
-    train["quantization_aware"] = {"iterations": iterations, "quality": quality, "simulate": simulate,
-                                   "allocation": allocation}
+    # Every option of the window, as a training saves it: `stgc compress` reads a config without them as one saved
+    # before they existed, and measures the depths again instead of storing the window's.
+    train["quantization_aware"] = to_dict(QuantizationAwareConfig(iterations=iterations, quality=quality,
+                                                                  simulate=simulate, allocation=allocation))
     train["eval_every"] = 0
     train["save_iterations"] = [base + iterations]
     (out / "config.json").write_text(json.dumps(config, indent=2))
@@ -54,8 +63,8 @@ def continue_run(run: Path, out: Path, iterations: int, quality: int, simulate: 
 
 
 def compressed_eval(run: Path, quality: int, allocation: str) -> dict:
-    """Compress `run` at `quality` (fixed ladder or rd-optimised allocation), evaluate the file and the float model
-    (if not yet)."""
+    """Compress `run` at `quality` with `codec.allocation=allocation` (auto, optimised or ladder), evaluate the file
+    and the float model (if not yet)."""
     name = f"{allocation}_q{quality}"
     stgc_file = run / f"{name}.stgc"
     subprocess.run([*STGC, "-q", "compress", str(run), "--out", str(stgc_file), "--quality", str(quality),
@@ -76,18 +85,24 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=1000, help="rate-aware iterations added to the run")
     parser.add_argument("--quality", type=int, nargs="+", default=[3], help="codec qualities")
     parser.add_argument("--allocation", choices=["ladder", "optimised"], default="ladder",
-                        help="bit depths of the window and of the compression: the quality's fixed ladder, or the "
-                             "rd-optimised allocation (what stgc compress does by default)")
+                        help="bit depths the window simulates (train.quantization_aware.allocation): the quality's "
+                             "fixed ladder, or the rd-optimised allocation measured when the window opens")
+    parser.add_argument("--compress-allocation", choices=["auto", "optimised", "ladder"], default="auto",
+                        help="codec.allocation of every compression: auto (stgc compress's default: the rate-aware "
+                             "model stores its window's depths, the others are measured), optimised (measured again "
+                             "on each final model, stgc compress before session 27) or ladder (the quality's fixed "
+                             "depths); default auto")
     args = parser.parse_args()
     args.run, args.out = args.run.resolve(), args.out.resolve()
     rows = []
     for quality in args.quality:
-        rows.append(("as trained", quality, compressed_eval(args.run, quality, args.allocation), 0.0))
+        rows.append(("as trained", quality, compressed_eval(args.run, quality, args.compress_allocation), 0.0))
         for name, simulate in (("control", False), ("aware", True)):
             out = args.out / f"{name}_{args.allocation}_q{quality}"
             seconds = continue_run(args.run, out, args.iterations, quality, simulate, args.allocation)
-            rows.append((name, quality, compressed_eval(out, quality, args.allocation), seconds))
-    print(f"\n{args.run}: +{args.iterations} iterations, {args.allocation} bit depths, test views")
+            rows.append((name, quality, compressed_eval(out, quality, args.compress_allocation), seconds))
+    print(f"\n{args.run}: +{args.iterations} iterations, {args.allocation} bit depths in the window, compressed with "
+          f"codec.allocation={args.compress_allocation}, test views")
     print("| model | quality | test PSNR float | decoded | loss dB | file KiB | x smaller than PLY rows | Gaussians | "
           "extra training s |")
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|")

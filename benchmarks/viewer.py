@@ -2,7 +2,7 @@
 dataset's size and while moving (half per axis), and the time from a frame-slider move in a real browser to the new
 full-resolution image leaving the server.
 
-    .venv/bin/python benchmarks/viewer.py RUN [--views 20] [--moves 10] [--screenshot page.png]
+    .venv/bin/python benchmarks/viewer.py RUN [--views 20] [--moves 10] [--threads 2] [--screenshot page.png]
 
 RUN: a trained run (or .stgc). Free-camera renders follow a small orbit around the first test camera. The slider
 part drives headless Chromium (Debian's chromium + chromium-driver) through the page, as tests/test_viewer.py does;
@@ -20,7 +20,7 @@ import statistics
 import time
 from typing import Any
 
-
+from stgc import machine
 from stgc.viewer import Viewer, ViewerScene, camera_from_view, free_port, view_of_camera
 
 
@@ -122,12 +122,16 @@ def main() -> int:
     parser.add_argument("run")
     parser.add_argument("--views", type=int, default=20)
     parser.add_argument("--moves", type=int, default=10)
+    parser.add_argument("--threads", type=int, default=2,
+                        help="torch's and numba's threads (0 leaves their defaults, as `stgc view` does)")
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--screenshot", help="also save the page (a test camera, ground truth beside) to this PNG")
     args = parser.parse_args()
+    machine.use_threads(args.threads)  # torch's and numba's
+    row: dict[str, Any] = {"machine": machine.one_line()}  # the load before the timings
     scene = ViewerScene.open(args.run)
-    row: dict[str, Any] = {"run": args.run, "gaussians": scene.segments[0].model.num_gaussians,
-                           "threads": os.environ.get("OMP_NUM_THREADS", "default")}
+    row.update({"run": args.run, "gaussians": scene.segments[0].model.num_gaussians,
+                "threads": args.threads or "default"})
     row.update(render_rates(scene, args.views))
     row.update(slider_latency(scene, args.moves, args.screenshot) or {"slider_to_image": "skipped: no chromium"})
     row["load_avg_1min"] = round(os.getloadavg()[0], 2)
