@@ -154,6 +154,61 @@ def test_importance_covers_every_frame_when_there_are_more_frames_than_cameras(t
     assert len(trainer.probe_views()) <= 2  # the probe set keeps its one view per camera
 
 
+def test_a_gaussian_made_non_finite_between_rounds_is_removed_and_a_non_finite_loss_stops_the_run(
+        tiny_toys, make_model, tmp_path):
+    """One Gaussian an optimizer step made non-finite stopped the next render (or, culled, the next save) until the
+    next densification round removed it; it goes at the step now. A non-finite loss would make every Gaussian it
+    reached non-finite, and that pruning would remove them all silently: it stops the run, named."""
+    from stgc.errors import StgcError
+
+    cfg = _short_config(iterations=20, save_iterations=(), checkpoint_every=0, eval_at_end=False,
+                        densify=DensifyConfig(enabled=False, opacity_reset_interval=0))
+    trainer = Trainer(tiny_toys, None, None, cfg, None, tmp_path / "run", model=make_model(tiny_toys, 100))
+    count = trainer.model.num_gaussians
+    with torch.no_grad():
+        trainer.model.params["xyz"][3, 1] = float("nan")
+    report = trainer.density.step(7, trainer.model, torch.Generator().manual_seed(0))
+    assert report == {"pruned_nonfinite": 1} and trainer.model.num_gaussians == count - 1
+    assert trainer.density.step(8, trainer.model, torch.Generator().manual_seed(0)) == {}
+    with torch.no_grad():  # the decoder's weights are no Gaussian's rows: nothing prunes them
+        for weight in trainer.model.decoder.parameters():
+            weight.fill_(float("nan"))
+    with pytest.raises(StgcError, match="training diverged at iteration 9: the loss is nan"):
+        trainer.train_step(9)
+
+
+def test_a_model_handed_to_the_trainer_trains_at_the_data_s_extent_and_is_recorded_as_it_is(tiny_toys, make_model,
+                                                                                            tmp_path):
+    """A model loaded or built elsewhere carries extent 1.0 (STGModel.load's default): the learning rates and the
+    clone/split sizes were scaled by it. And config.json recorded the default options, not the model: a 'clamp'
+    decoder was recorded as 'sigmoid' and every later load of the run decoded with the wrong activation."""
+    from stgc.config import ConfigError
+    from stgc.model import ModelConfig
+
+    model = make_model(tiny_toys, 100)
+    model.scene_extent, model.decoder.activation = 1.0, "clamp"
+    trainer = Trainer(tiny_toys, None, None, _short_config(), None, tmp_path / "run", model=model)
+    assert trainer.extent == pytest.approx(tiny_toys.scene_extent()) and trainer.extent != 1.0
+    recorded = json.loads((tmp_path / "run" / "config.json").read_text())["model"]
+    assert (recorded["variant"], recorded["decoder_activation"]) == ("full", "clamp")
+    with pytest.raises(ConfigError, match="model.decoder_activation='sigmoid', the model's is 'clamp'"):
+        Trainer(tiny_toys, None, ModelConfig(decoder_activation="sigmoid"), _short_config(), None,
+                tmp_path / "other", model=model)
+    assert not (tmp_path / "other").exists()
+
+
+def test_training_cameras_at_one_place_are_refused_before_anything_is_written(tmp_path):
+    from scenes import scene_model, write_panoptic_scene
+
+    from stgc.data import open_dataset
+    from stgc.errors import DataError
+
+    scene = write_panoptic_scene(tmp_path / "scene", views=2, frames=1, width=16, height=12)  # one camera held out
+    with pytest.raises(DataError, match="scene extent .* is 0: .* training cameras at two or more places"):
+        Trainer(open_dataset(scene.root), None, None, _short_config(), None, tmp_path / "run", model=scene_model())
+    assert not (tmp_path / "run").exists()
+
+
 def test_lite_variant_trains_and_densifies(tiny_toys, make_model, tmp_path):
     # Lite has no features_t: its optimizer must get exactly its own parameter groups.
     cfg = _short_config(iterations=12, save_iterations=(), checkpoint_every=0, eval_at_end=False)

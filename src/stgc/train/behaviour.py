@@ -46,6 +46,11 @@ def _importance_criterion(configs: Mapping[str, Any]) -> bool:
     return compaction is not None and compaction.method == "st-knn" and compaction.criterion == "importance"
 
 
+def _error_guided_sampling(configs: Mapping[str, Any]) -> bool:
+    train = configs["train"]
+    return isinstance(train, TrainConfig) and train.ems.enabled
+
+
 CHANGES: tuple[BehaviourChange, ...] = (
     BehaviourChange(
         "compaction-not-refilled",
@@ -57,6 +62,12 @@ CHANGES: tuple[BehaviourChange, ...] = (
         "since 2026-11-28 the importance criterion sums the blending weight over every training frame, not over one "
         "view per camera",
         _importance_criterion,
+    ),
+    BehaviourChange(
+        "ems-candidates-kept",
+        "since 2026-11-28 an error-guided sampling candidate stays one after its event (the official loop), so one "
+        "camera may make both events",
+        _error_guided_sampling,
     ),
 )
 

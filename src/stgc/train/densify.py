@@ -281,6 +281,10 @@ class DensityControl:
                                              fl.scale_min_opacity)
                 report["pruned_floaters"] = apply_prune(model, self.stats, remove)
             report["pruned_nonfinite"] = apply_prune(model, self.stats, prune_mask_nonfinite(model))
+        elif bool((nonfinite := prune_mask_nonfinite(model)).any()):
+            # Between rounds too: a visible row that an optimizer step made non-finite stops the next render, and
+            # one the render culls stops the next save (a resume replays to the same stop).
+            report["pruned_nonfinite"] = apply_prune(model, self.stats, nonfinite)
         if sched.opacity_reset_interval and iteration % sched.opacity_reset_interval == 0 \
                 and iteration < sched.opacity_reset_until:
             model.reset_opacity(d.opacity_reset_value)

@@ -114,8 +114,9 @@ class ErrorGuidedSampler:
     def observe(self, iteration: int, camera: Camera, ssim_value: float, last_of_batch: bool = True) -> bool:
         """Record a rendered training view; True when this view should trigger an insertion. As the official loop,
         only the batch's last view may trigger, and a candidate rendered more than `min_gap` iterations after the
-        previous event spends its one chance whatever its SSIM: it leaves the candidates, the event counts, and it
-        inserts only below the trigger SSIM."""
+        previous event makes an event whatever its SSIM: the event counts, and it inserts only below the trigger
+        SSIM. A candidate stays one (the official loop never removes it; before 2026-11-28 stgc did), so one camera
+        may take both events."""
         st, cfg = self.state, self.cfg
         if not self.listening(iteration):
             return False
@@ -129,7 +130,6 @@ class ErrorGuidedSampler:
             return False  # candidates act from their next render on
         if not last_of_batch or name not in st["candidates"] or iteration - st["last"] <= self.min_gap:
             return False
-        st["candidates"].remove(name)
         st["events"] += 1
         st["last"] = iteration
         return bool(ssim_value < cfg.trigger_ssim)

@@ -144,6 +144,22 @@ def xyz_learning_rate(cfg: TrainConfig, extent: float, iteration: int, total: in
     return math.exp(math.log(a) * (1 - p) + math.log(b) * p)
 
 
+def _options_of_given_model(model: STGModel, model_cfg: ModelConfig | None) -> ModelConfig:
+    """The model options config.json records for a run that starts from `model`: its own variant and decoder
+    activation (a run recorded as 'sigmoid' that trained a 'clamp' decoder loads and renders wrong). Options that
+    contradict the model are refused."""
+    activation = model.decoder_activation
+    if model_cfg is not None:
+        wrong = [f"model.{name}={asked!r}, the model's is {has!r}" for name, asked, has in (
+            ("variant", model_cfg.variant, model.variant),
+            ("decoder_activation", model_cfg.decoder_activation, activation)) if asked is not None and asked != has]
+        if model.variant == "lite":
+            wrong = [w for w in wrong if not w.startswith("model.decoder_activation")]
+        if wrong:
+            raise ConfigError("the options contradict the model training starts from: " + "; ".join(wrong))
+    return dataclasses.replace(model_cfg or ModelConfig(), variant=model.variant, decoder_activation=activation)
+
+
 def build_initial_model(dataset: Dataset, data_cfg: DataConfig | None, model_cfg: ModelConfig | None) -> STGModel:
     """The STG model initialised from the dataset's point cloud as the data config asks (the model options left unset
     resolved for the dataset's official config family)."""
@@ -248,11 +264,18 @@ class Trainer:
         evaluator: TestEvaluator | None = None,
     ):
         validate_config(train_cfg, "train")
+        extent = dataset.scene_extent()
+        if not (math.isfinite(extent) and extent > 0):
+            raise DataError(dataset.root, f"the scene extent (1.1 x the spread of the training cameras' centres) is "
+                                          f"{extent:g}: the learning rates and the clone/split sizes scale with it, "
+                                          f"so training needs training cameras at two or more places")
         # Options left unset follow the data: the densification schedule the initial cloud's kind
         # (DensifyConfig.SPARSE_CLOUD), the model and learning rates the data's official config family
         # (stgc.official). The resolved values are what config.json records.
         sparse_cloud = not (data_cfg or DataConfig()).points_ship_with(dataset)
         train_cfg = train_cfg.resolved(sparse_cloud, dataset.official_config)
+        if model is not None:
+            model_cfg = _options_of_given_model(model, model_cfg)
         model_cfg = (model_cfg or ModelConfig()).resolved(dataset.official_config)
         self.dataset, self.data_cfg, self.model_cfg = dataset, data_cfg, model_cfg
         self.cfg, self.compaction_cfg = train_cfg, compaction_cfg
@@ -300,6 +323,10 @@ class Trainer:
             self.model = self._model_from_checkpoint(checkpoint)
         else:
             self.model = model if model is not None else build_initial_model(dataset, data_cfg, model_cfg)
+            if model is not None:
+                # The learning rates, the clone/split size limit and the floater rules scale with the data's
+                # extent, which a model built or loaded elsewhere does not carry (STGModel.load says 1.0).
+                model.scene_extent = dataset.scene_extent()
             self.metrics_log.clear()
             self.compaction_log.clear()
             self._write_config()
@@ -547,6 +574,11 @@ class Trainer:
             total_loss += float(loss.detach())
             total_mse += float(((rgb.detach().clamp(0, 1) - gt) ** 2).mean())
             self.density.observe(out, k, batch, self.model, cam, t)
+        if not math.isfinite(total_loss):
+            # Its gradients would make every Gaussian it reached non-finite, and the non-finite pruning would then
+            # remove them all without a word.
+            raise StgcError(f"{self.out_run.path}: training diverged at iteration {iteration}: the loss is "
+                            f"{total_loss} (frame {frame}, views {', '.join(str(c.name) for c in views)})")
         if rate_bits is not None:
             (self.cfg.quantization_aware.rate_weight * rate_bits).backward()
         self.optimizer.step()
