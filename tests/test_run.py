@@ -81,3 +81,19 @@ def test_progress_reads_the_files_of_a_run_training_elsewhere(tmp_path):
     assert run.progress() == (100, 300)
     run.write_summary({"finished": True})
     assert run.progress() == (300, 300)
+
+
+def test_a_whole_video_description_without_its_segment_length_is_refused_by_name(tmp_path):
+    """A video.json without segment_frames passed the check and a resume failed on it with a KeyError traceback."""
+    from stgc.errors import StgcError
+    from stgc.run import Run
+
+    run = Run(tmp_path)
+    segments = [{"name": "segment_000", "start": 0, "duration": 2}]
+    for frames in (None, 0, True, "2"):
+        video = {"data_path": "x", "segments": segments} | ({} if frames is None else {"segment_frames": frames})
+        run.write_video(video)
+        with pytest.raises(StgcError, match=r"video.json: not a whole-video description \(segment_frames >= 1"):
+            run.read_video()
+    run.write_video({"segment_frames": 2, "data_path": "x", "segments": segments})
+    assert run.read_video()["segment_frames"] == 2

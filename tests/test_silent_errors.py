@@ -811,6 +811,26 @@ def test_eval_every_scores_the_last_iteration_when_the_end_of_run_evaluation_is_
     assert [r["iteration"] for r in rows if "test_psnr" in r] == [5, 10]  # the final model was scored nowhere
 
 
+def test_resume_in_a_folder_without_a_training_keeps_what_it_holds(scene, tmp_path, capsys):
+    """--resume with nothing to resume overwrote like --overwrite: a bitstream, its evaluation and a TensorBoard
+    folder in the folder were removed, where training into it without the flag keeps them. Files of a run that no
+    training started (a foreign config.json) are refused, not taken for defaults and replaced."""
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    for name, text in (("model_q3.stgc", "x"), ("eval_model_q3.json", '{"psnr": 30}'), ("notes.txt", "hi")):
+        (folder / name).write_text(text)
+    assert main(_train_args(scene, folder, "4", "--resume")) == 0
+    assert all((folder / name).is_file() for name in ("model_q3.stgc", "eval_model_q3.json", "notes.txt"))
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "config.json").write_text('{"comment": "not a stgc run"}')
+    assert main(["train", str(scene.root), "--out", str(foreign), "--resume", "--set", "train.progress=false"]) == 2
+    err = capsys.readouterr().err
+    assert "nothing to resume" in err or "not a stgc run config" in err, err
+    assert sorted(p.name for p in foreign.iterdir()) == ["config.json"]
+    assert (foreign / "config.json").read_text() == '{"comment": "not a stgc run"}'
+
+
 def test_a_start_killed_before_its_first_checkpoint_restarts_on_resume_even_with_a_saved_model(scene, tmp_path):
     """Its own partial state (a PLY saved before any checkpoint, checkpoint_every 0): a segment's retry resumes so."""
     run = tmp_path / "run"

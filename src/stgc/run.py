@@ -119,9 +119,10 @@ class Run:
         return hash(self.path)
 
     @classmethod
-    def create(cls, path: str | Path, *, overwrite: bool = False, keep: Path | None = None) -> Run:
+    def create(cls, path: str | Path, *, overwrite: bool = False, keep: Path | None = None,
+               derived: bool = True) -> Run:
         """A new run at `path` (see `prepare_new_run`: an existing run there is refused unless `overwrite`)."""
-        return cls(prepare_new_run(path, overwrite=overwrite, keep=keep))
+        return cls(prepare_new_run(path, overwrite=overwrite, keep=keep, derived=derived))
 
     @classmethod
     def of(cls, path: str | Path) -> Run | None:
@@ -267,9 +268,12 @@ class Run:
         """RUN/video.json: {"segment_frames": N, "data_path": ..., "segments": [{"name", "start", "duration"}]}."""
         video = read_json_object(self.video_path)
         segments = None if video is None else video.get("segments")
-        if video is None or not isinstance(segments, list) or not all(isinstance(s, dict) and {"name", "start", "duration"} <= set(s)
-                                                     for s in segments):
-            raise StgcError(f"{self.video_path}: not a whole-video description (segments with name, start, duration)")
+        frames = None if video is None else video.get("segment_frames")
+        if video is None or not isinstance(segments, list) or not all(
+                isinstance(s, dict) and {"name", "start", "duration"} <= set(s) for s in segments) or not (
+                isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1):
+            raise StgcError(f"{self.video_path}: not a whole-video description (segment_frames >= 1, segments with "
+                            "name, start, duration)")
         return video
 
     def write_video(self, video: dict[str, Any]) -> None:
@@ -300,10 +304,12 @@ def run_contents(path: Path) -> list[Path]:
     return [path / name for name in (*RUN_FILES, *RUN_FOLDERS) if (path / name).exists()]
 
 
-def prepare_new_run(path: str | Path, *, overwrite: bool = False, keep: Path | None = None) -> Path:
+def prepare_new_run(path: str | Path, *, overwrite: bool = False, keep: Path | None = None,
+                    derived: bool = True) -> Path:
     """Make `path` ready for a new run: create it, or refuse (RunExistsError) when it already holds one, unless
-    `overwrite` (then the old run's files, and the bitstreams and evaluations derived from it, are removed first;
-    `keep` is spared: the input being restored there). Clear errors when `path` cannot be a directory."""
+    `overwrite` (then the old run's files, and with `derived` the bitstreams and evaluations derived from it, are
+    removed first; `keep` is spared: the input being restored there). Clear errors when `path` cannot be a
+    directory."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise StgcError(f"{path}: exists and is not a directory")
@@ -321,7 +327,7 @@ def prepare_new_run(path: str | Path, *, overwrite: bool = False, keep: Path | N
         names = ", ".join(p.name for p in existing[:4]) + (", ..." if len(existing) > 4 else "")
         raise RunExistsError(f"{path}: already holds a run ({names}); use --resume to continue it or --overwrite to "
                              "replace it")
-    if overwrite and path.is_dir():
+    if overwrite and derived and path.is_dir():
         spared = keep.resolve() if keep is not None else None
         existing += [p for pattern in DERIVED_PATTERNS for p in path.glob(pattern) if p.resolve() != spared]
     for item in existing:

@@ -39,7 +39,7 @@ from stgc.fileio import write_json
 from stgc.metrics import ssim
 from stgc.model import ModelConfig, STGModel
 from stgc.render import BACKENDS, select_backend
-from stgc.run import Run
+from stgc.run import Run, run_contents
 from stgc.train.behaviour import BEHAVIOUR_KEY, recorded_behaviour
 from stgc.train.checkpoint import (
     load_checkpoint,
@@ -209,9 +209,20 @@ def _refuse_restarting_a_model_of_value(run: Run) -> None:
            if not run.has_config() and run.latest_model_dir() is not None
            else "a fine-tuning of another run" if (run.path / Run.CONTINUED_FROM).is_file()
            else "a finished training" if run.training_finished() else None)
+    if why is None and run_contents(run.path) and not _holds_a_training(run):
+        why = "files of a run no stgc training started (its config.json is not a training's)"
     if why is not None:
         raise StgcError(f"{run.path}: nothing to resume (no {Run.CHECKPOINT}): it holds {why}, which restarting would "
                         "remove; train into a new folder, or give --overwrite to replace it")
+
+
+def _holds_a_training(run: Run) -> bool:
+    """Whether the folder's run files are a training's start: its config.json has the sections a training writes."""
+    try:
+        saved = run.read_config()
+    except StgcError:
+        return False
+    return isinstance(saved, dict) and all(isinstance(saved.get(key), dict) for key in ("data", "model", "train"))
 
 
 def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig | None) -> None:
@@ -295,10 +306,12 @@ class Trainer:
         self.out_run = Run(out_dir)
         resuming = resume and self.out_run.checkpoint_path.exists()
         if not resuming:
-            if resume and not overwrite:
+            restart = resume and not overwrite
+            if restart:
                 _refuse_restarting_a_model_of_value(self.out_run)
-            # A resume with nothing to resume restarts the same run, so its own partial files may go.
-            self.out_run = Run.create(out_dir, overwrite=overwrite or resume)
+            # A resume with nothing to resume restarts the same run, so its own partial files may go; files derived
+            # from some other model (bitstreams, their evaluations) are not this start's to remove.
+            self.out_run = Run.create(out_dir, overwrite=overwrite or restart, derived=not restart)
         self.callback = callback
         self.evaluator = evaluator
         if evaluator is None and (train_cfg.eval_every or train_cfg.eval_at_end):
