@@ -442,9 +442,10 @@ class Trainer:
             their_counts = {summary.get("threads") or saved_threads or None}
         if len(their_counts) > 1:
             known = [str(n) for n in sorted(n for n in their_counts if isinstance(n, int))]
+            unrecorded = ", and an unrecorded one" if None in their_counts else ""
             differences.append(f"train.threads: the reference was resumed with another thread count ("
-                               f"{' and '.join(known) or 'unknown'}{', and an unrecorded one' if None in their_counts else ''}"
-                               ": its losses drifted from one session to the next)")
+                               f"{' and '.join(known) or 'unknown'}{unrecorded}: its losses drifted from one session "
+                               "to the next)")
         elif isinstance(their := next(iter(their_counts)), int) and their != my_threads:
             differences.append(f"train.threads: this run trains with {my_threads}, the reference trained with "
                                f"{their} (other thread counts round differently and drift apart)")
