@@ -686,7 +686,8 @@ def test_a_config_saved_without_compaction_is_read_as_no_compaction(tmp_path):
 
     run = tmp_path / "run"
     run.mkdir()
-    (run / "config.json").write_text(json.dumps({"data": {"path": str(tmp_path)}, "compaction": None}))
+    (run / "config.json").write_text(json.dumps({"data": {"path": str(tmp_path)}, "model": {},
+                                                 "train": {"iterations": 10}, "compaction": None}))
     assert configs_from_run(run)["compaction"].method == "none"
 
 

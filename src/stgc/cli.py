@@ -46,6 +46,7 @@ from stgc.options import (
     default_configs,
     refuse_conflicting_flags,
     refuse_unused_compaction_options,
+    refuse_unused_feature_options,
     refuse_unused_model_options,
     resolve_configs,
 )
@@ -169,10 +170,13 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     out, overrides = Path(args.out), parse_set_arguments(args.set)
     check_continuable(args.run)
     configs = continuation_configs(configs_from_run(Path(args.run)), args.run, args.iterations, overrides)
+    refuse_unused_feature_options(configs, overrides)  # (EMS options without EMS, ...) as stgc train refuses them
     if configs["train"].densify.is_resolved:  # (as the source saved them) before NEW is written
         check_mask_window(configs["train"], configs["compaction"])
+    # The trainer gets an evaluator: a continuation without test views to score is refused before NEW is written.
     data_path = start_continuation(args.run, out, args.iterations, configs, overrides, overwrite=args.overwrite,
-                                   data_path=_resumed_data_path(Path(args.run), args.data, configs["data_path"]))
+                                   data_path=_resumed_data_path(Path(args.run), args.data, configs["data_path"]),
+                                   evaluate=True)
     dataset = configs["data"].open(data_path)
     train(dataset, configs["data"], configs["model"], configs["train"], configs["compaction"], out, resume=True,
           evaluator=RunEvaluator())

@@ -227,33 +227,52 @@ def to_dict(obj: Any) -> dict[str, Any]:
     return dataclasses.asdict(obj)
 
 
-def from_dict(cls: type, data: dict[str, Any]) -> Any:
-    """Rebuild a config dataclass from `to_dict` output; unknown keys are an error, missing keys take defaults."""
+def from_dict(cls: type, data: dict[str, Any], section: str = "") -> Any:
+    """Rebuild a config dataclass from `to_dict` output; unknown keys are an error, missing keys take defaults.
+    `section` ("train") prefixes the option names errors give."""
+    where = f"{section}." if section else ""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{section or cls.__name__}: {data!r} is not an object of options")
+    # Groups of options ("densify" of train.densify.*) hold objects and options hold values: the other way round is
+    # a damaged file (a group read as one unknown option, or an object's keys read as a string's).
+    specs = list(iter_fields(cls))
+    leaves = {spec.dotted for spec in specs}
+    groups = {spec.dotted.rsplit(".", k)[0] for spec in specs for k in range(1, spec.dotted.count(".") + 1)}
     flat: dict[str, Any] = {}
 
     def walk(d: dict[str, Any], prefix: str) -> None:
         for k, v in d.items():
-            if isinstance(v, dict):
-                walk(v, f"{prefix}{k}.")
+            name = f"{prefix}{k}"
+            if name in groups:
+                if not isinstance(v, dict):
+                    raise ConfigError(f"{where}{name}: {v!r} is not an object (it holds the options {where}{name}.*)")
+                walk(v, f"{name}.")
+            elif isinstance(v, dict) and name in leaves:
+                raise ConfigError(f"{where}{name}: {v!r} is an object, not a value")
             else:
-                flat[f"{prefix}{k}"] = v
+                flat[name] = v
 
     walk(data, "")
-    return apply_overrides(cls(), flat)
+    return apply_overrides(cls(), flat, section)
 
 
-def from_saved(cls: type, data: dict[str, Any]) -> Any:
+def from_saved(cls: type, data: dict[str, Any], section: str = "") -> Any:
     """`from_dict` for a config saved by an earlier version of stgc: a key it lacks takes the value in
     `cls.SAVED_BEFORE` (dotted names), the option's behaviour before it existed, so a saved run is read as it
-    trained; the current default applies to new configs only."""
+    trained; the current default applies to new configs only. `section` prefixes the option names errors give."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{section or cls.__name__}: {data!r} is not an object of options")
     data = json.loads(json.dumps(data))  # a deep copy of plain JSON values
     for dotted, value in getattr(cls, "SAVED_BEFORE", {}).items():
         target = data
         *parents, key = dotted.split(".")
         for parent in parents:
             target = target.setdefault(parent, {})
-        target.setdefault(key, value)
-    return from_dict(cls, data)
+            if not isinstance(target, dict):  # a damaged group: from_dict names it
+                break
+        else:
+            target.setdefault(key, value)
+    return from_dict(cls, data, section)
 
 
 def parse_set_arguments(items: list[str] | None) -> dict[str, str]:

@@ -4,8 +4,8 @@ first training)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-from dataclasses import replace
+from collections.abc import Iterable, Mapping
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -14,11 +14,11 @@ from stgc.compaction.config import idle_compaction_options, why_idle
 from stgc.config import ConfigError, apply_overrides, from_saved, split_sections, validate_config
 from stgc.data import DataConfig
 from stgc.data.config import data_config_from_saved
-from stgc.errors import StgcError
+from stgc.errors import FormatError, StgcError
 from stgc.model import ModelConfig
 from stgc.model.config import idle_model_options
 from stgc.run import Run
-from stgc.train.config import TrainConfig, train_preset
+from stgc.train.config import TrainConfig, refuse_preset_option, train_preset
 
 
 def section_classes() -> dict[str, type]:
@@ -52,14 +52,19 @@ def resolve_configs(
     sets: dict[str, str],
 ) -> dict[str, Any]:
     """preset < shortcut flags < --section.field options < --set overrides. A shortcut flag and an option naming
-    one option with two values is refused (which should win is a guess)."""
-    refuse_conflicting_flags(shortcuts, [options, split_sections(sets, set(section_classes()))])
+    one option with two values is refused (which should win is a guess), and so are train.preset (the preset's
+    name: --preset gives it) and options of a part of training the others switch off (`idle_feature_options`)."""
+    layers = (shortcuts, options, split_sections(sets, set(section_classes())))
+    refuse_conflicting_flags(shortcuts, layers[1:])
+    given = [f"{section}.{key}" for layer in layers for section, values in layer.items() for key in values]
+    refuse_preset_option(given)
     configs = default_configs(preset)
-    for layer in (shortcuts, options, split_sections(sets, set(configs))):
+    for layer in layers:
         for section, overrides in layer.items():
             configs[section] = apply_overrides(configs[section], overrides, section)
     for section, cfg in configs.items():
         validate_config(cfg, section)
+    refuse_unused_feature_options(configs, given)
     return configs
 
 
@@ -76,37 +81,80 @@ def refuse_conflicting_flags(shortcuts: dict[str, dict[str, Any]], layers: Itera
 
 
 def configs_from_run(run_dir: Path) -> dict[str, Any]:
-    """The configs a run was started with (RUN/config.json), but for `train.stop_after` (below)."""
+    """The configs a run was started with (RUN/config.json), but for `train.stop_after` (below). A config.json that
+    is not a run's (`check_run_config`) or whose options this version cannot read is a FormatError naming it."""
     run = Run(run_dir)
     path = run.config_path
     saved = run.read_config()
     if saved is None:
         raise StgcError(f"{path}: not found; is {run_dir} a stgc run directory?")
+    if "train" not in saved and (run.path / Run.RESTORED_FROM).is_file():
+        # `stgc decompress` keeps the data and model options a decoded model is evaluated with, not a training's.
+        raise StgcError(f"{run_dir}: holds a model restored from a bitstream (stgc decompress), not a training: its "
+                        f"{Run.CONFIG} has no training options, so there is nothing to resume or fine-tune")
+    check_run_config(saved, path)
 
-    classes = section_classes()
     out: dict[str, Any] = {}
-    for name, cls in classes.items():
+    for name, cls in section_classes().items():
         if name == "compaction" and saved.get(name) is None:
-            # `train(..., compaction_cfg=None)` trains without compaction and saves the section as null; a restored
-            # run (`stgc decompress`) has none: neither prunes when it trains on.
+            # `train(..., compaction_cfg=None)` trains without compaction and saves the section as null: it prunes
+            # nothing when it trains on (nor does a config without the section).
             out[name] = CompactionConfig(method="none")
             continue
-        section = dict(saved.get(name) or {})
         if name == "data":
-            out[name], _ = data_config_from_saved(section, path)
+            out[name], _ = data_config_from_saved(saved[name], path)
             continue
+        # A null model section: `train(..., model_cfg=None)` saved the model options so until 2026-11-27, and trained
+        # with the default ones.
+        section = dict(saved[name] or {})
         section.pop("path", None)
         resolved = section.pop("resolved_schedule", None)
         if name == "train" and isinstance(resolved, dict) and "iterations" in resolved:
             # Runs saved before `iterations` meant real iterations stored it in schedule units; the resolved
             # schedule always held the real number.
             section["iterations"] = resolved["iterations"]
-        out[name] = validate_config(from_saved(cls, section), name)
+        try:
+            out[name] = validate_config(from_saved(cls, section, name), name)
+        except (ValueError, TypeError, AttributeError) as exc:  # ConfigError included: an option named, or not
+            message = str(exc)
+            named = message.startswith(f"{name}.") or f" {name}." in message
+            raise FormatError(path, f"run config: {message if named else f'{name} section: {message}'}") from None
     # stop_after is the option of the command that gave it, not of the run: a run read back (to resume it, fine-tune
     # it or compare it) trains to its end unless a command asks to stop again.
     out["train"] = replace(out["train"], stop_after=None)
-    out["data_path"] = (saved.get("data") or {}).get("path")
+    out["data_path"] = saved["data"].get("path")
     return out
+
+
+def check_run_config(saved: Mapping[str, Any], path: Path) -> None:
+    """Raise FormatError naming `path` unless `saved` is shaped as a config.json a stgc training wrote: data,
+    model and train sections that are objects (a model section may be null, as the Python API saved it), a train
+    section that holds its iterations (or its resolved schedule's), and a compaction section that is null, absent
+    or an object naming its method. Anything else would be read as defaults made up for it (a 30,000-iteration
+    custom schedule, ST-KNN compaction) and trained on as if the run had asked for them."""
+    problems = []
+    for name in ("data", "model", "train"):
+        if name not in saved:
+            problems.append(f"no {name!r} section")
+        elif not (isinstance(saved[name], dict) or (name == "model" and saved[name] is None)):
+            problems.append(f"its {name!r} section is {_shown(saved[name])}, not an object")
+    train = saved.get("train")
+    if isinstance(train, dict):
+        resolved = train.get("resolved_schedule")
+        if "iterations" not in train and not (isinstance(resolved, dict) and "iterations" in resolved):
+            problems.append("its 'train' section has no iterations")
+    compaction = saved.get("compaction")
+    if compaction is not None and not (isinstance(compaction, dict) and "method" in compaction):
+        # Every training saved the whole section (or null, without compaction): its method is always there.
+        problems.append(f"its 'compaction' section is {_shown(compaction)}, not null or an object with a method")
+    if problems:
+        raise FormatError(path, f"not a stgc run config ({'; '.join(problems)})")
+
+
+def _shown(value: Any, limit: int = 40) -> str:
+    """`value` as a message shows it: its repr, cut at `limit` characters."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}..."
 
 
 def refuse_unused_model_options(model: ModelConfig, given: Iterable[str]) -> None:
@@ -129,3 +177,57 @@ def refuse_unused_compaction_options(compaction: CompactionConfig, given: Iterab
         raise ConfigError(f"{', '.join(unused)}: given for a run whose compaction.method is none, where nothing "
                           "is pruned; choose a method (--compaction st-knn) or drop them")
     raise ConfigError("; ".join(why_idle(compaction, key) for key in unused))
+
+
+# Clone/split's own options: with train.densify.enabled false there are no rounds, so they act on nothing (the
+# statistics are gathered for the rounds only). Not among them: start and interval (the steps pruning, floater
+# removal and the opacity resets act at), prune_opacity, prune_until and the opacity reset options.
+CLONE_SPLIT_OPTIONS = ("rounds", "grad_threshold", "percent_dense", "split_count", "max_gaussians", "max_growth",
+                       "prune_in_rounds", "stats_views", "stats_count")
+
+# The learning rates of parameters the lite model does not have: its colour has no decoder and no time features.
+FULL_MODEL_RATES = ("decoder", "features_t")
+
+
+def _feature_idle_reasons(configs: Mapping[str, Any]) -> dict[str, str]:
+    """{option (dotted, with its section): why it acts on nothing} for the options of a part of training that the
+    run's other options switch off: point preprocessing (data.preprocess none), error-guided sampling
+    (train.ems.enabled false), clone/split (train.densify.enabled false) and the full model's parameters (a lite
+    model)."""
+    data, model, train = configs.get("data"), configs.get("model"), configs.get("train")
+    idle: dict[str, str] = {}
+    if data is not None and data.preprocess == "none":
+        idle["data.preprocess_fraction"] = ("given for a run whose data.preprocess is none, where no point is removed; "
+                                            "choose a preprocessing or drop it")
+    if train is not None and not train.ems.enabled:
+        idle |= {f"train.ems.{f.name}": "given for a run without error-guided sampling (train.ems.enabled is false), "
+                                        "where it acts on nothing; enable it or drop it"
+                 for f in fields(train.ems) if f.name != "enabled"}
+    if train is not None and not train.densify.enabled:
+        idle |= {f"train.densify.{name}": "acts only in clone/split rounds, and train.densify.enabled is false (no "
+                                          "round is run); enable densification or drop it"
+                 for name in CLONE_SPLIT_OPTIONS}
+    if train is not None and model is not None and model.variant == "lite":
+        idle |= {f"train.lr.{name}": "the lite model has no decoder and no time features to learn at this rate; "
+                                     "choose the full model (--variant full) or drop it"
+                 for name in FULL_MODEL_RATES}
+    return idle
+
+
+def idle_feature_options(configs: Mapping[str, Any]) -> set[str]:
+    """The options (dotted, with their section) that act on nothing in a run with `configs` because the part of
+    training they belong to is switched off (`_feature_idle_reasons`). Given for such a run they are refused
+    (`refuse_unused_feature_options`)."""
+    return set(_feature_idle_reasons(configs))
+
+
+def refuse_unused_feature_options(configs: Mapping[str, Any], given: Iterable[str]) -> None:
+    """Raise ConfigError when options (`given`: dotted names) are set where they act on nothing
+    (`idle_feature_options`): they would be recorded in config.json and silently ignored, and the run taken for
+    one trained with them. Only given options count: a preset's or a default's values are no choice."""
+    reasons = _feature_idle_reasons(configs)
+    by_reason: dict[str, list[str]] = {}
+    for key in sorted(set(given) & set(reasons)):
+        by_reason.setdefault(reasons[key], []).append(key)
+    if by_reason:
+        raise ConfigError("; ".join(f"{', '.join(keys)}: {reason}" for reason, keys in by_reason.items()))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -28,6 +29,18 @@ def _eval_record(case: int, preprocess: str, run: Path) -> dict:
     return {"psnr": 30.0 - 0.3 * case - (0.1 if preprocess != "none" else 0.0), "ssim": 0.9, "mbps": rate,
             "size_mb": rate / 8.388608, "num_gaussians": int(rate * 1000), "fps": 5.0,
             **({"iterations": trained} if trained is not None else {})}
+
+
+def _set_train_options(train: dict, sets: dict[str, str]) -> None:
+    """Write the train.* options of `sets` into a config.json train section (as strings: read back, they are
+    coerced to their types)."""
+    for key, value in sets.items():
+        if key.startswith("train."):
+            *parents, name = key.split(".")[1:]
+            target = train
+            for parent in parents:
+                target = target.setdefault(parent, {})
+            target[name] = value
 
 
 def main(argv: list[str]) -> int:
@@ -56,7 +69,11 @@ def main(argv: list[str]) -> int:
         # mask_points_per_frame: a data section without it is read as a config from before it existed (0).
         data = {"path": argv[1], "preprocess": preprocess,
                 "mask_points_per_frame": int(sets.get("data.mask_points_per_frame", 1000))}
-        (out / "config.json").write_text(json.dumps({"data": data,
+        # The preset's train section (test_runner.py hands it over), with the run's train.* options in it.
+        preset = argv[argv.index("--preset") + 1] if "--preset" in argv else "cpu"
+        train = json.loads(os.environ.get("STGC_FAKE_TRAIN", "{}")).get(preset, {"iterations": 10})
+        _set_train_options(train, sets)
+        (out / "config.json").write_text(json.dumps({"data": data, "model": {}, "train": train,
                                                      "compaction": compaction, "sets": sets}))
         (out / "checkpoint.pt").write_bytes(b"fake")
         if "--resume" not in argv:
@@ -75,8 +92,13 @@ def main(argv: list[str]) -> int:
         if not json.loads((source / "train_summary.json").read_text()).get("finished"):
             return 2
         config = json.loads((source / "config.json").read_text())
-        (out / "config.json").write_text(json.dumps({**config, "from": str(source)}))
         iterations = int(argv[argv.index("--iterations") + 1])
+        # As `stgc finetune` writes it: the source's schedule extended, its --set train.* options, no compaction.
+        config["train"]["iterations"] = int(config["train"]["iterations"]) + iterations
+        _set_train_options(config["train"], {argv[i + 1].split("=", 1)[0]: argv[i + 1].split("=", 1)[1]
+                                             for i, a in enumerate(argv) if a == "--set"})
+        config["compaction"] = {**config["compaction"], "method": "none"}
+        (out / "config.json").write_text(json.dumps({**config, "from": str(source)}))
         (out / "continued_from.json").write_text(json.dumps({"run": str(source.resolve()), "iterations": iterations}))
         (out / "checkpoint.pt").write_bytes(b"fake")
         (out / "train_summary.json").write_text(json.dumps({"finished": True, "wall_seconds": 0.5, "iterations": 20}))

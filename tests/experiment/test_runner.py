@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -11,6 +12,7 @@ from typing import Any
 
 import pytest
 
+from stgc.config import to_dict
 from stgc.errors import FormatError
 from stgc.experiment import (
     build_train_command,
@@ -22,8 +24,12 @@ from stgc.experiment import (
     table3_plan,
 )
 from stgc.experiment.runner import subprocess_runner
+from stgc.train.config import PRESETS, train_preset
 
 FAKE_CLI = Path(__file__).with_name("fake_stgc_cli.py")
+# The train section a training of each preset writes in config.json, for the fake's (it imports no stgc: a
+# subprocess per run): the runner reads a run's config.json as a training's and compares it with the plan.
+os.environ["STGC_FAKE_TRAIN"] = json.dumps({name: to_dict(train_preset(name)) for name in PRESETS})
 
 
 def fake_runner(cmd: list[str], log_path: Path) -> int:
@@ -101,7 +107,8 @@ def test_the_resume_command_is_accepted_by_the_cli(tmp_path: Path, monkeypatch: 
 
     run = tmp_path / "r"
     run.mkdir()
-    (run / "config.json").write_text('{"compaction": {"method": "st-knn", "case": "3"}}')
+    (run / "config.json").write_text('{"data": {}, "model": {}, "train": {"iterations": 10}, '
+                                     '"compaction": {"method": "st-knn", "case": "3"}}')
     calls = []
     monkeypatch.setattr(stgc.data.DataConfig, "open", lambda self, path: SimpleNamespace(
         path=path, train=[], verify_images=lambda cameras, progress=False: 0))
@@ -231,7 +238,8 @@ def test_a_run_copied_in_by_hand_is_checked_against_its_config(tmp_path: Path) -
     out = tmp_path / "exp"
     run = out / "stg"
     run.mkdir(parents=True)
-    (run / "config.json").write_text(json.dumps({"compaction": {"method": "st-knn"}}))  # a pruned model, not "stg"
+    (run / "config.json").write_text(json.dumps({"data": {}, "model": {}, "train": {"iterations": 10},
+                                                 "compaction": {"method": "st-knn"}}))  # a pruned model, not "stg"
     outcome = _run_mini(out, plan_path)
     assert outcome["status"] == "failed" and "compaction.method: st-knn in its config.json, none in the plan" in \
         outcome["message"]

@@ -95,6 +95,38 @@ def test_finetune_refuses_what_it_cannot_honour(source, scene, tmp_path, capsys)
     assert not any((tmp_path / x).exists() for x in "abcdfghi")  # nothing half-written
 
 
+def test_finetune_refuses_what_the_trainer_would_before_new_is_written(source, scene, tmp_path, capsys):
+    """The trainer's own checks (the backend, test views to score) came after NEW's checkpoint, config.json,
+    continued_from.json and logs were written: the corrected command then found a run there."""
+    new = tmp_path / "new"
+    assert main(["finetune", str(source), "--out", str(new), "--iterations", "2",
+                 "--set", "train.backend=gsplat"]) == 2
+    assert "train.backend: backend 'gsplat' needs CUDA tensors" in capsys.readouterr().err
+    assert not new.exists()
+    assert main(["finetune", str(source), "--out", str(new), "--iterations", "2"]) == 0  # the corrected command
+    # A source trained without evaluation on data without test views, continued with evaluation.
+    untested = write_panoptic_scene(tmp_path / "untested", views=4, frames=2, width=24, height=16, test_views=())
+    quiet = tmp_path / "quiet"
+    assert _train(untested, quiet, "--set", "train.eval_at_end=false", "--set", "train.iterations=4") == 0
+    assert main(["finetune", str(quiet), "--out", str(tmp_path / "scored"), "--iterations", "2",
+                 "--set", "train.eval_at_end=true"]) == 2
+    assert "no test views to evaluate on" in capsys.readouterr().err
+    assert not (tmp_path / "scored").exists()
+
+
+def test_finetune_refuses_options_that_act_on_nothing_and_a_preset_name(source, tmp_path, capsys):
+    """The source trains without error-guided sampling and without clone/split: their options were recorded in
+    NEW's config.json and ignored; train.preset named a schedule the run does not have."""
+    for option, expect in (("train.ems.start=5", "train.ems.start: given for a run without error-guided sampling"),
+                           ("train.densify.grad_threshold=1e-4", "train.densify.grad_threshold: acts only in "
+                                                                 "clone/split rounds"),
+                           ("train.preset=paper", "train.preset: set by the preset a run starts from")):
+        assert main(["finetune", str(source), "--out", str(tmp_path / "new"), "--iterations", "2",
+                     "--set", option]) == 2
+        assert expect in capsys.readouterr().err
+        assert not (tmp_path / "new").exists()
+
+
 def test_a_killed_finetune_resumes_like_any_run(source, tmp_path, capsys):
     """stop_after is the command's that gave it: it was saved and stopped every resume again after as many
     iterations (a run stopped after 5 of 20 needed four resumes), and a fine-tuning of such a run inherited it."""

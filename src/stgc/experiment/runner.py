@@ -62,6 +62,7 @@ from stgc.fileio import atomic_open, read_json_object, write_json
 from stgc.options import (
     configs_from_run,
     default_configs,
+    idle_feature_options,
     refuse_unused_compaction_options,
     refuse_unused_model_options,
     section_classes,
@@ -334,8 +335,8 @@ def _config_mismatch(run_dir: Path, data_path: str | Path, preset: str | None, w
 def _idle_in(configs: Mapping[str, Any]) -> set[str]:
     """The options that act on nothing in a run with these configs (the same rules `idle_options` applies to
     --set's options: rate-aware options without a window, compaction options a method does not use, a lite
-    model's decoder options)."""
-    idle = idle_window_options(configs["train"]) | idle_model_options(configs["model"])
+    model's decoder options, options of a part of training that is switched off)."""
+    idle = idle_window_options(configs["train"]) | idle_model_options(configs["model"]) | idle_feature_options(configs)
     return idle | (idle_compaction_options(configs["compaction"]) if configs.get("compaction") is not None else set())
 
 

@@ -302,7 +302,9 @@ class QuantizationAwareConfig:
 class TrainConfig:
     """Everything the trainer needs besides data, model and compaction configs."""
 
-    preset: str = field(default="custom", metadata={"help": "name of the preset these values came from (informational)"})
+    preset: str = field(default="custom", metadata={
+        "help": "name of the preset these values came from, as config.json records it; set by --preset, never given "
+                "itself (a name of its own would contradict the schedule the run trains with)"})
     iterations: int = field(default=30000, metadata={"help": "iterations to train (real iterations, not scaled)"})
     schedule_scale: float = field(
         default=1.0, metadata={"help": "multiplies every schedule iteration (1 = official 30k schedule)"}
@@ -396,6 +398,15 @@ def cpu_preset() -> TrainConfig:
 
 
 PRESETS = {"paper": paper_preset, "cpu": cpu_preset}
+
+
+def refuse_preset_option(given: Iterable[str]) -> None:
+    """Raise ConfigError when `train.preset` is among the options `given` (dotted names): it names the preset the
+    schedule came from (--preset), and a value given to it would record a schedule under another's name (a paper
+    schedule labelled cpu); config.json keeps it, for reading only."""
+    if "train.preset" in set(given):
+        raise ConfigError(f"train.preset: set by the preset a run starts from (--preset {' or '.join(PRESETS)}), "
+                          "not given as an option; choose the preset, then change its options")
 
 
 def train_preset(name: str) -> TrainConfig:

@@ -13,16 +13,27 @@ the whole history, and `continued_from.json` names RUN and the iteration NEW sta
 from __future__ import annotations
 
 import dataclasses
+import math
 import shutil
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from stgc.config import ConfigError, apply_overrides, split_sections, validate_config
-from stgc.errors import StgcError
+from stgc.data.dataset import Dataset
+from stgc.errors import DataError, StgcError
 from stgc.fileio import write_json
+from stgc.render import select_backend
 from stgc.run import Run, prepare_new_run
-from stgc.train.config import QuantizationAwareConfig, refuse_unused_window_options, resolve_schedule
+from stgc.train.config import (
+    QuantizationAwareConfig,
+    TrainConfig,
+    refuse_preset_option,
+    refuse_unused_window_options,
+    resolve_schedule,
+)
 from stgc.train.loop import run_config
 
 
@@ -59,6 +70,7 @@ def continuation_configs(saved: Mapping[str, Any], source: str | Path, iteration
     if others:
         raise ConfigError(f"{', '.join(others)}: a continuation changes train.* options only (it keeps the data, the "
                           f"model and the compaction {source} was trained with)")
+    refuse_preset_option(f"train.{key}" for key in sections.get("train", {}))  # the source's schedule's name
     configs = dict(saved)
     base = saved["train"].iterations
     start = dataclasses.replace(saved["train"], iterations=base + iterations)
@@ -76,11 +88,29 @@ def continuation_configs(saved: Mapping[str, Any], source: str | Path, iteration
     return configs
 
 
+def check_trainable(dataset: Dataset, train_cfg: TrainConfig, *, evaluate: bool) -> None:
+    """What the trainer refuses before it writes a new run, for a continuation: the trainer resumes NEW, so its own
+    checks would come after NEW's checkpoint, config.json and logs were written (and a corrected command would find a
+    run there). `evaluate`: whether the trainer gets a test evaluator."""
+    extent = dataset.scene_extent()  # the source's, unless DATA replaced its data
+    if not (math.isfinite(extent) and extent > 0):
+        raise DataError(dataset.root, f"the scene extent (1.1 x the spread of the training cameras' centres) is "
+                                      f"{extent:g}: training needs training cameras at two or more places")
+    if evaluate and (train_cfg.eval_every or train_cfg.eval_at_end) and not dataset.test:
+        raise DataError(dataset.root, "no test views to evaluate on (data.test_cameras): name some, or train "
+                                      "without evaluating (train.eval_at_end=false, train.eval_every=0)")
+    try:  # the trainer's device is the CPU
+        select_backend(train_cfg.backend, torch.device("cpu"))
+    except ValueError as exc:
+        raise ConfigError(f"train.backend: {exc}") from None
+
+
 def start_continuation(source: str | Path, out: str | Path, iterations: int, configs: Mapping[str, Any],
                        overrides: Mapping[str, str] | None = None, *, overwrite: bool = False,
-                       data_path: str | None = None) -> str:
+                       data_path: str | None = None, evaluate: bool = True) -> str:
     """Write NEW (`out`) as `source` continued by `iterations` with `configs` (continuation_configs): its
-    config.json, source's checkpoint and logs, and continued_from.json. Returns the data path to train it on
+    config.json, source's checkpoint and logs, and continued_from.json, once the trainer's own checks pass
+    (`check_trainable`; `evaluate`: whether it will score the test views). Returns the data path to train it on
     (`train(..., resume=True)`)."""
     source, out = Path(source), Path(out)
     check_continuable(source)
@@ -90,6 +120,7 @@ def start_continuation(source: str | Path, out: str | Path, iterations: int, con
     if data_path is None:
         raise StgcError(f"{source}: the run has no saved data path; give DATA")
     dataset = configs["data"].open(data_path)
+    check_trainable(dataset, configs["train"], evaluate=evaluate)
     prepare_new_run(out, overwrite=overwrite)
     started = int((Run(source).read_summary() or {}).get("iterations") or configs["train"].iterations - iterations)
     for name in (Run.CHECKPOINT, Run.METRICS, Run.COMPACTION_LOG):
