@@ -20,7 +20,7 @@ import random
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 import torch
@@ -38,6 +38,8 @@ from stgc.errors import DataError, StgcError
 from stgc.fileio import write_json
 from stgc.metrics import ssim
 from stgc.model import ModelConfig, STGModel
+from stgc.model.config import DecoderActivation
+from stgc.model.layout import Variant
 from stgc.render import BACKENDS, select_backend
 from stgc.run import Run, run_contents
 from stgc.train.behaviour import BEHAVIOUR_KEY, recorded_behaviour
@@ -157,7 +159,8 @@ def _options_of_given_model(model: STGModel, model_cfg: ModelConfig | None) -> M
             wrong = [w for w in wrong if not w.startswith("model.decoder_activation")]
         if wrong:
             raise ConfigError("the options contradict the model training starts from: " + "; ".join(wrong))
-    return dataclasses.replace(model_cfg or ModelConfig(), variant=model.variant, decoder_activation=activation)
+    return dataclasses.replace(model_cfg or ModelConfig(), variant=cast(Variant, model.variant),
+                               decoder_activation=cast(DecoderActivation | None, activation))
 
 
 def build_initial_model(dataset: Dataset, data_cfg: DataConfig | None, model_cfg: ModelConfig | None) -> STGModel:
@@ -457,7 +460,7 @@ class Trainer:
             else set())
         if their_backends - {mine}:
             differences.append(f"train.backend: this run renders with {mine!r}, the reference with "
-                               f"{' and '.join(sorted(their_backends))}")
+                               f"{' and '.join(sorted(str(b) for b in their_backends))}")
         return differences
 
     def _make_compactor(self) -> STKNNCompactor | None:
