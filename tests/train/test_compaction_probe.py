@@ -119,6 +119,16 @@ def test_a_budget_run_reads_its_unpruned_reference_run_at_the_same_iterations(sc
     with pytest.raises(DataError, match=rf"resumed with another thread count \({trained_with} and "
                                         rf"{trained_with + 1}: its losses drifted"):
         Trainer(dataset, None, None, _config(80), budgeted, tmp_path / "other", model=start())
+    # A session from before the history was kept (threads unknown) trained with the config's count.
+    saved_config = json.loads((tmp_path / "ref" / "config.json").read_text())
+    unknown = {**ref_summary, "executions": [{"from_iteration": 0, "threads": None, "backend": None},
+                                             {"from_iteration": 40, "threads": trained_with, "backend": "numba"}]}
+    (tmp_path / "ref" / "train_summary.json").write_text(json.dumps(unknown))
+    (tmp_path / "ref" / "config.json").write_text(json.dumps({**saved_config, "train": {
+        **saved_config["train"], "threads": trained_with}}))
+    Trainer(dataset, None, None, dataclasses.replace(_config(80), threads=trained_with), budgeted,
+            tmp_path / "across-upgrade", model=start())
+    (tmp_path / "ref" / "config.json").write_text(json.dumps(saved_config))
     (tmp_path / "ref" / "train_summary.json").write_text(json.dumps(ref_summary))
     Trainer(dataset, None, None, dataclasses.replace(_config(80), backend="numba", threads=trained_with), budgeted,
             tmp_path / "numba", model=start())  # what "auto" means on CPU, and the count it trained with

@@ -170,6 +170,13 @@ def test_a_gaussian_made_non_finite_between_rounds_is_removed_and_a_non_finite_l
     report = trainer.density.step(7, trainer.model, torch.Generator().manual_seed(0))
     assert report == {"pruned_nonfinite": 1} and trainer.model.num_gaussians == count - 1
     assert trainer.density.step(8, trainer.model, torch.Generator().manual_seed(0)) == {}
+    # While the learned mask keeps one logit per row, no row goes between rounds (the mask would lose count).
+    trainer.density.rows_fixed = True
+    with torch.no_grad():
+        trainer.model.params["xyz"][5, 0] = float("inf")
+    assert trainer.density.step(8, trainer.model, torch.Generator().manual_seed(0)) == {}
+    trainer.density.rows_fixed = False
+    assert trainer.density.step(8, trainer.model, torch.Generator().manual_seed(0)) == {"pruned_nonfinite": 1}
     with torch.no_grad():  # the decoder's weights are no Gaussian's rows: nothing prunes them
         for weight in trainer.model.decoder.parameters():
             weight.fill_(float("nan"))
@@ -195,6 +202,10 @@ def test_a_model_handed_to_the_trainer_trains_at_the_data_s_extent_and_is_record
         Trainer(tiny_toys, None, ModelConfig(decoder_activation="sigmoid"), _short_config(), None,
                 tmp_path / "other", model=model)
     assert not (tmp_path / "other").exists()
+    # ModelConfig's default variant ('full') is no request: a lite model trains and is recorded as lite.
+    lite = make_model(tiny_toys, 100, variant="lite")
+    Trainer(tiny_toys, None, ModelConfig(), _short_config(), None, tmp_path / "lite", model=lite)
+    assert json.loads((tmp_path / "lite" / "config.json").read_text())["model"]["variant"] == "lite"
 
 
 def test_training_cameras_at_one_place_are_refused_before_anything_is_written(tmp_path):

@@ -728,8 +728,10 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
     if not run.training_finished():
         resume = run.checkpoint_path.is_file() and run.has_config()
         if spec.source is not None and not resume:
-            cmd = build_finetune_command(run_dir.parent / spec.source, run_dir, spec.iterations,
-                                         finetune_overrides(spec, extra),
+            # --set's options that act on nothing in this run were left out of `overrides` (run_overrides); the
+            # fine-tuning would refuse them after its source trained.
+            given = {k: v for k, v in finetune_overrides(spec, extra).items() if k in overrides}
+            cmd = build_finetune_command(run_dir.parent / spec.source, run_dir, spec.iterations, given,
                                          python=python)
         else:
             cmd = command_builder(data_path, run_dir, preset, overrides, resume=resume, python=python)

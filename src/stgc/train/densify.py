@@ -233,6 +233,7 @@ class DensityControl:
         self.rounds_done = 0
         self.past_rounds = False  # a densification step after the schedule's last round has passed
         self.removed_by_others = 0  # Gaussians compaction removed: they lower the cap
+        self.rows_fixed = False  # set while the learned mask keeps one logit per row: no removal between rounds
 
     @property
     def collecting(self) -> bool:
@@ -281,7 +282,7 @@ class DensityControl:
                                              fl.scale_min_opacity)
                 report["pruned_floaters"] = apply_prune(model, self.stats, remove)
             report["pruned_nonfinite"] = apply_prune(model, self.stats, prune_mask_nonfinite(model))
-        elif bool((nonfinite := prune_mask_nonfinite(model)).any()):
+        elif not self.rows_fixed and bool((nonfinite := prune_mask_nonfinite(model)).any()):
             # Between rounds too: a visible row that an optimizer step made non-finite stops the next render, and
             # one the render culls stops the next save (a resume replays to the same stop).
             report["pruned_nonfinite"] = apply_prune(model, self.stats, nonfinite)

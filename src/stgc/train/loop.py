@@ -148,17 +148,14 @@ def xyz_learning_rate(cfg: TrainConfig, extent: float, iteration: int, total: in
 
 def _options_of_given_model(model: STGModel, model_cfg: ModelConfig | None) -> ModelConfig:
     """The model options config.json records for a run that starts from `model`: its own variant and decoder
-    activation (a run recorded as 'sigmoid' that trained a 'clamp' decoder loads and renders wrong). Options that
-    contradict the model are refused."""
+    activation (a run recorded as 'sigmoid' that trained a 'clamp' decoder loads and renders wrong). A decoder
+    activation given that contradicts the model's is refused; the variant is the model's (ModelConfig's default
+    'full' is no request)."""
     activation = model.decoder_activation
-    if model_cfg is not None:
-        wrong = [f"model.{name}={asked!r}, the model's is {has!r}" for name, asked, has in (
-            ("variant", model_cfg.variant, model.variant),
-            ("decoder_activation", model_cfg.decoder_activation, activation)) if asked is not None and asked != has]
-        if model.variant == "lite":
-            wrong = [w for w in wrong if not w.startswith("model.decoder_activation")]
-        if wrong:
-            raise ConfigError("the options contradict the model training starts from: " + "; ".join(wrong))
+    asked = None if model_cfg is None or model.variant == "lite" else model_cfg.decoder_activation
+    if asked is not None and asked != activation:
+        raise ConfigError(f"the options contradict the model training starts from: model.decoder_activation="
+                          f"{asked!r}, the model's is {activation!r}")
     return dataclasses.replace(model_cfg or ModelConfig(), variant=cast(Variant, model.variant),
                                decoder_activation=cast(DecoderActivation | None, activation))
 
@@ -225,7 +222,9 @@ def _holds_a_training(run: Run) -> bool:
         saved = run.read_config()
     except StgcError:
         return False
-    return isinstance(saved, dict) and all(isinstance(saved.get(key), dict) for key in ("data", "model", "train"))
+    # A null model section: the Python API saved default model options so until 2026-11-27.
+    return isinstance(saved, dict) and all(isinstance(saved.get(key), dict) for key in ("data", "train")) and (
+        saved.get("model") is None or isinstance(saved.get("model"), dict))
 
 
 def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig | None) -> None:
@@ -237,7 +236,7 @@ def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig |
         return
     sched = resolve_schedule(train_cfg)
     first = sched.iterations - window.iterations + 1
-    step = sched.first_densify_step(first)  # density control acts only at densification steps
+    step = sched.first_densify_step(first)  # clone/split, opacity and floater pruning act only at these steps
     overlapping = []
     if compaction_cfg is not None and compaction_cfg.method == "st-knn":
         pruning = resolve_compaction_schedule(compaction_cfg, sched.iterations)
@@ -440,7 +439,9 @@ class Trainer:
         saved_threads = (theirs.get("train") or {}).get("threads")
         my_threads = self.cfg.threads or torch.get_num_threads()
         if sessions:
-            their_counts = {s.get("threads") for s in sessions}
+            # A session before the history was kept (a checkpoint of older code) trained with the config's count.
+            config_threads = saved_threads if isinstance(saved_threads, int) and saved_threads > 0 else None
+            their_counts = {s.get("threads") if s.get("threads") is not None else config_threads for s in sessions}
         else:  # a summary written before the sessions were recorded: its last session's, else the config's
             their_counts = {summary.get("threads") or saved_threads or None}
         if len(their_counts) > 1:
@@ -577,6 +578,9 @@ class Trainer:
         ems_view = None
         seen, rate_bits = self.quantized_params(iteration)
         mask = None if seen is None or self.quantization is None else self.quantization.mask
+        # The learned mask keeps one logit per row: nothing may remove one while it learns (not even a row gone
+        # non-finite: its render stops the run, as before the density control removed such rows between rounds).
+        self.density.rows_fixed = mask is not None
         for k, cam in enumerate(views):
             gt = self.images.get(cam)
             with self.model.params_replaced(seen):
