@@ -365,6 +365,29 @@ def test_fine_tuning_runs_start_from_their_finished_source(tmp_path: Path) -> No
     assert len(_invocations(out)) == 3 + 2 * 5
 
 
+def test_a_fine_tuning_gets_only_the_set_options_that_act_in_it(tmp_path: Path) -> None:
+    """The plan's check leaves --set's options out of the runs where they act on nothing, but the fine-tuning's
+    command took them all: `stgc finetune` refuses such an option, so the run failed after its source had trained."""
+    plan = FINETUNE_TOML.replace('overrides = { "compaction.method" = "none", "data.preprocess" = "none" }',
+                                 'overrides = { "compaction.method" = "none", "data.preprocess" = "none", '
+                                 '"model.variant" = "lite" }', 1)
+    plan += """[[runs]]
+name = "full"
+family = "full"
+overrides = { "compaction.method" = "none", "data.preprocess" = "none" }
+"""
+    plan_path = tmp_path / "rate.toml"
+    plan_path.write_text(plan)
+    out = tmp_path / "exp"
+    run_plan("DATA", plan_path, out, preset="cpu", extra_overrides=["train.lr.decoder=0.0002"], runner=fake_runner,
+             python=sys.executable, log=lambda m: None)
+    calls = [c for c in _invocations(out) if c.startswith(("train", "finetune"))]
+    assert sorted(c.split()[0] for c in calls) == ["finetune", "finetune", "train", "train"]
+    full = [c for c in calls if f"--out {out / 'full'} " in c]
+    assert len(full) == 1 and "train.lr.decoder=0.0002" in full[0]
+    assert all("train.lr.decoder" not in c for c in calls if c not in full)  # the lite run and its fine-tunings
+
+
 def test_set_options_win_over_the_plan_in_fine_tuning_runs_too(tmp_path: Path) -> None:
     plan_path = tmp_path / "rate.toml"
     plan_path.write_text(FINETUNE_TOML)
