@@ -112,6 +112,7 @@ def test_every_config_json_a_training_wrote_still_reads(tmp_path, edit, check):
     (lambda c: c["train"]["lr"].update(opacity=-1), "train.lr.opacity: -1"),
     (lambda c: c["model"].update(variant="mid"), "model.variant"),
     (lambda c: c["compaction"].update(case="x"), "compaction.case"),
+    (lambda c: c["data"].update(downscale="x"), "data.downscale: cannot read 'x'"),
 ])
 def test_a_damaged_or_outdated_section_is_an_error_naming_the_file_and_the_option(tmp_path, capsys, edit, named):
     """`unknown option bogus` named neither the file nor the section; a section or group that is not an object was a

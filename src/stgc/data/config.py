@@ -143,7 +143,7 @@ def data_config_from_saved(section: dict[str, Any], source: str | Path | None) -
     section = dict(section)
     path = section.pop("path", None)
     try:
-        return validate_config(from_saved(DataConfig, section), "data"), path
+        return validate_config(from_saved(DataConfig, section, "data"), "data"), path
     except ConfigError as exc:
         raise FormatError(source, f"run config: {exc}") from None
 
