@@ -17,7 +17,7 @@ from stgc.data.config import data_config_from_saved
 from stgc.errors import FormatError, StgcError
 from stgc.model import ModelConfig
 from stgc.model.config import idle_model_options
-from stgc.run import Run
+from stgc.run import Run, check_run_config
 from stgc.train.config import TrainConfig, refuse_preset_option, train_preset
 
 
@@ -124,37 +124,6 @@ def configs_from_run(run_dir: Path) -> dict[str, Any]:
     out["train"] = replace(out["train"], stop_after=None)
     out["data_path"] = saved["data"].get("path")
     return out
-
-
-def check_run_config(saved: Mapping[str, Any], path: Path) -> None:
-    """Raise FormatError naming `path` unless `saved` is shaped as a config.json a stgc training wrote: data,
-    model and train sections that are objects (a model section may be null, as the Python API saved it), a train
-    section that holds its iterations (or its resolved schedule's), and a compaction section that is null, absent
-    or an object naming its method. Anything else would be read as defaults made up for it (a 30,000-iteration
-    custom schedule, ST-KNN compaction) and trained on as if the run had asked for them."""
-    problems = []
-    for name in ("data", "model", "train"):
-        if name not in saved:
-            problems.append(f"no {name!r} section")
-        elif not (isinstance(saved[name], dict) or (name == "model" and saved[name] is None)):
-            problems.append(f"its {name!r} section is {_shown(saved[name])}, not an object")
-    train = saved.get("train")
-    if isinstance(train, dict):
-        resolved = train.get("resolved_schedule")
-        if "iterations" not in train and not (isinstance(resolved, dict) and "iterations" in resolved):
-            problems.append("its 'train' section has no iterations")
-    compaction = saved.get("compaction")
-    if compaction is not None and not (isinstance(compaction, dict) and "method" in compaction):
-        # Every training saved the whole section (or null, without compaction): its method is always there.
-        problems.append(f"its 'compaction' section is {_shown(compaction)}, not null or an object with a method")
-    if problems:
-        raise FormatError(path, f"not a stgc run config ({'; '.join(problems)})")
-
-
-def _shown(value: Any, limit: int = 40) -> str:
-    """`value` as a message shows it: its repr, cut at `limit` characters."""
-    text = repr(value)
-    return text if len(text) <= limit else f"{text[:limit]}..."
 
 
 def refuse_unused_model_options(model: ModelConfig, given: Iterable[str]) -> None:

@@ -295,6 +295,45 @@ class Run:
         return latest_iteration_dir(self.path)
 
 
+def run_config_problems(saved: Any) -> list[str]:
+    """Why `saved` (a config.json as read) is not shaped as one a stgc training wrote; empty when it is: data,
+    model and train sections that are objects (a model section may be null, as the Python API saved it until
+    2026-11-27), a train section that holds its iterations (or its resolved schedule's), and a compaction section
+    that is null, absent or an object naming its method. Anything else would be read as defaults made up for it (a
+    30,000-iteration custom schedule, ST-KNN compaction) and trained on as if the run had asked for them."""
+    if not isinstance(saved, dict):
+        return [f"it is {_shown(saved)}, not an object"]
+    problems = []
+    for name in ("data", "model", "train"):
+        if name not in saved:
+            problems.append(f"no {name!r} section")
+        elif not (isinstance(saved[name], dict) or (name == "model" and saved[name] is None)):
+            problems.append(f"its {name!r} section is {_shown(saved[name])}, not an object")
+    train = saved.get("train")
+    if isinstance(train, dict):
+        resolved = train.get("resolved_schedule")
+        if "iterations" not in train and not (isinstance(resolved, dict) and "iterations" in resolved):
+            problems.append("its 'train' section has no iterations")
+    compaction = saved.get("compaction")
+    if compaction is not None and not (isinstance(compaction, dict) and "method" in compaction):
+        # Every training saved the whole section (or null, without compaction): its method is always there.
+        problems.append(f"its 'compaction' section is {_shown(compaction)}, not null or an object with a method")
+    return problems
+
+
+def check_run_config(saved: Any, path: Path) -> None:
+    """Raise FormatError naming `path` unless `saved` is shaped as a training's config.json (`run_config_problems`)."""
+    problems = run_config_problems(saved)
+    if problems:
+        raise FormatError(path, f"not a stgc run config ({'; '.join(problems)})")
+
+
+def _shown(value: Any, limit: int = 40) -> str:
+    """`value` as a message shows it: its repr, cut at `limit` characters."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}..."
+
+
 class RunExistsError(StgcError):
     """The output directory already holds a run and neither resume nor overwrite was asked for."""
 

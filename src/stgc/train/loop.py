@@ -41,7 +41,7 @@ from stgc.model import ModelConfig, STGModel
 from stgc.model.config import DecoderActivation
 from stgc.model.layout import Variant
 from stgc.render import BACKENDS, select_backend
-from stgc.run import Run, run_contents
+from stgc.run import Run, run_config_problems, run_contents
 from stgc.train.behaviour import BEHAVIOUR_KEY, recorded_behaviour
 from stgc.train.checkpoint import (
     load_checkpoint,
@@ -217,14 +217,12 @@ def _refuse_restarting_a_model_of_value(run: Run) -> None:
 
 
 def _holds_a_training(run: Run) -> bool:
-    """Whether the folder's run files are a training's start: its config.json has the sections a training writes."""
+    """Whether the folder's run files are a training's start: its config.json is shaped as a training writes it."""
     try:
         saved = run.read_config()
     except StgcError:
         return False
-    # A null model section: the Python API saved default model options so until 2026-11-27.
-    return isinstance(saved, dict) and all(isinstance(saved.get(key), dict) for key in ("data", "train")) and (
-        saved.get("model") is None or isinstance(saved.get("model"), dict))
+    return saved is not None and not run_config_problems(saved)
 
 
 def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig | None) -> None:
