@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from stgc.compaction import PairMatches, removal_scores, select_removals
+from stgc.compaction.pruning import keeper_time_coverage
 from stgc.compaction.matching import match_from_neighbors
 
 from .compaction_helpers import static_params
@@ -152,3 +153,56 @@ def test_a_member_whose_score_is_not_finite_is_the_one_removed():
     scores = np.array([np.nan, 1.0, 2.0, np.inf, np.nan, np.nan])
     sel = select_removals(_pairs([0, 2, 4], [1, 3, 5], [0.1, 0.2, 0.3]), 1.0, scores)
     assert sel.remove.tolist() == [0, 3, 5]  # NaN loses, inf loses, two NaN: the larger index, as equal scores
+
+
+def _lifetimes(centres, widths) -> tuple[np.ndarray, np.ndarray]:
+    """trbf_center and trbf_scale (log of STG's temporal width) for the given centres and widths."""
+    return np.asarray(centres, float)[:, None], np.log(np.asarray(widths, float))[:, None]
+
+
+def test_keeper_time_coverage_is_the_keepers_presence_over_the_losers_lifetime():
+    # Pairs (0, 1) .. (8, 9); the timestamp criterion removes the later centre, here always the odd member.
+    centre, scale = _lifetimes(
+        [0.5, 0.5, 0.4, 0.5, 0.9, 0.95, 0.1, 0.9, 0.5, 0.6],
+        [0.1, 0.1, 0.1, 0.1 * np.sqrt(2), 0.1, 0.1 * np.sqrt(2), 0.05, 0.05, 50.0, 0.02],
+    )
+    scores = centre[:, 0]
+    pairs = _pairs([0, 2, 4, 6, 8], [1, 3, 5, 7, 9], [0.1] * 5)
+    coverage = keeper_time_coverage(pairs, scores, centre, scale)
+    # The keeper's bell over the loser's at the loser's mu_t and mu_t +- sigma (sigma = width / sqrt 2; there the
+    # loser's own factor is exp(-1/2)), capped at 1. One lifetime: 1. Loser 0.5 +- 0.1, keeper at 0.4 of width 0.1:
+    # at 0.6, exp(-4) / exp(-1/2). Loser 0.95 +- 0.1 is clipped at the clip's end 1.0: exp(-1) / exp(-1/8), not
+    # the exp(-2.25) / exp(-1/2) of 1.05. Disjoint lifetimes: ~0. A keeper that lives throughout: ~1.
+    sigma_last = 0.05 / np.sqrt(2)
+    expected = [1.0, np.exp(-3.5), np.exp(-0.875), np.exp(-((0.8 + sigma_last) / 0.05) ** 2 + 0.5),
+                np.exp(-((0.6 - 0.5) / 50.0) ** 2)]
+    np.testing.assert_allclose(coverage, expected, rtol=1e-12, atol=1e-300)
+    # The loser decides whose lifetime counts: with the criterion reversed, the narrow member 9 keeps and its
+    # bell does not cover the wide member 8's lifetime.
+    reversed_coverage = keeper_time_coverage(pairs, -scores, centre, scale)
+    assert reversed_coverage[4] < 1e-100 and reversed_coverage[0] == 1.0
+    scale[3, 0] = np.nan
+    assert keeper_time_coverage(pairs, scores, centre, scale)[1] == 0.0
+
+
+def test_pairs_whose_keeper_does_not_cover_the_losers_lifetime_are_not_pruned():
+    from stgc.compaction import CompactionConfig, STKNNCompactor
+
+    from .compaction_helpers import make_model
+
+    # Two pairs, each much closer than any other Gaussian: (0, 1) share a lifetime, (2, 3) have disjoint ones.
+    xyz = np.array([[0.0, 0.0, 0.0], [1e-3, 0.0, 0.0], [0.5, 0.5, 0.5], [0.5, 0.5, 0.5 + 1e-3]])
+    params = static_params(xyz, trbf_center=np.array([0.5, 0.5, 0.2, 0.8]))
+    params["trbf_scale"][:] = float(np.log(0.05))
+    config = dict(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=1.0, ratio_min=1.0, ratio_max=1.0)
+    kept = {}
+    for coverage in (0.0, 0.5):
+        model = make_model({k: v.clone() for k, v in params.items()})
+        event = STKNNCompactor(CompactionConfig(**config, keeper_time_coverage=coverage), 10).step(1, 0.5, model, 1.0)
+        assert event["matched_pairs"] == 2
+        kept[coverage] = sorted(model.params["trbf_center"][:, 0].tolist())
+        assert event["time_covered_pairs"] == (2 if coverage == 0 else 1)
+    assert kept[0.0] == pytest.approx([0.2, 0.5])  # the paper: the later member of each pair goes
+    assert kept[0.5] == pytest.approx([0.2, 0.5, 0.8])  # the disjoint pair keeps both
+    with pytest.raises(ValueError, match="keeper_time_coverage"):
+        CompactionConfig(keeper_time_coverage=float("nan")).validate()

@@ -18,7 +18,11 @@ from .config import CompactionConfig, PruningSchedule, resolve_schedule
 from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
 from .matching import SpacetimeModel, match_spatiotemporal_pairs
 from .plot import LOG_NAME, read_compaction_log
-from .pruning import removal_scores, select_removals
+from .pruning import keeper_time_coverage, removal_scores, select_removals
+
+
+def _numpy(values: torch.Tensor) -> np.ndarray:
+    return values.detach().to("cpu", torch.float64).numpy()
 
 
 class PrunableModel(SpacetimeModel, Protocol):
@@ -100,6 +104,11 @@ class STKNNCompactor:
         matched_at = time.perf_counter()
         max_removals = max(0, n_before - self.config.min_gaussians)
         scores = removal_scores(model.params, self.config.criterion, importance_fn) if len(pairs) else np.zeros(n_before)
+        matched_pairs = len(pairs)
+        if self.config.keeper_time_coverage > 0 and len(pairs):
+            coverage = keeper_time_coverage(pairs, scores, _numpy(model.params["trbf_center"]),
+                                            _numpy(model.params["trbf_scale"]))
+            pairs = pairs.subset(coverage >= self.config.keeper_time_coverage)
         selection = select_removals(pairs, ratio, scores, max_removals)
         if selection.remove.size:
             keep = torch.ones(n_before, dtype=torch.bool)
@@ -126,7 +135,8 @@ class STKNNCompactor:
             "reference_loss": reference,
             "loss_budget": self.controller.budget,
             "matched_references": pairs.matched_references,
-            "matched_pairs": len(pairs),
+            "matched_pairs": matched_pairs,
+            "time_covered_pairs": len(pairs),
             "selected_pairs": selection.selected_pairs,
             "conflicts": selection.conflicts,
             "removed": removed,

@@ -133,6 +133,15 @@ class CompactionConfig:
             "0 = only the canonical time mu_t and the current time t (paper)"
         },
     )
+    keeper_time_coverage: float = field(
+        default=0.0,
+        metadata={
+            "help": "prune a matched pair only where its keeper is present while its loser is: the smallest ratio "
+            "of their temporal opacity factors (keeper / loser, capped at 1) at the loser's mu_t and mu_t +- one "
+            "temporal standard deviation must reach this, so pairs of disjoint lifetimes keep both; 0 = every pair "
+            "(paper)"
+        },
+    )
     min_gaussians: int = field(default=0, metadata={"help": "never prune below this many Gaussians"})
 
     def validate(self, prefix: str = "") -> None:
@@ -182,6 +191,8 @@ class CompactionConfig:
             raise ValueError(f"compaction.ema_decay {self.ema_decay}: must be in [0, 1)")
         if self.sample_times < 0:
             raise ValueError(f"compaction.sample_times {self.sample_times}: must be >= 0")
+        if not (0.0 <= self.keeper_time_coverage <= 1.0):  # also refuses NaN
+            raise ValueError(f"compaction.keeper_time_coverage {self.keeper_time_coverage}: must be in [0, 1]")
         if self.min_gaussians < 0:
             raise ValueError(f"compaction.min_gaussians {self.min_gaussians}: must be >= 0")
 

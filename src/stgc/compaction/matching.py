@@ -191,6 +191,10 @@ class PairMatches:
     def __len__(self) -> int:
         return int(self.reference.size)
 
+    def subset(self, keep: np.ndarray) -> PairMatches:
+        """The pairs where the boolean `keep` is true (matched_references unchanged: it counts the searches)."""
+        return PairMatches(self.reference[keep], self.partner[keep], self.distance[keep], self.matched_references)
+
 
 def match_from_neighbors(neighbors: Sequence[np.ndarray], distances: Sequence[np.ndarray]) -> PairMatches:
     """Combine the per-search nearest neighbours into matched pairs (shared by the fast path and the reference)."""

@@ -56,6 +56,39 @@ def removal_scores(
         return CRITERIA[criterion].score(params, importance)
 
 
+def reference_loses(a: np.ndarray, b: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    """For pairs (a[k], b[k]): whether a[k] is the criterion's loser (rules in the module docstring)."""
+    score_a, score_b = scores[a], scores[b]
+    finite_a, finite_b = np.isfinite(score_a), np.isfinite(score_b)
+    # A member whose score is not finite (a diverged scale) loses; comparisons with NaN would keep it by row order.
+    return np.where(finite_a & finite_b, (score_a > score_b) | ((score_a == score_b) & (a > b)),
+                    np.where(finite_a == finite_b, a > b, ~finite_a))
+
+
+def keeper_time_coverage(
+    pairs: PairMatches, scores: np.ndarray, trbf_center: np.ndarray, trbf_scale: np.ndarray
+) -> np.ndarray:
+    """Per pair: how present the keeper is while the loser was, in [0, 1].
+
+    STG's temporal opacity factor of a Gaussian is f(t) = exp(-((t - mu_t) / exp(s_t))^2), a bell of standard
+    deviation sigma = exp(s_t) / sqrt(2). The coverage is the smallest ratio f_keeper / f_loser (capped at 1) over
+    the loser's mu_t and mu_t +- sigma, each clipped to the clip's times [0, 1]: 1 when the two share a lifetime
+    or the keeper lives throughout the loser's, near 0 when their lifetimes are disjoint, so that removing the loser
+    would leave its frames without either. Non-finite parameters give 0."""
+    a, b = pairs.reference, pairs.partner
+    a_loses = reference_loses(a, b, scores)
+    loser, keeper = np.where(a_loses, a, b), np.where(a_loses, b, a)
+    centre = np.asarray(trbf_center, dtype=np.float64).reshape(-1)
+    width = np.exp(np.asarray(trbf_scale, dtype=np.float64).reshape(-1))
+    spread = width[loser] / np.sqrt(2.0)
+    times = np.clip(centre[loser][:, None] + np.array([-1.0, 0.0, 1.0]) * spread[:, None], 0.0, 1.0)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        log_keeper = -np.square((times - centre[keeper][:, None]) / width[keeper][:, None])
+        log_loser = -np.square((times - centre[loser][:, None]) / width[loser][:, None])
+        coverage = np.exp(np.minimum(log_keeper - log_loser, 0.0).min(axis=1))
+    return np.where(np.isfinite(coverage), coverage, 0.0)
+
+
 def select_removals(
     pairs: PairMatches, ratio: float, scores: np.ndarray, max_removals: int | None = None
 ) -> PruneSelection:
@@ -66,11 +99,7 @@ def select_removals(
         return PruneSelection(np.zeros(0, dtype=np.int64), n_selected, 0, float("nan"))
     order = np.lexsort((pairs.reference, pairs.distance))[:n_selected]
     a, b = pairs.reference[order], pairs.partner[order]
-    score_a, score_b = scores[a], scores[b]
-    finite_a, finite_b = np.isfinite(score_a), np.isfinite(score_b)
-    # A member whose score is not finite (a diverged scale) loses; comparisons with NaN would keep it by row order.
-    a_loses = np.where(finite_a & finite_b, (score_a > score_b) | ((score_a == score_b) & (a > b)),
-                       np.where(finite_a == finite_b, a > b, ~finite_a))
+    a_loses = reference_loses(a, b, scores)
     losers = np.where(a_loses, a, b).tolist()
     keepers = np.where(a_loses, b, a).tolist()
 
