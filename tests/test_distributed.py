@@ -148,8 +148,10 @@ RAY_AGENTS = ("ray::DashboardAgent", "ray::RuntimeEnvAgent")
 
 
 def _workers_of(ray_tmpdir: str) -> list[int]:
-    """`_processes_of` but Ray's agents: the processes that could still run a task."""
-    return [pid for pid in _processes_of(ray_tmpdir) if not _cmdline(pid).startswith(RAY_AGENTS)]
+    """`_processes_of` but Ray's agents: the processes that could still run a task (one read of each command line:
+    a process that exits between two reads is gone, not a worker)."""
+    alive = [(pid, _cmdline(pid)) for pid in _processes_of(ray_tmpdir)]
+    return [pid for pid, command in alive if command != "(gone)" and not command.startswith(RAY_AGENTS)]
 
 
 def _cmdline(pid: int) -> str:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -181,8 +183,16 @@ def test_keeper_time_coverage_is_the_keepers_presence_over_the_losers_lifetime()
     # bell does not cover the wide member 8's lifetime.
     reversed_coverage = keeper_time_coverage(pairs, -scores, centre, scale)
     assert reversed_coverage[4] < 1e-100 and reversed_coverage[0] == 1.0
-    scale[3, 0] = np.nan
-    assert keeper_time_coverage(pairs, scores, centre, scale)[1] == 0.0
+    # A diverged loser has nothing to cover (its pair is pruned); a diverged keeper covers nothing.
+    scale[3, 0], scale[4, 0] = np.nan, np.inf
+    assert keeper_time_coverage(pairs, scores, centre, scale)[1:3].tolist() == [1.0, 0.0]
+    # Extreme but finite widths: a loser present throughout [0, 1] against a narrow keeper, and the reverse.
+    centre, scale = np.full((4, 1), 0.5), np.array([[np.log(1e-3)], [800.0], [800.0], [np.log(1e-3)]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        extreme = keeper_time_coverage(_pairs([0, 2], [1, 3], [0.1, 0.1]), np.array([0.0, 1.0, 0.0, 1.0]), centre,
+                                       scale)
+    assert extreme[0] == 0.0 and extreme[1] == 1.0
 
 
 def test_pairs_whose_keeper_does_not_cover_the_losers_lifetime_are_not_pruned():
@@ -190,19 +200,27 @@ def test_pairs_whose_keeper_does_not_cover_the_losers_lifetime_are_not_pruned():
 
     from .compaction_helpers import make_model
 
-    # Two pairs, each much closer than any other Gaussian: (0, 1) share a lifetime, (2, 3) have disjoint ones.
-    xyz = np.array([[0.0, 0.0, 0.0], [1e-3, 0.0, 0.0], [0.5, 0.5, 0.5], [0.5, 0.5, 0.5 + 1e-3]])
-    params = static_params(xyz, trbf_center=np.array([0.5, 0.5, 0.2, 0.8]))
+    # Four pairs, each much closer than any other Gaussian: two of disjoint lifetimes (the closest two, at 1e-4)
+    # and two that share one (1e-3).
+    corners = np.array([[0.0, 0.0, 0.0], [0.5, 0.5, 0.5], [0.0, 0.5, 0.0], [0.5, 0.0, 0.5]])
+    xyz = np.repeat(corners, 2, axis=0) + np.array([[0.0, 0.0, 0.0], [1e-4, 0.0, 0.0]] * 2 + [[0.0, 0.0, 0.0], [1e-3, 0.0, 0.0]] * 2)
+    centres = np.array([0.2, 0.8, 0.25, 0.75, 0.5, 0.5, 0.4, 0.4])
+    params = static_params(xyz, trbf_center=centres)
     params["trbf_scale"][:] = float(np.log(0.05))
-    config = dict(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=1.0, ratio_min=1.0, ratio_max=1.0)
     kept = {}
-    for coverage in (0.0, 0.5):
+    for ratio, coverage in ((1.0, 0.0), (1.0, 0.5), (0.5, 0.0), (0.5, 0.5)):
+        config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=ratio,
+                                  ratio_min=ratio, ratio_max=ratio, keeper_time_coverage=coverage)
         model = make_model({k: v.clone() for k, v in params.items()})
-        event = STKNNCompactor(CompactionConfig(**config, keeper_time_coverage=coverage), 10).step(1, 0.5, model, 1.0)
-        assert event["matched_pairs"] == 2
-        kept[coverage] = sorted(model.params["trbf_center"][:, 0].tolist())
-        assert event["time_covered_pairs"] == (2 if coverage == 0 else 1)
-    assert kept[0.0] == pytest.approx([0.2, 0.5])  # the paper: the later member of each pair goes
-    assert kept[0.5] == pytest.approx([0.2, 0.5, 0.8])  # the disjoint pair keeps both
+        event = STKNNCompactor(config, 10).step(1, 0.5, model, 1.0)
+        assert event["matched_pairs"] == 4 and event["time_covered_pairs"] == (4 if coverage == 0 else 2)
+        # The ratio is a fraction of every matched pair, filtered or not: the filter changes which pairs go.
+        assert event["selected_pairs"] == (4 if (ratio, coverage) == (1.0, 0.0) else 2)
+        kept[ratio, coverage] = sorted(model.params["trbf_center"][:, 0].tolist())
+    assert kept[1.0, 0.0] == pytest.approx([0.2, 0.25, 0.4, 0.5])  # the paper: the later member of each pair goes
+    assert kept[0.5, 0.0] == pytest.approx([0.2, 0.25, 0.4, 0.4, 0.5, 0.5])  # the closest half: the disjoint pairs
+    # With the filter the disjoint pairs keep both members, and half of all pairs is still two pairs: the two
+    # that share a lifetime.
+    assert kept[1.0, 0.5] == kept[0.5, 0.5] == pytest.approx([0.2, 0.25, 0.4, 0.5, 0.75, 0.8])
     with pytest.raises(ValueError, match="keeper_time_coverage"):
         CompactionConfig(keeper_time_coverage=float("nan")).validate()

@@ -109,7 +109,7 @@ class STKNNCompactor:
             coverage = keeper_time_coverage(pairs, scores, _numpy(model.params["trbf_center"]),
                                             _numpy(model.params["trbf_scale"]))
             pairs = pairs.subset(coverage >= self.config.keeper_time_coverage)
-        selection = select_removals(pairs, ratio, scores, max_removals)
+        selection = select_removals(pairs, ratio, scores, max_removals, ratio_of=matched_pairs)
         if selection.remove.size:
             keep = torch.ones(n_before, dtype=torch.bool)
             keep[torch.from_numpy(selection.remove)] = False

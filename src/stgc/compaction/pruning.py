@@ -74,27 +74,36 @@ def keeper_time_coverage(
     deviation sigma = exp(s_t) / sqrt(2). The coverage is the smallest ratio f_keeper / f_loser (capped at 1) over
     the loser's mu_t and mu_t +- sigma, each clipped to the clip's times [0, 1]: 1 when the two share a lifetime
     or the keeper lives throughout the loser's, near 0 when their lifetimes are disjoint, so that removing the loser
-    would leave its frames without either. Non-finite parameters give 0."""
+    would leave its frames without either. A loser whose temporal parameters are not finite (diverged) has nothing
+    to cover: 1; a keeper's that are not: 0."""
     a, b = pairs.reference, pairs.partner
     a_loses = reference_loses(a, b, scores)
     loser, keeper = np.where(a_loses, a, b), np.where(a_loses, b, a)
     centre = np.asarray(trbf_center, dtype=np.float64).reshape(-1)
-    width = np.exp(np.asarray(trbf_scale, dtype=np.float64).reshape(-1))
+    log_width = np.asarray(trbf_scale, dtype=np.float64).reshape(-1)
+    # Widths beyond e^+-50 behave as a constant or a spike over [0, 1]; bounding them keeps every product finite.
+    width = np.exp(np.clip(log_width, -50.0, 50.0))
     spread = width[loser] / np.sqrt(2.0)
-    times = np.clip(centre[loser][:, None] + np.array([-1.0, 0.0, 1.0]) * spread[:, None], 0.0, 1.0)
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+    with np.errstate(over="ignore", invalid="ignore"):
+        times = np.clip(centre[loser][:, None] + np.array([-1.0, 0.0, 1.0]) * spread[:, None], 0.0, 1.0)
         log_keeper = -np.square((times - centre[keeper][:, None]) / width[keeper][:, None])
         log_loser = -np.square((times - centre[loser][:, None]) / width[loser][:, None])
         coverage = np.exp(np.minimum(log_keeper - log_loser, 0.0).min(axis=1))
-    return np.where(np.isfinite(coverage), coverage, 0.0)
+    finite = np.isfinite(centre) & np.isfinite(log_width)
+    return np.where(finite[loser] & finite[keeper], coverage, np.where(finite[loser], 0.0, 1.0))
 
 
 def select_removals(
-    pairs: PairMatches, ratio: float, scores: np.ndarray, max_removals: int | None = None
+    pairs: PairMatches, ratio: float, scores: np.ndarray, max_removals: int | None = None,
+    ratio_of: int | None = None,
 ) -> PruneSelection:
-    """Gaussians to remove for the closest `ratio` fraction of `pairs` (rules in the module docstring)."""
+    """Gaussians to remove for the closest `ratio` fraction of `pairs` (rules in the module docstring).
+
+    `ratio_of`: the pair count the ratio is a fraction of, when `pairs` is a filtered subset of the matched pairs
+    (`keeper_time_coverage`): the step then selects as many pairs as it would unfiltered (at most all of `pairs`),
+    so that a filter changes which pairs go, not how fast the model is pruned."""
     n_pairs = len(pairs)
-    n_selected = min(n_pairs, int(np.floor(ratio * n_pairs + 0.5)))
+    n_selected = min(n_pairs, int(np.floor(ratio * (n_pairs if ratio_of is None else ratio_of) + 0.5)))
     if n_selected == 0 or (max_removals is not None and max_removals <= 0):
         return PruneSelection(np.zeros(0, dtype=np.int64), n_selected, 0, float("nan"))
     order = np.lexsort((pairs.reference, pairs.distance))[:n_selected]
