@@ -204,7 +204,7 @@ def test_a_camera_in_both_blender_files_is_refused_not_held_out_whole(tmp_path):
 
 @pytest.mark.parametrize("key, value, match", [
     ("fl_x", "abc", "a value cannot be read"), ("time", "abc", "time 'abc' is not a number"),
-    ("frame_index", "x", "a value cannot be read")])
+    ("time", float("inf"), "time inf is not a finite number"), ("frame_index", "x", "a value cannot be read")])
 def test_unreadable_values_of_a_blender_frame_name_the_file(tmp_path, key, value, match):
     root = _blender_multiview(tmp_path, {("camC", 0), ("camC", 1)})
     meta = json.loads((root / "transforms_train.json").read_text())
@@ -383,3 +383,143 @@ def test_poses_bounds_of_text_values_name_the_file(tmp_path):
     expect_error("poses_bounds.npy", "holds <U.* values, not real numbers", open_dataset, root)
     np.save(root / "poses_bounds.npy", rows.astype(complex))
     expect_error("poses_bounds.npy", "holds complex128 values, not real numbers", open_dataset, root)
+
+
+@pytest.mark.parametrize("time", [float("inf"), float("nan")])
+def test_a_non_finite_time_of_a_monocular_scene_is_refused_not_spread_over_every_camera(tmp_path, time):
+    """JSON's Infinity and NaN parse as floats: one such time made every camera's time NaN (the frames are placed on
+    the axis by their times), with no error."""
+    from scenes import write_dnerf_scene
+
+    root = write_dnerf_scene(tmp_path)
+    _edit_json(root / "transforms_test.json", lambda m: m["frames"][1].update(time=time))
+    expect_error("transforms_test.json", f"frame './test/r_001': time {time} is not a finite number", open_dataset,
+                 root)
+
+
+def _transposed(matrix: list) -> list:
+    return np.array(matrix).T.tolist()
+
+
+def test_matrices_written_transposed_are_refused_not_read_as_other_cameras(tmp_path):
+    """A transposed rigid pose still has an orthonormal rotation: its translation went to the bottom row, which
+    nothing read, so every camera sat at the origin; a transposed K put the principal point at (0, 0)."""
+    root = make_panoptic(tmp_path / "w2c")
+    _edit_json(root / "train_meta.json", lambda m: m["w2c"][1].__setitem__(2, _transposed(m["w2c"][1][2])))
+    expect_error("train_meta.json", r"camera 3 frame 1: pose w2c bottom row is \[0.9, 0, 4, 1\], not \[0, 0, 0, 1\] "
+                 r"\(written transposed\?", open_dataset, root)
+
+    root = make_panoptic(tmp_path / "k")
+    _edit_json(root / "test_meta.json", lambda m: m["k"][0].__setitem__(0, _transposed(m["k"][0][0])))
+    expect_error("test_meta.json", r"camera 0 frame 0: intrinsics K bottom row is \[7.5, 5.5, 1\], not \[0, 0, 1\] "
+                 r"\(written transposed\?", open_dataset, root)
+
+    root = make_panoptic(tmp_path / "k10")
+    _edit_json(root / "train_meta.json", lambda m: m["k"][0][0][1].__setitem__(0, 3.0))
+    expect_error("train_meta.json", r"camera 1 frame 0: intrinsics K\[1, 0\] is 3, not 0", open_dataset, root)
+
+    # The renderer ignores skew (fx, fy, cx, cy only): a skewed K would be drawn as another camera.
+    root = make_panoptic(tmp_path / "skew")
+    _edit_json(root / "train_meta.json", lambda m: m["k"][0][0][0].__setitem__(1, 0.5))
+    expect_error("train_meta.json", r"camera 1 frame 0: intrinsics K has skew K\[0, 1\] = 0.5", open_dataset, root)
+
+    # Blender's c2w is converted from its top three rows alone: checked before the conversion.
+    root = _blender_multiview(tmp_path / "c2w", {("camC", 0), ("camC", 1)})
+    _edit_json(root / "transforms_train.json",
+               lambda m: m["frames"][2].update(transform_matrix=_transposed(m["frames"][2]["transform_matrix"])))
+    expect_error("transforms_train.json", r"camera camB frame 0: transform_matrix bottom row is \[-0.3, 0, -4, 1\], "
+                 r"not \[0, 0, 0, 1\] \(written transposed\?", open_dataset, root)
+
+
+def test_an_image_used_by_two_views_is_refused_naming_the_file_and_both_views(tmp_path):
+    """Only (view, frame) pairs were checked: a held-out view whose file_path was a training view's image (a slip
+    copying metadata) was accepted, and the test scored a training image."""
+    from stgc.data.dataset import SourceScene, VideoFrame, assemble
+
+    for k, file_path in enumerate(("camA_0.png", "./camA_0.png", "camC/../camA_0.png")):
+        root = _blender_multiview(tmp_path / str(k), {("camC", 0), ("camC", 1)})
+        (root / "camC").mkdir()
+        _edit_json(root / "transforms_test.json", lambda m: m["frames"][0].update(file_path=file_path))
+        expect_error("camA_0.png", "this file is the image of two views: camera camA frame 0 and camera camC frame 0",
+                     open_dataset, root)
+
+    # A frame of a video (or of a YUV file) is one image too; another frame of the same file is another image.
+    video = tmp_path / "cam.mp4"
+    K, w2c = np.array([[20.0, 0, 8], [0, 20, 6], [0, 0, 1]]), _w2c(0)
+    from stgc.data.cameras import Camera
+
+    def scene(second_index: int) -> SourceScene:
+        cameras = [Camera("a", 0, 0.0, K, w2c, W, H, VideoFrame(video, 0)),
+                   Camera("b", 0, 0.0, K, _w2c(1), W, H, VideoFrame(video, second_index))]
+        return SourceScene(name="v", format="n3dv", root=tmp_path, cameras=cameras, default_test=["a"],
+                           meta_file=tmp_path / "poses_bounds.npy")
+
+    assert assemble(scene(1), check_images=False).test_views == ["a"]
+    expect_error("cam.mp4", "frame 0 of this file is the image of two views: camera a frame 0 and camera b frame 0",
+                 assemble, scene(0), check_images=False)
+
+
+def test_panoptic_camera_folders_that_no_metadata_names_are_refused(tmp_path):
+    """Only folders some camera used were scanned for extra images: without test_meta.json (optional) the held-out
+    cameras' folders were dropped without a word, and the dataset had no test views."""
+    root = make_panoptic(tmp_path / "no_test")
+    (root / "test_meta.json").unlink()
+    expect_error("ims", r"camera folder.s. 0 hold images that no camera in train_meta.json refers to; "
+                 "test_meta.json is missing", open_dataset, root)
+    root = make_panoptic(tmp_path / "extra_camera")
+    for t in range(2):
+        _image(root / "ims" / f"12/{t:06d}.jpg")
+    (root / "ims" / "notes").mkdir()  # a folder without images is not a camera's
+    error = expect_error("ims", r"camera folder.s. 12 hold images that no camera in train_meta.json or "
+                         "test_meta.json refers to$", open_dataset, root)
+    assert "missing" not in str(error)
+
+
+def _stg_colmap(root: Path, other_world: tuple[np.ndarray, float, np.ndarray] | None = None,
+                image_names: tuple[str, ...] = ("cam00.png", "cam01.png", "cam02.png")) -> Path:
+    """Two frames of three cameras in STG's layout (colmap_<t>/images, colmap_<t>/sparse/0 with points3D). Frame 1's
+    model names `image_names` and, with `other_world` = (S, s, T), lies in the world x' = s S x + T (its own SfM
+    run), cameras and points alike."""
+    from stgc.data.cameras import rotmat_to_qvec
+    from stgc.data.colmap_io import ColmapCamera, ColmapImage, ColmapModel, write_model
+
+    S, s, T = other_world or (np.eye(3), 1.0, np.zeros(3))
+    for frame in (0, 1):
+        model = ColmapModel()
+        for k, name in enumerate(("cam00.png", "cam01.png", "cam02.png")):
+            _image(root / f"colmap_{frame}" / "images" / name)
+            w2c = _w2c(k)
+            R, t = w2c[:3, :3], w2c[:3, 3]
+            if frame == 1:
+                R, t = R @ S.T, s * t - R @ S.T @ T
+            model.cameras[k + 1] = ColmapCamera(k + 1, "PINHOLE", W, H, np.array([20.0, 20.0, 8.0, 6.0]))
+            model.images[k + 1] = ColmapImage(k + 1, rotmat_to_qvec(R), t, k + 1,
+                                              name if frame == 0 else image_names[k])
+        xyz = np.random.default_rng(frame).normal(0, 0.3, (20, 3))
+        model.xyz = xyz if frame == 0 else s * xyz @ S.T + T
+        model.rgb, model.error = np.full((20, 3), 128, np.uint8), np.zeros(20)
+        write_model(root / f"colmap_{frame}" / "sparse" / "0", model, "bin")
+    return root
+
+
+def test_stg_colmap_frames_whose_models_lie_in_other_worlds_are_refused(tmp_path):
+    """Every frame's cameras come from the first frame's model, each frame's points from its own: a frame
+    reconstructed in another world frame put its points where no camera looks, silently."""
+    from stgc.data.cameras import euler_zyx_deg
+
+    data = open_dataset(_stg_colmap(tmp_path / "same"))
+    assert [len(data.data_points(f)[0]) for f in data.frames] == [20, 20]
+    # Rounding (a text model, a float32 copy) is no other world.
+    data = open_dataset(_stg_colmap(tmp_path / "rounded", (euler_zyx_deg(1e-5, 0, 0), 1 + 1e-7, np.full(3, 1e-7))))
+    assert len(data.data_points(1)[0]) == 20
+
+    data = open_dataset(_stg_colmap(tmp_path / "other", (euler_zyx_deg(40, 10, -20), 2.5, np.array([5.0, -3, 1]))))
+    assert len(data.data_points(0)[0]) == 20  # the first frame's model is the cameras' own
+    expect_error("colmap_1/sparse/0", r"image cam00.png has another pose here than in .*colmap_0/sparse/0 \(its "
+                 r"centre moved by .* of the cameras' spread, its rotation by 47.* degrees\)", data.data_points, 1)
+    # A small shift alone (2 % of the cameras' 0.3-unit spread) is already another world.
+    data = open_dataset(_stg_colmap(tmp_path / "shifted", (np.eye(3), 1.0, np.array([0.006, 0, 0]))))
+    expect_error("colmap_1/sparse/0", "centre moved by 0.02 of the cameras' spread", data.data_points, 1)
+
+    data = open_dataset(_stg_colmap(tmp_path / "renamed", image_names=("a.png", "b.png", "c.png")))
+    expect_error("colmap_1/sparse/0", "names none of the images of", data.data_points, 1)

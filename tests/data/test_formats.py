@@ -279,6 +279,25 @@ def test_dnerf_monocular(tmp_path):
     assert (image[:, :5] == [200, 100, 50]).all() and (image[:, 5:] == 255).all()
 
 
+def test_inspect_states_the_time_rule_the_dataset_applies(tmp_path):
+    """Where a monocular scene's frames are ranks of unevenly spaced times, time follows the JSON's time values
+    (SourceScene.frame_positions); inspect stated t = (frame - start) / duration there too."""
+    from scenes import write_dnerf_scene
+
+    from stgc.data import inspect_text
+
+    def frames_row(root):
+        text = " ".join(inspect_text(root).replace("│", " ").split())  # the table wraps long rows
+        return text[text.index(" frames "):text.index(" cameras ")]
+
+    root = write_dnerf_scene(tmp_path / "uneven", {"train": [0.0, 0.1, 1.0], "test": [0.5]})
+    assert [round(t, 4) for t in open_dataset(root).times] == [0.0, 0.075, 0.375, 0.75]
+    row = frames_row(root)
+    assert "t from the transforms' time values" in row and "t = 0..0.75" in row and "(frame -" not in row
+    evenly = write_dnerf_scene(tmp_path / "even")  # times 0, 0.25, .., 1: the ranks are the positions
+    assert "t = (frame - 0) / 5" in frames_row(evenly)
+
+
 def test_images_txt_reads_pose_lines_with_and_without_their_keypoint_lines(tmp_path):
     from stgc.data.colmap_io import _read_images_txt
 

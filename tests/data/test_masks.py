@@ -73,6 +73,23 @@ def test_masks_follow_a_downscale_that_is_not_whole(masked_scene):
     assert (mask == sampled).mean() > 0.95
 
 
+def test_masks_follow_a_downscale_below_one(masked_scene):
+    """At --data.downscale 0.5 the images are enlarged to 128x96: the full-size mask is enlarged with them (it was
+    refused as a file of the wrong size). Bilinear and thresholded, it agrees with the mask sampled at the large
+    pixels' centres except along the edge."""
+    large = open_dataset(masked_scene.root, downscale=0.5)
+    full = open_dataset(masked_scene.root)
+    camera = next(c for c in large.train if c.name == "1" and c.frame == 0)
+    mask = large.load_mask(camera)
+    assert mask is not None and mask.shape == (camera.height, camera.width) == (96, 128)
+    reference = full.load_mask(next(c for c in full.train if c.name == "1" and c.frame == 0))
+    assert reference is not None
+    sampled = np.repeat(np.repeat(reference, 2, axis=0), 2, axis=1)
+    assert 0.05 < sampled.mean() < 0.95  # the ball is in view: a comparison that can fail
+    assert (mask == sampled).mean() > 0.97
+    assert abs(int(mask.sum()) - int(sampled.sum())) < 0.05 * sampled.sum()  # the edge neither grows nor shrinks
+
+
 def test_a_static_cloud_for_the_first_frame_leaves_every_frame_its_hull_points(masked_scene, tmp_path):
     import shutil
 

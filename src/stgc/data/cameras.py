@@ -272,13 +272,50 @@ def w2c_to_omaf(w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return c2w[:3, 3].copy(), np.array([yaw, pitch, roll])
 
 
+# The projection ignores K[0, 1] (it renders with fx, fy, cx, cy alone), so a skew s places a pixel off by s * y / z.
+# Below this fraction of the focal length that is under 0.001 x the image's half height in pixels (half a pixel at
+# 1080 lines): calibration noise, accepted; above it the cameras would be silently wrong, refused.
+_SKEW_TOLERANCE = 1e-3
+
+
 def check_pose(w2c: np.ndarray, K: np.ndarray, tol: float = 1e-3) -> str | None:
-    """A reason why (K, w2c) is not a usable pinhole camera, or None when it is."""
+    """A reason why (K, w2c) is not a usable pinhole camera, or None when it is.
+
+    The bottom rows are checked because a matrix written column-major (transposed) is otherwise a valid one: a
+    transposed rigid w2c has an orthonormal rotation, and its translation moves into the bottom row, where nothing
+    reads it (every camera centre became the origin); a transposed K moves the principal point there."""
     if not (np.all(np.isfinite(w2c)) and np.all(np.isfinite(K))):
         return "non-finite (NaN or inf) value in the camera pose or intrinsics"
+    problem = check_bottom_row(w2c, "pose w2c", tol)
+    if problem:
+        return problem
     R = w2c[:3, :3]
     if np.abs(R @ R.T - np.eye(3)).max() > tol or abs(np.linalg.det(R) - 1.0) > tol:
         return "camera rotation is not orthonormal with determinant +1"
+    problem = check_bottom_row(K, "intrinsics K", tol)
+    if problem:
+        return problem
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         return "focal length is not positive"
+    focal = max(abs(K[0, 0]), abs(K[1, 1]))
+    if abs(K[1, 0]) > _SKEW_TOLERANCE * focal:
+        return (f"intrinsics K[1, 0] is {K[1, 0]:g}, not 0 (an intrinsic matrix is upper triangular: written "
+                "transposed?)")
+    if abs(K[0, 1]) > _SKEW_TOLERANCE * focal:
+        return (f"intrinsics K has skew K[0, 1] = {K[0, 1]:g}: stgc's cameras are pinholes without skew (the renderer "
+                "uses fx, fy, cx, cy only); resample the images to a skew-free camera first")
     return None
+
+
+def check_bottom_row(matrix: np.ndarray, what: str, tol: float = 1e-3) -> str | None:
+    """A reason why the bottom row of a 4x4 pose or a 3x3 K is not [0, .., 0, 1] (a matrix written transposed, or
+    not a rigid transform / intrinsic matrix at all), or None when it is."""
+    matrix = np.asarray(matrix, dtype=np.float64)
+    expected = np.zeros(matrix.shape[1])
+    expected[-1] = 1.0
+    if np.abs(matrix[-1] - expected).max() <= tol:
+        return None
+    row = ", ".join(f"{v:g}" for v in matrix[-1])
+    want = ", ".join(f"{v:g}" for v in expected)
+    return (f"{what} bottom row is [{row}], not [{want}] (written transposed? matrices are read row by row, "
+            "as nested lists of rows)")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -389,6 +390,9 @@ class Dataset:
             "start": self.start,
             "duration": self.duration,
             "frames": [self.frames[0], self.frames[-1]] if self.frames else [],
+            # whether time follows the source's time values (SourceScene.frame_positions), not STG's rule
+            "times_from_positions": self._scene.frame_positions is not None,
+            "times": [self.time_of(self.frames[0]), self.time_of(self.frames[-1])] if self.frames else [],
             "num_frames": len(self.frames),
             "views": len(self.train_views) + len(self.test_views),
             "train_views": self.train_views,
@@ -497,12 +501,35 @@ def assemble(scene: SourceScene, *, downscale: float = 1, start: int | None = No
 
 def _check_unique(scene: SourceScene) -> None:
     """One camera per (view, frame): a view listed twice for a frame would train (or be tested) twice on it, and
-    both share one cache entry, so one of them shows the other's image."""
+    both share one cache entry, so one of them shows the other's image. And one view per image: two views reading
+    one file (or one frame of one video or YUV file) is a slip in the metadata, and where one of them is held out,
+    the test scores a training image."""
     seen = set()
+    owner: dict[tuple[str, int], Camera] = {}
     for c in scene.cameras:
         if (c.name, c.frame) in seen:
             raise DataError(scene.meta_file, f"camera {c.name} frame {c.frame} appears twice")
         seen.add((c.name, c.frame))
+        source = _source_key(c.image)
+        if source is None:
+            continue
+        other = owner.setdefault(source, c)
+        if other.name != c.name:
+            path, index = source
+            what = f"frame {index} of this file is" if index >= 0 else "this file is"
+            raise DataError(path, f"{what} the image of two views: camera {other.name} frame {other.frame} and "
+                                  f"camera {c.name} frame {c.frame}; each view needs its own images, or a held-out "
+                                  "view is tested on a training image")
+
+
+def _source_key(image: ImageSource | None) -> tuple[str, int] | None:
+    """(file, frame index within it; -1 for an image file) of a camera's pixels, None for other sources. The path is
+    normalised lexically ('a/./b', 'a/../a/b'): no file system access per image."""
+    if isinstance(image, (str, Path)):
+        return os.path.normpath(image), -1
+    if isinstance(image, (VideoFrame, YuvFrame)):
+        return os.path.normpath(image.path), image.index
+    return None
 
 
 def _check_complete(scene: SourceScene, cameras: list[Camera], views: list[str], frames: list[int]) -> None:

@@ -41,6 +41,15 @@ def _bytes(n: int) -> str:
     return str(size)
 
 
+def _time_rule(info: dict[str, Any]) -> str:
+    """How each frame's time is set: STG's rule, or (frames that are ranks of unevenly spaced times) the data's."""
+    if not info["times_from_positions"]:
+        return f"t = (frame - {info['start']}) / {info['duration']}"
+    first, last = info["times"]
+    return (f"t from the transforms' time values (frames are ranks of unevenly spaced times), "
+            f"t = {first:.4g}..{last:.4g}")
+
+
 def inspect_text(path: str | Path, **kwargs: Any) -> str:
     """The `inspect` summary rendered as a plain-text table (no terminal colours)."""
     info = inspect(path, **kwargs)
@@ -54,7 +63,7 @@ def inspect_text(path: str | Path, **kwargs: Any) -> str:
         ("path", info["root"]),
         ("format", info["format"]),
         ("frames", f"{info['num_frames']} ({info['frames'][0]}..{info['frames'][-1]}), fps {info['fps']:g}, "
-                   f"t = (frame - {info['start']}) / {info['duration']}"),
+                   + _time_rule(info)),
         ("cameras", f"{info['views']} views: {len(info['train_views'])} train, {len(info['test_views'])} test"),
         ("test views", ", ".join(info["test_views"]) or "-"),
         ("train views", ", ".join(info["train_views"])),

@@ -22,7 +22,8 @@ FOREGROUND_LEVEL = 128
 
 def read_mask(path: Path, width: int, height: int) -> np.ndarray:
     """bool [height, width]: the foreground of the mask image at `path`, area-averaged to the camera's size when it
-    is larger with the same aspect (the downscaled dataset), else a DataError naming the file.
+    is larger with the same aspect (the downscaled dataset), bilinearly enlarged when it is smaller with the same
+    aspect (a downscale below 1), else a DataError naming the file.
 
     Read as 0 (background) .. 255 (foreground): a 1-bit or 0/255 greyscale mask as stored; a palette ('P') mask of
     colours by its indices (0 background, any other foreground, whatever their colours: DAVIS-style masks give
@@ -55,9 +56,14 @@ def read_mask(path: Path, width: int, height: int) -> np.ndarray:
         elif width and height and w > width and abs(h * width / w - height) <= 1:
             # a downscale by a factor that is not whole: area-averaged over the same box as the image's pixels
             mask = np.asarray(Image.fromarray(mask, mode="F").resize((width, height), Image.Resampling.BOX))
+        elif width and height and w < width and abs(h * width / w - height) <= 1:
+            # an upscale (downscale < 1): bilinear, not nearest, since the threshold below then puts the edge on the
+            # interpolated half-way contour (where the mask's own edge lies, to a fraction of its pixel) instead of
+            # a staircase of enlarged mask pixels; PIL maps pixel centres, as the images' resampling does.
+            mask = np.asarray(Image.fromarray(mask, mode="F").resize((width, height), Image.Resampling.BILINEAR))
         else:
             raise DataError(path, f"mask is {w}x{h} but its image is {width}x{height} (masks must have the "
-                            "images' full size or their aspect at a larger size)")
+                            "images' full size or their aspect at another size)")
     return mask >= FOREGROUND_LEVEL
 
 

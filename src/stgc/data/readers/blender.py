@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ...errors import DataError
-from ..cameras import Camera, fov_to_focal, intrinsics, opengl_c2w_to_w2c
+from ..cameras import Camera, check_bottom_row, fov_to_focal, intrinsics, opengl_c2w_to_w2c
 from ..dataset import SourceScene
 from ..images import image_size
 from ._common import _checked, _find_image, _fps, _load_json, _npy_points
@@ -77,10 +78,15 @@ def read_blender(path: Path, options: ReaderOptions) -> SourceScene:
 
 
 def _time(f: Path, fr: dict[str, Any]) -> float:
+    """A frame entry's `time` (0 where absent): a finite number, else a DataError naming the file (JSON's Infinity
+    and NaN parse as floats, and one of them made every camera's time NaN through the frame positions)."""
     try:
-        return float(fr.get("time", 0.0))
+        time = float(fr.get("time", 0.0))
     except (TypeError, ValueError):
         raise DataError(f, f"frame {fr.get('file_path')!r}: time {fr.get('time')!r} is not a number") from None
+    if not math.isfinite(time):
+        raise DataError(f, f"frame {fr.get('file_path')!r}: time {fr.get('time')!r} is not a finite number")
+    return time
 
 
 def _camera(root: Path, split: str, f: Path, meta: dict[str, Any], fr: dict[str, Any], multiview: bool,
@@ -114,7 +120,7 @@ def _camera(root: Path, split: str, f: Path, meta: dict[str, Any], fr: dict[str,
     cy = float(get("cy")) if get("cy") is not None else height / 2.0
     _refuse_distortion(f, get)
     K = intrinsics(fx, fy, cx, cy)
-    time = float(fr.get("time", 0.0))
+    time = _time(f, fr)
     if multiview:
         name = str(fr["camera"])
         frame = int(fr["frame_index"]) if "frame_index" in fr else all_times.index(time)
@@ -123,6 +129,11 @@ def _camera(root: Path, split: str, f: Path, meta: dict[str, Any], fr: dict[str,
         frame = all_times.index(time)
     if not np.all(np.isfinite(c2w)):
         raise DataError(f, f"camera {name} frame {frame}: non-finite (NaN or inf) value in transform_matrix")
+    # Checked here: the conversion builds a fresh w2c from the top rows, so a c2w written transposed (its translation
+    # in the bottom row) would leave every camera at the origin.
+    problem = check_bottom_row(c2w, "transform_matrix")
+    if problem:
+        raise DataError(f, f"camera {name} frame {frame}: {problem}")
     w2c = opengl_c2w_to_w2c(c2w)
     _checked(f, name, frame, K, w2c)
     return Camera(name, frame, 0.0, K, w2c, width, height, image)

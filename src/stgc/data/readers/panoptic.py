@@ -68,7 +68,7 @@ def read_panoptic(path: Path, options: ReaderOptions) -> SourceScene:
                 elif name not in test_names:
                     test_names.append(name)
     _check_held_out_whole(train_names, test_names, meta_files[1])
-    _check_no_extra_images(root / "ims", {c.image for c in cameras if isinstance(c.image, Path)}, meta_files[0])
+    _check_no_extra_images(root / "ims", {c.image for c in cameras if isinstance(c.image, Path)}, meta_files)
     points, description = None, None
     npz = root / "init_pt_cld.npz"
     if npz.is_file():
@@ -127,13 +127,34 @@ def _check_held_out_whole(train_names: set[str], test_names: list[str], test_met
                         "whole cameras (all their frames), so list each camera in one file")
 
 
-def _check_no_extra_images(folder: Path, used: set[Path], meta: Path) -> None:
-    """Images in camera folders that no camera refers to are an error: the metadata and the images
-    disagree, and silently ignoring part of the data hides it."""
+def _check_no_extra_images(folder: Path, used: set[Path], metas: list[Path]) -> None:
+    """Images that no camera refers to are an error: the metadata and the images disagree, and silently ignoring part
+    of the data hides it. That holds for whole camera folders too (ims/<cam>/ with images that neither metadata file
+    names): without test_meta.json (skipped when absent) the held-out cameras' folders were dropped without a word."""
     if not folder.is_dir():
         raise DataError(folder, "image folder is missing")
+    named: set[str] = set()
+    for p in used:
+        try:
+            parts = p.relative_to(folder).parts
+        except ValueError:
+            continue
+        if len(parts) > 1:
+            named.add(parts[0])
+    unnamed = sorted((d for d in folder.iterdir() if d.is_dir() and d.name not in named and _holds_images(d)),
+                     key=lambda d: (len(d.name), d.name))
+    present = [m.name for m in metas if m.is_file()]
+    if unnamed:
+        test_meta = metas[-1]
+        hint = "" if test_meta.is_file() else f"; {test_meta.name} is missing: the held-out cameras' metadata?"
+        raise DataError(folder, f"camera folder(s) {', '.join(d.name for d in unnamed)} hold images that no camera "
+                                f"in {' or '.join(present)} refers to{hint}")
     used_dirs = {p.parent for p in used}
     for d in sorted(used_dirs):
         for f in sorted(d.iterdir()):
             if f.suffix in IMAGE_EXTS and f not in used:
-                raise DataError(f, f"extra image: no camera in {meta.name} refers to it")
+                raise DataError(f, f"extra image: no camera in {' or '.join(present)} refers to it")
+
+
+def _holds_images(folder: Path) -> bool:
+    return any(f.suffix in IMAGE_EXTS for f in folder.iterdir())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -86,7 +87,8 @@ def read_stg_colmap(path: Path, options: ReaderOptions) -> SourceScene:
     test = [held_out] if held_out in names else [sorted(names)[0]]
     # Without a points3D in any frame the dataset ships no points (init_source=auto then triangulates).
     shipped = any(_points_file(d) is not None for d in dirs.values())
-    points = (lambda frame: _colmap_points(dirs.get(frame))) if shipped else None
+    poses = {file_name: w2c for _, file_name, _, w2c, _, _ in views}
+    points = (lambda frame: _colmap_points(dirs.get(frame), model_dir, poses)) if shipped else None
     return SourceScene(name=root.name, format="stg-colmap", root=root, cameras=cameras, default_test=test,
                        meta_file=meta_file, fps=30.0, points=points,
                        points_description="colmap_<t>/sparse/0/points3D per frame", default_start=default_start,
@@ -99,10 +101,50 @@ def _points_file(frame_dir: Path) -> Path | None:
     return None if ext is None or not (model_dir / f"points3D.{ext}").is_file() else model_dir / f"points3D.{ext}"
 
 
-def _colmap_points(frame_dir: Path | None) -> tuple[np.ndarray, np.ndarray] | None:
+def _colmap_points(frame_dir: Path | None, first_model: Path,
+                   first_poses: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
     if frame_dir is None or _points_file(frame_dir) is None:
         return None
-    xyz, rgb, _, _ = read_points(frame_dir / "sparse" / "0")
+    model_dir = frame_dir / "sparse" / "0"
+    if model_dir != first_model:
+        _check_same_world(model_dir, first_model, first_poses)
+    xyz, rgb, _, _ = read_points(model_dir)
     if not np.all(np.isfinite(xyz)):
         raise DataError(_points_file(frame_dir), "non-finite (NaN or inf) point coordinates")
     return xyz.astype(np.float32), rgb.astype(np.float32) / 255.0
+
+
+# Every frame's cameras come from the first frame's model, but each frame's points3D lies in its own model's world
+# frame. STG's preparation triangulates every frame from the same known poses, so the models agree to rounding; a
+# frame reconstructed on its own (its own SfM run: rotated, shifted, scaled) put its points where no camera looks.
+# Poses within this fraction of the cameras' spread (centres) and this many radians (rotations) are the same: a
+# looser agreement (a bundle adjustment that moved the poses a little) still lands the points near their place.
+_SAME_POSE_TOLERANCE = 1e-2
+
+
+def _check_same_world(model_dir: Path, first_model: Path, first_poses: dict[str, np.ndarray]) -> None:
+    """A DataError naming `model_dir` when its images' poses are not the first frame's (`first_poses`, image name
+    -> w2c of `first_model`). Reads only its cameras and images files, once per frame whose points are read."""
+    images = read_model(model_dir, points=False).images.values()
+    shared = [(im.name, first_poses[im.name], colmap_to_w2c(im.qvec, im.tvec)) for im in images
+              if im.name in first_poses]
+    if not shared:
+        raise DataError(model_dir, f"names none of the images of {first_model}, whose cameras every frame uses: its "
+                                   "points cannot be placed in their world frame")
+    centres = np.stack([_centre(w2c) for w2c in first_poses.values()])
+    spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
+    spread = spread if spread > 0 else max(1.0, float(np.linalg.norm(centres[0])))  # one camera: its distance
+    for name, first, own in shared:
+        moved = float(np.linalg.norm(_centre(own) - _centre(first))) / spread
+        cos = (np.trace(first[:3, :3].T @ own[:3, :3]) - 1.0) / 2.0
+        turned = float(np.arccos(np.clip(cos, -1.0, 1.0)))
+        if moved > _SAME_POSE_TOLERANCE or turned > _SAME_POSE_TOLERANCE:
+            raise DataError(model_dir, f"image {name} has another pose here than in {first_model} (its centre moved "
+                                       f"by {moved:.3g} of the cameras' spread, its rotation by "
+                                       f"{np.degrees(turned):.3g} degrees): every frame uses the first frame's "
+                                       "cameras, so this frame's points would lie in another world frame; "
+                                       "triangulate every frame from the same poses (as STG's preparation does)")
+
+
+def _centre(w2c: np.ndarray) -> np.ndarray:
+    return cast(np.ndarray, -w2c[:3, :3].T @ w2c[:3, 3])
