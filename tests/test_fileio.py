@@ -69,3 +69,18 @@ def test_a_folder_whose_swap_fails_keeps_the_earlier_write(tmp_path, monkeypatch
     with atomic_folder(out) as tmp:  # and a later swap that succeeds replaces it, leaving nothing beside it
         (tmp / "c").write_text("new")
     assert sorted(p.name for p in out.iterdir()) == ["c"] and [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_a_folder_written_onto_a_symbolic_link_leaves_no_backup_link_beside_it(tmp_path):
+    """The earlier folder is renamed aside and removed once the new one is in place; where `path` was a link to a
+    folder, rmtree refused the renamed link and a `.out.*.old` link was left beside `path`. Its target is not
+    touched (a link is not followed into)."""
+    from stgc.fileio import atomic_folder
+
+    (tmp_path / "target").mkdir()
+    (tmp_path / "target" / "a").write_text("old")
+    os.symlink("target", tmp_path / "out")
+    with atomic_folder(tmp_path / "out") as tmp:
+        (tmp / "b").write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "target"]
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["b"] and (tmp_path / "target" / "a").read_text() == "old"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import shutil
@@ -168,6 +169,63 @@ def test_a_port_in_use_gives_a_clear_error_with_a_free_port():
         port = taken.getsockname()[1]
         with pytest.raises(StgcError, match=rf"port {port} on 127.0.0.1 is in use.*try --port \d+"):
             check_port("127.0.0.1", port)
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="TIME_WAIT and SO_REUSEADDR as on POSIX")
+def test_a_port_left_in_time_wait_by_a_stopped_viewer_is_free_to_restart_on():
+    """A viewer stopped while a browser was connected leaves its side of the connection in TIME_WAIT for about a
+    minute; the port probe bound a plain socket, which that refuses, so `stgc view` on the same port was refused
+    as "in use" though viser (SO_REUSEADDR) can listen there. A port with a listener on it is still in use, with
+    or without SO_REUSEADDR on the listener."""
+    with socket.socket() as server:
+        server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as viser's listener
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        with pytest.raises(StgcError, match=rf"port {port} on 127.0.0.1 is in use"):
+            check_port("127.0.0.1", port)
+        browser = socket.create_connection(("127.0.0.1", port))
+        connection, _ = server.accept()
+    connection.close()  # the server closes first (Ctrl-C): its end goes to TIME_WAIT once the browser closes too
+    browser.settimeout(5)
+    assert browser.recv(1) == b""
+    browser.close()
+    with socket.socket() as plain, pytest.raises(OSError) as info:  # the situation: a plain bind is refused
+        plain.bind(("127.0.0.1", port))
+    assert info.value.errno == errno.EADDRINUSE
+    check_port("127.0.0.1", port)  # no error
+    with socket.socket() as restarted:  # and the server can indeed listen there again
+        restarted.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        restarted.bind(("127.0.0.1", port))
+        restarted.listen()
+
+
+def _ipv6_loopback() -> bool:
+    try:
+        with socket.socket(socket.AF_INET6) as probe:
+            probe.bind(("::1", 0))
+        return True
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not _ipv6_loopback(), reason="no IPv6 loopback here")
+def test_the_address_printed_for_an_ipv6_host_is_a_url(run):
+    """`stgc view --host ::1` printed http://::1:PORT, which is not a URL (a browser or urllib cannot open it)."""
+    import urllib.parse
+
+    from stgc.viewer import Viewer
+
+    port = free_port("::1")
+    viewer = Viewer(ViewerScene.open(run), host="::1", port=port)
+    try:
+        assert viewer.url == f"http://[::1]:{port}"
+        parts = urllib.parse.urlsplit(viewer.url)
+        assert (parts.hostname, parts.port) == ("::1", port)
+        with urllib.request.urlopen(viewer.url, timeout=10) as page:
+            assert page.status == 200
+    finally:
+        viewer.stop()
 
 
 def test_a_host_that_cannot_be_listened_on_is_named_not_taken_for_a_port_in_use():

@@ -120,7 +120,10 @@ def _swap_folder(new: Path, path: Path) -> None:
             raise OutputError(path, f"cannot write ({exc.strerror}), nor put the earlier write back: it is in "
                                     f"{backup}") from None
         raise
-    shutil.rmtree(backup, ignore_errors=True)
+    if backup.is_symlink():  # `path` was a link to a folder: rmtree refuses a link, and left it beside `path`
+        os.unlink(backup)
+    else:
+        shutil.rmtree(backup, ignore_errors=True)
 
 
 @contextlib.contextmanager

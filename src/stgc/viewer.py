@@ -21,6 +21,7 @@ import dataclasses
 import errno
 import logging
 import math
+import os
 import socket
 import threading
 import time
@@ -284,7 +285,7 @@ def check_port(host: str, port: int) -> None:
     """A clear error when the viewer cannot listen on `host`:`port`: a host name that does not resolve or an
     address that is not this machine's names --host; a port that is taken (only then) gets a free one to use."""
     family, address = _listen_address(host, port)
-    with socket.socket(family, socket.SOCK_STREAM) as probe:
+    with _probe_socket(family) as probe:
         try:
             probe.bind(address)
         except OSError as exc:
@@ -312,9 +313,21 @@ def _listen_address(host: str, port: int) -> tuple[socket.AddressFamily, Any]:
 
 def free_port(host: str = "127.0.0.1") -> int:
     family, address = _listen_address(host, 0)
-    with socket.socket(family, socket.SOCK_STREAM) as probe:
+    with _probe_socket(family) as probe:
         probe.bind(address)
         return int(probe.getsockname()[1])
+
+
+def _probe_socket(family: socket.AddressFamily) -> socket.socket:
+    """A socket to test-bind with as the viewer's server binds: with SO_REUSEADDR on POSIX, as viser's listener
+    has. Without it a port that a stopped viewer's connections leave in TIME_WAIT (about a minute after a browser
+    was connected) read as in use, and restarting `stgc view` on it was refused though its server could listen
+    there; a port with a listener on it is refused either way. (On Windows SO_REUSEADDR would take a port that is
+    listened on: not set there.)"""
+    probe = socket.socket(family, socket.SOCK_STREAM)
+    if os.name == "posix":
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    return probe
 
 
 class _ClientView:
@@ -466,7 +479,11 @@ class Viewer:
 
     @property
     def url(self) -> str:
-        return f"http://{self.server.get_host()}:{self.server.get_port()}"
+        host = self.server.get_host()
+        if ":" in host and not host.startswith("["):
+            # An IPv6 address goes in brackets (RFC 3986; a zone's % as %25): http://::1:8080 is not a URL.
+            host = "[" + host.replace("%", "%25") + "]"
+        return f"http://{host}:{self.server.get_port()}"
 
     def _connect(self, client: Any) -> None:
         view = _ClientView(self, client)

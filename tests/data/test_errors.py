@@ -523,3 +523,19 @@ def test_stg_colmap_frames_whose_models_lie_in_other_worlds_are_refused(tmp_path
 
     data = open_dataset(_stg_colmap(tmp_path / "renamed", image_names=("a.png", "b.png", "c.png")))
     expect_error("colmap_1/sparse/0", "names none of the images of", data.data_points, 1)
+
+
+def test_a_missing_panoptic_camera_folder_names_the_folder_and_the_metadata_that_refers_to_it(tmp_path):
+    """A camera's image folder (ims/<cam>) that is missing raised a bare FileNotFoundError ("[Errno 2] ... ims/0")
+    while the reader looked for extra images in it; a file in its place, NotADirectoryError."""
+    import shutil
+
+    root = make_panoptic(tmp_path / "test_cam")
+    shutil.rmtree(root / "ims" / "0")
+    expect_error("ims/0", r"camera image folder is missing: test_meta.json refers to images in it \(000000.jpg",
+                 open_dataset, root)
+    root = make_panoptic(tmp_path / "train_cam")
+    shutil.rmtree(root / "ims" / "2")
+    (root / "ims" / "2").write_text("not a folder")
+    expect_error("ims/2", r"camera image folder is not a folder: train_meta.json refers to images in it",
+                 open_dataset, root)

@@ -295,3 +295,54 @@ def test_a_splatv_temporal_scale_beyond_half_range_is_written_as_the_largest_hal
     np.testing.assert_array_equal(stored[1:4], 65504.0)
     np.testing.assert_allclose(stored[[0, 4]], np.exp([11.0, 11.09]), rtol=5e-4)
     np.testing.assert_allclose(stored[5:], np.exp(model.params["trbf_scale"].detach().numpy()[5:, 0]), rtol=5e-4)
+
+
+def test_an_export_onto_a_symbolic_link_replaces_the_earlier_export_it_points_to(scene, tmp_path, capsys):
+    """`--out LINK`, LINK a symbolic link to an earlier export: the swap into place renamed the link aside and put a
+    new folder (or file, for splatv) in its place, so the link was gone, its target kept the earlier export's
+    frames, and a `.LINK.*.old` link was left beside it. The export goes into the link's target instead."""
+    import os
+
+    run = _write_run(tmp_path / "run", scene.model, scene.root)
+    exports = tmp_path / "exports"
+    assert main(["export", str(run), "--out", str(exports / "real")]) == 0
+    os.symlink("real", exports / "lnk")
+    assert main(["export", str(run), "--out", str(exports / "lnk"), "--frames", "0:1"]) == 0
+    assert (exports / "lnk").is_symlink() and os.readlink(exports / "lnk") == "real"
+    assert sorted(p.name for p in (exports / "real").iterdir()) == ["export.json", "frame_000000.ply"]
+    assert sorted(p.name for p in exports.iterdir()) == ["lnk", "real"]  # nothing left beside them
+
+    assert main(["export", str(run), "--format", "splatv", "--out", str(exports / "real.splatv")]) == 0
+    first = (exports / "real.splatv").read_bytes()
+    os.symlink("real.splatv", exports / "lnk.splatv")
+    other = _write_run(tmp_path / "other", moving_model(scene.model), scene.root)
+    assert main(["export", str(other), "--format", "splatv", "--out", str(exports / "lnk.splatv")]) == 0
+    assert (exports / "lnk.splatv").is_symlink() and (exports / "real.splatv").read_bytes() != first
+    _read_splatv(exports / "lnk.splatv")  # a whole splaTV file, read through the link
+    assert sorted(p.name for p in exports.iterdir()) == ["lnk", "lnk.splatv", "real", "real.splatv"]
+
+    # A link that cannot be followed (a loop) is named, not a traceback; nothing is written.
+    os.symlink("loop", exports / "loop")
+    capsys.readouterr()
+    assert main(["export", str(run), "--out", str(exports / "loop")]) == 2
+    assert "loop: is a symbolic link that cannot be followed" in capsys.readouterr().err
+    assert sorted(p.name for p in exports.iterdir()) == ["lnk", "lnk.splatv", "loop", "real", "real.splatv"]
+
+
+def test_an_empty_frame_range_is_called_empty_not_outside_the_data(scene, tmp_path, capsys):
+    """`--frames 1:1` (or 2:1) was reported as "not within the dataset's frames", though frame 1 is one of them:
+    the range is empty, A:B taking frames A to B-1."""
+    from stgc.errors import DataError
+    from stgc.eval.video import frame_selection
+
+    for empty in ("1:1", "2:1"):
+        with pytest.raises(DataError, match=rf"frames {empty} is empty: A:B takes frames A to B-1") as info:
+            frame_selection(empty, [0, 1, 2])
+        assert "not within" not in str(info.value)
+    assert frame_selection("1:2", [0, 1, 2]) == [1]
+    with pytest.raises(DataError, match="not within the dataset's frames 0:3"):
+        frame_selection("2:4", [0, 1, 2])  # outside the data: still said so
+    run = _write_run(tmp_path / "run", scene.model, scene.root)
+    assert main(["export", str(run), "--out", str(tmp_path / "out"), "--frames", "1:1"]) == 2
+    err = capsys.readouterr().err
+    assert "frames 1:1 is empty" in err and "1:2" in err and not (tmp_path / "out").exists()

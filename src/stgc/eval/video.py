@@ -226,7 +226,10 @@ def frame_selection(frames: Any, available: Sequence[int]) -> list[int]:
     if isinstance(frames, slice):
         lo = frames.start if frames.start is not None else min(available)
         hi = frames.stop if frames.stop is not None else max(available) + 1
-        if lo < min(available) or hi > max(available) + 1 or lo >= hi:
+        if lo >= hi:  # A:A is not outside the frames: it holds none (was reported as outside them)
+            raise DataError(None, f"frames {lo}:{hi} is empty: A:B takes frames A to B-1 (frame {lo} alone is "
+                                  f"{lo}:{lo + 1}; dataset frames {min(available)}:{max(available) + 1})")
+        if lo < min(available) or hi > max(available) + 1:
             raise DataError(None, f"frames {lo}:{hi} are not within the dataset's frames "
                                   f"{min(available)}:{max(available) + 1}")
         chosen = [f for f in available if lo <= f < hi]

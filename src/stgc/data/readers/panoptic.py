@@ -29,6 +29,7 @@ def read_panoptic(path: Path, options: ReaderOptions) -> SourceScene:
     cameras: list[Camera] = []
     test_names: list[str] = []
     train_names: set[str] = set()
+    referred: dict[Path, Path] = {}  # each camera's image -> the metadata file that names it
     meta_files = [root / "train_meta.json", root / "test_meta.json"]
     for meta_file in meta_files:
         if not meta_file.is_file():
@@ -63,12 +64,13 @@ def read_panoptic(path: Path, options: ReaderOptions) -> SourceScene:
                     raise DataError(meta_file, f"camera {name} frame {t}: k must be 3x3 and w2c 4x4") from None
                 _checked(meta_file, name, frame, K, w2c)
                 cameras.append(Camera(name, frame, 0.0, K, w2c, width, height, root / "ims" / fns[t][c]))
+                referred.setdefault(root / "ims" / fns[t][c], meta_file)
                 if meta_file.name == "train_meta.json":
                     train_names.add(name)
                 elif name not in test_names:
                     test_names.append(name)
     _check_held_out_whole(train_names, test_names, meta_files[1])
-    _check_no_extra_images(root / "ims", {c.image for c in cameras if isinstance(c.image, Path)}, meta_files)
+    _check_no_extra_images(root / "ims", referred, meta_files)
     points, description = None, None
     npz = root / "init_pt_cld.npz"
     if npz.is_file():
@@ -127,10 +129,11 @@ def _check_held_out_whole(train_names: set[str], test_names: list[str], test_met
                         "whole cameras (all their frames), so list each camera in one file")
 
 
-def _check_no_extra_images(folder: Path, used: set[Path], metas: list[Path]) -> None:
+def _check_no_extra_images(folder: Path, used: dict[Path, Path], metas: list[Path]) -> None:
     """Images that no camera refers to are an error: the metadata and the images disagree, and silently ignoring part
     of the data hides it. That holds for whole camera folders too (ims/<cam>/ with images that neither metadata file
-    names): without test_meta.json (skipped when absent) the held-out cameras' folders were dropped without a word."""
+    names): without test_meta.json (skipped when absent) the held-out cameras' folders were dropped without a word.
+    `used`: each image a camera refers to, and the metadata file that does."""
     if not folder.is_dir():
         raise DataError(folder, "image folder is missing")
     named: set[str] = set()
@@ -151,6 +154,10 @@ def _check_no_extra_images(folder: Path, used: set[Path], metas: list[Path]) -> 
                                 f"in {' or '.join(present)} refers to{hint}")
     used_dirs = {p.parent for p in used}
     for d in sorted(used_dirs):
+        if not d.is_dir():  # listing it raised a bare FileNotFoundError (NotADirectoryError for a file there)
+            image = min(p for p in used if p.parent == d)
+            raise DataError(d, f"camera image folder {'is not a folder' if d.exists() else 'is missing'}: "
+                               f"{used[image].name} refers to images in it ({image.name}, ...)")
         for f in sorted(d.iterdir()):
             if f.suffix in IMAGE_EXTS and f not in used:
                 raise DataError(f, f"extra image: no camera in {' or '.join(present)} refers to it")
