@@ -71,16 +71,32 @@ def test_a_folder_whose_swap_fails_keeps_the_earlier_write(tmp_path, monkeypatch
     assert sorted(p.name for p in out.iterdir()) == ["c"] and [p.name for p in tmp_path.iterdir()] == ["out"]
 
 
-def test_a_folder_written_onto_a_symbolic_link_leaves_no_backup_link_beside_it(tmp_path):
-    """The earlier folder is renamed aside and removed once the new one is in place; where `path` was a link to a
-    folder, rmtree refused the renamed link and a `.out.*.old` link was left beside `path`. Its target is not
-    touched (a link is not followed into)."""
-    from stgc.fileio import atomic_folder
+def test_a_write_onto_a_symbolic_link_goes_into_its_target_and_the_link_stays(tmp_path):
+    """A write renamed the new file or folder onto the link itself: the link was gone, its target kept the earlier
+    content, and for a folder a `.out.*.old` link was left beside it (rmtree refuses a link). Writes follow the link
+    as a plain open does; a link that cannot be followed is named."""
+    from stgc.errors import OutputError
+    from stgc.fileio import atomic_folder, atomic_open
 
     (tmp_path / "target").mkdir()
     (tmp_path / "target" / "a").write_text("old")
     os.symlink("target", tmp_path / "out")
     with atomic_folder(tmp_path / "out") as tmp:
         (tmp / "b").write_text("new")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "target"]
-    assert [p.name for p in (tmp_path / "out").iterdir()] == ["b"] and (tmp_path / "target" / "a").read_text() == "old"
+    assert (tmp_path / "out").is_symlink() and sorted(p.name for p in tmp_path.iterdir()) == ["out", "target"]
+    assert [p.name for p in (tmp_path / "target").iterdir()] == ["b"]
+
+    (tmp_path / "file").write_text("old")
+    os.symlink("file", tmp_path / "link")
+    os.symlink("missing", tmp_path / "dangling")
+    for name in ("link", "dangling"):
+        with atomic_open(tmp_path / name) as f:
+            f.write("new")
+        assert (tmp_path / name).is_symlink()
+    assert (tmp_path / "file").read_text() == (tmp_path / "missing").read_text() == "new"
+
+    os.symlink("loop", tmp_path / "loop")
+    with pytest.raises(OutputError, match="loop: is a symbolic link that cannot be followed"):
+        with atomic_open(tmp_path / "loop") as f:
+            f.write("new")
+    assert (tmp_path / "loop").is_symlink()

@@ -42,12 +42,28 @@ def output_error(path: str | Path, exc: OSError) -> OutputError:
     return OutputError(path, f"cannot write: {problem}")
 
 
+def through_link(path: str | Path) -> Path:
+    """Where a write to `path` lands: the target of a symbolic link there, as a plain open would write it. Renaming
+    a new file or folder onto the link itself replaced the link and left its target with the earlier content. A
+    link that cannot be followed (a loop) is an OutputError."""
+    path = Path(path)
+    if not path.is_symlink():
+        return path
+    try:
+        return path.resolve(strict=True)
+    except FileNotFoundError:
+        return path.resolve()  # a link to what does not exist yet: the write creates its target
+    except (OSError, RuntimeError) as exc:  # a loop: RuntimeError up to Python 3.12, OSError (ELOOP) since
+        raise OutputError(path, f"is a symbolic link that cannot be followed ({exc})") from None
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside `path`; rename it onto `path` only if the block succeeds.
+    """Yield a temporary path beside `path` (beside its target, where it is a symbolic link); rename it onto `path`
+    only if the block succeeds.
 
     Use it for writers that want a filename (torch.save, imageio, plyfile)."""
-    path = Path(path)
+    path = through_link(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -61,8 +77,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 @contextlib.contextmanager
 def atomic_folder(path: str | Path) -> Iterator[Path]:
     """Yield a temporary folder beside `path`; it replaces `path` (and whatever an earlier write left there) only if
-    the block succeeds, so the folder holds one write's files, never two writes' mixed or half of one."""
-    path = Path(path)
+    the block succeeds, so the folder holds one write's files, never two writes' mixed or half of one. A symbolic
+    link at `path` is followed: its target is the folder replaced."""
+    path = through_link(path)
     if path.exists() and not path.is_dir():
         raise OutputError(path, "cannot write: exists and is not a folder")
     try:
@@ -120,10 +137,7 @@ def _swap_folder(new: Path, path: Path) -> None:
             raise OutputError(path, f"cannot write ({exc.strerror}), nor put the earlier write back: it is in "
                                     f"{backup}") from None
         raise
-    if backup.is_symlink():  # `path` was a link to a folder: rmtree refuses a link, and left it beside `path`
-        os.unlink(backup)
-    else:
-        shutil.rmtree(backup, ignore_errors=True)
+    shutil.rmtree(backup, ignore_errors=True)
 
 
 @contextlib.contextmanager

@@ -193,6 +193,11 @@ def test_keeper_time_coverage_is_the_keepers_presence_over_the_losers_lifetime()
         extreme = keeper_time_coverage(_pairs([0, 2], [1, 3], [0.1, 0.1]), np.array([0.0, 1.0, 0.0, 1.0]), centre,
                                        scale)
     assert extreme[0] == 0.0 and extreme[1] == 1.0
+    # A loser centred outside the clip is invisible within it (a factor of e^-100 at the clip's end, its three times
+    # clipped there): nothing to cover, whatever the keeper; a just-visible one is still judged.
+    centre, scale = _lifetimes([0.2, 1.5, 0.2, 1.1], [0.05, 0.05, 0.05, 0.05])
+    outside = keeper_time_coverage(_pairs([0, 2], [1, 3], [0.1, 0.1]), centre[:, 0], centre, scale)
+    assert outside[0] == 1.0 and outside[1] < 1e-100
 
 
 def test_pairs_whose_keeper_does_not_cover_the_losers_lifetime_are_not_pruned():

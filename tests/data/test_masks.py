@@ -75,7 +75,7 @@ def test_masks_follow_a_downscale_that_is_not_whole(masked_scene):
 
 def test_masks_follow_a_downscale_below_one(masked_scene):
     """At --data.downscale 0.5 the images are enlarged to 128x96: the full-size mask is enlarged with them (it was
-    refused as a file of the wrong size). Bilinear and thresholded, it agrees with the mask sampled at the large
+    refused as a file of the wrong size). Enlarged and thresholded, it agrees with the mask sampled at the large
     pixels' centres except along the edge."""
     large = open_dataset(masked_scene.root, downscale=0.5)
     full = open_dataset(masked_scene.root)

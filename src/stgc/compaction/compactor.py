@@ -16,13 +16,9 @@ from stgc.fileio import read_json_object
 
 from .config import CompactionConfig, PruningSchedule, resolve_schedule
 from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
-from .matching import SpacetimeModel, match_spatiotemporal_pairs
+from .matching import SpacetimeModel, match_spatiotemporal_pairs, to_float64_numpy
 from .plot import LOG_NAME, read_compaction_log
 from .pruning import keeper_time_coverage, removal_scores, select_removals
-
-
-def _numpy(values: torch.Tensor) -> np.ndarray:
-    return values.detach().to("cpu", torch.float64).numpy()
 
 
 class PrunableModel(SpacetimeModel, Protocol):
@@ -106,8 +102,8 @@ class STKNNCompactor:
         scores = removal_scores(model.params, self.config.criterion, importance_fn) if len(pairs) else np.zeros(n_before)
         matched_pairs = len(pairs)
         if self.config.keeper_time_coverage > 0 and len(pairs):
-            coverage = keeper_time_coverage(pairs, scores, _numpy(model.params["trbf_center"]),
-                                            _numpy(model.params["trbf_scale"]))
+            coverage = keeper_time_coverage(pairs, scores, to_float64_numpy(model.params["trbf_center"]),
+                                            to_float64_numpy(model.params["trbf_scale"]))
             pairs = pairs.subset(coverage >= self.config.keeper_time_coverage)
         selection = select_removals(pairs, ratio, scores, max_removals, ratio_of=matched_pairs)
         if selection.remove.size:

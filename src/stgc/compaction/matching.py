@@ -79,7 +79,7 @@ def knn_features(positions: np.ndarray, quaternions: np.ndarray, scene_extent: f
     return np.ascontiguousarray(np.hstack([pos, rotation_weight * canonical_quaternions(quaternions)]))
 
 
-def _to_numpy(x: torch.Tensor) -> np.ndarray:
+def to_float64_numpy(x: torch.Tensor) -> np.ndarray:
     return x.detach().to("cpu", torch.float64).numpy()
 
 
@@ -94,10 +94,10 @@ def spacetime_features(
     """Features of every search: [canonical (xyz, raw rotation), at t, at each extra sampled time]."""
     extent = float(model.scene_extent)
     with torch.no_grad():
-        spaces = [knn_features(_to_numpy(model.params["xyz"]), _to_numpy(model.params["rotation"]), extent, rotation_weight)]
+        spaces = [knn_features(to_float64_numpy(model.params["xyz"]), to_float64_numpy(model.params["rotation"]), extent, rotation_weight)]
         for time in matching_times(t, sample_times):
             spaces.append(
-                knn_features(_to_numpy(model.means_at(time)), _to_numpy(model.rotations_at(time)), extent, rotation_weight)
+                knn_features(to_float64_numpy(model.means_at(time)), to_float64_numpy(model.rotations_at(time)), extent, rotation_weight)
             )
     return spaces
 

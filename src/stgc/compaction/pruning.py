@@ -65,6 +65,9 @@ def reference_loses(a: np.ndarray, b: np.ndarray, scores: np.ndarray) -> np.ndar
                     np.where(finite_a == finite_b, a > b, ~finite_a))
 
 
+_LOG_INVISIBLE = float(np.log(1.0 / 255.0))
+
+
 def keeper_time_coverage(
     pairs: PairMatches, scores: np.ndarray, trbf_center: np.ndarray, trbf_scale: np.ndarray
 ) -> np.ndarray:
@@ -74,7 +77,8 @@ def keeper_time_coverage(
     deviation sigma = exp(s_t) / sqrt(2). The coverage is the smallest ratio f_keeper / f_loser (capped at 1) over
     the loser's mu_t and mu_t +- sigma, each clipped to the clip's times [0, 1]: 1 when the two share a lifetime
     or the keeper lives throughout the loser's, near 0 when their lifetimes are disjoint, so that removing the loser
-    would leave its frames without either. A loser whose temporal parameters are not finite (diverged) has nothing
+    would leave its frames without either. Times where the loser's factor is below 1/255 (it draws nothing there
+    even at full opacity) count as covered. A loser whose temporal parameters are not finite (diverged) has nothing
     to cover: 1; a keeper's that are not: 0."""
     a, b = pairs.reference, pairs.partner
     a_loses = reference_loses(a, b, scores)
@@ -88,7 +92,10 @@ def keeper_time_coverage(
         times = np.clip(centre[loser][:, None] + np.array([-1.0, 0.0, 1.0]) * spread[:, None], 0.0, 1.0)
         log_keeper = -np.square((times - centre[keeper][:, None]) / width[keeper][:, None])
         log_loser = -np.square((times - centre[loser][:, None]) / width[loser][:, None])
-        coverage = np.exp(np.minimum(log_keeper - log_loser, 0.0).min(axis=1))
+        # Where the loser's own factor is below 1/255 it draws nothing even at full opacity: nothing to cover there
+        # (a loser whose mu_t lies outside the clip has all three times clipped to its edge).
+        shortfall = np.where(log_loser < _LOG_INVISIBLE, 0.0, np.minimum(log_keeper - log_loser, 0.0))
+        coverage = np.exp(shortfall.min(axis=1))
     finite = np.isfinite(centre) & np.isfinite(log_width)
     return np.where(finite[loser] & finite[keeper], coverage, np.where(finite[loser], 0.0, 1.0))
 

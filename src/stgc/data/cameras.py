@@ -58,8 +58,7 @@ class Camera:
     @property
     def center(self) -> np.ndarray:
         """Camera centre in world coordinates."""
-        R, t = self.w2c[:3, :3], self.w2c[:3, 3]
-        return cast(np.ndarray, -R.T @ t)
+        return w2c_center(self.w2c)
 
     def scaled(self, factor: float) -> Camera:
         """The same camera for an image resized by `factor` (pixel-centre preserving).
@@ -276,6 +275,11 @@ def w2c_to_omaf(w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # Below this fraction of the focal length that is under 0.001 x the image's half height in pixels (half a pixel at
 # 1080 lines): calibration noise, accepted; above it the cameras would be silently wrong, refused.
 _SKEW_TOLERANCE = 1e-3
+
+
+def w2c_center(w2c: np.ndarray) -> np.ndarray:
+    """The centre in world coordinates of the camera whose world-to-camera matrix is `w2c`."""
+    return cast(np.ndarray, -w2c[:3, :3].T @ w2c[:3, 3])
 
 
 def check_pose(w2c: np.ndarray, K: np.ndarray, tol: float = 1e-3) -> str | None:

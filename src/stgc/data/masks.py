@@ -23,7 +23,7 @@ FOREGROUND_LEVEL = 128
 def read_mask(path: Path, width: int, height: int) -> np.ndarray:
     """bool [height, width]: the foreground of the mask image at `path`, area-averaged to the camera's size when it
     is larger with the same aspect (the downscaled dataset), bilinearly enlarged when it is smaller with the same
-    aspect (a downscale below 1), else a DataError naming the file.
+    aspect (a downscale below 1, or masks stored smaller than their images), else a DataError naming the file.
 
     Read as 0 (background) .. 255 (foreground): a 1-bit or 0/255 greyscale mask as stored; a palette ('P') mask of
     colours by its indices (0 background, any other foreground, whatever their colours: DAVIS-style masks give

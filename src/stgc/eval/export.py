@@ -169,7 +169,7 @@ def export_ply_frames(source: ModelSource, out_dir: str | Path, frames: Any = No
     # One file per frame: a frame listed twice is written once, at its first place (a repeat replaced the file and
     # was counted and listed twice).
     chosen = list(dict.fromkeys(frame_selection(frames, list(dataset.frames))))
-    out = _link_target(Path(out_dir))
+    out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise DataError(out, "exists and is not a directory")
     foreign = sorted(p.name for p in out.iterdir() if not _written_by_export(p)) if out.is_dir() else []
@@ -195,18 +195,6 @@ def export_ply_frames(source: ModelSource, out_dir: str | Path, frames: Any = No
             "variant": model.variant, "colour": colour, "frames": entries,
             "sh_c0": SH_C0, "min_opacity": float(MIN_VISIBLE_OPACITY), "near_plane": near})
     return [out / str(entry["file"]) for entry in entries]
-
-
-def _link_target(out: Path) -> Path:
-    """Where writing `out` goes: the target of a symbolic link there (a new export replaces the earlier one it points
-    to, and the link stays). The swap into place renamed the link aside and put a folder or file in its place: the
-    target kept the earlier export's frames, a `.NAME.*.old` link was left beside it, and the link was gone."""
-    if not out.is_symlink():
-        return out
-    try:
-        return out.resolve()
-    except (OSError, RuntimeError) as exc:  # a link loop: RuntimeError before Python 3.13, OSError since
-        raise DataError(out, f"is a symbolic link that cannot be followed ({exc})") from None
 
 
 def _written_by_export(path: Path) -> bool:
@@ -295,7 +283,7 @@ def write_splatv(path: str | Path, model: STGModel, dataset: Dataset) -> Path:
     temporal_scale = np.minimum(np.exp(p["trbf_scale"][:, 0].astype(np.float64)), float(np.finfo(np.float16).max))
     rows[:, 15] = _half_pairs(p["trbf_center"][:, 0], temporal_scale)
     payload = texels.astype("<u4").tobytes()
-    path = _link_target(Path(path))
+    path = Path(path)
     near = model_near_plane(dataset, path)  # splaTV reads type, size, texwidth, texheight, cameras: not this key
     header = json.dumps([{"type": "splat", "size": len(payload), "texwidth": SPLATV_TEXWIDTH, "texheight": height,
                           "cameras": splatv_cameras(dataset), "near_plane": near}]).encode("utf-8")

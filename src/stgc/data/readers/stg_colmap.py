@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import cast
 
 import numpy as np
 
 from ...errors import DataError
-from ..cameras import Camera, colmap_intrinsics, colmap_to_w2c
+from ..cameras import Camera, colmap_intrinsics, colmap_to_w2c, w2c_center
 from ..colmap_io import find_model_files, read_model, read_points
 from ..dataset import SourceScene
 from ._common import IMAGE_EXTS, _checked
@@ -131,11 +130,11 @@ def _check_same_world(model_dir: Path, first_model: Path, first_poses: dict[str,
     if not shared:
         raise DataError(model_dir, f"names none of the images of {first_model}, whose cameras every frame uses: its "
                                    "points cannot be placed in their world frame")
-    centres = np.stack([_centre(w2c) for w2c in first_poses.values()])
+    centres = np.stack([w2c_center(w2c) for w2c in first_poses.values()])
     spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
     spread = spread if spread > 0 else max(1.0, float(np.linalg.norm(centres[0])))  # one camera: its distance
     for name, first, own in shared:
-        moved = float(np.linalg.norm(_centre(own) - _centre(first))) / spread
+        moved = float(np.linalg.norm(w2c_center(own) - w2c_center(first))) / spread
         cos = (np.trace(first[:3, :3].T @ own[:3, :3]) - 1.0) / 2.0
         turned = float(np.arccos(np.clip(cos, -1.0, 1.0)))
         if moved > _SAME_POSE_TOLERANCE or turned > _SAME_POSE_TOLERANCE:
@@ -145,6 +144,3 @@ def _check_same_world(model_dir: Path, first_model: Path, first_poses: dict[str,
                                        "cameras, so this frame's points would lie in another world frame; "
                                        "triangulate every frame from the same poses (as STG's preparation does)")
 
-
-def _centre(w2c: np.ndarray) -> np.ndarray:
-    return cast(np.ndarray, -w2c[:3, :3].T @ w2c[:3, 3])
