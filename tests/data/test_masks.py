@@ -56,16 +56,23 @@ def test_mask_of_the_wrong_size_is_an_error_naming_the_file(masked_scene, tmp_pa
         dataset.load_mask(camera)
 
 
+def _mask_and_full_size_mask(masked_scene, downscale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Camera 1's frame-0 mask at `downscale` (checked to have its camera's size) and at the full size."""
+    masks = []
+    for factor in (downscale, 1):
+        dataset = open_dataset(masked_scene.root, downscale=factor)
+        camera = next(c for c in dataset.train if c.name == "1" and c.frame == 0)
+        mask = dataset.load_mask(camera)
+        assert mask is not None and mask.shape == (camera.height, camera.width)
+        masks.append(mask)
+    return masks[0], masks[1]
+
+
 def test_masks_follow_a_downscale_that_is_not_whole(masked_scene):
     """At --data.downscale 1.5 the images are 43x32 (64x48 / 1.5): each mask is averaged over the same boxes, and
     agrees with the full-size mask sampled at the small pixels' centres (they were refused)."""
-    small = open_dataset(masked_scene.root, downscale=1.5)
-    full = open_dataset(masked_scene.root)
-    camera = next(c for c in small.train if c.name == "1" and c.frame == 0)
-    mask = small.load_mask(camera)
-    assert mask is not None and mask.shape == (camera.height, camera.width) == (32, 43)
-    reference = full.load_mask(next(c for c in full.train if c.name == "1" and c.frame == 0))
-    assert reference is not None
+    mask, reference = _mask_and_full_size_mask(masked_scene, 1.5)
+    assert mask.shape == (32, 43)
     rows = np.minimum(((np.arange(32) + 0.5) * 48 / 32).astype(int), 47)
     cols = np.minimum(((np.arange(43) + 0.5) * 64 / 43).astype(int), 63)
     sampled = reference[rows][:, cols]
@@ -77,13 +84,8 @@ def test_masks_follow_a_downscale_below_one(masked_scene):
     """At --data.downscale 0.5 the images are enlarged to 128x96: the full-size mask is enlarged with them (it was
     refused as a file of the wrong size). Enlarged and thresholded, it agrees with the mask sampled at the large
     pixels' centres except along the edge."""
-    large = open_dataset(masked_scene.root, downscale=0.5)
-    full = open_dataset(masked_scene.root)
-    camera = next(c for c in large.train if c.name == "1" and c.frame == 0)
-    mask = large.load_mask(camera)
-    assert mask is not None and mask.shape == (camera.height, camera.width) == (96, 128)
-    reference = full.load_mask(next(c for c in full.train if c.name == "1" and c.frame == 0))
-    assert reference is not None
+    mask, reference = _mask_and_full_size_mask(masked_scene, 0.5)
+    assert mask.shape == (96, 128)
     sampled = np.repeat(np.repeat(reference, 2, axis=0), 2, axis=1)
     assert 0.05 < sampled.mean() < 0.95  # the ball is in view: a comparison that can fail
     assert (mask == sampled).mean() > 0.97
