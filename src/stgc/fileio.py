@@ -42,7 +42,7 @@ def output_error(path: str | Path, exc: OSError) -> OutputError:
     return OutputError(path, f"cannot write: {problem}")
 
 
-def through_link(path: str | Path) -> Path:
+def _through_link(path: str | Path) -> Path:
     """Where a write to `path` lands: the target of a symbolic link there, as a plain open would write it. Renaming
     a new file or folder onto the link itself replaced the link and left its target with the earlier content. A
     link that cannot be followed (a loop) is an OutputError."""
@@ -63,7 +63,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     only if the block succeeds.
 
     Use it for writers that want a filename (torch.save, imageio, plyfile)."""
-    path = through_link(path)
+    path = _through_link(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -79,7 +79,7 @@ def atomic_folder(path: str | Path) -> Iterator[Path]:
     """Yield a temporary folder beside `path`; it replaces `path` (and whatever an earlier write left there) only if
     the block succeeds, so the folder holds one write's files, never two writes' mixed or half of one. A symbolic
     link at `path` is followed: its target is the folder replaced."""
-    path = through_link(path)
+    path = _through_link(path)
     if path.exists() and not path.is_dir():
         raise OutputError(path, "cannot write: exists and is not a folder")
     try:
