@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from stgc.compaction import (
+    ProbeResult,
     AdaptiveRatio,
     CompactionConfig,
     LossSmoother,
@@ -229,9 +230,9 @@ def test_a_probe_signal_steers_the_ratio_instead_of_the_training_losses():
     probe_values = iter([5.0, 4.0, 4.5, 4.5, 3.0, 3.5])
     calls = []
 
-    def probe() -> float:
+    def probe() -> ProbeResult:
         calls.append(1)
-        return next(probe_values)
+        return ProbeResult(loss=next(probe_values), mse=1.0)
 
     compactor = STKNNCompactor(cfg, total)
     model = make_model(random_params(600, seed=1))
@@ -277,6 +278,10 @@ def test_a_damage_budget_holds_the_accumulated_rise_not_the_step_to_step_change(
         AdaptiveRatio(0.03, 0.01, 0.01, 0.06, budget=-0.1)
 
 
+def _probe(loss: float, mse: float = 1e-3) -> ProbeResult:
+    return ProbeResult(loss=loss, mse=mse)
+
+
 def test_the_budget_is_a_psnr_drop_in_the_config():
     # An L1-like loss grows with the RMS error: a 0.3 dB drop is 10^(0.3/20) - 1 = 3.5 % more loss.
     assert budget_for_psnr_drop(0.3) == pytest.approx(0.03514, abs=1e-5)
@@ -289,7 +294,7 @@ def test_the_budget_is_a_psnr_drop_in_the_config():
     model = make_model(random_params(600, seed=1))
     probe_values = iter([1.0, 1.02, 1.05, 1.0, 0.9])
     events = [e for it in range(1, 101)
-              if (e := compactor.step(it, 0.5, model, 1.0, probe_fn=lambda: next(probe_values))) is not None]
+              if (e := compactor.step(it, 0.5, model, 1.0, probe_fn=lambda: _probe(next(probe_values)))) is not None]
     assert [e["ratio_direction"] for e in events] == [0, 1, -1, 1, 1]  # 1.05 > 1.0 x 1.035; 1.02 is within
     assert [e["best_smoothed_loss"] for e in events] == [None, 1.0, 1.0, 1.0, 1.0]
     for bad in (-0.1, float("nan"), float("inf")):
@@ -330,7 +335,7 @@ def test_a_reference_run_prunes_nothing_and_its_log_steers_another_runs_budget(t
     model = make_model(random_params(600, seed=1))
     probe_values = iter([1.0, 0.9, 0.8, 0.7, 0.6])
     events = [e for it in range(1, total + 1)
-              if (e := reference.step(it, 0.5, model, 3.0, probe_fn=lambda: next(probe_values))) is not None]
+              if (e := reference.step(it, 0.5, model, 3.0, probe_fn=lambda: _probe(next(probe_values)))) is not None]
     assert model.num_gaussians == 600 and [e["removed"] for e in events] == [0] * 5
     assert [e["iteration"] for e in events] == list(resolve_schedule(CompactionConfig(**common), total).iterations())
     log = tmp_path / "ref"
@@ -342,7 +347,7 @@ def test_a_reference_run_prunes_nothing_and_its_log_steers_another_runs_budget(t
     pruned = make_model(random_params(600, seed=1))
     mine = iter([1.0, 0.92, 0.85, 0.69, 0.7])  # 0.85 > 0.8 x 1.035; 0.7 > 0.6 x 1.035
     steps = [e for it in range(1, total + 1)
-             if (e := compactor.step(it, 0.5, pruned, 3.0, probe_fn=lambda: next(mine))) is not None]
+             if (e := compactor.step(it, 0.5, pruned, 3.0, probe_fn=lambda: _probe(next(mine)))) is not None]
     assert [e["reference_loss"] for e in steps] == [1.0, 0.9, 0.8, 0.7, 0.6]
     assert [e["ratio_direction"] for e in steps] == [1, 1, -1, 1, -1]
 
@@ -386,3 +391,46 @@ def test_a_window_opening_at_zero_prunes_first_at_iteration_one_and_bad_numbers_
         for bad in (float("nan"), float("inf"), -1.0):
             with pytest.raises(ValueError, match=f"compaction.{name}"):
                 CompactionConfig(**{name: bad}).validate()
+
+
+def test_the_probe_psnr_signal_holds_the_budget_in_the_psnr_it_names(tmp_path):
+    """loss_signal probe_psnr: the controller compares the probe's MSE (geometric mean over the views), so a budget
+    of 0.3 dB is exactly 0.3 dB of the probe views' mean PSNR, 10^(0.3/10) - 1 = 7.2 % more MSE, where the L1-like
+    loss's 3.5 % is an approximation. The reference run logs both signals; one from before logged only the loss."""
+    from stgc.errors import DataError
+
+    assert budget_for_psnr_drop(0.3, squared_error=True) == pytest.approx(10 ** 0.03 - 1)
+    assert budget_for_psnr_drop(10.0, squared_error=True) == pytest.approx(9.0)
+    total = 100
+    common = dict(case=0, window_start=0.2, window_end=0.7, interval=10)
+    reference = STKNNCompactor(CompactionConfig(method="reference", loss_signal="probe", **common), total)
+    model = make_model(random_params(600, seed=1))
+    reference_mse = [1e-3, 9e-4, 8e-4, 7e-4, 6e-4]
+    probes = iter([_probe(1.0 - k / 10, mse) for k, mse in enumerate(reference_mse)])
+    events = [e for it in range(1, total + 1)
+              if (e := reference.step(it, 0.5, model, 3.0, probe_fn=lambda: next(probes))) is not None]
+    assert [e["probe_mse"] for e in events] == reference_mse
+    assert [e["smoothed_loss"] for e in events] == pytest.approx([1.0, 0.9, 0.8, 0.7, 0.6])  # the loss, as before
+    log = tmp_path / "ref"
+    log.mkdir()
+    (log / "compaction.jsonl").write_text("".join(json.dumps(e) + "\n" for e in events))
+
+    budgeted = CompactionConfig(method="st-knn", loss_signal="probe_psnr", loss_budget_db=0.3,
+                                loss_reference=str(log), **common)
+    compactor = STKNNCompactor(budgeted, total)
+    assert compactor.controller.budget == pytest.approx(10 ** 0.03 - 1)
+    # PSNR drops against the reference: 0, 0.25, 0.35, 0.29, 0.31 dB (the loss says nothing here: it is flat).
+    drops = [0.0, 0.25, 0.35, 0.29, 0.31]
+    mine = iter([_probe(0.5, mse * 10 ** (drop / 10)) for mse, drop in zip(reference_mse, drops)])
+    steps = [e for it in range(1, total + 1)
+             if (e := compactor.step(it, 0.5, make_model(random_params(600, seed=1)), 3.0,
+                                     probe_fn=lambda: next(mine))) is not None]
+    assert [e["reference_loss"] for e in steps] == reference_mse
+    assert [e["ratio_direction"] for e in steps] == [1, 1, -1, 1, -1]
+    assert [e["probe_psnr"] for e in steps] == pytest.approx([30 - drop - 10 * np.log10(mse / 1e-3)
+                                                             for mse, drop in zip(reference_mse, drops)])
+    # A reference from before the MSE was logged: refused for probe_psnr, naming the log; still good for probe.
+    old = _reference_log(tmp_path / "old", [20, 30, 40, 50, 60], [1.0] * 5)
+    with pytest.raises(DataError, match=r"old/compaction.jsonl.*logged no probe_mse.*train the reference again"):
+        STKNNCompactor(dataclasses.replace(budgeted, loss_reference=str(old)), total)
+    STKNNCompactor(dataclasses.replace(budgeted, loss_signal="probe", loss_reference=str(old)), total)

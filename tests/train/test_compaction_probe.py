@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 import torch
 from scenes import write_panoptic_scene
@@ -12,6 +13,7 @@ from scenes import write_panoptic_scene
 from stgc.compaction import CompactionConfig
 from stgc.data import open_dataset
 from stgc.errors import DataError
+from stgc.metrics import psnr
 from stgc.model import STGModel
 from stgc.train import TrainConfig
 from stgc.train.config import DensifyConfig
@@ -48,12 +50,18 @@ def test_the_compaction_probe_is_a_fixed_spread_set_of_training_views_and_steers
                          tmp_path / "all", model=start).probe_views()
     assert sorted((c.name, c.frame) for c in everything) == sorted((c.name, c.frame) for c in dataset.train)
     read = []
-    probe = trainer.probe_loss
+    probe = trainer.probe
     trainer.strategies[-1].probe = lambda: read.append(probe()) or read[-1]
     trainer.run()
     events = [json.loads(line) for line in (tmp_path / "run" / "compaction.jsonl").read_text().splitlines()]
     assert [e["iteration"] for e in events] == [20, 30, 40, 50]
-    assert [e["smoothed_loss"] for e in events] == pytest.approx(read)
+    assert [e["smoothed_loss"] for e in events] == pytest.approx([r.loss for r in read])
+    # The probe's MSE is the mean PSNR's (geometric mean over the views), as evaluation scores a render: clamped.
+    with torch.no_grad():
+        scores = [float(psnr(trainer.model.render(cam, t=float(cam.time), background=trainer.background).rgb
+                             .clamp(0, 1), trainer.images.get(cam))) for cam in views]
+    assert trainer.probe().mse == pytest.approx(10.0 ** (-np.mean(scores) / 10.0), rel=1e-5)  # float32 PSNRs
+    assert events[-1]["probe_psnr"] == pytest.approx(-10.0 * np.log10(read[-1].mse))
 
 
 def test_a_budget_run_reads_its_unpruned_reference_run_at_the_same_iterations(scene, tmp_path):

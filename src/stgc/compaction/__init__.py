@@ -4,7 +4,7 @@ Lee et al., "Efficient 4DGS Model Compression Using a Spatiotemporal KNN Algorit
 exact rules and defaults are in docs/compaction.md.
 """
 
-from .compactor import STKNNCompactor
+from .compactor import ProbeResult, STKNNCompactor
 from .config import CASE_WINDOWS, CompactionConfig, PruningSchedule, resolve_schedule
 from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
 from .matching import (
@@ -29,6 +29,7 @@ __all__ = [
     "PruningSchedule",
     "STKNNCompactor",
     "budget_for_psnr_drop",
+    "ProbeResult",
     "match_pairs",
     "match_pairs_bruteforce",
     "match_spatiotemporal_pairs",

@@ -14,7 +14,7 @@ import torch
 from stgc.errors import DataError
 from stgc.fileio import read_json_object
 
-from .config import CompactionConfig, PruningSchedule, resolve_schedule
+from .config import PROBE_SIGNALS, CompactionConfig, PruningSchedule, resolve_schedule
 from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
 from .matching import SpacetimeModel, match_spatiotemporal_pairs, to_float64_numpy
 from .plot import LOG_NAME, read_compaction_log
@@ -23,6 +23,22 @@ from .pruning import keeper_time_coverage, removal_scores, select_removals
 
 class PrunableModel(SpacetimeModel, Protocol):
     def prune(self, keep: torch.Tensor) -> None: ...
+
+
+@dataclasses.dataclass(frozen=True)
+class ProbeResult:
+    """The model on the fixed probe views: the training loss, and the mean squared error as the geometric mean over
+    the views (10^(-PSNR/10) of their mean PSNR, so that its ratio between two models is their PSNR difference)."""
+
+    loss: float
+    mse: float
+
+    def signal(self, loss_signal: str) -> float:
+        return self.mse if loss_signal == "probe_psnr" else self.loss
+
+
+# Where a probe signal's value sits in a reference run's record (the loss was its only one before 2026-11-28).
+_REFERENCE_FIELD = {"probe": "smoothed_loss", "probe_psnr": "probe_mse"}
 
 
 class STKNNCompactor:
@@ -40,12 +56,13 @@ class STKNNCompactor:
         self.smoother = LossSmoother(config.loss_smoothing, self.schedule.interval, config.ema_decay)
         self.controller = AdaptiveRatio(
             config.ratio_init, config.ratio_step, config.ratio_min, config.ratio_max, config.loss_tolerance,
-            budget_for_psnr_drop(config.loss_budget_db) if config.loss_budget_db > 0 else 0.0,
+            budget_for_psnr_drop(config.loss_budget_db, squared_error=config.loss_signal == "probe_psnr")
+            if config.loss_budget_db > 0 else 0.0,
         )
         self.steps_done = 0
         self.total_removed = 0
-        self.reference = (load_reference_losses(config.loss_reference, self.schedule, config.probe_views)
-                          if config.loss_reference else None)
+        self.reference = (load_reference_losses(config.loss_reference, self.schedule, config.probe_views,
+                                                config.loss_signal) if config.loss_reference else None)
 
     @property
     def enabled(self) -> bool:
@@ -63,13 +80,13 @@ class STKNNCompactor:
         loss: float,
         importance_fn: Callable[[], torch.Tensor | np.ndarray] | None = None,
         on_prune: Callable[[torch.Tensor], Any] | None = None,
-        probe_fn: Callable[[], float] | None = None,
+        probe_fn: Callable[[], ProbeResult] | None = None,
     ) -> dict[str, Any] | None:
         """Record this iteration's training loss; at a pruning iteration adjust the ratio and prune the model.
 
         `on_prune(keep)` is called with the boolean keep mask right after `model.prune(keep)`, so a caller
         holding per-Gaussian state of its own (the trainer's densification statistics) can drop the same rows.
-        `probe_fn()`: the model's loss on a fixed probe set, the controller's signal when loss_signal is 'probe'.
+        `probe_fn()`: the model on a fixed probe set, the controller's signal when loss_signal is a probe's.
         Returns the pruning step's log record, or None on other iterations (and always with method 'none')."""
         if not self.enabled:
             return None
@@ -78,18 +95,22 @@ class STKNNCompactor:
             return None
 
         smoothed: float | None
-        if self.config.loss_signal == "probe" or self.config.method == "reference":
+        probe: ProbeResult | None = None
+        if self.config.loss_signal in PROBE_SIGNALS or self.config.method == "reference":
             if probe_fn is None:
                 raise ValueError("compaction: the probe loss needs probe_fn (the loss on the fixed probe views)")
-            smoothed = float(probe_fn())
+            probe = probe_fn()
+            smoothed = float(probe.signal(self.config.loss_signal))
         else:
             smoothed = self.smoother.value()
         n_before = int(model.params["xyz"].shape[0])
         if self.config.method == "reference":
+            assert probe is not None
             self.steps_done += 1
+            # Both probe signals, whichever a budgeted run will hold against this run.
             return {"iteration": int(iteration), "t": float(t), "step": self.steps_done, "ratio": 0.0,
-                    "smoothed_loss": smoothed, "loss_signal": "probe", "removed": 0, "gaussians_before": n_before,
-                    "gaussians_left": n_before, "total_removed": 0}
+                    "smoothed_loss": float(probe.loss), "probe_mse": float(probe.mse), "loss_signal": "probe",
+                    "removed": 0, "gaussians_before": n_before, "gaussians_left": n_before, "total_removed": 0}
         reference = None if self.reference is None else self.reference[int(iteration)]
         previous, best = self.controller.previous_loss, self.controller.best_loss
         direction = self.controller.update(smoothed, reference)
@@ -126,6 +147,7 @@ class STKNNCompactor:
             "ratio_direction": direction,
             "smoothed_loss": smoothed,
             "loss_signal": self.config.loss_signal,
+            "probe_psnr": None if probe is None else _psnr_of_mse(probe.mse),
             "previous_smoothed_loss": previous,
             "best_smoothed_loss": best,
             "reference_loss": reference,
@@ -173,10 +195,19 @@ class STKNNCompactor:
         self.smoother.load_state_dict(state["smoother"])
 
 
-def load_reference_losses(run_dir: str, schedule: PruningSchedule, probe_views: int) -> dict[int, float]:
-    """The probe loss of a compaction.method=reference run at every pruning iteration of `schedule`, by iteration.
-    Raises DataError naming the file when the run is not such a reference, does not cover the schedule, or (its
-    config.json says) probed a different number of views."""
+def _psnr_of_mse(mse: float) -> float | None:
+    return None if not (mse > 0 and np.isfinite(mse)) else float(-10.0 * np.log10(mse))
+
+
+def load_reference_losses(run_dir: str, schedule: PruningSchedule, probe_views: int,
+                          loss_signal: str = "probe") -> dict[int, float]:
+    """The probe signal `loss_signal` (the loss, or the MSE for probe_psnr) of a compaction.method=reference run at
+    every pruning iteration of `schedule`, by iteration. Raises DataError naming the file when the run is not such a
+    reference, does not cover the schedule, did not log that signal, or (its config.json says) probed a different
+    number of views."""
+    if loss_signal not in _REFERENCE_FIELD:
+        raise ValueError(f"a loss reference holds a probe signal ({', '.join(_REFERENCE_FIELD)}), not {loss_signal!r}")
+    key = _REFERENCE_FIELD[loss_signal]
     path = Path(run_dir) / LOG_NAME if Path(run_dir).is_dir() else Path(run_dir)
     config_path = path.parent / "config.json"
     if config_path.is_file():
@@ -193,7 +224,10 @@ def load_reference_losses(run_dir: str, schedule: PruningSchedule, probe_views: 
         if record.get("removed", 0) != 0 or record.get("loss_signal") != "probe":
             raise DataError(path, f"iteration {record['iteration']}: not a reference run's record (it pruned, or "
                                   "logged no probe loss); train the reference with compaction.method=reference")
-        losses[int(record["iteration"])] = float(record["smoothed_loss"])
+        if record.get(key) is None:
+            raise DataError(path, f"iteration {record['iteration']}: the reference logged no {key} (reference runs "
+                                  f"log it since 2026-11-28, for loss_signal {loss_signal}); train the reference again")
+        losses[int(record["iteration"])] = float(record[key])
     missing = [i for i in schedule.iterations() if i not in losses]
     if missing:
         raise DataError(path, f"no probe loss at iteration {missing[0]} ({len(missing)} of this run's "

@@ -32,7 +32,9 @@ CASE_WINDOWS: dict[int, tuple[float, float]] = {
 Method = Literal["none", "st-knn", "reference"]
 METHODS = get_args(Method)
 SMOOTHINGS = ("window_mean", "ema")
-LossSignal = Literal["training", "probe"]
+LossSignal = Literal["training", "probe", "probe_psnr"]
+# The signals rendered on the fixed probe set (the ones a reference run's log can be held against).
+PROBE_SIGNALS = ("probe", "probe_psnr")
 LOSS_SIGNALS = get_args(LossSignal)
 
 
@@ -87,16 +89,16 @@ class CompactionConfig:
             "help": "damage budget of the ratio controller, as the PSNR drop it may see: > 0 compares the signal with "
             "the lowest value seen so far (ratio halved while it is worse by more than the loss increase this drop "
             "means, up one step otherwise) instead of with the previous step; 0 = paper (step to step). Best with "
-            "loss_signal probe"
+            "loss_signal probe_psnr (the drop measured as PSNR) or probe"
         },
     )
     loss_reference: str = field(
         default="",
         metadata={
-            "help": "with loss_budget_db and loss_signal probe: a run of the same configuration trained with "
-            "compaction.method=reference; the budget then holds the probe loss against that unpruned run's at the "
-            "same iteration instead of against the best seen so far (which stops falling once pruning takes the "
-            "capacity, while the unpruned model's keeps falling). '' = the best seen so far"
+            "help": "with loss_budget_db and loss_signal probe or probe_psnr: a run of the same configuration "
+            "trained with compaction.method=reference; the budget then holds the probe signal against that "
+            "unpruned run's at the same iteration instead of against the best seen so far (which stops falling "
+            "once pruning takes the capacity, while the unpruned model's keeps falling). '' = the best seen so far"
         },
     )
     loss_smoothing: Literal["window_mean", "ema"] = field(
@@ -113,7 +115,8 @@ class CompactionConfig:
             "help": "the loss the ratio controller compares between pruning steps: 'training' = the smoothed training "
             "loss (paper; each from a random timestamp and views, so it varies with what was drawn), 'probe' = the "
             "training loss of the current model on a fixed set of training views and times, rendered at every "
-            "pruning step (it measures the model, not the sample)"
+            "pruning step (it measures the model, not the sample), 'probe_psnr' = the same renders' mean squared error "
+            "(geometric mean over the views, the mean PSNR's), so that loss_budget_db holds the PSNR it names"
         },
     )
     probe_views: int = field(
@@ -182,9 +185,10 @@ class CompactionConfig:
         if self.loss_signal not in LOSS_SIGNALS:
             raise ValueError(f"compaction.loss_signal {self.loss_signal!r}: expected one of {LOSS_SIGNALS}")
         if self.loss_reference and not (self.method == "st-knn" and self.loss_budget_db > 0
-                                        and self.loss_signal == "probe"):
+                                        and self.loss_signal in PROBE_SIGNALS):
             raise ValueError(f"compaction.loss_reference {self.loss_reference!r}: a reference run is the damage "
-                             "budget's, so it needs method st-knn, loss_budget_db > 0 and loss_signal probe")
+                             "budget's, so it needs method st-knn, loss_budget_db > 0 and loss_signal probe or "
+                             "probe_psnr")
         if self.probe_views < 1:
             raise ValueError(f"compaction.probe_views {self.probe_views}: must be >= 1")
         if not (0.0 <= self.ema_decay < 1.0):
@@ -205,8 +209,8 @@ _ACTS_ONLY_WITH: dict[str, tuple[Callable[[CompactionConfig], bool], str]] = {
                        "compaction.loss_signal=training (the probe loss is not smoothed)"),
     "ema_decay": (lambda c: c.loss_signal == "training" and c.loss_smoothing == "ema",
                   "compaction.loss_smoothing=ema and compaction.loss_signal=training"),
-    "probe_views": (lambda c: c.loss_signal == "probe" or c.method == "reference",
-                    "compaction.loss_signal=probe or compaction.method=reference"),
+    "probe_views": (lambda c: c.loss_signal in PROBE_SIGNALS or c.method == "reference",
+                    "compaction.loss_signal=probe or probe_psnr, or compaction.method=reference"),
 }
 # What a reference run (method=reference) shares with the pruned run it is the reference of: the pruning schedule,
 # at which it logs the probe loss, and the probe. It prunes nothing, so the matching, the criterion and the

@@ -67,10 +67,12 @@ class LossSmoother:
         self.ignored = int(state.get("ignored", 0))
 
 
-def budget_for_psnr_drop(drop_db: float) -> float:
-    """The relative loss increase that a PSNR drop of `drop_db` corresponds to for an L1-like loss: PSNR follows the
-    RMS error, 20 log10, and L1 scales with it, so 10^(drop/20) - 1 (0.3 dB -> 3.5 %)."""
-    return 10.0 ** (float(drop_db) / 20.0) - 1.0
+def budget_for_psnr_drop(drop_db: float, squared_error: bool = False) -> float:
+    """The relative loss increase that a PSNR drop of `drop_db` corresponds to. For an L1-like loss PSNR follows the
+    RMS error, 20 log10, and L1 scales with it, so 10^(drop/20) - 1 (0.3 dB -> 3.5 %): an approximation (a loss
+    with a D-SSIM term, or errors that change shape, move otherwise). For a mean squared error (`squared_error`,
+    geometric mean over views, whose ratio is exactly the mean PSNR's change) 10^(drop/10) - 1 (0.3 dB -> 7.2 %)."""
+    return 10.0 ** (float(drop_db) / (10.0 if squared_error else 20.0)) - 1.0
 
 
 class AdaptiveRatio:

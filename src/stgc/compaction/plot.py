@@ -40,7 +40,8 @@ def read_compaction_log(run_dir_or_jsonl: str | Path) -> list[dict[str, Any]]:
 
 
 # What the ratio controller compared between steps, by the records' `loss_signal` (older logs have none: training).
-_LOSS_LABELS = {"training": "smoothed training loss", "probe": "probe loss\n(fixed training views and times)"}
+_LOSS_LABELS = {"training": "smoothed training loss", "probe": "probe loss\n(fixed training views and times)",
+                "probe_psnr": "probe MSE\n(geometric mean over the views)"}
 
 
 def loss_label(records: list[dict[str, Any]]) -> str:

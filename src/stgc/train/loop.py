@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from stgc import machine
-from stgc.compaction import CompactionConfig, STKNNCompactor
+from stgc.compaction import CompactionConfig, ProbeResult, STKNNCompactor
 from stgc.compaction.config import REFERENCE_RUN_OPTIONS
 from stgc.compaction.config import resolve_schedule as resolve_compaction_schedule
 from stgc.config import EXECUTION_OPTIONS, ConfigError, from_saved, same_option_value, validate_config
@@ -36,7 +36,7 @@ from stgc.data.config import initial_points_from_config
 from stgc.data.dataset import Dataset
 from stgc.errors import DataError, StgcError
 from stgc.fileio import write_json
-from stgc.metrics import ssim
+from stgc.metrics import mse, ssim
 from stgc.model import ModelConfig, STGModel
 from stgc.model.config import DecoderActivation
 from stgc.model.layout import Variant
@@ -370,7 +370,7 @@ class Trainer:
         if self.compactor is not None:
             self.strategies.append(CompactionStrategy(
                 self.compactor, lambda event: self.compaction_log.append(_jsonable(event)), self.density,
-                self.importance, self.probe_loss,
+                self.importance, self.probe,
             ))  # fmt: skip
         if checkpoint is not None:
             self._restore(checkpoint)
@@ -671,17 +671,21 @@ class Trainer:
             picked += [cams[(phase + (i * len(cams)) // share) % len(cams)] for i in range(share)]
         return picked
 
-    def probe_loss(self) -> float:
-        """The current model's training loss (as train_step computes it, colour correction included) on the probe
-        views, each at its own time: a signal of the model, free of which views an iteration drew."""
-        total = 0.0
+    def probe(self) -> ProbeResult:
+        """The current model on the probe views, each at its own time: its training loss (as train_step computes it,
+        colour correction included) and its mean squared error (of the render clamped to [0, 1] as evaluation
+        scores it; geometric mean over the views). A signal of the model, free of which views an iteration drew."""
+        total, log_mse = 0.0, 0.0
         views = self.probe_views()
         with torch.no_grad():
             for cam in views:
                 out = self.model.render(cam, t=float(cam.time), background=self.background, backend=self.cfg.backend)
                 rgb = out.rgb if self.colour is None else self.colour.apply(out.rgb, cam.name)
-                total += float(self.view_loss(rgb, self.images.get(cam), cam)[0])
-        return total / len(views)
+                gt = self.images.get(cam)
+                total += float(self.view_loss(rgb, gt, cam)[0])
+                # A view rendered exactly (MSE 0) would make the mean -inf: floor it far below any 8-bit image's.
+                log_mse += math.log(max(float(mse(rgb.clamp(0.0, 1.0), gt)), 1e-12))
+        return ProbeResult(loss=total / len(views), mse=math.exp(log_mse / len(views)))
 
     def importance(self) -> torch.Tensor:
         """Accumulated blending weight of every Gaussian over the training views of `importance_views` (for the

@@ -12,7 +12,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from stgc.compaction import STKNNCompactor
+from stgc.compaction import ProbeResult, STKNNCompactor
 from stgc.data import Camera
 from stgc.model import STGModel
 from stgc.train.densify import DensityControl
@@ -89,7 +89,7 @@ class CompactionStrategy:
     """ST-KNN compaction with its adaptive ratio; every pruning step is a line of RUN/compaction.jsonl."""
 
     def __init__(self, compactor: STKNNCompactor, record: Callable[[dict[str, Any]], None], density: DensityControl,
-                 importance: Callable[[], torch.Tensor | np.ndarray], probe: Callable[[], float] | None = None):
+                 importance: Callable[[], torch.Tensor | np.ndarray], probe: Callable[[], ProbeResult] | None = None):
         self.compactor, self.record, self.density, self.importance = compactor, record, density, importance
         self.probe = probe
 
