@@ -94,6 +94,14 @@ def test_a_budget_run_reads_its_unpruned_reference_run_at_the_same_iterations(sc
     assert [e["reference_loss"] for e in events] == [e["smoothed_loss"] for e in reference]
     assert events[0]["smoothed_loss"] == reference[0]["smoothed_loss"]
     assert sum(e["removed"] for e in events) > 0
+    # The same reference holds a probe_psnr run's MSE: the reference logs both signals.
+    by_psnr = Trainer(dataset, None, None, _config(80), dataclasses.replace(budgeted, loss_signal="probe_psnr"),
+                      tmp_path / "psnr", model=start())
+    by_psnr.run()
+    psnr_events = [json.loads(line) for line in (tmp_path / "psnr" / "compaction.jsonl").read_text().splitlines()]
+    assert [e["reference_loss"] for e in psnr_events] == [e["probe_mse"] for e in reference]
+    assert psnr_events[0]["smoothed_loss"] == reference[0]["probe_mse"]
+    assert psnr_events[0]["loss_budget"] == pytest.approx(10 ** 0.03 - 1)
     with pytest.raises(DataError, match="probed 4 views, this run probes 8"):
         Trainer(dataset, None, None, _config(80), dataclasses.replace(budgeted, probe_views=8), tmp_path / "other",
                 model=start())
