@@ -14,9 +14,9 @@ import json
 import re
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
-from stgc.errors import FormatError, StgcError
+from stgc.errors import DataError, FormatError, StgcError
 from stgc.fileio import file_sha256, read_json_object, write_json
 
 # Everything a training writes into its run directory (docs/training.md lists them): their presence means the
@@ -265,16 +265,67 @@ class Run:
         return self.video_path.is_file()
 
     def read_video(self) -> dict[str, Any]:
-        """RUN/video.json: {"segment_frames": N, "data_path": ..., "segments": [{"name", "start", "duration"}]}."""
+        """RUN/video.json: {"segment_frames": N, "data_path": ..., "segments": [{"name", "start", "duration"}]}.
+
+        Every verb trains, evaluates or packs segment k on the frames this file gives it, so a file that does not
+        describe the consecutive segments a training writes is a DataError naming it: a start of 2.5 or "2" was
+        truncated or failed deep inside a verb, and a gap or an overlap silently dropped frames from the video."""
         video = read_json_object(self.video_path)
         segments = None if video is None else video.get("segments")
         frames = None if video is None else video.get("segment_frames")
         if video is None or not isinstance(segments, list) or not all(
                 isinstance(s, dict) and {"name", "start", "duration"} <= set(s) for s in segments) or not (
-                isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1):
-            raise StgcError(f"{self.video_path}: not a whole-video description (segment_frames >= 1, segments with "
-                            "name, start, duration)")
+                _is_int(frames) and frames >= 1):
+            raise DataError(self.video_path, "not a whole-video description (segment_frames >= 1, segments with "
+                                             "name, start, duration)")
+        if not segments:
+            raise DataError(self.video_path, "lists no segments (a whole video has at least one)")
+        for k, segment in enumerate(segments):
+            name, start, duration = segment["name"], segment["start"], segment["duration"]
+            if name != f"{SEGMENT_PREFIX}{k:03d}":  # the folder every verb opens for segment k
+                raise DataError(self.video_path, f"segment {k} is named {_shown(name)}, not "
+                                                 f"{SEGMENT_PREFIX}{k:03d} (segments are named in time order)")
+            where = f"segment {k} ({name})"
+            if not (_is_int(start) and start >= 0):
+                raise DataError(self.video_path, f"{where}: start {_shown(start)} is not a frame number (an integer "
+                                                 ">= 0)")
+            if not (_is_int(duration) and duration >= 1):
+                raise DataError(self.video_path, f"{where}: duration {_shown(duration)} is not a number of frames "
+                                                 "(an integer >= 1)")
+            if k > 0:
+                before = segments[k - 1]
+                follows = before["start"] + before["duration"]
+                if start != follows:
+                    raise DataError(self.video_path, f"{where}: starts at frame {start}, but the segment before it "
+                                                     f"ends at frame {follows - 1} (segments are consecutive: it "
+                                                     f"starts at {follows})")
         return video
+
+    def check_segment_frames(self, segments: list[dict[str, Any]]) -> None:
+        """Refuse (DataError naming the segment's file) a video.json entry whose frames are not those its segment
+        recorded for itself: its config.json's data.start/data.duration, or, restored from a bitstream without its
+        run config, its restored_from.json's start/duration. An edited video.json would resume or pack a segment on
+        frames its model was never trained on (its own frames silently gone from the video)."""
+        for segment in segments:
+            folder = Run(self.path / str(segment["name"]))
+            given = (segment["start"], segment["duration"])
+            source, saved = folder.config_path, folder.read_config()
+            if saved is not None:
+                data = saved.get("data")
+                if not isinstance(data, dict):  # no data options: it does not say its frames
+                    continue
+            else:
+                source = folder.path / self.RESTORED_FROM
+                data = read_json_object(source)
+                if data is None or "start" not in data or "duration" not in data:
+                    continue
+            own = (data.get("start"), data.get("duration"))
+            if own != given or not all(_is_int(v) for v in own):
+                field = "data." if source.name == self.CONFIG else ""
+                raise DataError(source, f"the segment's frames are {field}start={_shown(own[0])}, "
+                                        f"{field}duration={_shown(own[1])}, but {self.video_path} gives it start="
+                                        f"{given[0]}, duration={given[1]}; the segment's model is of its own frames: "
+                                        f"restore {self.VIDEO} (or train the video again into a new --out)")
 
     def write_video(self, video: dict[str, Any]) -> None:
         write_json(self.video_path, video)
@@ -408,6 +459,11 @@ def official_run_args(path: str | Path) -> dict[str, Any] | None:
         return args
     except (SyntaxError, ValueError) as exc:
         raise FormatError(found, f"not an official STG cfg_args file ({exc})") from None
+
+
+def _is_int(value: Any) -> TypeGuard[int]:
+    """An integer as JSON holds one: not a bool (True is an int in Python), a float or a string of digits."""
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _int_or_none(value: Any) -> int | None:

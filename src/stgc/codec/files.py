@@ -347,15 +347,18 @@ class VideoCompressResult:
 
 
 def _compress_video(run: Run, out_path: Path, config: CodecConfig) -> VideoCompressResult:
+    # Everything that can refuse the video does so before the first segment's minutes of encoding.
     plan = run.read_video()["segments"]
-    payloads, results = [], []
-    for entry in tqdm(plan, desc="compressing segments", unit="segment", leave=False, disable=len(plan) < 2):
+    run.check_segment_frames(plan)  # the container gives each model the frames video.json says
+    for entry in plan:
         segment = Run(run.path / str(entry["name"]))
         if segment.latest_model_dir() is None or not segment.holds_final_model():
             # A killed or failed segment still holds the models save_iterations wrote: half-trained, not the video.
             raise DataError(segment.path, "segment has not finished training (finish it with stgc train --resume)")
-        data, result = _encode_model(segment.path, out_path, config)
-        payloads.append((int(entry["start"]), int(entry["duration"]), data))
+    payloads, results = [], []
+    for entry in tqdm(plan, desc="compressing segments", unit="segment", leave=False, disable=len(plan) < 2):
+        data, result = _encode_model(run.path / str(entry["name"]), out_path, config)
+        payloads.append((entry["start"], entry["duration"], data))
         results.append(result)
     container = encode_video(payloads)
     write_stgc(out_path, container)

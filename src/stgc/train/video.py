@@ -56,14 +56,16 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
     data_path, out_dir = Path(data_path).resolve(), Path(out_dir).resolve()
     run = Run(out_dir)
     if resume and run.is_video():
+        video = run.read_video()  # a video.json that is not the consecutive segments a start writes: named, refused
+        _refuse_a_restored_video(run, video["segments"])
         if not run.has_config():
             raise StgcError(f"{run.path}: its start was killed before it saved its options (config.json), so resuming "
                             "would train its segments with other ones; start it again with --overwrite")
-        video = run.read_video()
         if segment_frames is not None and int(segment_frames) != int(video["segment_frames"]):
             raise StgcError(f"{run.path}: the video was cut into {video['segment_frames']}-frame segments; a resumed "
                             "run keeps them")
         plan = video["segments"]
+        run.check_segment_frames(plan)  # before any segment trains on frames other than its own
         references = _segment_loss_references(configs, plan)
     else:
         if segment_frames is None:
@@ -102,6 +104,17 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
                           log_file=segment_run.task_log_path))
     run_tasks(tasks, use_ray=use_ray, address=ray_address)
     return [segment_run.read_summary() or {} for segment_run in run.segments()]
+
+
+def _refuse_a_restored_video(run: Run, plan: list[dict[str, Any]]) -> None:
+    """`stgc decompress` of a whole-video file writes video.json and decoded segments, but no config.json of the
+    video: told that its start was killed, a user gave --overwrite and lost the restored models."""
+    if (run.path / Run.RESTORED_FROM).is_file() or any(
+            (run.path / str(s["name"]) / Run.RESTORED_FROM).is_file() for s in plan):
+        raise StgcError(f"{run.path}: holds a whole video restored from a bitstream (stgc decompress), not a "
+                        "training: its segments hold decoded models without training options or checkpoints, so "
+                        "there is nothing to resume; train the video into a new --out (--overwrite would remove the "
+                        "restored models)")
 
 
 def _segment_loss_references(configs: dict[str, Any], plan: list[dict[str, Any]]) -> list[str] | None:
