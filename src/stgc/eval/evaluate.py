@@ -7,10 +7,13 @@ over all test images (cameras x frames); FPS is 1 / mean render time after warm-
 from __future__ import annotations
 
 import csv
+import dataclasses
 import hashlib
 import io
+import json
 import logging
 import math
+import re
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -31,7 +34,7 @@ from stgc.codec import (
     read_video_index,
 )
 from stgc.codec.video import read_video_segment_metadata
-from stgc.config import same_place
+from stgc.config import EXECUTION_OPTIONS, ConfigError, from_saved, same_place
 from stgc.data.cameras import Camera
 from stgc.data.config import DataConfig, data_config_from_saved, saved_run_data
 from stgc.data.config import open_run_dataset as open_saved_run_dataset
@@ -50,9 +53,9 @@ from stgc.eval.accounting import (
 from stgc.fileio import atomic_open, atomic_path, file_sha256, read_json_object, write_json
 from stgc.metrics import LPIPS, psnr, ssim, yuv_psnr
 from stgc.metrics.image import PSNR_CEILING_DB
-from stgc.model import STGModel
+from stgc.model import ModelConfig, STGModel
 from stgc.render import BACKENDS
-from stgc.run import Run
+from stgc.run import SAVED_MODEL, Run
 
 log = logging.getLogger(__name__)
 
@@ -247,6 +250,8 @@ def write_eval(
     more: dict[str, Any] = {"train_seconds": training_seconds(summary)}
     if summary and "iterations" in summary:
         more["iterations"] = summary["iterations"]
+    if target is not None and bitstream is None:
+        refuse_misfiled_model(Path(target))
     if bitstream is None and run.has_config():
         # Whether the model scored is the one the run ends with (a restored run's is: it came from a bitstream).
         more["training_finished"] = run.holds_final_model()
@@ -255,13 +260,21 @@ def write_eval(
             more["restored_from"] = restored.get("bitstream")
     if bitstream is not None:
         more.update(bitstream=Path(bitstream).name, bitstream_sha256=file_sha256(bitstream))
+        metadata = read_stgc_metadata(bitstream)
+        # Another run's file copied into this folder was scored on its own test set and stamped with this run's
+        # training time and final iteration: `stgc report` then showed it as this run's codec point.
+        foreign = foreign_model(run, metadata.get("run_config"))
+        if foreign is not None:
+            log.warning("%s holds the model of another run than %s (%s): its record says so, and reports leave it "
+                        "out of this run's points", bitstream, run.path, foreign)
+            more.update(foreign=foreign, train_seconds=None)
         # The model the file holds, which need not be the run's final one (`stgc compress RUN/point_cloud/
         # iteration_N`, or a half-trained run compressed and finished since): the report tells them apart.
-        iteration = read_stgc_metadata(bitstream).get("iteration")
+        iteration = metadata.get("iteration")
         if isinstance(iteration, int):
             more["iterations"] = iteration
             final = run.final_iteration()  # None where the folder's run does not say (a whole video's folder)
-            if final is not None:
+            if final is not None and foreign is None:
                 more["training_finished"] = iteration == final
     more.update(extra or {})
     record = eval_record(result, model_info, more)
@@ -346,7 +359,7 @@ class RunEvaluator:
             info = model_size_of(model, dataset_duration_s(dataset), files)
         except (ValueError, AttributeError, ZeroDivisionError):
             info = {"num_gaussians": model.num_gaussians}
-        write_eval(run.path, result, info)
+        write_eval(run.path, result, info, extra=dataset_identity(dataset))
         return result
 
 
@@ -418,7 +431,8 @@ def video_bitstream_segments(path: str | Path, data_path: str | Path | None = No
     beside = Run(path.parent)
     plan = beside.read_video()["segments"] if beside.is_video() and data_path is None else []
     # The run's segments when they are the file's (else another video's: the configs the file embeds are used).
-    same = [(int(s["start"]), int(s["duration"])) for s in plan] == [(e.first_frame, e.num_frames) for e in index.entries]
+    same = ([(int(s["start"]), int(s["duration"])) for s in plan]
+            == [(e.first_frame, e.num_frames) for e in index.entries])
     runs = [Run(beside.path / str(s["name"])) for s in plan] if same else []
     for k, entry in enumerate(index.entries):
         model, decoded = load_video_segment(path, k, index)
@@ -492,6 +506,8 @@ def evaluate_run(
     # A saved model inside a run (RUN/point_cloud/iteration_<N>) is scored on its run's data, with its run's options;
     # its record stays beside it.
     owner = Run.of(target) if target.suffix != ".stgc" and not Run(target).has_config() else None
+    if target.suffix != ".stgc":
+        refuse_misfiled_model(target, owner)  # before the minutes of rendering, not after
     config_dir = owner.path if owner is not None else run_dir
     dataset = open_dataset(run_dir) if open_dataset else open_run_dataset(
         config_dir, data_path, target if target.suffix == ".stgc" else None)
@@ -513,8 +529,109 @@ def evaluate_run(
                               backend=backend)
     other_data = filed_as if filed_as is not None else _other_data(
         run_dir, data_path, target if target.suffix == ".stgc" else None, config_dir)
-    extra = {"data": str(dataset.root), **({"other_data": other_data} if other_data else {})}
+    extra = {**dataset_identity(dataset), **({"other_data": other_data} if other_data else {})}
     return write_eval(run_dir, result, info, target=target, other_data=other_data, extra=extra)
+
+
+_ITERATION_FOLDER = re.compile(r"iteration_\d+")
+
+
+def refuse_misfiled_model(target: Path, owner: Run | None = None) -> None:
+    """Refuse to score a model whose record would stand for another model. A model is scored into the eval.json
+    of its folder (a file: the folder it lies in), and that record is the folder's own: RUN/eval.json is what
+    `stgc report` and the experiment runner take for the run's result, RUN/point_cloud/iteration_<N>/eval.json
+    that iteration's. So only a run, one of its saved iterations, or their point_cloud.ply may write one (or a
+    folder in no run, and its point_cloud.ply); `owner` is the run holding the target (by default
+    `Run.of(target)`). Any other (RUN/other.ply, another model copied in) replaced the run's record, stamped with
+    the run's iterations; its decoder (other.pt) was not the one its size counted (point_cloud.pt) either."""
+    if not target.exists() or target.suffix == ".stgc" or (target.is_dir() and Run(target).has_config()):
+        return
+    if owner is None:
+        owner = Run.of(target)
+    folder = target.resolve() if target.is_dir() else target.resolve().parent
+    iteration = owner is not None and _ITERATION_FOLDER.fullmatch(folder.name) is not None and \
+        folder.parent == owner.path / "point_cloud"
+    if target.is_dir():
+        if owner is None or owner.path == folder or iteration:
+            return
+    elif target.name == SAVED_MODEL and (owner is None or iteration):
+        return
+    whose = f"the run in {owner.path}" if owner is not None else "its folder"
+    raise DataError(target, f"not a saved model of {whose}: scored, it would replace {folder / 'eval.json'} (that "
+                            "folder's own record) with another model's numbers. stgc eval takes a run, one of its "
+                            "saved iterations (point_cloud/iteration_<N>), or a .stgc file; to score this model, "
+                            f"put it as {SAVED_MODEL} (its decoder as point_cloud.pt) in a folder outside any run "
+                            "and evaluate that folder with --data")
+
+
+def dataset_identity(dataset: Any) -> dict[str, Any]:
+    """What an evaluation record names of the test set it scored, besides the `cameras` and `frames` it lists: the
+    data folder and the downscale of its images. A report compares rates and PSNRs only where all of them agree."""
+    downscale = getattr(dataset, "downscale", None)
+    if isinstance(downscale, bool) or not isinstance(downscale, (int, float)):
+        downscale = None  # a stand-in dataset (tests) has none
+    return {"data": str(dataset.root), "downscale": None if downscale is None else float(downscale)}
+
+
+def foreign_model(run: Run, embedded: Any) -> str | None:
+    """Why a bitstream embedding the run config `embedded` (its `run_config` metadata) holds a model of another run
+    than the one in `run` (the folder it lies in), or None where it is that run's or the files cannot tell (a file
+    written without its config, codec.embed_run_config=false, or a folder holding no run). Compared: the sections
+    the encoder embeds (data, model), as `config_differences` reads them."""
+    if not isinstance(embedded, dict):
+        return None
+    saved = run.read_config(strict=False)
+    if saved is None:
+        if (run.path / Run.RESTORED_FROM).is_file():
+            # Restored from a file without its run's config, the run compresses to files without one again.
+            return "the run has no config (restored from a file without one), the file embeds one"
+        return None
+    differences = config_differences(embedded, saved)
+    return "; ".join(differences[:4]) + (" ..." if len(differences) > 4 else "") if differences else None
+
+
+_SECTION_CLASSES: dict[str, type] = {"data": DataConfig, "model": ModelConfig}
+
+
+def config_differences(embedded: Mapping[str, Any], saved: Mapping[str, Any]) -> list[str]:
+    """The options by which the run config a bitstream embeds differs from a run's config.json, in the sections
+    the encoder embeds: [] where they are one run's. Each section is read as a resume reads it (`from_saved`), so
+    that keys a later stgc added to a resumed run's config.json are no difference; execution options (a resume may
+    change them) are left out, and so is the data's path where one of the two no longer exists (the data moved:
+    a run resumed there records the new place, the files compressed before it the old one)."""
+    out = []
+    for section, cls in _SECTION_CLASSES.items():
+        mine, theirs = embedded.get(section), saved.get(section)
+        if mine is None:  # not embedded: nothing to compare
+            continue
+        if not isinstance(mine, dict) or not isinstance(theirs, dict):
+            out.append(f"{section}: {'the run config has no such section' if theirs is None else 'not an object'}")
+            continue
+        first, second = _comparable(cls, section, mine), _comparable(cls, section, theirs)
+        out += [f"{section}.{key} {_shown(first.get(key))} vs {_shown(second.get(key))}"
+                for key in sorted(set(first) | set(second)) if first.get(key) != second.get(key)]
+        if section == "data":
+            a, b = mine.get("path"), theirs.get("path")
+            if (isinstance(a, str) and isinstance(b, str) and not same_place(a, b) and Path(a).exists()
+                    and Path(b).exists()):
+                out.append(f"data.path {a} vs {b}")
+    return out
+
+
+def _comparable(cls: type, section: str, values: dict[str, Any]) -> dict[str, Any]:
+    """A saved config section as plain values, with what `config_differences` does not compare left out."""
+    values = {k: v for k, v in values.items() if k != "path" and f"{section}.{k}" not in EXECUTION_OPTIONS}
+    try:
+        read = dataclasses.asdict(from_saved(cls, values, section))
+    except (ConfigError, TypeError, ValueError):  # a damaged section: compared as it is written
+        read = values
+    plain: dict[str, Any] = json.loads(json.dumps(read, default=str))
+    return {k: v for k, v in plain.items() if k != "path" and f"{section}.{k}" not in EXECUTION_OPTIONS}
+
+
+def _shown(value: Any) -> str:
+    text = json.dumps(value, default=str)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def _run_execution(run_dir: Path) -> tuple[int, str]:
@@ -578,7 +695,8 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
             result = _score_model(segment.model, segment.dataset, lpips_net=lpips_net, warmup=warmup,
                                   measure_fps=measure_fps, backend=backend)
         summary = segment.run.read_summary(strict=False) if segment.run else None
-        records.append((segment.name, eval_record(result, segment.size, {"train_seconds": training_seconds(summary)})))
+        records.append((segment.name, eval_record(result, segment.size, {"train_seconds": training_seconds(summary),
+                                                                         **dataset_identity(segment.dataset)})))
         curves.append((segment.name, [(v.frame, v.psnr) for v in result.views]))
         rows += [(segment.name, v) for v in result.views]
     record = aggregate_video_records(records)
@@ -587,7 +705,12 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
                    "mbps": index.file_bytes * 8 / record["duration_s"] / 1e6 if record["duration_s"] else None,
                    "container_overhead_bytes": index.overhead_bytes, "target": str(target),
                    "bitstream": target.name, "bitstream_sha256": file_sha256(target),
-                   "data": str(Path(data_path).resolve()) if data_path is not None else None})
+                   "data": str(Path(data_path).resolve()) if data_path is not None else record.get("data")})
+    foreign = foreign_video(target, index)
+    if foreign is not None:  # as for a single model's file (`write_eval`)
+        log.warning("%s holds another video than the run in %s (%s): its record says so, and reports leave it out "
+                    "of this run's points", target, target.parent, foreign)
+        record.update(foreign=foreign, train_seconds=None)
     seams = [seam_of(name, curve) for name, curve in curves]
     record["seams"] = [{k: v for k, v in seam.items() if k != "frames"} for seam in seams if seam]
     other = _other_data(target.parent, data_path, target)
@@ -598,6 +721,28 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
         seams_name = f"seams_{target.stem}" + (f"_on_{other}" if other else "")
         seam_plot([seam for seam in seams if seam], target.parent / f"{seams_name}.png")
     return record
+
+
+def foreign_video(path: Path, index: Any) -> str | None:
+    """Why a whole-video .stgc (its `index`, `read_video_index`) is not the video of the run in its folder, or None
+    where it is or the folder holds no run: `foreign_model` for each segment against the folder's segment of the
+    same frames. Told apart whatever data the evaluation is given (`video_bitstream_segments` keeps the folder's
+    segments only when no --data is given)."""
+    beside = Run(path.parent)
+    if not beside.is_video():
+        if beside.has_config() or (beside.path / Run.RESTORED_FROM).is_file():
+            return "a whole video's file in the folder of a single model's run"
+        return None
+    plan = beside.read_video()["segments"]
+    frames = [(e.first_frame, e.num_frames) for e in index.entries]
+    if [(int(s["start"]), int(s["duration"])) for s in plan] != frames:
+        return f"its segments cover frames {frames}, the video's {[(s['start'], s['duration']) for s in plan]}"
+    for k, segment in enumerate(plan):
+        why = foreign_model(Run(beside.path / str(segment["name"])),
+                            read_video_segment_metadata(path, k, index).get("run_config"))
+        if why is not None:
+            return f"segment {k}: {why}"
+    return None
 
 
 # Per-view means that a whole video averages over all its views (each segment's weighted by its number of views).
@@ -661,7 +806,14 @@ def aggregate_video_records(records: Sequence[tuple[str, Mapping[str, Any]]]) ->
                                "size_mb": r.get("size_mb"), "mbps": r.get("mbps")} for name, r in records},
     })
     cameras = sorted({c for r in rows for c in (r.get("per_camera") or {})})
-    video["per_camera"] = {c: {key: _finite(_weighted([r["per_camera"][c] for r in rows if c in (r.get("per_camera") or {})],
+    # The test set, as a single model's record names it: reports compare only records of one test set.
+    video["cameras"] = sorted({str(c) for r in rows for c in (r.get("cameras") or [])}) or cameras
+    video["frames"] = sorted({int(f) for r in rows for f in (r.get("frames") or [])})
+    for key in ("data", "downscale"):
+        values = {json.dumps(r.get(key)) for r in rows}
+        video[key] = rows[0].get(key) if len(values) == 1 else None  # segments on different data: unknown
+    video["per_camera"] = {c: {key: _finite(_weighted([r["per_camera"][c] for r in rows
+                                                       if c in (r.get("per_camera") or {})],
                                                       key, "views")) for key in _VIEW_MEANS}
                            | {"views": sum(int(r["per_camera"][c].get("views") or 0) for r in rows
                                            if c in (r.get("per_camera") or {}))} for c in cameras}

@@ -3,7 +3,8 @@
 
 A report is made from rows (`ReportRow`), either given directly (`make_report`) or read from run directories
 (`report_from_runs`: each run's eval.json, config.json and, when the experiment runner wrote it,
-experiment.json naming the run's family and label).
+experiment.json naming the run's family and label). Rows scored on different test sets (data, test cameras,
+frames, downscale) never share a curve, a BD delta or the change against the reference (`split_test_sets`).
 """
 
 from __future__ import annotations
@@ -11,9 +12,10 @@ from __future__ import annotations
 import logging
 import math
 import re
+import string
 import textwrap
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -106,11 +108,114 @@ class Report:
         return "report written:\n" + "\n".join(f"  {p}" for p in files if p is not None)
 
 
-def _families(rows: Sequence[ReportRow]) -> dict[str, list[ReportRow]]:
-    out: dict[str, list[ReportRow]] = {}
-    for r in rows:
-        out.setdefault(r.family, []).append(r)
+# What names the test set a row was scored on: the data folder, the test cameras, the frames and the images'
+# downscale (`stgc.eval.evaluate.dataset_identity`; an eval.json lists its cameras and frames). Rates and PSNRs
+# of two test sets are not points of one curve, and BD deltas between them measure the test sets, not the methods.
+TEST_SET_FIELDS = ("data", "cameras", "frames", "downscale")
+
+
+def _identity(row: ReportRow) -> dict[str, Any]:
+    """The test set a row names, each field None where the row does not say (records written before they did,
+    rows given directly)."""
+    out: dict[str, Any] = {}
+    for key in TEST_SET_FIELDS:
+        value = row.extra.get(key)
+        if value is None or value == "" or value == []:
+            out[key] = None
+        elif key in ("cameras", "frames"):
+            out[key] = tuple(str(v) for v in value) if isinstance(value, (list, tuple)) else (str(value),)
+        elif key == "downscale":
+            try:
+                out[key] = float(value)
+            except (TypeError, ValueError):
+                out[key] = str(value)
+        else:
+            out[key] = str(value)
     return out
+
+
+def _same_field(key: str, first: Any, second: Any) -> bool:
+    if key != "data":
+        return bool(first == second)
+    if same_place(first, second):
+        return True
+    # A data folder that is gone (moved since that evaluation) can only be told by its name.
+    return (not Path(first).exists() or not Path(second).exists()) and Path(first).name == Path(second).name
+
+
+def _test_sets(rows: Sequence[ReportRow]) -> tuple[list[int], list[dict[str, Any]]]:
+    """(the test set of each row, as an index into the list of test sets; that list, in order of first appearance).
+    A field a row does not name agrees with any: such a row joins the first test set the fields it names allow."""
+    sets: list[dict[str, Any]] = []
+    groups = []
+    for row in rows:
+        ident = _identity(row)
+        for index, known in enumerate(sets):
+            if all(ident[k] is None or known[k] is None or _same_field(k, ident[k], known[k]) for k in TEST_SET_FIELDS):
+                known.update({k: v for k, v in ident.items() if known[k] is None})
+                groups.append(index)
+                break
+        else:
+            sets.append(dict(ident))
+            groups.append(len(sets) - 1)
+    return groups, sets
+
+
+def _set_label(index: int) -> str:
+    return string.ascii_uppercase[index] if index < len(string.ascii_uppercase) else str(index + 1)
+
+
+def _families(rows: Sequence[ReportRow]) -> dict[str, list[ReportRow]]:
+    """The rows by curve: by family, and a family scored on several test sets as one curve per test set (what
+    `split_test_sets` names them; there each family is already of one)."""
+    groups, _ = _test_sets(rows)
+    first: dict[str, int] = {}
+    mixed = set()
+    for r, g in zip(rows, groups):
+        if first.setdefault(r.family, g) != g:
+            mixed.add(r.family)
+    out: dict[str, list[ReportRow]] = {}
+    for r, g in zip(rows, groups):
+        out.setdefault(f"{r.family} [test set {_set_label(g)}]" if r.family in mixed else r.family, []).append(r)
+    return out
+
+
+def split_test_sets(rows: Sequence[ReportRow], baseline: str | None) -> tuple[list[ReportRow], dict[str, dict]]:
+    """The rows with each family split by the test set its rows were scored on, and {label: test set} of the
+    test sets: (the rows as they are, {}) where all share one. The baseline family's test set (else the first
+    row's) is test set A, whose rows keep their family; a row of another test set X joins the family
+    "<family> [test set X]", a curve of its own that is compared with no curve of another test set."""
+    groups, sets = _test_sets(rows)
+    if len(sets) < 2:
+        return list(rows), {}
+    reference = next((g for r, g in zip(rows, groups) if r.family == baseline), groups[0])
+    order = [reference] + [g for g in range(len(sets)) if g != reference]
+    label = {g: _set_label(k) for k, g in enumerate(order)}
+    split = [replace(r, family=r.family if g == reference else f"{r.family} [test set {label[g]}]",
+                     extra={**r.extra, "test_set": label[g]}) for r, g in zip(rows, groups)]
+    return split, {label[g]: {k: list(v) if isinstance(v, tuple) else v for k, v in sets[g].items()} for g in order}
+
+
+def describe_test_set(test_set: Mapping[str, Any]) -> str:
+    """One line naming a test set (`split_test_sets`'s values)."""
+    frames = test_set.get("frames")
+    if frames and all(str(f).lstrip("-").isdigit() for f in frames):
+        numbers = sorted(int(f) for f in frames)
+        shown = f"{numbers[0]}-{numbers[-1]}" if numbers == list(range(numbers[0], numbers[-1] + 1)) else \
+            ", ".join(map(str, numbers))
+    else:
+        shown = ", ".join(map(str, frames)) if frames else "?"
+    cameras = test_set.get("cameras")
+    downscale = test_set.get("downscale")
+    scale = "?" if downscale is None else format(downscale, "g") if isinstance(downscale, float) else str(downscale)
+    return (f"data {test_set.get('data') or '?'}, test camera(s) {', '.join(map(str, cameras)) if cameras else '?'}, "
+            f"frames {shown}, downscale {scale}")
+
+
+def _group_of(rows: Sequence[ReportRow]) -> dict[int, int]:
+    """{id(row): index of its test set} (`_test_sets`)."""
+    groups, _ = _test_sets(rows)
+    return {id(r): g for r, g in zip(rows, groups)}
 
 
 def _curve(rows: Sequence[ReportRow]) -> list[ReportRow]:
@@ -125,7 +230,8 @@ def _front(curve: Sequence[ReportRow]) -> list[ReportRow]:
     never choose."""
     front: list[ReportRow] = []
     for r in curve:
-        while front and float(front[-1].mbps) == float(r.mbps) and float(front[-1].psnr) <= float(r.psnr):  # type: ignore[arg-type]
+        while (front and float(front[-1].mbps) == float(r.mbps)  # type: ignore[arg-type]
+               and float(front[-1].psnr) <= float(r.psnr)):  # type: ignore[arg-type]
             front.pop()
         if not front or float(r.psnr) > float(front[-1].psnr):  # type: ignore[arg-type]
             front.append(r)
@@ -161,7 +267,7 @@ def resolve_baseline(rows: Sequence[ReportRow], baseline: str | None) -> str | N
         return None
     if baseline is None:
         return rows[0].family
-    families = _families(rows)
+    families = list(dict.fromkeys(r.family for r in rows))  # as given: a family of two test sets is one name here
     if baseline in families:
         return baseline
     for r in rows:  # a run by name, or by the path `stgc report` was given it as
@@ -180,6 +286,8 @@ def bd_table(rows: Sequence[ReportRow], baseline: str | None, method: Method = "
     families = _families(rows)
     base_all = _curve(families.get(baseline, []))
     base = _front(base_all)
+    group = _group_of(rows)
+    base_sets = {group[id(r)] for r in families.get(baseline, [])}
     results = []
     for name, members in families.items():
         if name == baseline:
@@ -187,6 +295,11 @@ def bd_table(rows: Sequence[ReportRow], baseline: str | None, method: Method = "
         curve_all = _curve(members)
         curve = _front(curve_all)
         result = BDResult(name, baseline, len(curve), None, None)
+        if base_sets and {group[id(r)] for r in members} != base_sets:
+            result.note = (f"n/a: scored on another test set ({_sets_named(members)}) than the baseline "
+                           f"({_sets_named(families[baseline])}); PSNRs of different test views are not comparable")
+            results.append(result)
+            continue
         dropped = [f"{n} dominated point(s) of {what} left out" for n, what in
                    ((len(curve_all) - len(curve), "this curve"), (len(base_all) - len(base), "the baseline")) if n]
         dropped += [f"{n} point(s) of {what} without a rate and a finite PSNR left out" for n, what in
@@ -219,6 +332,11 @@ def bd_table(rows: Sequence[ReportRow], baseline: str | None, method: Method = "
     return results
 
 
+def _sets_named(members: Sequence[ReportRow]) -> str:
+    labels = sorted({str(r.extra.get("test_set") or "?") for r in members})
+    return "test set " + ", ".join(labels)
+
+
 def _shared(first: Sequence[Any], second: Sequence[Any]) -> tuple[float, float]:
     """The range two curves share on one axis (rate or PSNR)."""
     return max(min(map(float, first)), min(map(float, second))), min(max(map(float, first)), max(map(float, second)))
@@ -237,6 +355,8 @@ def markdown_table(rows: Sequence[ReportRow], baseline: str | None, bd: Sequence
     points = rate_points(rows)
     ref = _front(_curve(_families(rows).get(baseline, [])))[-1:] if baseline else []
     ref_row = ref[0] if ref else None
+    group = _group_of(rows)
+    elsewhere = 0  # rows of another test set than the reference's: their change against it means nothing
     head = ["Method", "Setting", "RP", "# Gaussians", "Size (MB)", "Mbps", "PSNR (dB)"]
     head += ["YUV-PSNR (dB)"] if show_yuv else []
     head += ["SSIM"]
@@ -254,7 +374,10 @@ def markdown_table(rows: Sequence[ReportRow], baseline: str | None, bd: Sequence
             cells.append(_f(r.ssim, ".4f"))
             if show_lpips:
                 cells.append(_f(r.lpips, ".4f"))
-            if ref_row:
+            if ref_row and group[id(r)] != group[id(ref_row)]:
+                cells += ["–", "–"]
+                elsewhere += 1
+            elif ref_row:
                 ratio = (r.mbps / ref_row.mbps - 1) * 100 if r.mbps and ref_row.mbps else None
                 cells.append("–" if ratio is None else f"{ratio:+.1f} %")
                 cells.append("–" if r.psnr is None or ref_row.psnr is None else f"{r.psnr - ref_row.psnr:+.2f}")
@@ -262,12 +385,15 @@ def markdown_table(rows: Sequence[ReportRow], baseline: str | None, bd: Sequence
     lines += ["", SIZE_NOTE]
     if points:
         lines.append("RP: the curve's rate points rp01 (lowest rate) to rp04, as MPEG's Gaussian-splat-coding test "
-                     "conditions name them, on its Pareto front (a point another beats names none); a curve of more than four "
+                     "conditions name them, on its Pareto front (a point another beats names none); a curve of more "
+                     "than four "
                      "points names four spread over its log rate.")
     if show_yuv:
         lines.append("YUV-PSNR: BT.709 YUV 4:2:0, (6 Y + U + V) / 8, as MPEG video coding reports quality.")
     if ref_row:
-        lines.append(f"Reference for the last two columns: {ref_row.family} / {ref_row.name}.")
+        lines.append(f"Reference for the last two columns: {ref_row.family} / {ref_row.name}."
+                     + (f" {elsewhere} row(s) scored on another test set than it are not compared with it (–)."
+                        if elsewhere else ""))
     if bd:
         lines += ["", f"### Bjøntegaard deltas against {baseline} ({bd_method} interpolation)", "",
                   "| Curve | Points | BD-rate (%) | BD-PSNR (dB) | Note |", "|---|---:|---:|---:|---|"]
@@ -326,7 +452,8 @@ def rd_figure(rows: Sequence[ReportRow], title: str, baseline: str | None, metri
         # The line joins the Pareto front, which the BD deltas use; dominated points are markers alone.
         line = _front(curve) if metric == "psnr" else curve
         colour, marker = colours[i % len(colours)], markers[i % len(markers)]
-        ax.plot(np.array([r.mbps for r in line], dtype=float), np.array([getattr(r, metric) for r in line], dtype=float),
+        ax.plot(np.array([r.mbps for r in line], dtype=float),
+                np.array([getattr(r, metric) for r in line], dtype=float),
                 marker=marker, color=colour,
                 linewidth=1.8 if family == baseline else 1.4,
                 linestyle="--" if family == baseline else "-", markersize=6, label=label)
@@ -337,7 +464,8 @@ def rd_figure(rows: Sequence[ReportRow], title: str, baseline: str | None, metri
                 ax.annotate(r.name, (x, y), textcoords="offset points", xytext=(4, -11), fontsize=7, alpha=0.75)
     ax.set_xlabel("Bitrate (Mbps)")
     ax.set_ylabel("PSNR (dB)" if metric == "psnr" else metric.upper())
-    ax.set_title(textwrap.fill(title, 60, break_on_hyphens=False), fontsize=11)  # long plan titles would run past the figure
+    # long plan titles would run past the figure
+    ax.set_title(textwrap.fill(title, 60, break_on_hyphens=False), fontsize=11)
     ax.margins(x=0.1, y=0.08)
     ax.grid(True, alpha=0.3)
     if legend_beside:
@@ -392,12 +520,23 @@ def remove_report(out_dir: str | Path, stem: str = "report") -> None:
 def _write_report(rows: list[ReportRow], out_dir: Path, baseline: str | None, title: str, bd_method: Method,
                   stem: str, notes: Sequence[str], baseline_may_be_missing: bool = False) -> Report:
     out_dir.mkdir(parents=True, exist_ok=True)
+    # The experiment runner's rows come from the records alone: one of another run's model (a file copied into the
+    # run's folder, `stgc.eval.evaluate.foreign_model`) is no point of this run, however it was given.
+    foreign = [r for r in rows if r.extra.get("foreign")]
+    if foreign:
+        rows = [r for r in rows if not r.extra.get("foreign")]
+        notes = [*notes, "Left out, holding another run's model than the run they were given as: "
+                 + "; ".join(f"{r.name} ({r.extra['foreign']})" for r in foreign)]
     try:
         base = resolve_baseline(rows, baseline)
     except ValueError as exc:
         if not baseline_may_be_missing:
             raise
         base, notes = None, [*notes, f"No BD deltas: {exc}; its runs have no results."]
+    rows, test_sets = split_test_sets(rows, base)
+    if test_sets:
+        log.warning("the report's rows were scored on %d different test sets: each is a curve of its own, compared "
+                    "with no other test set's (see %s)", len(test_sets), out_dir / f"{stem}.md")
     bd = bd_table(rows, base, bd_method)
     png = svg = None
     if any(r.mbps is not None and r.psnr is not None for r in rows):
@@ -411,12 +550,20 @@ def _write_report(rows: list[ReportRow], out_dir: Path, baseline: str | None, ti
         f.write(f"# {title}\n\n")
         if png is not None:
             f.write(f"![Rate-distortion: PSNR of the test views against Mbps]({png.name})\n\n")
+        if test_sets:
+            f.write(f"**Warning: these results were scored on {len(test_sets)} different test sets.** Rates and "
+                    "PSNRs of different test views are not comparable: each test set's rows make curves of their "
+                    "own (\"[test set X]\"), and BD deltas and the change against the reference are given only "
+                    f"between rows of one test set (the baseline's is A).\n\n")
+            f.writelines(f"- Test set {label}: {describe_test_set(t)}\n" for label, t in test_sets.items())
+            f.write("\n")
         f.write(markdown_table(rows, base, bd, "Results", bd_method))
         for note in notes:
             f.write(f"\n{note}\n")
     json_path = out_dir / f"{stem}.json"
     points = rate_points(rows)
     write_json(json_path, {"title": title, "baseline": base, "bd_method": bd_method, "size_note": SIZE_NOTE,
+                           **({"test_sets": test_sets} if test_sets else {}),
                            "rows": [asdict(r) | ({"rate_point": points[id(r)]} if id(r) in points else {})
                                     for r in rows], "bd": [asdict(b) for b in bd]})
     return Report(out_dir, md, png, svg, json_path, rows, bd, base)
@@ -457,14 +604,23 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
     setting = str(meta.get("label") or meta.get("name") or setting)
     rows = []
     summary = run.read_summary(strict=False)
+    saved_data = (config or {}).get("data")
+    saved_data = saved_data if isinstance(saved_data, dict) else {}
+
+    def test_set(record: Mapping[str, Any]) -> dict[str, Any]:
+        # Records the trainer wrote before they named their data and downscale: the run's config says them.
+        return {"data": record.get("data") or saved_data.get("path"),
+                "downscale": record.get("downscale", saved_data.get("downscale"))}
+
     record = run.read_eval()
     if record is not None and _scored_earlier_model(record, summary):
         log.warning("%s: left out of the report: it scored the model before the training finished (stgc eval the "
                     "run again)", run.eval_paths()[0])
     elif record is not None:
         # A run still training, scored by `stgc eval`: its numbers are not the run's result, and the table says so.
-        rows.append(_row_of(run.eval_paths()[0], {**record_fields(record), "name": _named(setting, record),
-                                                  "family": family, "run": run_dir.name, "run_dir": str(run_dir)}))
+        rows.append(_row_of(run.eval_paths()[0], {**record_fields(record), **test_set(record),
+                                                  "name": _named(setting, record), "family": family,
+                                                  "run": run_dir.name, "run_dir": str(run_dir)}))
     if include_codec:
         for path in sorted(run_dir.glob("eval_*.json")):
             rec = read_json_object(path)
@@ -476,13 +632,18 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
                 log.warning("%s: left out of the report: %s is missing or was written again after this "
                             "evaluation (stgc eval it again)", path, bitstream)
                 continue
+            if rec.get("foreign"):
+                log.warning("%s: left out of the report: %s holds another run's model (%s)", path, bitstream,
+                            rec["foreign"])
+                continue
             if _scored_earlier_model(rec, summary):
                 log.warning("%s: left out of the report: %s holds the model of iteration %s, not the one the run "
                             "ended with (compress and evaluate the run again)", path, bitstream, rec.get("iterations"))
                 continue
             # The experiment runner's model_q<Q>.stgc is its "q<Q>" point, as the runner's own rows name it.
             label = point.removeprefix("model_") if re.fullmatch(r"model_q\d+", point) else point
-            rows.append(_row_of(path, {**record_fields(rec), "name": _named(f"{setting} {label}", rec),
+            rows.append(_row_of(path, {**record_fields(rec), **test_set(rec),
+                                       "name": _named(f"{setting} {label}", rec),
                                        "family": f"{family}{CODEC_SUFFIX}", "run": run_dir.name,
                                        "run_dir": str(run_dir), "bitstream": bitstream}))
     return rows
@@ -525,8 +686,11 @@ RECORD_FIELDS = ("num_gaussians", "size_mb", "mbps", "psnr", "psnr_yuv", "ssim",
 
 
 def record_fields(record: Mapping[str, Any]) -> dict[str, Any]:
-    """The eval.json values a report row (and the experiment's results.csv) carries."""
-    return {k: record.get(k) for k in RECORD_FIELDS}
+    """The eval.json values a report row (and the experiment's results.csv) carries: its numbers, the test set it
+    was scored on (TEST_SET_FIELDS) and, for a file of another run's model, why it is one (`foreign`): make_report
+    compares rows of one test set only and leaves such files out, for rows read from runs and for the experiment
+    runner's alike."""
+    return {k: record.get(k) for k in (*RECORD_FIELDS, *TEST_SET_FIELDS, "foreign")}
 
 
 def report_from_runs(
