@@ -4,6 +4,8 @@ train: config.json, checkpoint.pt, train_summary.json (finished) and eval.json w
 compaction.case. `--set fake.fail=1` exits 3; `--set fake.no_eval=1` leaves eval.json to the eval verb;
 `--set fake.sleep=S` trains for S seconds after its first checkpoint (a kill can land mid-run). `--resume` continues
 with the options of the run's config.json. finetune: the source's files, its evaluation 0.1 dB lower at half the rate.
+compress: a valid .stgc of no Gaussians whose header and metadata say what `stgc compress` records (quality, the
+run's final iteration, run config, allocation option), about 1000 bytes per quality level.
 Every call is appended to <run parent>/invocations.txt so tests can count launches."""
 
 from __future__ import annotations
@@ -11,9 +13,17 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import struct
 import sys
 import time
+import zlib
 from pathlib import Path
+
+# What a lite model's .stgc holds (stgc.codec.format, docs/stgc-format.md), copied here: importing stgc takes
+# seconds per call. test_runner.py checks that stgc reads these files back.
+_MAGIC = b"STGC\r\n\x1a\n"
+_LITE_SECTIONS = {b"POSI": 3, b"TCEN": 1, b"TSCL": 1, b"MOTN": 9, b"FDC_": 3, b"OPAC": 1, b"SCAL": 3, b"ROTN": 4,
+                  b"OMGA": 4}  # tag: components
 
 
 def _record(out: Path, argv: list[str]) -> None:
@@ -29,6 +39,24 @@ def _eval_record(case: int, preprocess: str, run: Path) -> dict:
     return {"psnr": 30.0 - 0.3 * case - (0.1 if preprocess != "none" else 0.0), "ssim": 0.9, "mbps": rate,
             "size_mb": rate / 8.388608, "num_gaussians": int(rate * 1000), "fps": 5.0,
             **({"iterations": trained} if trained is not None else {})}
+
+
+def stgc_bytes(quality: int, metadata: dict, size: int = 0) -> bytes:
+    """A valid version-4 .stgc of a lite model with no Gaussians, storing `quality` and `metadata` (padded with a
+    "pad" entry to `size` bytes where that is more than it needs)."""
+    meta = json.dumps(metadata, sort_keys=True).encode()
+    unpadded = 32 + sum(20 + 16 * c for c in _LITE_SECTIONS.values()) + 20 + len(meta)
+    pad = size - unpadded - len(', "pad": ""')
+    if pad > 0:
+        meta = json.dumps({**metadata, "pad": "x" * pad}, sort_keys=True).encode()
+    table = b""
+    for tag, components in _LITE_SECTIONS.items():  # stored, 8 bits, empty payloads; quantizer step 1, zero 0
+        table += struct.pack("<4sBBBBIII", tag, 0, 8, components, 0, 0, 0, 0)
+        table += struct.pack("<dq", 1.0, 0) * components
+    table += struct.pack("<4sBBBBIII", b"META", 0, 8, 0, 0, len(meta), len(meta), zlib.crc32(meta))
+    head = struct.pack("<8sHBBIHHII", _MAGIC, 4, 2, quality, 0, len(_LITE_SECTIONS) + 1, 0, len(table),
+                       zlib.crc32(table))
+    return head + struct.pack("<I", zlib.crc32(head)) + table + meta
 
 
 def _set_train_options(train: dict, sets: dict[str, str]) -> None:
@@ -131,7 +159,15 @@ def main(argv: list[str]) -> int:
         _record(run, argv)
         out = Path(argv[argv.index("--out") + 1])
         quality = int(argv[argv.index("--quality") + 1])
-        out.write_bytes(b"\0" * (1000 * quality))
+        sets = dict(argv[i + 1].split("=", 1) for i, a in enumerate(argv) if a == "--set")
+        summary = json.loads((run / "train_summary.json").read_text())
+        config = json.loads((run / "config.json").read_text())
+        metadata = {"source": run.name, "iteration": summary["iterations"]}  # a run's latest model: its final one
+        if sets.get("codec.embed_run_config", "True") == "True":
+            metadata["run_config"] = {k: config[k] for k in ("data", "model") if k in config}
+        if sets.get("codec.allocation", "auto") != "auto":
+            metadata["allocation_option"] = sets["codec.allocation"]
+        out.write_bytes(stgc_bytes(quality, metadata, 1000 * quality))
         return 0
     return 2
 

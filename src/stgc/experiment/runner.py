@@ -4,7 +4,9 @@ resumable, then results.csv and the report.
 Layout of an experiment folder OUT:
 
     OUT/<run name>/            a normal run directory (config.json, point_cloud/, eval.json, ...)
-    OUT/<run name>/experiment.json   the run's plan entry (family, label, overrides) for the report
+    OUT/<run name>/experiment.json   the run's plan entry (family, label, overrides) for the report; a run shared
+                               by several plans has each plan's name, family and label under "plans" (by plan name),
+                               the top-level ones staying the first plan's
     OUT/logs/<run name>.log    stdout + stderr of that run's subprocesses
     OUT/results-<plan>.csv     one row per run (and per codec rate point), rewritten atomically after every run
     OUT/report-<plan>/         report.md, report_rd.png/.svg, report.json
@@ -15,7 +17,8 @@ table3) can share one folder and train their common runs once.
 A run counts as finished when RUN/eval.json exists and RUN/train_summary.json says finished; finished runs are
 skipped, an interrupted run with a checkpoint is continued with `--resume`, a failed run is reported and the
 others still run. A run already in OUT that was made with other options, preset or data fails instead of being
-reused (`reuse_mismatch`).
+reused (`reuse_mismatch`). A codec point's RUN/model_q<Q>.stgc is reused only when it is what compressing the run
+now would write (that quality, the run's final model, the runner's codec options); any other is written again.
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ from typing import Any
 
 from stgc.codec import CodecConfig
 from stgc.codec.files import written_without_window_depths
+from stgc.codec.format import decode_metadata, read_capped, read_header
+from stgc.codec.video import is_video_stgc, read_video_index
 from stgc.compaction.config import idle_compaction_options
 from stgc.model.config import idle_model_options
 from stgc.config import (
@@ -52,6 +57,7 @@ from stgc.eval.report import (
     CODEC_SUFFIX,
     Report,
     ReportRow,
+    _scored_earlier_model,
     make_report,
     rate_points,
     record_fields,
@@ -519,7 +525,7 @@ def _die_with_parent() -> None:
 
 
 def _result_row(plan: Plan, o: RunOutcome, out_dir: Path) -> dict[str, Any]:
-    row = record_fields(o.record or {})
+    row = record_fields(_reportable_record(o) or {})
     try:
         rel = o.run_dir.relative_to(out_dir)
     except ValueError:
@@ -543,9 +549,21 @@ def write_results(path: Path, plan: Plan, outcomes: Sequence[RunOutcome], out_di
 
 def _reported(outcomes: Sequence[RunOutcome]) -> dict[int, ReportRow]:
     """{id(outcome): its report row} of the outcomes that have a result to report."""
-    return {id(o): ReportRow.from_mapping({**record_fields(o.record), "name": o.label, "family": o.family,
+    records = {id(o): _reportable_record(o) for o in outcomes}
+    return {id(o): ReportRow.from_mapping({**record_fields(record), "name": o.label, "family": o.family,
                                            "run": o.name})
-            for o in outcomes if o.record is not None and o.status not in ("failed", "dry-run")}
+            for o in outcomes if (record := records[id(o)]) is not None}
+
+
+def _reportable_record(o: RunOutcome) -> dict[str, Any] | None:
+    """The outcome's evaluation record where it is the outcome's result: not for a failed or dry-run outcome, nor
+    for a record of a model the finished run does not end with (the check `stgc report` applies to the same
+    records, so that results-<plan>.csv, the plan's report and `stgc report OUT/*` agree)."""
+    if o.record is None or o.status in ("failed", "dry-run"):
+        return None
+    if _scored_earlier_model(o.record, Run(o.run_dir).read_summary(strict=False)):
+        return None
+    return o.record
 
 
 def _report_rows(outcomes: Sequence[RunOutcome]) -> list[ReportRow]:
@@ -622,7 +640,8 @@ def run_plan(
                           args=(spec, run_dir, data_path, preset, overrides,
                                 qualities if spec.codec_qualities is None else list(spec.codec_qualities),
                                 runner, command_builder,
-                                python, out_dir / "logs" / f"{spec.name}.log", say, extra, check_options),
+                                python, out_dir / "logs" / f"{spec.name}.log", say, extra, check_options,
+                                plan.name),
                           num_cpus=_run_cpus(preset, overrides), progress=Run(run_dir).progress,
                           log_file=Run(run_dir).task_log_path,
                           after=tuple(task_of[name] for name in (spec.source, spec.reference) if name is not None)))
@@ -667,13 +686,14 @@ def run_plan(
 def run_spec(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | None, overrides: dict[str, str],
              qualities: Sequence[int], runner: Runner, command_builder: Callable[..., list[str]], python: str,
              log_path: Path, say: Callable[[str], None], extra: Mapping[str, str] | None = None,
-             check_config: bool = True) -> list[RunOutcome]:
+             check_config: bool = True, plan_name: str | None = None) -> list[RunOutcome]:
     """One run of a plan, as a task: train (or resume, or skip when finished), evaluate, and each codec point. A
     problem found on the way (a damaged record, a bitstream that cannot be read) fails this run's row and lets
-    the runs that need it be marked failed, instead of ending the plan without their rows."""
+    the runs that need it be marked failed, instead of ending the plan without their rows. `plan_name`: the plan
+    whose entry (family, label) RUN/experiment.json gets (none without it)."""
     try:
         return _run_spec(spec, run_dir, data_path, preset, overrides, qualities, runner, command_builder, python,
-                         log_path, say, extra, check_config)
+                         log_path, say, extra, check_config, plan_name)
     except StgcError as error:
         say(f"[{spec.name}] FAILED: {error}")
         return [RunOutcome(spec.name, spec.family, spec.label, "failed", run_dir, overrides, message=str(error))]
@@ -682,7 +702,7 @@ def run_spec(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | 
 def _run_spec(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | None, overrides: dict[str, str],
               qualities: Sequence[int], runner: Runner, command_builder: Callable[..., list[str]], python: str,
               log_path: Path, say: Callable[[str], None], extra: Mapping[str, str] | None,
-              check_config: bool) -> list[RunOutcome]:
+              check_config: bool, plan_name: str | None = None) -> list[RunOutcome]:
     outcome = RunOutcome(spec.name, spec.family, spec.label, "skipped", run_dir, overrides)
     extra = dict(extra or {})
     mismatch = reuse_mismatch(run_dir, data_path, preset, overrides, spec, extra, check_config=check_config)
@@ -695,11 +715,17 @@ def _run_spec(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str |
     start = time.perf_counter()
     if run_is_finished(run_dir):
         say(f"[{spec.name}] finished earlier: skipped")
+        # Reused, perhaps by another plan than the one that trained it: `stgc report` finds this plan's family and
+        # label there too. What the run was trained with stays as recorded (a run copied in by hand gets this).
+        recorded = Run(run_dir).experiment_path.is_file()
+        _record_entry(run_dir, spec, plan_name, None if recorded else _run_entry(overrides, preset, data_path))
     else:
         outcome.status = _train_and_eval(spec, run_dir, data_path, preset, overrides, extra, runner,
-                                         command_builder, python, log_path, say, outcome)
+                                         command_builder, python, log_path, say, outcome, plan_name)
     outcome.seconds = time.perf_counter() - start
-    outcome.record = Run(run_dir).read_eval(strict=False)
+    # Only a finished model's evaluation: a failed run's eval.json, if any, is an earlier one's (a record made while
+    # it trained, or of the run it was before --overwrite), and its numbers would stand in the failed row.
+    outcome.record = Run(run_dir).read_eval(strict=False) if outcome.status in ("finished", "skipped") else None
     outcomes = [outcome]
     if outcome.status != "failed":
         outcomes += [_codec_point(spec, run_dir, q, runner, python, log_path, say, overrides) for q in qualities]
@@ -717,13 +743,13 @@ def _run_cpus(preset: str | None, overrides: Mapping[str, str]) -> int:
 def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str | None,
                     overrides: dict[str, str], extra: Mapping[str, str], runner: Runner,
                     command_builder: Callable[..., list[str]], python: str, log_path: Path,
-                    say: Callable[[str], None], outcome: RunOutcome) -> str:
+                    say: Callable[[str], None], outcome: RunOutcome, plan_name: str | None = None) -> str:
     run_dir.mkdir(parents=True, exist_ok=True)
-    entry = {"name": spec.name, "family": spec.family, "label": spec.label, "overrides": overrides,
-             "preset": preset or "cpu", "data": str(Path(data_path).resolve())}
+    entry = _run_entry(overrides, preset, data_path)
     # Recorded now for a run this resumes or finds finished; a new run's --overwrite removes it (it belongs to
-    # whatever was there), so it is written again after training.
-    write_json(Run(run_dir).experiment_path, entry)
+    # whatever was there), so it is written again after training, with the other plans' entries kept: a false
+    # start of this very run (reuse_mismatch passed) was theirs too.
+    before = _record_entry(run_dir, spec, plan_name, entry)
     run = Run(run_dir)
     if not run.training_finished():
         resume = run.checkpoint_path.is_file() and run.has_config()
@@ -737,7 +763,7 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
             cmd = command_builder(data_path, run_dir, preset, overrides, resume=resume, python=python)
         say(f"[{spec.name}] {'resuming' if resume else 'training'} (log: {log_path})")
         code = runner(cmd, log_path)
-        write_json(run.experiment_path, entry)  # a new run's --overwrite removed it with whatever was there before
+        _record_entry(run_dir, spec, plan_name, entry, before)
         if code != 0:
             outcome.message = f"train exited with status {code}; see {log_path}"
             say(f"[{spec.name}] FAILED: {outcome.message}")
@@ -754,6 +780,34 @@ def _train_and_eval(spec: RunSpec, run_dir: Path, data_path: str | Path, preset:
     return "finished"
 
 
+def _run_entry(overrides: Mapping[str, str], preset: str | None, data_path: str | Path) -> dict[str, Any]:
+    """What RUN/experiment.json records of how the run is trained (reuse_mismatch compares it)."""
+    return {"overrides": dict(overrides), "preset": preset or "cpu", "data": str(Path(data_path).resolve())}
+
+
+def _record_entry(run_dir: Path, spec: RunSpec, plan_name: str | None, run_entry: Mapping[str, Any] | None,
+                  before: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Write RUN/experiment.json over `before` (default: the file as it is): `run_entry` (_run_entry; None keeps
+    what is recorded) and `plan_name`'s entry {name, family, label} under "plans". A run that two plans share
+    (table2 and table3) is labelled by each plan its own way. The top-level name, family and label stay the
+    first plan's (an older file's are taken as that), as older readers and the report read them. Returns what
+    the file holds."""
+    path = Run(run_dir).experiment_path
+    if before is None:
+        before = read_json_object(path, strict=False) or {}
+    mine = {"name": spec.name, "family": spec.family, "label": spec.label}
+    entry = {**mine, **before, **(run_entry or {})}
+    plans = before.get("plans")
+    plans = dict(plans) if isinstance(plans, Mapping) else {}
+    if plan_name is not None:
+        plans[plan_name] = mine
+    if plans:
+        entry["plans"] = plans
+    if not path.is_file() or entry != read_json_object(path, strict=False):
+        write_json(path, entry)
+    return entry
+
+
 def _codec_point(spec: RunSpec, run_dir: Path, quality: int, runner: Runner, python: str, log_path: Path,
                  say: Callable[[str], None], overrides: dict[str, str]) -> RunOutcome:
     stgc = run_dir / f"model_q{quality}.stgc"
@@ -761,18 +815,30 @@ def _codec_point(spec: RunSpec, run_dir: Path, quality: int, runner: Runner, pyt
     outcome = RunOutcome(f"{spec.name}-q{quality}", f"{spec.family}{CODEC_SUFFIX}", f"{spec.label} q{quality}",
                          "skipped", run_dir, overrides, bitstream=stgc.name)
     stale = json_path.is_file() and not Run.scored_this_bitstream(_read_json(json_path) or {}, stgc)
-    if stale:
-        say(f"[{spec.name}] {json_path.name} scored an earlier {stgc.name}: evaluating it again")
     codec = CodecConfig(quality=quality)  # what the point is written with, and what its file is checked against
-    outdated = stgc.is_file() and written_without_window_depths(stgc, codec)
-    if outdated:
-        say(f"[{spec.name}] {stgc.name} measured its depths again although the model trained through a rate-aware "
-            f"window at q{quality}: compressing it again with the window's depths")
-    if stale or outdated or not json_path.is_file():
-        if outdated or not stgc.is_file():  # written in place (atomically): a failed compress keeps the old file
+    # Any file of that name is taken only when it is what compressing the run now would write: one written by hand
+    # (another quality, other codec options) or before the run ended (an earlier model) is not this point.
+    unlike = _unlike_codec_point(stgc, Run(run_dir), codec) if stgc.is_file() else None
+    if unlike is None and stgc.is_file() and written_without_window_depths(stgc, codec):
+        unlike = (f"measured its depths again although the model trained through a rate-aware window at "
+                  f"q{quality}")
+    if unlike is not None:
+        say(f"[{spec.name}] {stgc} {unlike}: compressing it again")
+    elif stale:
+        say(f"[{spec.name}] {json_path.name} scored an earlier {stgc.name}: evaluating it again")
+    if unlike is not None or stale or not json_path.is_file():
+        if unlike is not None or not stgc.is_file():
+            # Written in place (atomically): a failed compress keeps the old file.
             code = runner(build_compress_command(run_dir, stgc, codec, python=python), log_path)
             if code != 0 or not stgc.is_file():
                 outcome.status, outcome.message = "failed", f"compress q{quality} failed (status {code})"
+                say(f"[{spec.name}] {outcome.message}")
+                return outcome
+            # Checked again: a run whose final model is gone compresses its latest, an earlier one, and that
+            # file's numbers are not the run's point (and compressing it again on every start would not mend it).
+            unlike = _unlike_codec_point(stgc, Run(run_dir), codec)
+            if unlike is not None:
+                outcome.status, outcome.message = "failed", f"compress q{quality} wrote {stgc}, which {unlike}"
                 say(f"[{spec.name}] {outcome.message}")
                 return outcome
         code = runner(build_eval_command(stgc, python=python), log_path)
@@ -785,4 +851,56 @@ def _codec_point(spec: RunSpec, run_dir: Path, quality: int, runner: Runner, pyt
     if outcome.record is None:  # this point fails; the run's own row and its other points stand
         outcome.status, outcome.message = "failed", f"{json_path}: cannot read the bitstream evaluation"
         say(f"[{spec.name}] {outcome.message}")
+    elif _scored_earlier_model(outcome.record, Run(run_dir).read_summary(strict=False)):
+        # Left out of the report as `stgc report` leaves it out; the row says why instead of standing empty.
+        outcome.status, outcome.message = "failed", (f"{json_path} scored a model the run does not end with "
+                                                     f"(iteration {outcome.record.get('iterations')})")
+        say(f"[{spec.name}] {outcome.message}")
     return outcome
+
+
+def _unlike_codec_point(path: Path, run: Run, codec: CodecConfig) -> str | None:
+    """Why the .stgc file at `path` is not what `stgc compress` of `run` with `codec` (the runner's command,
+    build_compress_command) writes now, or None when it is: the quality its header stores, the model it holds
+    (metadata `iteration` against the run's final iteration) and the codec options its metadata records (an
+    allocation asked for by name, the run config left out). A whole-video container is checked segment by segment
+    against the run's segments. Options a file does not record (zstd level, layouts) cannot be checked."""
+    try:
+        if is_video_stgc(path):
+            segments = run.segments()
+            index = read_video_index(path)
+            if len(segments) != index.num_segments:
+                return f"holds {index.num_segments} segments, the run {len(segments) or 'none'}"
+            with open(path, "rb") as f:
+                for k, (segment, entry) in enumerate(zip(segments, index.entries)):
+                    f.seek(entry.offset)  # one segment's bytes at a time: a whole video can be large
+                    why = _unlike_model(f.read(entry.length), f"{path} segment {k}", segment, codec)
+                    if why is not None:
+                        return f"segment {k} {why}"
+            return None
+        if run.is_video():
+            return "holds one model, the run is a whole video of segments"
+        return _unlike_model(read_capped(path), str(path), run, codec)
+    except (StgcError, OSError) as exc:  # FormatError, DataError: damaged, truncated, another format's version
+        return f"cannot be read ({exc})"
+
+
+def _unlike_model(data: bytes, source: str, run: Run, codec: CodecConfig) -> str | None:
+    """`_unlike_codec_point` for one model's bitstream `data` (named `source` in errors) of `run`."""
+    quality = read_header(data, source).quality
+    if quality != codec.quality:
+        return f"stores quality {quality}, not {codec.quality}"
+    metadata = decode_metadata(data, source)
+    final, iteration = run.final_iteration(), metadata.get("iteration")
+    if final is not None and iteration != final:
+        held = "a model of no recorded iteration" if iteration is None else f"the model of iteration {iteration}"
+        return f"holds {held}, not the one the run ended with (iteration {final})"
+    asked = None if codec.allocation == "auto" else codec.allocation  # what compress records (its metadata)
+    if metadata.get("allocation_option") != asked:
+        return (f"was written with codec.allocation={metadata.get('allocation_option', 'auto')}, not "
+                f"{codec.allocation}")
+    if codec.embed_run_config and run.has_config() and "run_config" not in metadata:
+        return "was written without the run's config (codec.embed_run_config=false)"
+    if not codec.embed_run_config and "run_config" in metadata:
+        return "embeds the run's config (codec.embed_run_config=true)"
+    return None
