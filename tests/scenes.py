@@ -200,3 +200,14 @@ def write_dnerf_scene(root: Path, times: dict[str, list[float]] | None = None) -
                            "transform_matrix": w2c_to_opengl_c2w(w2c).tolist()})
         (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
     return root
+
+
+def train_tiny_run(scene: SyntheticScene, run: Path, *extra: str) -> int:
+    """`stgc train` of a scene for 20 iterations from random points, checkpointing every 5 (resume tests)."""
+    from stgc.cli import main
+
+    return main(["train", str(scene.root), "--out", str(run), "--set", "train.iterations=20",
+                 "--set", "train.schedule_scale=0.01", "--set", "data.init_source=random",
+                 "--set", "train.progress=false", "--set", "train.tensorboard=false",
+                 "--set", "train.checkpoint_every=5", "--set", "train.log_every=1",
+                 "--set", "train.densify.enabled=false", *extra])

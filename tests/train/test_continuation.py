@@ -7,7 +7,7 @@ import hashlib
 import json
 
 import pytest
-from scenes import write_panoptic_scene
+from scenes import train_tiny_run, write_panoptic_scene
 
 from stgc.cli import main
 from stgc.model import STGModel
@@ -20,11 +20,7 @@ def scene(tmp_path_factory):
 
 
 def _train(scene, run, *extra):
-    return main(["train", str(scene.root), "--out", str(run), "--set", "train.iterations=20",
-                 "--set", "train.schedule_scale=0.01", "--set", "data.init_source=random",
-                 "--set", "train.progress=false", "--set", "train.tensorboard=false",
-                 "--set", "train.checkpoint_every=5", "--set", "train.log_every=1",
-                 "--set", "train.densify.enabled=false", *extra])
+    return train_tiny_run(scene, run, *extra)
 
 
 @pytest.fixture(scope="module")

@@ -24,9 +24,10 @@ import torch
 from stgc.config import ConfigError, apply_overrides, split_sections, validate_config
 from stgc.data.dataset import Dataset
 from stgc.errors import DataError, StgcError
-from stgc.fileio import write_json
+from stgc.fileio import atomic_path, write_json
 from stgc.render import select_backend
 from stgc.run import Run, prepare_new_run
+from stgc.train.checkpoint import copy_checkpoint
 from stgc.train.config import (
     QuantizationAwareConfig,
     TrainConfig,
@@ -34,7 +35,7 @@ from stgc.train.config import (
     refuse_unused_window_options,
     resolve_schedule,
 )
-from stgc.train.loop import run_config
+from stgc.train.loop import RunLock, options_fingerprint, resolved_options, run_config, run_options
 
 
 def check_continuable(source: str | Path) -> None:
@@ -109,9 +110,9 @@ def start_continuation(source: str | Path, out: str | Path, iterations: int, con
                        overrides: Mapping[str, str] | None = None, *, overwrite: bool = False,
                        data_path: str | None = None, evaluate: bool = True) -> str:
     """Write NEW (`out`) as `source` continued by `iterations` with `configs` (continuation_configs): its
-    config.json, source's checkpoint and logs, and continued_from.json, once the trainer's own checks pass
-    (`check_trainable`; `evaluate`: whether it will score the test views). Returns the data path to train it on
-    (`train(..., resume=True)`)."""
+    config.json, continued_from.json, source's logs and source's checkpoint (marked as trained with NEW's options),
+    once the trainer's own checks pass (`check_trainable`; `evaluate`: whether it will score the test views), holding
+    NEW's lock (RunLock) while it writes. Returns the data path to train it on (`train(..., resume=True)`)."""
     source, out = Path(source), Path(out)
     check_continuable(source)
     if out.resolve() == source.resolve():
@@ -121,13 +122,42 @@ def start_continuation(source: str | Path, out: str | Path, iterations: int, con
         raise StgcError(f"{source}: the run has no saved data path; give DATA")
     dataset = configs["data"].open(data_path)
     check_trainable(dataset, configs["train"], evaluate=evaluate)
-    prepare_new_run(out, overwrite=overwrite)
     started = int((Run(source).read_summary() or {}).get("iterations") or configs["train"].iterations - iterations)
-    for name in (Run.CHECKPOINT, Run.METRICS, Run.COMPACTION_LOG):
-        if (source / name).is_file():
-            shutil.copy2(source / name, out / name)
-    Run(out).write_config(run_config(dataset, {k: configs[k] for k in ("data", "model", "train", "compaction")},
-                                     resolve_schedule(configs["train"])))
-    write_json(out / Run.CONTINUED_FROM, {"run": str(source.resolve()), "iteration": started,
-                                          "iterations": iterations, "overrides": dict(overrides or {})})
+    # The options as the trainer resolves them: what it records in config.json and checks the checkpoint against.
+    train_cfg, model_cfg = resolved_options(dataset, configs["data"], configs["model"], configs["train"])
+    config = run_config(dataset, {"data": configs["data"], "model": model_cfg, "train": train_cfg,
+                                  "compaction": configs["compaction"]}, resolve_schedule(train_cfg))
+    continued_from = {"run": str(source.resolve()), "iteration": started, "iterations": iterations,
+                      "overrides": dict(overrides or {})}
+    lock = RunLock(out)
+    if out.is_dir():
+        lock.acquire()  # before an earlier run's files there are removed (overwrite)
+    try:
+        prepare_new_run(out, overwrite=overwrite)
+        lock.acquire()  # a new folder, once made
+        _write_continuation(source, out, config, continued_from)
+    finally:
+        lock.release()
     return str(data_path)
+
+
+def _write_continuation(source: Path, out: Path, config: dict[str, Any], continued_from: dict[str, Any]) -> None:
+    """Write NEW's files, the checkpoint last and each atomically: a start killed on the way leaves no checkpoint
+    without the config.json it belongs to (`stgc train --resume` of such a folder trained the source's checkpoint
+    under the command line's defaults, thousands of iterations of another training). One stopped by an exception or
+    an interrupt removes what it wrote, so that the same command runs again."""
+    new = Run(out)
+    try:
+        new.write_config(config)
+        write_json(out / Run.CONTINUED_FROM, continued_from)
+        for name in (Run.METRICS, Run.COMPACTION_LOG):
+            if (source / name).is_file():
+                with atomic_path(out / name) as copy:
+                    shutil.copy2(source / name, copy)
+        options = run_options(config)
+        copy_checkpoint(source, out, options_fingerprint(options), options)
+    except BaseException:
+        # The checkpoint first: at no moment is there one without its config.json.
+        for name in (Run.CHECKPOINT, Run.METRICS, Run.COMPACTION_LOG, Run.CONTINUED_FROM, Run.CONFIG):
+            (out / name).unlink(missing_ok=True)
+        raise

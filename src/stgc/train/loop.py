@@ -13,14 +13,19 @@ from RUN/checkpoint.pt makes exactly the draws an uninterrupted run would have m
 from __future__ import annotations
 
 import dataclasses
+import fcntl
+import gc
+import hashlib
 import json
 import logging
 import math
+import os
 import random
+import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol, cast
+from typing import IO, Any, Protocol, cast
 
 import numpy as np
 import torch
@@ -34,7 +39,7 @@ from stgc.data import DataConfig
 from stgc.data.cameras import Camera
 from stgc.data.config import initial_points_from_config
 from stgc.data.dataset import Dataset
-from stgc.errors import DataError, StgcError
+from stgc.errors import DataError, OutputError, StgcError
 from stgc.fileio import write_json
 from stgc.metrics import mse, ssim
 from stgc.model import ModelConfig, STGModel
@@ -44,6 +49,8 @@ from stgc.render import BACKENDS, select_backend
 from stgc.run import Run, run_config_problems, run_contents
 from stgc.train.behaviour import BEHAVIOUR_KEY, recorded_behaviour
 from stgc.train.checkpoint import (
+    OPTIONS,
+    OPTIONS_FINGERPRINT,
     load_checkpoint,
     restore_rng_states,
     save_checkpoint,
@@ -256,8 +263,133 @@ def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig |
             f"{'; '.join(overlapping)}: they change the Gaussians the mask learns over")
 
 
+# RUN/.lock: not one of the run's files (stgc.run.RUN_FILES), so a folder holding only a stale one holds no run.
+LOCK_NAME = ".lock"
+# Tries at locking a lock file that its releasing holders keep removing (each try follows a release).
+_LOCK_TRIES = 20
+
+
+class RunInUseError(OutputError):
+    """Another trainer holds the run folder (RunLock): it trains the run, or a fine-tuning is being started in it."""
+
+
+class RunLock:
+    """An exclusive advisory lock on a run folder (flock on RUN/.lock), held while a trainer or the start of a
+    fine-tuning writes the folder: two trainers in one folder (two resumes of a run, or a resume while a killed
+    driver's Ray worker still trains it) wrote every metrics row twice and interleaved their checkpoints. The kernel
+    releases it when its holder dies, so a killed run never leaves its folder locked. The file holds the holder's pid
+    and host, for the message that refuses a second trainer."""
+
+    def __init__(self, run_dir: str | Path):
+        self.run_dir = Path(run_dir)
+        self.path = self.run_dir / LOCK_NAME
+        self._file: IO[str] | None = None
+
+    @property
+    def held(self) -> bool:
+        return self._file is not None
+
+    def acquire(self) -> None:
+        """Take the lock (nothing to do while this object holds it); RunInUseError naming the folder and the holder
+        when another one holds it. The folder must exist."""
+        if self._file is not None:
+            return
+        collected = False
+        for _ in range(_LOCK_TRIES):
+            try:
+                handle = open(self.path, "a+")
+            except OSError:
+                return  # a folder that cannot be written: the run's own first write fails, naming its file
+            try:
+                fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = _lock_holder(handle)
+                handle.close()
+                if not collected and holder.get("pid") == os.getpid() and holder.get("host") == socket.gethostname():
+                    # A trainer this process dropped without running it (a test, a notebook) keeps its lock until the
+                    # garbage collector frees it: its strategies refer back to it, so dropping it frees nothing.
+                    gc.collect()
+                    collected = True
+                    continue
+                raise RunInUseError(self.run_dir, f"is being trained by {_holder_words(holder)}; two trainers in one "
+                                                  "run folder would both write its logs and checkpoints: wait until "
+                                                  "it ends, or stop it (a stopped process frees the folder)") from None
+            except OSError as exc:
+                handle.close()
+                log.warning("%s: cannot lock the run folder (%s): training without the guard against a second "
+                            "trainer in it", self.run_dir, exc.strerror or exc)
+                return
+            if not _same_file(handle, self.path):
+                handle.close()  # its last holder removed it when it released it: lock the one there now
+                continue
+            try:
+                handle.seek(0)
+                handle.truncate()
+                handle.write(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+                handle.flush()
+            except OSError:
+                pass  # held all the same; a refused trainer just cannot name the holder
+            self._file = handle
+            return
+        raise RunInUseError(self.run_dir, f"{LOCK_NAME} is replaced as soon as it is locked: other trainers keep "
+                                          "starting and ending in this folder")
+
+    def release(self) -> None:
+        """Let the lock go (nothing to do when not held) and remove its file."""
+        handle, self._file = self._file, None
+        if handle is None:
+            return
+        try:
+            # Removed while still locked: a process that opened it meanwhile sees, once it locks it, that it is no
+            # longer the folder's lock file, and tries again (acquire).
+            if _same_file(handle, self.path):
+                self.path.unlink()
+        except OSError:
+            pass
+        handle.close()
+
+    def __enter__(self) -> RunLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def _same_file(handle: IO[str], path: Path) -> bool:
+    """Whether the open `handle` is the file at `path` (not one removed from there)."""
+    try:
+        there, mine = os.stat(path), os.fstat(handle.fileno())
+    except OSError:
+        return False
+    return (there.st_dev, there.st_ino) == (mine.st_dev, mine.st_ino)
+
+
+def _lock_holder(handle: IO[str]) -> dict[str, Any]:
+    """The pid and host a lock file names ({} when it names none: its holder had not written them yet)."""
+    try:
+        handle.seek(0)
+        holder = json.loads(handle.read() or "{}")
+    except (OSError, ValueError):
+        return {}
+    return holder if isinstance(holder, dict) else {}
+
+
+def _holder_words(holder: dict[str, Any]) -> str:
+    pid, host = holder.get("pid"), holder.get("host")
+    if not isinstance(pid, int):
+        return "another process"
+    if isinstance(host, str) and host != socket.gethostname():
+        return f"another process (pid {pid} on {host})"
+    if pid == os.getpid():
+        return f"another trainer of this process (pid {pid}; it holds the folder until its run ends)"
+    return f"another process (pid {pid})"
+
+
 class Trainer:
-    """Holds the state of one run. `train()` is the public entry point; tests drive `Trainer` directly."""
+    """Holds the state of one run. `train()` is the public entry point; tests drive `Trainer` directly.
+
+    It holds the run folder's lock (RunLock) from its construction until `run()` ends (or `close()`)."""
 
     def __init__(
         self,
@@ -280,14 +412,11 @@ class Trainer:
             raise DataError(dataset.root, f"the scene extent (1.1 x the spread of the training cameras' centres) is "
                                           f"{extent:g}: the learning rates and the clone/split sizes scale with it, "
                                           f"so training needs training cameras at two or more places")
-        # Options left unset follow the data: the densification schedule the initial cloud's kind
-        # (DensifyConfig.SPARSE_CLOUD), the model and learning rates the data's official config family
-        # (stgc.official). The resolved values are what config.json records.
-        sparse_cloud = not (data_cfg or DataConfig()).points_ship_with(dataset)
-        train_cfg = train_cfg.resolved(sparse_cloud, dataset.official_config)
+        model_options_given = model_cfg is not None
         if model is not None:
             model_cfg = _options_of_given_model(model, model_cfg)
-        model_cfg = (model_cfg or ModelConfig()).resolved(dataset.official_config)
+        # Options left unset follow the data (resolved_options); the resolved values are what config.json records.
+        train_cfg, model_cfg = resolved_options(dataset, data_cfg, model_cfg, train_cfg)
         self.dataset, self.data_cfg, self.model_cfg = dataset, data_cfg, model_cfg
         self.cfg, self.compaction_cfg = train_cfg, compaction_cfg
         self.schedule: Schedule = resolve_schedule(train_cfg)
@@ -303,77 +432,98 @@ class Trainer:
             select_backend(train_cfg.backend, torch.device("cpu"))
         except ValueError as exc:
             raise ConfigError(f"train.backend: {exc}") from None
-        self.out_run = Run(out_dir)
-        resuming = resume and self.out_run.checkpoint_path.exists()
-        if not resuming:
-            restart = resume and not overwrite
-            if restart:
-                _refuse_restarting_a_model_of_value(self.out_run)
-            # A resume with nothing to resume restarts the same run, so its own partial files may go; files derived
-            # from some other model (bitstreams, their evaluations) are not this start's to remove.
-            self.out_run = Run.create(out_dir, overwrite=overwrite or restart, derived=not restart)
-        self.callback = callback
-        self.evaluator = evaluator
-        if evaluator is None and (train_cfg.eval_every or train_cfg.eval_at_end):
-            log.info("no test evaluator handed to the trainer: the test views are not scored during or after training")
-        machine.use_threads(train_cfg.threads)  # a task asking for k CPUs uses k
-        self.metrics_log = JsonLines(self.out_run.path / Run.METRICS)
-        self.compaction_log = JsonLines(self.out_run.path / Run.COMPACTION_LOG)
-        self.images = GroundTruth(dataset)
-        self.masks = self._make_foreground_masks()
-        self.frames = dataset.train_frames  # frames only a test image holds (monocular data) are never drawn
-        self.train_centers = np.array([c.center for c in dataset.train], dtype=np.float64).reshape(-1, 3)
-        self.background = torch.tensor(dataset.background, dtype=torch.float32)
-        self.elapsed_before = 0.0
-        self.start_iteration = 0
-        # How each session of the run executed (resumes may change the threads or the backend): rounding follows
-        # them, so a loss reference's check reads every session's, not only the last one's.
-        self.executions: list[dict[str, Any]] = []
+        # Claimed before anything in the folder is removed, truncated or written (a folder yet to be made, once made).
+        self.lock = RunLock(out_dir)
+        if Path(out_dir).is_dir():
+            self.lock.acquire()
+        try:
+            self.out_run = Run(out_dir)
+            resuming = resume and self.out_run.checkpoint_path.exists()
+            if not resuming:
+                restart = resume and not overwrite
+                if restart:
+                    _refuse_restarting_a_model_of_value(self.out_run)
+                # A resume with nothing to resume restarts the same run, so its own partial files may go; files
+                # derived from some other model (bitstreams, their evaluations) are not this start's to remove.
+                self.out_run = Run.create(out_dir, overwrite=overwrite or restart, derived=not restart)
+            self.lock.acquire()  # a new folder: claimed now that it exists
+            self.callback = callback
+            self.evaluator = evaluator
+            if evaluator is None and (train_cfg.eval_every or train_cfg.eval_at_end):
+                log.info("no test evaluator handed to the trainer: the test views are not scored during or after "
+                         "training")
+            machine.use_threads(train_cfg.threads)  # a task asking for k CPUs uses k
+            self.metrics_log = JsonLines(self.out_run.path / Run.METRICS)
+            self.compaction_log = JsonLines(self.out_run.path / Run.COMPACTION_LOG)
+            self.images = GroundTruth(dataset)
+            self.masks = self._make_foreground_masks()
+            self.frames = dataset.train_frames  # frames only a test image holds (monocular data) are never drawn
+            self.train_centers = np.array([c.center for c in dataset.train], dtype=np.float64).reshape(-1, 3)
+            self.background = torch.tensor(dataset.background, dtype=torch.float32)
+            self.elapsed_before = 0.0
+            self.start_iteration = 0
+            # How each session of the run executed (resumes may change the threads or the backend): rounding follows
+            # them, so a loss reference's check reads every session's, not only the last one's.
+            self.executions: list[dict[str, Any]] = []
 
-        checkpoint = None
-        if resuming:
-            checkpoint = load_checkpoint(self.out_run.path)
-            self.model = self._model_from_checkpoint(checkpoint)
-        else:
-            self.model = model if model is not None else build_initial_model(dataset, data_cfg, model_cfg)
-            if model is not None:
-                # The learning rates, the clone/split size limit and the floater rules scale with the data's
-                # extent, which a model built or loaded elsewhere does not carry (STGModel.load says 1.0).
-                model.scene_extent = dataset.scene_extent()
-            self.metrics_log.clear()
-            self.compaction_log.clear()
-            self._write_config()
-        self.decoder_ray_origin = _chosen(model_cfg.decoder_ray_origin, dataset.synthetic)
-        self.decoder_ray_direction = _chosen(model_cfg.decoder_ray_direction, dataset.view_dependent_colour)
-        if self.model.decoder is not None:
-            self.model.decoder.ignore_ray_inputs(origin=not self.decoder_ray_origin,
-                                                 direction=not self.decoder_ray_direction)
-        self.extent = float(self.model.scene_extent)
-        self.optimizer = self.model.make_optimizer(
-            learning_rates(train_cfg, self.extent, self.model.params), train_cfg.lr.decoder
-        )
-        self.density = DensityControl(train_cfg.densify, train_cfg.floaters, self.schedule, self.model.num_gaussians,
-                                      self.train_centers)
-        self.colour = self._make_colour_correction()
-        self.ems = ErrorGuidedSampler(
-            train_cfg.ems, self.schedule.ems_start, self.schedule.ems_min_gap,
-            [str(c.name) for c in dataset.train], _resolved(model_cfg.trbf_scale_init),
-        )
-        # After the optimizer step, in this order: density control, error-guided points, compaction.
-        self.strategies: list[Strategy] = [DensityStrategy(self.density), ErrorGuidedStrategy(self.ems, self.density)]
-        self.quantization = QuantizationSimulation(train_cfg.quantization_aware) if (
-            train_cfg.quantization_aware.iterations > 0 and train_cfg.quantization_aware.simulate) else None
-        if self.quantization is not None and train_cfg.quantization_aware.mask:
-            window = train_cfg.quantization_aware.iterations
-            settle = self.schedule.iterations - round(MASK_SETTLE_FRACTION * window)
-            self.strategies.append(MaskStrategy(self.quantization, self.density, settle))
-        if self.compactor is not None:
-            self.strategies.append(CompactionStrategy(
-                self.compactor, lambda event: self.compaction_log.append(_jsonable(event)), self.density,
-                self.importance, self.probe,
-            ))  # fmt: skip
-        if checkpoint is not None:
-            self._restore(checkpoint)
+            checkpoint = None
+            if resuming:
+                checkpoint = self._load_checkpoint()
+                self.model = self._model_from_checkpoint(checkpoint)
+                if not model_options_given:
+                    # The model it continues is the checkpoint's: its variant and decoder activation are the run's,
+                    # as a model handed in to start from gives its own.
+                    model_cfg = _options_of_given_model(self.model, None).resolved(dataset.official_config)
+                    self.model_cfg = model_cfg
+            else:
+                self.model = model if model is not None else build_initial_model(dataset, data_cfg, model_cfg)
+                if model is not None:
+                    # The learning rates, the clone/split size limit and the floater rules scale with the data's
+                    # extent, which a model built or loaded elsewhere does not carry (STGModel.load says 1.0).
+                    model.scene_extent = dataset.scene_extent()
+                self.metrics_log.clear()
+                self.compaction_log.clear()
+                self._write_config()
+            # What every checkpoint records, and what a resumed one must have been trained with.
+            self.options = run_options(self._run_config())
+            self.options_fingerprint = options_fingerprint(self.options)
+            if checkpoint is not None:
+                self._refuse_a_checkpoint_of_other_options(checkpoint)
+            self.decoder_ray_origin = _chosen(model_cfg.decoder_ray_origin, dataset.synthetic)
+            self.decoder_ray_direction = _chosen(model_cfg.decoder_ray_direction, dataset.view_dependent_colour)
+            if self.model.decoder is not None:
+                self.model.decoder.ignore_ray_inputs(origin=not self.decoder_ray_origin,
+                                                     direction=not self.decoder_ray_direction)
+            self.extent = float(self.model.scene_extent)
+            self.optimizer = self.model.make_optimizer(
+                learning_rates(train_cfg, self.extent, self.model.params), train_cfg.lr.decoder
+            )
+            self.density = DensityControl(train_cfg.densify, train_cfg.floaters, self.schedule,
+                                          self.model.num_gaussians, self.train_centers)
+            self.colour = self._make_colour_correction()
+            self.ems = ErrorGuidedSampler(
+                train_cfg.ems, self.schedule.ems_start, self.schedule.ems_min_gap,
+                [str(c.name) for c in dataset.train], _resolved(model_cfg.trbf_scale_init),
+            )
+            # After the optimizer step, in this order: density control, error-guided points, compaction.
+            self.strategies: list[Strategy] = [DensityStrategy(self.density),
+                                               ErrorGuidedStrategy(self.ems, self.density)]
+            self.quantization = QuantizationSimulation(train_cfg.quantization_aware) if (
+                train_cfg.quantization_aware.iterations > 0 and train_cfg.quantization_aware.simulate) else None
+            if self.quantization is not None and train_cfg.quantization_aware.mask:
+                window = train_cfg.quantization_aware.iterations
+                settle = self.schedule.iterations - round(MASK_SETTLE_FRACTION * window)
+                self.strategies.append(MaskStrategy(self.quantization, self.density, settle))
+            if self.compactor is not None:
+                self.strategies.append(CompactionStrategy(
+                    self.compactor, lambda event: self.compaction_log.append(_jsonable(event)), self.density,
+                    self.importance, self.probe,
+                ))  # fmt: skip
+            if checkpoint is not None:
+                self._restore(checkpoint)
+        except BaseException:
+            self.lock.release()
+            raise
 
     # ------------------------------------------------------------------------------------------- setup
     def _run_config(self) -> dict[str, Any]:
@@ -488,6 +638,36 @@ class Trainer:
             return None
         return ColourCorrection(self.dataset.train_views, self.cfg.lr.colour_correction)
 
+    def _load_checkpoint(self) -> dict[str, Any]:
+        """The checkpoint to resume, refused (DataError naming it) where no config.json says which options it belongs
+        to: a fine-tuning killed while it copied its source's checkpoint left one so, and `stgc train --resume`
+        then trained it with the command line's defaults, another training's."""
+        if not self.out_run.has_config():
+            raise DataError(self.out_run.checkpoint_path, f"no {Run.CONFIG} beside it records the options it was "
+                            "trained with (a fine-tuning stopped while it was started?), so resuming would continue "
+                            "it under other ones; start the run again (stgc finetune or stgc train with --overwrite)")
+        return load_checkpoint(self.out_run.path)
+
+    def _refuse_a_checkpoint_of_other_options(self, ckpt: dict[str, Any]) -> None:
+        """Refuse (DataError naming the checkpoint, and the options that differ) to continue a checkpoint trained with
+        other options than this run's (`run_options`): it would silently become the rest of another training. A
+        checkpoint written before the options were recorded carries none: the run's config.json, which a resume
+        trains with, is all there is to go by."""
+        recorded = ckpt.get(OPTIONS_FINGERPRINT)
+        if recorded is None or recorded == self.options_fingerprint:
+            return
+        recorded_options = ckpt.get(OPTIONS)
+        theirs: dict[str, Any] = recorded_options if isinstance(recorded_options, dict) else {}
+        missing = object()
+        differences = [f"{name}: the checkpoint's {theirs.get(name)!r}, this run's {self.options.get(name)!r}"
+                       for name in sorted(set(theirs) | set(self.options))
+                       if theirs.get(name, missing) != self.options.get(name, missing)]
+        shown = "; ".join(differences[:6]) + ("; ..." if len(differences) > 6 else "")
+        raise DataError(self.out_run.checkpoint_path, f"was trained with other options than this run's "
+                        f"({shown or 'they differ'}); resuming it would continue that training under these: resume "
+                        "the run with its own options (stgc train --out RUN --resume, giving only options of how it "
+                        "runs, such as threads), or train into a new folder")
+
     def _model_from_checkpoint(self, ckpt: dict[str, Any]) -> STGModel:
         return STGModel.from_state_dict(ckpt["model"])
 
@@ -521,6 +701,8 @@ class Trainer:
             "colour_correction": None if self.colour is None else self.colour.state_dict(),
             "quantization_aware": None if self.quantization is None else self.quantization.state_dict(),
             "executions": self.executions,
+            OPTIONS_FINGERPRINT: self.options_fingerprint,
+            OPTIONS: self.options,
         }
 
     # ------------------------------------------------------------------------------------------- one step
@@ -715,6 +897,19 @@ class Trainer:
                                      backend=self.cfg.backend).rgb
 
     def run(self) -> dict[str, Any]:
+        """Train from the start (or the resumed checkpoint) to the end or train.stop_after; returns the summary. The
+        run folder's lock is released when it returns or raises."""
+        self.lock.acquire()  # held since the trainer was made, unless it ran before
+        try:
+            return self._train()
+        finally:
+            self.lock.release()
+
+    def close(self) -> None:
+        """Release the run folder without training (`run()` releases it when it ends)."""
+        self.lock.release()
+
+    def _train(self) -> dict[str, Any]:
         cfg, sched = self.cfg, self.schedule
         start = self.start_iteration
         end = sched.iterations
@@ -846,6 +1041,47 @@ def run_config(dataset: Dataset, configs: dict[str, Any], schedule: Schedule | N
         train["resolved_schedule"] = schedule.to_dict()
     return {"data": _jsonable(data), "model": _config_dict(configs["model"]), "train": train,
             "compaction": _config_dict(configs["compaction"]), BEHAVIOUR_KEY: recorded_behaviour()}
+
+
+def resolved_options(dataset: Dataset, data_cfg: DataConfig | None, model_cfg: ModelConfig | None,
+                     train_cfg: TrainConfig) -> tuple[TrainConfig, ModelConfig]:
+    """(train, model) options with those left unset resolved for `dataset` as the trainer trains and records them:
+    the densification schedule for the initial cloud's kind (DensifyConfig.SPARSE_CLOUD), the model and learning
+    rates for the data's official config family (stgc.official)."""
+    sparse_cloud = not (data_cfg or DataConfig()).points_ship_with(dataset)
+    return (train_cfg.resolved(sparse_cloud, dataset.official_config),
+            (model_cfg or ModelConfig()).resolved(dataset.official_config))
+
+
+def run_options(config: dict[str, Any]) -> dict[str, Any]:
+    """The options of a run config (`run_config`'s) that decide what the run trains, by dotted name: each section
+    read back as a resume reads config.json (`stgc.options.configs_from_run`), so that a start and its resume agree
+    however their configs were given (a section left to the trainer's defaults, a tuple read back as a list). Left
+    out: how the run executes (EXECUTION_OPTIONS: a resume may change them), where the data lies (data.path: it may
+    move) and the behaviour record (an upgrade of stgc changes it)."""
+    config = json.loads(json.dumps(config))
+    data = {k: v for k, v in (config.get("data") or {}).items() if k != "path"}
+    train = {k: v for k, v in (config.get("train") or {}).items() if k != "resolved_schedule"}
+    schedule = (config.get("train") or {}).get("resolved_schedule")
+    if isinstance(schedule, dict) and "iterations" in schedule:
+        train["iterations"] = schedule["iterations"]  # as configs_from_run reads it (real iterations)
+    compaction = config.get("compaction")
+    sections = {
+        "data": from_saved(DataConfig, data, "data"),
+        "model": from_saved(ModelConfig, config.get("model") or {}, "model"),
+        "train": from_saved(TrainConfig, train, "train"),
+        # A run without compaction saves null, and is read back as one whose compaction prunes nothing.
+        "compaction": (CompactionConfig(method="none") if compaction is None
+                       else from_saved(CompactionConfig, compaction, "compaction")),
+    }
+    options = {f"{name}.{key}": value for name, section in sections.items()
+               for key, value in _flat(json.loads(json.dumps(dataclasses.asdict(section)))).items()}
+    return {name: value for name, value in options.items() if name not in EXECUTION_OPTIONS}
+
+
+def options_fingerprint(options: dict[str, Any]) -> str:
+    """The sha256 of `run_options`' options, in canonical JSON."""
+    return hashlib.sha256(json.dumps(options, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def _chosen(mode: str, auto: bool) -> bool:
