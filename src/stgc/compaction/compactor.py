@@ -205,9 +205,7 @@ def load_reference_losses(run_dir: str, schedule: PruningSchedule, probe_views: 
     every pruning iteration of `schedule`, by iteration. Raises DataError naming the file when the run is not such a
     reference, does not cover the schedule, did not log that signal, or (its config.json says) probed a different
     number of views."""
-    if loss_signal not in _REFERENCE_FIELD:
-        raise ValueError(f"a loss reference holds a probe signal ({', '.join(_REFERENCE_FIELD)}), not {loss_signal!r}")
-    key = _REFERENCE_FIELD[loss_signal]
+    key = _REFERENCE_FIELD[loss_signal]  # CompactionConfig.validate admits a reference only with a probe signal
     path = Path(run_dir) / LOG_NAME if Path(run_dir).is_dir() else Path(run_dir)
     config_path = path.parent / "config.json"
     if config_path.is_file():
