@@ -11,8 +11,9 @@ import torch
 from stgc.compaction import PairMatches, removal_scores, select_removals
 from stgc.compaction.pruning import keeper_time_coverage
 from stgc.compaction.matching import match_from_neighbors
+from stgc.model import STGModel
 
-from .compaction_helpers import static_params
+from .compaction_helpers import make_model, static_params
 
 
 def _pairs(ref, part, dist) -> PairMatches:
@@ -229,3 +230,57 @@ def test_pairs_whose_keeper_does_not_cover_the_losers_lifetime_are_not_pruned():
     assert kept[1.0, 0.5] == kept[0.5, 0.5] == pytest.approx([0.2, 0.25, 0.4, 0.5, 0.75, 0.8])
     with pytest.raises(ValueError, match="keeper_time_coverage"):
         CompactionConfig(keeper_time_coverage=float("nan")).validate()
+
+
+def test_each_removal_names_the_keeper_of_the_pair_that_removed_it():
+    # The chain of test_chain_resolution_closest_pair_decides: 1 goes for 0, 3 for 2.
+    sel = select_removals(_pairs([0, 1, 2, 3], [1, 2, 3, 4], [0.1, 0.2, 0.3, 0.4]), 1.0, np.arange(6, dtype=float))
+    assert sel.remove.tolist() == [1, 3] and sel.keepers.tolist() == [0, 2]
+    # One keeper absorbing two neighbours, listed in removal-index order whatever the pair order.
+    sel = select_removals(_pairs([4, 4], [0, 2], [0.1, 0.2]), 1.0, np.array([3.0, 0.0, 2.0, 0.0, 1.0]))
+    assert sel.remove.tolist() == [0, 2] and sel.keepers.tolist() == [4, 4]
+    assert select_removals(_pairs([0], [1], [0.1]), 0.0, np.zeros(2)).keepers.size == 0
+
+
+def test_merged_opacity_is_the_union_of_the_keeper_and_its_losers():
+    from stgc.compaction.pruning import merge_keeper_opacity
+
+    alphas = torch.tensor([0.5, 0.5, 0.5, 0.2, 0.9, 0.3], dtype=torch.float64)
+    logits = torch.logit(alphas).float().reshape(-1, 1)
+    logits[4] = 40.0  # sigmoid(40) rounds to 1 in float32: the union must stay opaque and finite
+    merge_keeper_opacity(logits, np.array([1, 2, 5]), np.array([0, 0, 4]))
+    merged = torch.sigmoid(logits[:, 0].double())
+    assert merged[0].item() == pytest.approx(1 - 0.5 ** 3, rel=1e-6)  # 0.875: the keeper and its two losers
+    assert merged[3].item() == pytest.approx(0.2, rel=1e-6)  # not a keeper: untouched
+    assert torch.isfinite(logits).all() and merged[4].item() > 0.999
+    unchanged = logits.clone()
+    merge_keeper_opacity(logits, np.zeros(0, np.int64), np.zeros(0, np.int64))
+    assert torch.equal(logits, unchanged)
+
+
+def test_merged_opacity_keeps_what_a_pair_of_duplicates_rendered():
+    """A model of exact duplicate pairs loses one of each: with merge_opacity the keeper's union opacity draws
+    the pair's coverage again (exactly at its centre, nearly around it); without, half-opaque splats thin out."""
+    from model.helpers import look_at_camera, point_cloud
+
+    from stgc.compaction import CompactionConfig, STKNNCompactor
+
+    single = STGModel.from_points(point_cloud(40, seed=3), variant="lite")
+    with torch.no_grad():
+        single.params["opacity"].fill_(0.0)  # a = 0.5: a pair composites to 0.75 at its centre
+        single.params["scaling"].add_(1.0)
+    doubled = make_model({k: torch.cat([v.detach(), v.detach()]) for k, v in single.params.items()},
+                         single.scene_extent)
+    camera = look_at_camera(width=48, height=32, time=0.5)
+    with torch.no_grad():
+        target = doubled.render(camera).rgb
+    errors = {}
+    for merge in (False, True):
+        config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=1.0,
+                                  ratio_min=1.0, ratio_max=1.0, merge_opacity=merge)
+        model = make_model({k: v.clone() for k, v in doubled.params.items()}, doubled.scene_extent)
+        event = STKNNCompactor(config, 10).step(1, 0.5, model, 1.0)
+        assert event["removed"] == 40 and model.num_gaussians == 40
+        with torch.no_grad():
+            errors[merge] = float((model.render(camera).rgb - target).square().mean())
+    assert errors[True] < 0.2 * errors[False]

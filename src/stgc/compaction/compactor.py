@@ -18,7 +18,7 @@ from .config import PROBE_SIGNALS, CompactionConfig, PruningSchedule, resolve_sc
 from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
 from .matching import SpacetimeModel, match_spatiotemporal_pairs, to_float64_numpy
 from .plot import LOG_NAME, read_compaction_log
-from .pruning import keeper_time_coverage, removal_scores, select_removals
+from .pruning import keeper_time_coverage, merge_keeper_opacity, removal_scores, select_removals
 
 
 class PrunableModel(SpacetimeModel, Protocol):
@@ -131,6 +131,8 @@ class STKNNCompactor:
             keep = torch.ones(n_before, dtype=torch.bool)
             keep[torch.from_numpy(selection.remove)] = False
             keep = keep.to(model.params["xyz"].device)
+            if self.config.merge_opacity:
+                merge_keeper_opacity(model.params["opacity"], selection.remove, selection.keepers)
             model.prune(keep)
             if on_prune is not None:
                 on_prune(keep)

@@ -145,6 +145,14 @@ class CompactionConfig:
             "(paper)"
         },
     )
+    merge_opacity: bool = field(
+        default=False,
+        metadata={
+            "help": "the keeper of a pruned pair takes over its loser's opacity: its base opacity becomes the union "
+            "1 - (1 - a_keeper)(1 - a_loser), so a pair of near duplicates keeps the coverage both gave at their "
+            "centre; false = the loser's opacity goes with it (paper)"
+        },
+    )
     min_gaussians: int = field(default=0, metadata={"help": "never prune below this many Gaussians"})
 
     def validate(self, prefix: str = "") -> None:

@@ -20,6 +20,8 @@ has lost a member, so all its partners in selected pairs are marked kept. Hence,
   by a farther one later) the pair has lost a member anyway; when not, it keeps both: a *conflict*;
 - the loser is already removed: nothing to do.
 So no selected pair loses both members and no kept Gaussian is removed; the removed set is exactly reproducible.
+Each removed Gaussian has one keeper, its partner in the pair that removed it (`merge_keeper_opacity` hands it the
+loser's opacity when `compaction.merge_opacity` asks for it).
 Mutual pairs were merged into one earlier (`matching.match_from_neighbors`).
 """
 
@@ -40,6 +42,7 @@ _FREE, _KEPT, _REMOVED = 0, 1, 2
 @dataclass(frozen=True)
 class PruneSelection:
     remove: np.ndarray  # [R] int64, sorted indices of the Gaussians to remove
+    keepers: np.ndarray  # [R] int64, the keeper of the pair that removed remove[k] (never itself removed)
     selected_pairs: int  # pairs taken by the ratio
     conflicts: int  # selected pairs that keep both members: their loser is kept by a closer pair, their keeper stays
     max_selected_distance: float  # the distance of the farthest selected pair (nan when none)
@@ -112,7 +115,7 @@ def select_removals(
     n_pairs = len(pairs)
     n_selected = min(n_pairs, int(np.floor(ratio * (n_pairs if ratio_of is None else ratio_of) + 0.5)))
     if n_selected == 0 or (max_removals is not None and max_removals <= 0):
-        return PruneSelection(np.zeros(0, dtype=np.int64), n_selected, 0, float("nan"))
+        return PruneSelection(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), n_selected, 0, float("nan"))
     order = np.lexsort((pairs.reference, pairs.distance))[:n_selected]
     a, b = pairs.reference[order], pairs.partner[order]
     a_loses = reference_loses(a, b, scores)
@@ -128,6 +131,7 @@ def select_removals(
 
     state = bytearray(scores.shape[0])
     removed: list[int] = []
+    removed_for: list[int] = []  # the keeper of each removal's pair
     limit = n_selected if max_removals is None else max_removals
     skipped: list[int] = []  # keepers of the pairs whose loser was kept
     for loser, keeper in zip(losers, keepers):
@@ -138,12 +142,32 @@ def select_removals(
                 break
             state[loser] = _REMOVED
             removed.append(loser)
+            removed_for.append(keeper)
             for partner in partners[offsets[loser] : offsets[loser + 1]]:
                 state[partner] = _KEPT
     conflicts = sum(state[keeper] != _REMOVED for keeper in skipped)  # a later pair may still remove a keeper
+    by_index = np.argsort(np.asarray(removed, dtype=np.int64))
     return PruneSelection(
-        remove=np.sort(np.asarray(removed, dtype=np.int64)),
+        remove=np.asarray(removed, dtype=np.int64)[by_index],
+        keepers=np.asarray(removed_for, dtype=np.int64)[by_index],
         selected_pairs=n_selected,
         conflicts=conflicts,
         max_selected_distance=float(pairs.distance[order[-1]]),
     )
+
+
+def merge_keeper_opacity(opacity_logit: torch.Tensor, remove: np.ndarray, keepers: np.ndarray) -> None:
+    """In place: each keeper's base opacity sigmoid(o) becomes the union 1 - (1 - a_keeper) * prod(1 - a_loser) over
+    the losers it keeps (`PruneSelection.keepers`), what the pair composites to where both are drawn at full
+    strength (their centre, for near duplicates). The result is held below 1 so that its logit stays finite."""
+    if remove.size == 0:
+        return
+    with torch.no_grad():
+        flat = opacity_logit.view(-1)
+        # log(1 - sigmoid(o)) = -softplus(o): exact for opaque Gaussians, where 1 - sigmoid(o) underflows.
+        log_clear = -torch.nn.functional.softplus(flat.double())
+        keeper_rows = torch.from_numpy(keepers).to(flat.device)
+        merged = log_clear.index_add(0, keeper_rows, log_clear[torch.from_numpy(remove).to(flat.device)])
+        touched = torch.unique(keeper_rows)
+        clear = merged[touched].exp().clamp_min(1e-6)
+        flat[touched] = torch.log1p(-clear).sub(torch.log(clear)).to(flat.dtype)
