@@ -80,11 +80,12 @@ def _run_config(run: Path) -> dict[str, Any]:
 
 
 @pytest.mark.parametrize("evaluated", [False, True], ids=["record-stale", "record-current"])
-@pytest.mark.parametrize("written", ["quality-5", "earlier-model", "ladder-allocation", "no-run-config", "damaged"])
+@pytest.mark.parametrize("written", ["quality-5", "earlier-model", "ladder-allocation", "no-run-config",
+                                     "another-run", "damaged"])
 def test_a_codec_point_s_file_is_compressed_again_unless_it_is_the_point_the_runner_writes(
         tmp_path: Path, written: str, evaluated: bool) -> None:
-    """A RUN/model_q1.stgc of another quality, of an earlier iteration's model, written with other codec options (or
-    one stgc cannot read) is not the run's q1 point: the runner compresses it again instead of publishing it, whether
+    """A RUN/model_q1.stgc of another quality, of an earlier iteration's model, written with other codec options, of
+    another run's model (`stgc eval` records it `foreign`), or one stgc cannot read, is not the run's q1 point: the runner compresses it again instead of publishing it, whether
     or not an evaluation record of that very file is there."""
     plan, out = _plan(tmp_path), tmp_path / "exp"
     _run(plan, out, (1,))
@@ -98,6 +99,10 @@ def test_a_codec_point_s_file_is_compressed_again_unless_it_is_the_point_the_run
         _real_stgc(point, 1, made | {"allocation_option": "ladder"})
     elif written == "no-run-config":
         _real_stgc(point, 1, {k: v for k, v in made.items() if k != "run_config"})
+    elif written == "another-run":
+        other = _run_config(run)
+        other["data"] = {**other["data"], "duration": 7}
+        _real_stgc(point, 1, made | {"run_config": other})
     else:
         point.write_bytes(b"\0" * 5000)
     if evaluated:  # `stgc eval` of that file: its record is current
@@ -153,7 +158,7 @@ def test_a_point_whose_evaluation_scored_an_earlier_model_fails(tmp_path: Path) 
 
 
 def test_a_record_of_a_model_the_run_did_not_end_with_is_not_a_result(tmp_path: Path) -> None:
-    """The runner's rows leave out what `stgc report` leaves out of the same run (_scored_earlier_model): a record of
+    """The runner's rows leave out what `stgc report` leaves out of the same run (scored_earlier_model): a record of
     an earlier iteration's model, or one made while the run trained."""
     from stgc.experiment.plans import load_plan_toml
     from stgc.experiment.runner import RunOutcome, _report_rows, write_results

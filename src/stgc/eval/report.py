@@ -613,7 +613,7 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
                 "downscale": record.get("downscale", saved_data.get("downscale"))}
 
     record = run.read_eval()
-    if record is not None and _scored_earlier_model(record, summary):
+    if record is not None and scored_earlier_model(record, summary):
         log.warning("%s: left out of the report: it scored the model before the training finished (stgc eval the "
                     "run again)", run.eval_paths()[0])
     elif record is not None:
@@ -636,7 +636,7 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[Repor
                 log.warning("%s: left out of the report: %s holds another run's model (%s)", path, bitstream,
                             rec["foreign"])
                 continue
-            if _scored_earlier_model(rec, summary):
+            if scored_earlier_model(rec, summary):
                 log.warning("%s: left out of the report: %s holds the model of iteration %s, not the one the run "
                             "ended with (compress and evaluate the run again)", path, bitstream, rec.get("iterations"))
                 continue
@@ -660,7 +660,7 @@ def _named(name: str, record: Mapping[str, Any]) -> str:
     return f"{name} (half-trained)" if record.get("training_finished") is False else name
 
 
-def _scored_earlier_model(record: Mapping[str, Any], summary: Mapping[str, Any] | None) -> bool:
+def scored_earlier_model(record: Mapping[str, Any], summary: Mapping[str, Any] | None) -> bool:
     """Whether a record of the run (its eval.json, or a bitstream's) scored a model the finished run does not end
     with: made while the run trained (`stgc eval` of the half-trained run), or of an earlier iteration's file.
     Records that name neither (written before the fields existed, or by other tools) are taken as they are."""

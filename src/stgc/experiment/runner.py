@@ -53,11 +53,12 @@ from stgc.config import (
 from stgc.distributed import Task, check_reachable, cpus_for_threads, run_tasks
 from stgc.data.readers import detect_format
 from stgc.errors import StgcError
+from stgc.eval.evaluate import foreign_model
 from stgc.eval.report import (
     CODEC_SUFFIX,
     Report,
     ReportRow,
-    _scored_earlier_model,
+    scored_earlier_model,
     make_report,
     rate_points,
     record_fields,
@@ -561,7 +562,7 @@ def _reportable_record(o: RunOutcome) -> dict[str, Any] | None:
     records, so that results-<plan>.csv, the plan's report and `stgc report OUT/*` agree)."""
     if o.record is None or o.status in ("failed", "dry-run"):
         return None
-    if _scored_earlier_model(o.record, Run(o.run_dir).read_summary(strict=False)):
+    if scored_earlier_model(o.record, Run(o.run_dir).read_summary(strict=False)):
         return None
     return o.record
 
@@ -851,7 +852,7 @@ def _codec_point(spec: RunSpec, run_dir: Path, quality: int, runner: Runner, pyt
     if outcome.record is None:  # this point fails; the run's own row and its other points stand
         outcome.status, outcome.message = "failed", f"{json_path}: cannot read the bitstream evaluation"
         say(f"[{spec.name}] {outcome.message}")
-    elif _scored_earlier_model(outcome.record, Run(run_dir).read_summary(strict=False)):
+    elif scored_earlier_model(outcome.record, Run(run_dir).read_summary(strict=False)):
         # Left out of the report as `stgc report` leaves it out; the row says why instead of standing empty.
         outcome.status, outcome.message = "failed", (f"{json_path} scored a model the run does not end with "
                                                      f"(iteration {outcome.record.get('iterations')})")
@@ -903,4 +904,7 @@ def _unlike_model(data: bytes, source: str, run: Run, codec: CodecConfig) -> str
         return "was written without the run's config (codec.embed_run_config=false)"
     if not codec.embed_run_config and "run_config" in metadata:
         return "embeds the run's config (codec.embed_run_config=true)"
+    foreign = foreign_model(run, metadata.get("run_config"))
+    if foreign is not None:  # `stgc eval` records it as `foreign` and every report leaves it out
+        return f"holds another run's model ({foreign})"
     return None
