@@ -136,7 +136,7 @@ def coerce(value: Any, tp: Any, name: str) -> Any:
             for c in choices:
                 if value == c or (isinstance(value, str) and str(c) == value):
                     return c
-            raise ConfigError(f"{name}: {value!r} is not one of {', '.join(map(str, choices))}")
+            raise ConfigError(_not_a_choice(name, value, choices))
         if inner is bool:
             if isinstance(value, bool):
                 return value
@@ -208,19 +208,67 @@ def check(condition: bool, name: str, value: Any, expected: str) -> None:
         raise ConfigError(f"{name}: {value!r} is not allowed ({expected})")
 
 
+def _not_a_choice(name: str, value: Any, choices: tuple[Any, ...]) -> str:
+    """The message for a value that is none of a fixed-choice option's values (parser and `validate_config` alike)."""
+    return f"{name}: {value!r} is not one of {', '.join(map(str, choices))}"
+
+
+def literal_choices(tp: Any) -> tuple[tuple[Any, ...], bool] | None:
+    """(the values, whether None is allowed too) of a fixed-choice field type: `Literal[...]`, `Optional[Literal[...]]`
+    or `Literal[...] | None`; None for any other type."""
+    inner, optional = _unwrap_optional(tp)
+    return (get_args(inner), optional) if get_origin(inner) is Literal else None
+
+
+def _is_choice(value: Any, choices: tuple[Any, ...]) -> bool:
+    """Whether `value` is one of `choices` as its own type: "last", not 1 for True nor "1" for 1 (the run compares
+    values with `==`, and config.json must read back as it trained)."""
+    return any(value == c and isinstance(value, type(c)) and isinstance(value, bool) == isinstance(c, bool)
+               for c in choices)
+
+
+def check_choices(obj: Any, section: str = "") -> None:
+    """Raise ConfigError, as the command line's parser does, when a fixed-choice (Literal-typed) option of the config
+    dataclass `obj` or of a config nested in it holds none of its values (`section` prefixes the names errors give;
+    anything but a dataclass instance, None included, passes). A config built in Python is checked by nothing else,
+    and code that tests `== "last"` takes a typo for the other choice, then config.json cannot be read back."""
+    if not dataclasses.is_dataclass(obj) or isinstance(obj, type):
+        return
+    prefix = f"{section}." if section else ""
+    hints = _hints(type(obj))
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            check_choices(value, f"{prefix}{f.name}")
+            continue
+        kind = literal_choices(hints.get(f.name))
+        if kind is None:
+            continue
+        choices, optional = kind
+        if not ((value is None and optional) or _is_choice(value, choices)):
+            raise ConfigError(_not_a_choice(f"{prefix}{f.name}", value, choices))
+
+
 def validate_config(obj: Any, section: str = "") -> Any:
-    """Call `validate(prefix)` on `obj` and on every nested config dataclass that defines it; returns `obj`."""
+    """Check every fixed-choice (Literal-typed) option of `obj` and of its nested config dataclasses against its
+    values (`check_choices`), then call `validate(prefix)` on each of them that defines it; returns `obj`."""
+    check_choices(obj, section)
+    _call_validators(obj, section)
+    return obj
+
+
+def _call_validators(obj: Any, section: str) -> None:
+    """`validate(prefix)` of `obj` and of every nested config dataclass that defines it, the nested ones first."""
     if not dataclasses.is_dataclass(obj):
-        return obj
+        return
     prefix = f"{section}." if section else ""
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
-            validate_config(value, f"{prefix}{f.name}")
+            _call_validators(value, f"{prefix}{f.name}")
     validator = getattr(obj, "validate", None)
     if callable(validator):
         validator(prefix)
-    return obj
 
 
 def to_dict(obj: Any) -> dict[str, Any]:

@@ -255,3 +255,37 @@ def test_a_stale_lock_file_neither_blocks_nor_makes_a_run(scene, stopped, tmp_pa
     fresh.mkdir()
     (fresh / ".lock").write_text(stale)
     assert _train(scene, fresh, "--set", "train.stop_after=1") == 0  # not "already holds a run"
+
+
+# ------------------------------------------------------------------------------------ the data it trains on
+def test_a_run_whose_data_folder_is_gone_continues_only_on_the_same_data(scene, stopped, finished, tmp_path,
+                                                                          capsys):
+    """Once the saved data folder is gone, DATA is taken for it (the data moved): the same views and images are
+    accepted wherever they lie, another capture with the same cameras is refused, for a resume and a fine-tuning."""
+    moved = tmp_path / "moved"
+    shutil.copytree(scene.root, moved)
+    other = write_panoptic_scene(tmp_path / "other", views=5, frames=2, width=32, height=24, seed=1)
+
+    def gone(run):
+        config = json.loads((run / Run.CONFIG).read_text())
+        config["data"]["path"] = str(tmp_path / "gone")
+        (run / Run.CONFIG).write_text(json.dumps(config))
+        return run
+
+    run = gone(_copy(stopped, tmp_path))
+    metrics = (run / Run.METRICS).read_text()
+    capsys.readouterr()
+    assert main(["train", str(other.root), "--out", str(run), "--resume"]) == 2
+    said = capsys.readouterr().err
+    assert f"{other.root}: is not the data {run} trained on" in said
+    assert (run / Run.METRICS).read_text() == metrics  # nothing truncated
+    assert main(["train", str(moved), "--out", str(run), "--resume"]) == 0
+    assert Run(run).training_finished()
+
+    source = gone(_copy(finished, tmp_path / "sources"))
+    new = tmp_path / "new"
+    assert main(["finetune", str(source), "--data", str(other.root), "--out", str(new), "--iterations", "3"]) == 2
+    assert f"{other.root}: is not the data {source} trained on" in capsys.readouterr().err
+    assert not new.exists()
+    assert main(["finetune", str(source), "--data", str(moved), "--out", str(new), "--iterations", "3"]) == 0
+    assert Run(new).training_finished()

@@ -8,6 +8,7 @@ every view has every frame of the segment.
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 import os
 import re
@@ -28,6 +29,29 @@ from .yuv import read_frame
 
 DEFAULT_FPS = 30.0
 DEFAULT_CACHE_BYTES = 2 << 30
+
+
+_WHOLE_FILE_BYTES = 64 << 20
+_SAMPLED_CHUNKS, _CHUNK_BYTES = 16, 1 << 20
+
+
+def file_digest(path: Path) -> str:
+    """sha256 of a file's bytes; of a file over 64 MiB (a whole video, a raw YUV stream), of its size and 16 chunks
+    of 1 MiB spread evenly over it, so that fingerprinting a large capture reads 16 MiB of it. A file that cannot be
+    read digests as its error (training it then fails with the reader's message)."""
+    try:
+        size = path.stat().st_size
+        digest = hashlib.sha256(str(size).encode())
+        with open(path, "rb") as f:
+            if size <= _WHOLE_FILE_BYTES:
+                digest.update(f.read())
+            else:
+                for k in range(_SAMPLED_CHUNKS):
+                    f.seek((size - _CHUNK_BYTES) * k // (_SAMPLED_CHUNKS - 1))
+                    digest.update(f.read(_CHUNK_BYTES))
+        return digest.hexdigest()
+    except OSError as exc:
+        return f"unreadable: {type(exc).__name__}"
 
 
 @dataclass(frozen=True)
@@ -293,6 +317,27 @@ class Dataset:
             if self.load_mask(cam) is not None:
                 count += 1
         return count
+
+    @functools.cached_property
+    def fingerprint(self) -> str:
+        """sha256 of what training reads: every training and test view (camera name, frame, time, intrinsics, pose,
+        size, rounded to 1e-6) and the bytes of the files its pixels come from (`file_digest`), not where they lie:
+        the same data moved to another folder has the same fingerprint, another capture with the same cameras or a
+        re-rendered frame has another. A view whose pixels come from code (a callable) counts by its geometry."""
+        digest = hashlib.sha256(self.format.encode())
+        files: dict[Path, str] = {}
+        for role, views in (("train", self.train), ("test", self.test)):
+            for camera in views:
+                geometry = np.round(np.concatenate([np.ravel(camera.K), np.ravel(camera.w2c), [camera.time]]), 6)
+                digest.update(f"{role}|{camera.name}|{camera.frame}|{camera.width}x{camera.height}|".encode())
+                digest.update((geometry + 0.0).tobytes())  # + 0.0: -0.0 and 0.0 alike
+                source = camera.image
+                path = Path(source) if isinstance(source, (str, Path)) else getattr(source, "path", None)
+                if path is not None:
+                    if path not in files:
+                        files[path] = file_digest(path)
+                    digest.update(f"|{files[path]}|{getattr(source, 'index', '')}".encode())
+        return digest.hexdigest()
 
     @property
     def image_cache_bytes(self) -> int:

@@ -20,7 +20,7 @@ from typing import ClassVar, Literal
 from stgc.codec.format import DEFAULT_QUALITY, QUALITY_LEVELS
 from stgc.config import ConfigError, check
 from stgc.official import family_options, official_value
-from stgc.render.api import BACKENDS, Backend
+from stgc.render.api import Backend
 
 
 # Learning rates a run leaves to the data's official config family (TrainConfig.resolved).
@@ -292,8 +292,6 @@ class QuantizationAwareConfig:
         check(math.isfinite(self.mask_lr) and self.mask_lr > 0, f"{prefix}mask_lr", self.mask_lr, "> 0")
         check(self.quality in QUALITY_LEVELS, f"{prefix}quality", self.quality,
               f"one of {', '.join(map(str, QUALITY_LEVELS))} (the codec's levels)")
-        check(self.allocation in ("optimised", "ladder"), f"{prefix}allocation", self.allocation,
-              "'optimised' or 'ladder'")
         check(self.position_bits == 0 or 2 <= self.position_bits <= 24, f"{prefix}position_bits",
               self.position_bits, "0 or in 2..24")
 
@@ -362,6 +360,8 @@ class TrainConfig:
         return dataclasses.replace(self, lr=lr, densify=self.densify.resolved(sparse_cloud, family))
 
     def validate(self, prefix: str = "") -> None:
+        # The fixed-choice options (Literal-typed: backend, colour_correction, densify.stats_views, ...) are checked
+        # by stgc.config.validate_config, which calls this.
         check(self.iterations >= 1, f"{prefix}iterations", self.iterations, ">= 1")
         check(math.isfinite(self.schedule_scale) and self.schedule_scale > 0, f"{prefix}schedule_scale",
               self.schedule_scale, "> 0")
@@ -376,7 +376,6 @@ class TrainConfig:
         check(self.stop_after is None or self.stop_after >= 1, f"{prefix}stop_after", self.stop_after, ">= 1")
         check(all(i >= 1 for i in self.save_iterations), f"{prefix}save_iterations", self.save_iterations,
               "iterations >= 1")
-        check(self.backend in BACKENDS, f"{prefix}backend", self.backend, f"one of {', '.join(BACKENDS)}")
         check(self.quantization_aware.iterations <= self.iterations, f"{prefix}quantization_aware.iterations",
               self.quantization_aware.iterations, f"at most the run's {self.iterations} iterations")
 

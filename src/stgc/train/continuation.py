@@ -35,7 +35,7 @@ from stgc.train.config import (
     refuse_unused_window_options,
     resolve_schedule,
 )
-from stgc.train.loop import RunLock, options_fingerprint, resolved_options, run_config, run_options
+from stgc.train.loop import RunLock, check_same_data, options_fingerprint, resolved_options, run_config, run_options
 
 
 def check_continuable(source: str | Path) -> None:
@@ -121,6 +121,7 @@ def start_continuation(source: str | Path, out: str | Path, iterations: int, con
     if data_path is None:
         raise StgcError(f"{source}: the run has no saved data path; give DATA")
     dataset = configs["data"].open(data_path)
+    check_same_data(Run(source).read_config(strict=False), dataset, source)
     check_trainable(dataset, configs["train"], evaluate=evaluate)
     started = int((Run(source).read_summary() or {}).get("iterations") or configs["train"].iterations - iterations)
     # The options as the trainer resolves them: what it records in config.json and checks the checkpoint against.

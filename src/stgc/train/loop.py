@@ -23,7 +23,7 @@ import os
 import random
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import IO, Any, Protocol, cast
 
@@ -34,7 +34,14 @@ from stgc import machine
 from stgc.compaction import CompactionConfig, ProbeResult, STKNNCompactor
 from stgc.compaction.config import REFERENCE_RUN_OPTIONS
 from stgc.compaction.config import resolve_schedule as resolve_compaction_schedule
-from stgc.config import EXECUTION_OPTIONS, ConfigError, from_saved, same_option_value, validate_config
+from stgc.config import (
+    EXECUTION_OPTIONS,
+    ConfigError,
+    check_choices,
+    from_saved,
+    same_option_value,
+    validate_config,
+)
 from stgc.data import DataConfig
 from stgc.data.cameras import Camera
 from stgc.data.config import initial_points_from_config
@@ -407,6 +414,10 @@ class Trainer:
         evaluator: TestEvaluator | None = None,
     ):
         validate_config(train_cfg, "train")
+        # The other sections' fixed choices too, before anything is written (a continuation's compaction section
+        # keeps options its method none leaves idle, which CompactionConfig.validate would refuse: choices only).
+        for section, options in (("data", data_cfg), ("model", model_cfg), ("compaction", compaction_cfg)):
+            check_choices(options, section)
         extent = dataset.scene_extent()
         if not (math.isfinite(extent) and extent > 0):
             raise DataError(dataset.root, f"the scene extent (1.1 x the spread of the training cameras' centres) is "
@@ -469,6 +480,7 @@ class Trainer:
             checkpoint = None
             if resuming:
                 checkpoint = self._load_checkpoint()
+                check_same_data(self.out_run.read_config(strict=False), dataset, self.out_run.path)
                 self.model = self._model_from_checkpoint(checkpoint)
                 if not model_options_given:
                     # The model it continues is the checkpoint's: its variant and decoder activation are the run's,
@@ -1040,7 +1052,24 @@ def run_config(dataset: Dataset, configs: dict[str, Any], schedule: Schedule | N
     if schedule is not None:
         train["resolved_schedule"] = schedule.to_dict()
     return {"data": _jsonable(data), "model": _config_dict(configs["model"]), "train": train,
-            "compaction": _config_dict(configs["compaction"]), BEHAVIOUR_KEY: recorded_behaviour()}
+            "compaction": _config_dict(configs["compaction"]), BEHAVIOUR_KEY: recorded_behaviour(),
+            DATA_FINGERPRINT: dataset.fingerprint}
+
+
+# config.json's record of the data a run trains on (`Dataset.fingerprint`; runs started before 2026-11-28 have none).
+DATA_FINGERPRINT = "data_fingerprint"
+
+
+def check_same_data(saved: Mapping[str, Any] | None, dataset: Dataset, run_path: Path) -> None:
+    """Refuse (DataError naming the data folder) to continue the run at `run_path`, whose config.json is `saved`, on
+    `dataset` when the data it recorded (`DATA_FINGERPRINT`) is other data: once its saved folder is gone any DATA
+    is taken for it, and another capture (or the same one with other images) would be trained into the same model.
+    A run that recorded none (started before the record existed) is taken as it is."""
+    recorded = (saved or {}).get(DATA_FINGERPRINT)
+    if recorded is not None and recorded != dataset.fingerprint:
+        raise DataError(dataset.root, f"is not the data {run_path} trained on: its views or image files differ from "
+                                      f"those recorded in {run_path / Run.CONFIG}; continue the run on its own data, "
+                                      "or train this data into a new --out")
 
 
 def resolved_options(dataset: Dataset, data_cfg: DataConfig | None, model_cfg: ModelConfig | None,

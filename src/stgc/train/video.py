@@ -25,7 +25,7 @@ from stgc.distributed import Task, check_ray_options, check_reachable, cpus_for_
 from stgc.errors import StgcError
 from stgc.run import Run
 from stgc.train.config import TrainConfig
-from stgc.train.loop import TestEvaluator, run_config, train
+from stgc.train.loop import TestEvaluator, check_same_data, run_config, train
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +66,8 @@ def train_video(data_path: str | Path, configs: dict[str, Any], out_dir: str | P
                             "run keeps them")
         plan = video["segments"]
         run.check_segment_frames(plan)  # before any segment trains on frames other than its own
+        # Before a segment not yet started trains on other data than the finished ones (`check_same_data`).
+        check_same_data(run.read_config(strict=False), configs["data"].open(data_path), run.path)
         references = _segment_loss_references(configs, plan)
     else:
         if segment_frames is None:
