@@ -88,3 +88,18 @@ def test_new_gaussians_start_as_the_official_code_adds_them():
     expected = np.log(np.sqrt(nearest.mean(axis=1)))
     assert np.allclose(new["scaling"][:, 0].numpy(), expected, atol=1e-5)
     assert (new["scaling"][:, 0].numpy() < np.log(0.5)).all()  # closer than the new points' own spacing
+
+
+def test_the_depth_it_reads_is_rendered_with_the_training_s_backend():
+    """train.backend reaches the sampler's depth render, so that it rounds as the training renders do."""
+    asked = []
+
+    class Model:
+        def render(self, camera, t=None, backend="auto", return_depth=False, **options):
+            asked.append(backend)
+            return SimpleNamespace(depth=torch.tensor([[0.0, 2.0], [3.0, 1.0]]))
+
+    ems = ErrorGuidedSampler(EMSConfig(enabled=True), start=1, min_gap=1, train_names=["a"], trbf_scale_init=0.0,
+                             backend="torch")
+    assert ems.camera_depth(Model(), SimpleNamespace(name="a", time=0.5)) == 3.0
+    assert asked == ["torch"]

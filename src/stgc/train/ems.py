@@ -101,8 +101,10 @@ def new_gaussians(
 class ErrorGuidedSampler:
     """The EMS state machine; its `state` dict is saved in the training checkpoint."""
 
-    def __init__(self, cfg: EMSConfig, start: int, min_gap: int, train_names: list[str], trbf_scale_init: float):
+    def __init__(self, cfg: EMSConfig, start: int, min_gap: int, train_names: list[str], trbf_scale_init: float,
+                 backend: str = "auto"):
         self.cfg, self.start, self.min_gap = cfg, start, min_gap
+        self.backend = backend  # the training renders' (train.backend): the depth it reads rounds as they do
         self.train_names = sorted(set(train_names))
         self.trbf_scale_init = trbf_scale_init
         self.state: dict[str, Any] = {"ssim": {}, "depth": {}, "candidates": None, "events": 0, "last": -10**9}
@@ -139,7 +141,7 @@ class ErrorGuidedSampler:
         name = str(camera.name)
         if name not in self.state["depth"]:
             with torch.no_grad():
-                out = model.render(camera, t=float(camera.time), return_depth=True)
+                out = model.render(camera, t=float(camera.time), backend=self.backend, return_depth=True)
             depth = out.depth
             valid = depth[depth > 0] if depth is not None else torch.zeros(0)
             self.state["depth"][name] = float(valid.max()) if valid.numel() else float("nan")

@@ -515,7 +515,7 @@ class Trainer:
             self.colour = self._make_colour_correction()
             self.ems = ErrorGuidedSampler(
                 train_cfg.ems, self.schedule.ems_start, self.schedule.ems_min_gap,
-                [str(c.name) for c in dataset.train], _resolved(model_cfg.trbf_scale_init),
+                [str(c.name) for c in dataset.train], _resolved(model_cfg.trbf_scale_init), train_cfg.backend,
             )
             # After the optimizer step, in this order: density control, error-guided points, compaction.
             self.strategies: list[Strategy] = [DensityStrategy(self.density),
