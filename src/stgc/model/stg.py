@@ -608,9 +608,32 @@ class STGModel:
 
 
 # ---------------------------------------------------------------------- formulas on a dict of rows
+def _gaussian_cutoff(dtype: torch.dtype) -> float:
+    """A |x| beyond which exp(-x^2) is exactly 0 in `dtype`: 1 more than where it falls to the smallest subnormal
+    (x^2 = -log(tiny * eps); 124.6 > 103.3 in float32). 11.2 for float32, 28.3 for float64."""
+    info = torch.finfo(dtype)
+    return math.sqrt(-math.log(info.tiny * info.eps)) + 1.0
+
+
 def _temporal_opacity(params: Mapping[str, torch.Tensor], t: float | torch.Tensor) -> torch.Tensor:
+    """sigmoid(o) exp(-x^2) with x = (t - mu_t) / exp(s_t), [N].
+
+    A row far outside its lifetime (|x| beyond `_gaussian_cutoff`, where exp(-x^2) is already exactly 0; or exp(s_t)
+    underflowed to 0 away from mu_t) gets that exact 0 without the formula: with s_t below about -44 the formula's
+    forward overflows x^2 to inf, harmlessly, but its backward computes 0 * inf = NaN for s_t although the row is
+    culled, and the optimizer step then makes the row NaN. At t = mu_t exactly, a row whose exp(s_t) underflowed
+    to 0 gets x = 0 (the limit; the formula's 0/0 gave NaN). Every other row's value and gradients are the
+    formula's, bit for bit; a row with a NaN parameter stays NaN. (Only a row with s_t below about -43 rendered
+    within 11 exp(s_t) < 3e-18 of its mu_t can still overflow its own s_t gradient.)"""
     delta = t - params["trbf_center"]
-    return (torch.sigmoid(params["opacity"]) * torch.exp(-torch.square(delta / torch.exp(params["trbf_scale"]))))[:, 0]
+    scale = torch.exp(params["trbf_scale"])
+    with torch.no_grad():
+        far = (delta / scale).abs() > _gaussian_cutoff(scale.dtype)  # (NaN: not far)
+        unit = far | (scale == 0)
+    # Neither branch of a where may hold an inf or NaN that its backward multiplies by the other's 0 ("double where").
+    x = torch.where(far, torch.zeros_like(delta), delta) / torch.where(unit, torch.ones_like(scale), scale)
+    factor = torch.where(far, torch.zeros_like(x), torch.exp(-torch.square(x)))
+    return (torch.sigmoid(params["opacity"]) * factor)[:, 0]
 
 
 def _detached_delta(params: Mapping[str, torch.Tensor], t: float) -> torch.Tensor:

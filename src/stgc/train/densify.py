@@ -9,15 +9,27 @@ strategy object that the trainer calls around its step.
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
 import torch
 
 from stgc.data.cameras import Camera
+from stgc.errors import StgcError
 from stgc.model import STGModel
 from stgc.render.projection import quat_to_rotmat
 from stgc.train.config import DensifyConfig, FloaterConfig, Schedule
+
+log = logging.getLogger(__name__)
+
+# The most Gaussians one optimizer step may make non-finite, as a share of the model, before the run stops as
+# diverged instead of removing them. A lone Adam blow-up hits one row or a few (one row is always tolerated, so that
+# a small model may lose one); a NaN or inf gradient from anything rows share (a culled row's temporal opacity was
+# one: every row with trbf_scale below about -44, at every step; a decoder, background or colour-correction gradient
+# goes to every row a view reached) hits tens of percent. Removing more than 1 % of the model in one step is losing
+# the model, not cleaning it.
+NONFINITE_DIVERGED_SHARE = 0.01
 
 
 def reaches_view(model: STGModel, camera: Camera, t: float) -> torch.Tensor:
@@ -163,6 +175,30 @@ def prune_mask_nonfinite(model: STGModel) -> torch.Tensor:
 
 
 @torch.no_grad()
+def nonfinite_groups(model: STGModel, rows: torch.Tensor) -> dict[str, int]:
+    """{parameter group: how many of the rows `rows` (a bool mask) have a NaN or infinite value in it}, the groups
+    with none left out."""
+    counts = {}
+    for key, p in model.params.items():
+        finite = torch.isfinite(p.detach())
+        bad = ~(finite.flatten(1).all(dim=1) if p.ndim > 1 else finite)
+        if int((bad & rows).sum()):
+            counts[key] = int((bad & rows).sum())
+    return counts
+
+
+def describe_nonfinite(model: STGModel, rows: torch.Tensor, shown: int = 8) -> str:
+    """'3 of 180 Gaussians (rows 0, 1, 2; non-finite in xyz: 3, trbf_scale: 1)': for messages."""
+    index = torch.nonzero(rows, as_tuple=False)[:, 0].tolist()
+    listed = ", ".join(str(i) for i in index[:shown])
+    if len(index) > shown:
+        listed += f", ... ({len(index) - shown} more)"
+    groups = ", ".join(f"{key}: {n}" for key, n in nonfinite_groups(model, rows).items())
+    return f"{len(index)} of {model.num_gaussians} Gaussians (row{'s' if len(index) != 1 else ''} {listed}; " \
+           f"non-finite in {groups})"
+
+
+@torch.no_grad()
 def prune_mask_floaters(
     model: STGModel, camera_centers: np.ndarray, near_camera: float, max_world_scale: float,
     scale_min_opacity: float = 0.0,
@@ -234,6 +270,7 @@ class DensityControl:
         self.past_rounds = False  # a densification step after the schedule's last round has passed
         self.removed_by_others = 0  # Gaussians compaction removed: they lower the cap
         self.rows_fixed = False  # set while the learned mask keeps one logit per row: no removal between rounds
+        self.pruned_nonfinite = 0  # Gaussians removed for non-finite parameters in the whole run (a resume too)
 
     @property
     def collecting(self) -> bool:
@@ -264,6 +301,9 @@ class DensityControl:
         """After the optimizer step: what the schedule asks at `iteration`; returns what it did (counts)."""
         sched, d, fl = self.schedule, self.cfg, self.floaters
         report: dict[str, int] = {}
+        nonfinite = prune_mask_nonfinite(model)
+        if bool(nonfinite.any()):
+            self._check_nonfinite(iteration, model, nonfinite, sched.is_densify_step(iteration))
         if sched.is_densify_step(iteration):
             # Rounds are the schedule's up to its last (densify_end), as check_mask_window and config.json say: a
             # continuation past it that owes rounds (densification switched on, more rounds) clones no more.
@@ -281,16 +321,50 @@ class DensityControl:
                 remove = prune_mask_floaters(model, self.train_centers, fl.near_camera, fl.max_world_scale,
                                              fl.scale_min_opacity)
                 report["pruned_floaters"] = apply_prune(model, self.stats, remove)
-            report["pruned_nonfinite"] = apply_prune(model, self.stats, prune_mask_nonfinite(model))
-        elif not self.rows_fixed and bool((nonfinite := prune_mask_nonfinite(model)).any()):
+            # (Clone/split copied any non-finite row it picked: the mask again.)
+            report["pruned_nonfinite"] = self._prune_nonfinite(iteration, model, prune_mask_nonfinite(model))
+        elif not self.rows_fixed and bool(nonfinite.any()):
             # Between rounds too: a visible row that an optimizer step made non-finite stops the next render, and
-            # one the render culls stops the next save (a resume replays to the same stop).
-            report["pruned_nonfinite"] = apply_prune(model, self.stats, nonfinite)
+            # one the render culls stops the next save (a resume replays to the same stop). With the learned mask
+            # (rows_fixed) the row stays: the rate-aware window's quantization stops the next step, naming it.
+            report["pruned_nonfinite"] = self._prune_nonfinite(iteration, model, nonfinite)
         if sched.opacity_reset_interval and iteration % sched.opacity_reset_interval == 0 \
                 and iteration < sched.opacity_reset_until:
             model.reset_opacity(d.opacity_reset_value)
             report["opacity_reset"] = 1
         return report
+
+    def _check_nonfinite(self, iteration: int, model: STGModel, nonfinite: torch.Tensor, densify_step: bool) -> None:
+        """Stop the run where removing the rows the optimizer step of `iteration` made non-finite would be wrong:
+        inside the learned mask's window (a densification step would remove them, and the mask keep their logits),
+        or when they are more than NONFINITE_DIVERGED_SHARE of the model (the training diverged)."""
+        count, total = int(nonfinite.sum()), model.num_gaussians
+        if self.rows_fixed:
+            if densify_step:
+                raise StgcError(
+                    f"training diverged at iteration {iteration}, inside the rate-aware window's learned mask: the "
+                    f"optimizer step made {describe_nonfinite(model, nonfinite)} non-finite although the loss was "
+                    "finite, and the mask keeps one logit per Gaussian, so none can be removed; lower the learning "
+                    "rates of those parameters (train.lr) or train.quantization_aware.mask_lr / rate_weight and train "
+                    "(or fine-tune) again")
+            return
+        if count > max(1, NONFINITE_DIVERGED_SHARE * total):
+            raise StgcError(
+                f"training diverged at iteration {iteration}: the optimizer step made "
+                f"{describe_nonfinite(model, nonfinite)} non-finite although the loss was finite (a NaN or inf "
+                f"gradient); removing more than {NONFINITE_DIVERGED_SHARE:.0%} of the model in one step would lose it "
+                "silently; lower the learning rates of those parameters (train.lr) and train again")
+
+    def _prune_nonfinite(self, iteration: int, model: STGModel, remove: torch.Tensor) -> int:
+        """Remove the non-finite rows `remove`, with a warning; returns how many."""
+        if not bool(remove.any()):
+            return 0
+        what = describe_nonfinite(model, remove)
+        n = apply_prune(model, self.stats, remove)
+        self.pruned_nonfinite += n
+        log.warning("iteration %d: removed %s: an optimizer step made them non-finite (%d removed so far in this run)",
+                    iteration, what, self.pruned_nonfinite)
+        return n
 
     def restart_statistics(self, num_gaussians: int) -> None:
         """Every row's gradient statistic from zero (what the official code does whenever it adds Gaussians)."""
@@ -308,7 +382,7 @@ class DensityControl:
     def state_dict(self) -> dict[str, Any]:
         return {"densify_stats": self.stats.state_dict(), "densify_rounds_done": self.rounds_done,
                 "initial_gaussians": self.initial_gaussians, "densify_past_rounds": self.past_rounds,
-                "densify_removed_by_others": self.removed_by_others}
+                "densify_removed_by_others": self.removed_by_others, "densify_pruned_nonfinite": self.pruned_nonfinite}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.stats.load_state_dict(state["densify_stats"])
@@ -317,3 +391,4 @@ class DensityControl:
         self.initial_gaussians = int(state.get("initial_gaussians", self.initial_gaussians))
         self.past_rounds = bool(state.get("densify_past_rounds", False))  # (checkpoints from before session 29)
         self.removed_by_others = int(state.get("densify_removed_by_others", 0))  # (before session 30)
+        self.pruned_nonfinite = int(state.get("densify_pruned_nonfinite", 0))  # (checkpoints before this count)

@@ -951,7 +951,9 @@ class Trainer:
                 # An evaluation writes its metrics row whether or not the iteration is a logging one.
                 evaluate_now = bool(self.evaluator is not None and cfg.eval_every and iteration % cfg.eval_every == 0
                                     and (iteration != sched.iterations or not cfg.eval_at_end))
+                # Rows removed for being non-finite are logged whenever it happens (densify.py warns as well).
                 if evaluate_now or (cfg.log_every and (any(key in control for key in ALWAYS_LOGGED)
+                                                       or control.get("pruned_nonfinite", 0) > 0
                                                        or iteration % cfg.log_every == 0 or iteration == end)):
                     now = time.perf_counter()
                     row = {
@@ -993,6 +995,7 @@ class Trainer:
             "wall_seconds": round(elapsed, 3),
             "it_per_s": done / elapsed if elapsed > 0 else None,
             "num_gaussians": self.model.num_gaussians,
+            "pruned_nonfinite": self.density.pruned_nonfinite,  # over the whole run (the checkpoint carries it)
             "variant": self.model.variant,
             "finished": finished,
             "started_from_iteration": start,  # > 0: this session resumed from a checkpoint

@@ -58,6 +58,7 @@ from stgc.errors import StgcError
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel, ply_columns
 
 from .config import QuantizationAwareConfig
+from .densify import describe_nonfinite, prune_mask_nonfinite
 
 
 class QuantizationSimulation:
@@ -89,6 +90,18 @@ class QuantizationSimulation:
         """({param key: tensor} whose values are the codec's reconstruction and whose gradient is the identity,
         the rate term's estimated bits per Gaussian, differentiable, or None when rate_weight is 0). With the mask,
         the rate is that of the kept Gaussians per Gaussian of the window's start, differentiable in the mask."""
+        nonfinite = prune_mask_nonfinite(model)
+        if bool(nonfinite.any()):
+            # Density control leaves such rows to this while the learned mask keeps a logit per row (the codec
+            # would refuse them with a less useful message).
+            raise StgcError(
+                f"training diverged in the rate-aware window: the last optimizer step made "
+                f"{describe_nonfinite(model, nonfinite)} non-finite although the loss was finite, and "
+                + ("the learned mask keeps one logit per Gaussian, so none can be removed; lower the learning rates "
+                   "of those parameters (train.lr) or train.quantization_aware.mask_lr / rate_weight"
+                   if self.mask is not None else
+                   "the codec cannot store them; lower the learning rates of those parameters (train.lr)")
+                + " and train (or fine-tune) again")
         if self.cfg.mask and self.mask is None and not self.mask_settled:
             self.mask = GaussianMask(model.num_gaussians, self.cfg.mask_lr, reference_count=int(_visible(model).sum()))
         if self.mask is not None and len(self.mask) != model.num_gaussians:
