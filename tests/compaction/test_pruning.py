@@ -284,3 +284,33 @@ def test_merged_opacity_keeps_what_a_pair_of_duplicates_rendered():
         with torch.no_grad():
             errors[merge] = float((model.render(camera).rgb - target).square().mean())
     assert errors[True] < 0.2 * errors[False]
+
+
+def test_size_order_takes_overlapping_gaussians_before_small_close_neighbours():
+    """Two pairs: small Gaussians 0.01 apart (fine detail) and large ones 0.02 apart (one inside the other). The
+    paper's order takes the closer small pair first; the size order the overlapping large pair."""
+    from stgc.compaction import CompactionConfig, STKNNCompactor
+    from stgc.compaction.pruning import size_relative_distances
+
+    xyz = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.5, 0.5, 0.5], [0.52, 0.5, 0.5]])
+    params = static_params(xyz, trbf_center=np.array([0.4, 0.6, 0.4, 0.6]))
+    params["scaling"][:2] = float(np.log(0.002))  # radius 0.002: 0.01 apart is 2.5 sizes
+    params["scaling"][2:] = float(np.log(0.1))  # radius 0.1: 0.02 apart is 0.1 size
+    params["scaling"][2, 1] = float(np.log(0.2))  # the largest axis counts
+    relative = size_relative_distances(_pairs([0, 2], [1, 3], [0.01, 0.02]), params["scaling"].numpy(), 1.0)
+    np.testing.assert_allclose(relative.distance, [0.01 / 0.004, 0.02 / 0.3])
+    np.testing.assert_allclose(size_relative_distances(_pairs([0], [1], [0.01]), params["scaling"].numpy(), 2.0)
+                               .distance, [0.01 / 0.002])  # sizes over the scene extent, as positions are
+    kept = {}
+    for order in ("distance", "size"):
+        config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5,
+                                  ratio_min=0.5, ratio_max=0.5, pair_order=order)
+        model = make_model({k: v.clone() for k, v in params.items()})
+        event = STKNNCompactor(config, 10).step(1, 0.5, model, 1.0)
+        assert event["matched_pairs"] == 2 and event["removed"] == 1
+        kept[order] = model.params["xyz"][:, 0].tolist()
+    assert kept["distance"] == pytest.approx([0.0, 0.5, 0.52])  # the small pair lost its later member
+    assert kept["size"] == pytest.approx([0.0, 0.01, 0.5])  # the overlapping pair did
+    scaling = params["scaling"].numpy().copy()
+    scaling[3] = np.nan
+    assert np.isnan(size_relative_distances(_pairs([0, 2], [1, 3], [0.01, 0.02]), scaling, 1.0).distance[1])

@@ -18,7 +18,13 @@ from .config import PROBE_SIGNALS, CompactionConfig, PruningSchedule, resolve_sc
 from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
 from .matching import SpacetimeModel, match_spatiotemporal_pairs, to_float64_numpy
 from .plot import LOG_NAME, read_compaction_log
-from .pruning import keeper_time_coverage, merge_keeper_opacity, removal_scores, select_removals
+from .pruning import (
+    keeper_time_coverage,
+    merge_keeper_opacity,
+    removal_scores,
+    select_removals,
+    size_relative_distances,
+)
 
 
 class PrunableModel(SpacetimeModel, Protocol):
@@ -126,6 +132,8 @@ class STKNNCompactor:
             coverage = keeper_time_coverage(pairs, scores, to_float64_numpy(model.params["trbf_center"]),
                                             to_float64_numpy(model.params["trbf_scale"]))
             pairs = pairs.subset(coverage >= self.config.keeper_time_coverage)
+        if self.config.pair_order == "size" and len(pairs):
+            pairs = size_relative_distances(pairs, to_float64_numpy(model.params["scaling"]), model.scene_extent)
         selection = select_removals(pairs, ratio, scores, max_removals, ratio_of=matched_pairs)
         if selection.remove.size:
             keep = torch.ones(n_before, dtype=torch.bool)

@@ -145,6 +145,14 @@ class CompactionConfig:
             "(paper)"
         },
     )
+    pair_order: Literal["distance", "size"] = field(
+        default="distance",
+        metadata={
+            "help": "which matched pairs the ratio takes first: 'distance' = the closest (paper), 'size' = the closest "
+            "in units of the pair's size (the distance over the sum of the two Gaussians' largest scales), so that "
+            "Gaussians that overlap go before small neighbours that only lie close, such as fine detail"
+        },
+    )
     merge_opacity: bool = field(
         default=False,
         metadata={

@@ -171,3 +171,14 @@ def merge_keeper_opacity(opacity_logit: torch.Tensor, remove: np.ndarray, keeper
         touched = torch.unique(keeper_rows)
         clear = merged[touched].exp().clamp_min(1e-6)
         flat[touched] = torch.log1p(-clear).sub(torch.log(clear)).to(flat.dtype)
+
+
+def size_relative_distances(pairs: PairMatches, log_scaling: np.ndarray, scene_extent: float) -> PairMatches:
+    """`pairs` with each distance divided by the pair's size: the sum of its two Gaussians' largest activated scale
+    exp(s), over the scene extent as the distance's positions are. 1 is two spheres of those radii touching; a
+    Gaussian inside its neighbour is below it. A non-finite scale makes the pair's value NaN, which sorts last."""
+    largest = np.exp(np.max(np.asarray(log_scaling, dtype=np.float64).reshape(len(log_scaling), -1), axis=1))
+    with np.errstate(over="ignore", invalid="ignore"):
+        size = (largest[pairs.reference] + largest[pairs.partner]) / float(scene_extent)
+        relative = np.where(np.isfinite(size) & (size > 0), pairs.distance / size, np.nan)
+    return PairMatches(pairs.reference, pairs.partner, relative, pairs.matched_references)
