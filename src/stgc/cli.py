@@ -314,7 +314,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    result = report_from_runs(args.runs, args.out, baseline=args.baseline)
+    result = report_from_runs(args.runs, args.out, baseline=args.baseline, plan=args.plan)
     print(result)
     return 0
 
@@ -500,6 +500,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="report directory")
     p.add_argument("--baseline", help="the baseline curve: a method family, or a run (its name or path) whose "
                    "family it is (default: the first run's family)")
+    p.add_argument("--plan", help="name the runs as this experiment plan labelled them (a run that several plans "
+                   "share keeps each plan's family and label in its experiment.json; default: the first plan's)")
     p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("demo", help="the whole pipeline on the small embedded scene (what `make demo` runs)")

@@ -224,6 +224,12 @@ def test_a_run_shared_by_two_plans_keeps_each_plan_s_family_and_label(tmp_path: 
     _run(first, out)  # each plan run again changes nothing
     _run(second, out)
     assert _entry(out) == entry
+    # `stgc report --plan` names the run as that plan did; without it, or for a plan that did not list it, the first.
+    from stgc.eval.report import rows_from_run
+
+    named = {plan: [(row.family, row.name) for row in rows_from_run(out / "stg", plan=plan)]
+             for plan in ("p1", "p2", "p3", None)}
+    assert named["p2"][0] == ("Other", "Z") and named["p1"][0] == named["p3"][0] == named[None][0] == ("STG", "A")
 
 
 def test_an_older_single_entry_experiment_json_is_read_as_the_first_plan_s(tmp_path: Path) -> None:

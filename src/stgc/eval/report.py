@@ -591,14 +591,19 @@ def describe_run(run_dir: Path, config: Mapping[str, Any] | None) -> tuple[str, 
     return family, setting
 
 
-def rows_from_run(run_dir: str | Path, include_codec: bool = True) -> list[ReportRow]:
-    """Report rows of one run: its eval.json, and every eval_<bitstream>.json beside it."""
+def rows_from_run(run_dir: str | Path, include_codec: bool = True, plan: str | None = None) -> list[ReportRow]:
+    """Report rows of one run: its eval.json, and every eval_<bitstream>.json beside it, named as the experiment
+    plan `plan` labelled the run (RUN/experiment.json keeps each plan's family and label of a run that several plans
+    share; without `plan`, or for a run that plan did not list, the first plan's)."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise DataError(run_dir, "not a run directory")
     run = Run(run_dir)
     config = run.read_config()
     meta = read_json_object(run.experiment_path) or {}
+    plans = meta.get("plans")
+    if plan is not None and isinstance(plans, dict) and isinstance(plans.get(plan), dict):
+        meta = {**meta, **plans[plan]}
     family, setting = describe_run(run_dir, config)
     family = str(meta.get("family") or family)
     setting = str(meta.get("label") or meta.get("name") or setting)
@@ -701,12 +706,14 @@ def report_from_runs(
     title: str = "Rate-distortion results",
     include_codec: bool = True,
     bd_method: Method = "pchip",
+    plan: str | None = None,
 ) -> Report:
-    """`make_report` over any set of runs. Runs without eval.json are listed in the report as missing."""
+    """`make_report` over any set of runs, each named as the experiment plan `plan` labelled it (`rows_from_run`).
+    Runs without eval.json are listed in the report as missing."""
     rows: list[ReportRow] = []
     missing = []
     for d in run_dirs:
-        found = rows_from_run(d, include_codec)
+        found = rows_from_run(d, include_codec, plan)
         if not found:
             missing.append(str(d))
         rows.extend(found)
