@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from stgc.metrics import lpips_status, psnr, psnr_per_image, ssim, ssim_map, ssim_per_image
+from stgc.metrics import lpips_status, psnr, psnr_of_mse, psnr_per_image, ssim, ssim_map, ssim_per_image
 
 
 def _pair(seed: int, h: int = 37, w: int = 45, c: int = 3) -> tuple[np.ndarray, np.ndarray]:
@@ -210,3 +210,13 @@ def test_an_exact_chroma_plane_counts_at_the_ceiling_in_the_yuv_combination():
     assert math.isinf(scores["u"]) and math.isinf(scores["v"]) and math.isfinite(scores["y"])
     assert scores["yuv"] == pytest.approx((6 * scores["y"] + 2 * PSNR_CEILING_DB) / 8)
     assert math.isinf(yuv_psnr(grey, grey)["yuv"])  # a wholly exact picture stays exact
+
+
+def test_psnr_of_an_error_is_the_images_psnr():
+    gen = torch.Generator().manual_seed(5)
+    img, ref = torch.rand(3, 8, 8, generator=gen), torch.rand(3, 8, 8, generator=gen)
+    error = float(((img - ref) ** 2).mean())
+    assert psnr_of_mse(error) == pytest.approx(float(psnr(img, ref)), abs=1e-4)
+    assert psnr_of_mse(error * 255 ** 2, 255.0) == pytest.approx(psnr_of_mse(error), abs=1e-9)
+    assert psnr_of_mse(0.01) == pytest.approx(20.0) and psnr_of_mse(0.0) == float("inf")
+    assert math.isnan(psnr_of_mse(-1.0)) and math.isnan(psnr_of_mse(float("nan")))

@@ -42,6 +42,8 @@ from typing import Any
 
 import numpy as np
 
+from stgc.metrics import psnr_of_mse
+
 from .format import (
     DEFAULT_QUALITY,
     GROUP_BY_TAG,
@@ -246,7 +248,7 @@ def _mse(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _psnr(mse: float) -> float:
-    return 10.0 * math.log10(1.0 / max(mse, 1e-12))
+    return psnr_of_mse(max(mse, 1e-12))
 
 
 def optimise_allocation(

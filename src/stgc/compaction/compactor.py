@@ -13,6 +13,7 @@ import torch
 
 from stgc.errors import DataError
 from stgc.fileio import read_json_object
+from stgc.metrics import psnr_of_mse
 
 from .config import PROBE_SIGNALS, CompactionConfig, PruningSchedule, resolve_schedule
 from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
@@ -206,7 +207,8 @@ class STKNNCompactor:
 
 
 def _psnr_of_mse(mse: float) -> float | None:
-    return None if not (mse > 0 and np.isfinite(mse)) else float(-10.0 * np.log10(mse))
+    """The probe's PSNR for the log: None where it has none (no error, or a non-finite one)."""
+    return psnr_of_mse(mse) if mse > 0 and np.isfinite(mse) else None
 
 
 def load_reference_losses(run_dir: str, schedule: PruningSchedule, probe_views: int,

@@ -83,6 +83,13 @@ def psnr(img: Any, ref: Any, max_value: float = 1.0) -> torch.Tensor:
     return 20.0 * torch.log10(max_value / torch.sqrt(err))
 
 
+def psnr_of_mse(mse_value: float, max_value: float = 1.0) -> float:
+    """PSNR in dB of a mean squared error: 10·log10(max² / MSE); +inf for 0, NaN for a negative or NaN error."""
+    if not mse_value >= 0:
+        return float("nan")
+    return float("inf") if mse_value == 0 else 10.0 * math.log10(max_value * max_value / mse_value)
+
+
 def psnr_per_image(img: Any, ref: Any, max_value: float = 1.0) -> torch.Tensor:
     """PSNR of each item of a [B,C,H,W] batch, shape [B] (the 3DGS `image_utils.psnr`)."""
     img, ref = _as_float_tensor(img), _as_float_tensor(ref)
@@ -114,7 +121,7 @@ def yuv_psnr(img: Any, ref: Any, bit_depth: int = YUV_BIT_DEPTH, color_range: st
     scores: dict[str, float] = {}
     for name, a, b in zip(("y", "u", "v"), planes(img), planes(ref)):
         err = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
-        scores[name] = math.inf if err == 0 else 10.0 * math.log10(peak * peak / err)
+        scores[name] = psnr_of_mse(err, peak)
     # An exact plane counts at the ceiling in the combination: one exact chroma plane (grey content) made it inf,
     # which hid the luma's error. Only a wholly exact picture combines to inf.
     exact = all(math.isinf(scores[k]) for k in YUV_WEIGHTS)

@@ -48,7 +48,7 @@ from stgc.data.config import initial_points_from_config
 from stgc.data.dataset import Dataset
 from stgc.errors import DataError, OutputError, StgcError
 from stgc.fileio import write_json
-from stgc.metrics import mse, ssim
+from stgc.metrics import mse, psnr_of_mse, ssim
 from stgc.model import ModelConfig, STGModel
 from stgc.model.config import DecoderActivation
 from stgc.model.layout import Variant
@@ -802,7 +802,7 @@ class Trainer:
             self.colour.step()
         mean_loss = total_loss / batch
         mean_mse = total_mse / batch
-        step = {"t": t, "frame": frame, "loss": mean_loss, "psnr": -10.0 * math.log10(max(mean_mse, 1e-12)),
+        step = {"t": t, "frame": frame, "loss": mean_loss, "psnr": psnr_of_mse(max(mean_mse, 1e-12)),
                 "lr_xyz": lr_xyz, "ems_view": ems_view}
         if seen is not None:
             step["quantized"] = True
