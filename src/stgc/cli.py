@@ -60,7 +60,8 @@ from stgc.viewer import serve
 
 # --------------------------------------------------------------------------------------------- config sections
 SECTION_TITLES = {
-    "data": "data options (stgc.data.DataConfig)",
+    "data": "data options (stgc.data.DataConfig; defaults shown are the cpu preset's: --preset paper takes every "
+            "frame's points, unbounded)",
     "model": "model options (stgc.model.ModelConfig)",
     "train": "training options (stgc.train.TrainConfig; defaults shown are the cpu preset's)",
     "compaction": "compaction options (stgc.compaction.CompactionConfig)",

@@ -225,3 +225,17 @@ def test_a_bitstream_without_its_run_config_names_the_frames_it_is_scored_on(tmp
     with caplog.at_level(logging.WARNING, logger="stgc"):
         segment = open_embedded_dataset({}, tmp_path / "bare.stgc", scene.root, frames=(1, 2))
     assert segment.frames == [1, 2] and "frames 1-2" in caplog.text
+
+
+def test_compressing_a_run_without_a_saved_model_names_the_problem_only(tmp_path, capsys):
+    """A run whose start saved its config and no model yet: one error, no warning about a model 'None'."""
+    import json
+
+    from stgc.cli import main
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"data": {}, "model": {}, "train": {"iterations": 10}}))
+    assert main(["compress", str(run), "--out", str(tmp_path / "m.stgc")]) == 2
+    said = capsys.readouterr().err
+    assert "None" not in said and "compressing its latest saved model" not in said and str(run) in said

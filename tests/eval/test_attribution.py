@@ -360,3 +360,28 @@ def test_a_folder_inside_a_run_other_than_its_iterations_is_refused_too(tmp_path
         _score(run / "copy")
     assert not (run / "copy" / "eval.json").exists()
     assert _score(run / "point_cloud" / "iteration_10")["num_gaussians"] == 7
+
+
+def test_a_copy_of_a_bitstream_s_record_under_another_name_is_no_point_of_the_run(tmp_path: Path, caplog) -> None:
+    """A saved `stgc eval RUN/model_q3.stgc --json` output (eval_q3.stdout.json) names the same .stgc: it was filed
+    as a second point (rows twice, the rate-point labels on the copies)."""
+    run = _run(tmp_path / "run")
+    stgc = _bitstream(run / "model_q3.stgc", _embedded(CONFIG))
+    _score(stgc)
+    shutil.copy(run / "eval_model_q3.json", run / "eval_q3.stdout.json")
+    with caplog.at_level("WARNING", logger="stgc"):
+        rows = rows_from_run(run)
+    assert [row.extra.get("bitstream") for row in rows] == [None, "model_q3.stgc"]
+    assert any("eval_q3.stdout.json: left out" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize("section, value", [("compaction", "abc"), ("data", 5), ("train", [1])])
+def test_a_damaged_config_is_named_not_a_traceback(tmp_path: Path, section: str, value: Any) -> None:
+    from stgc.errors import FormatError
+
+    run = _run(tmp_path / "run")
+    (run / "config.json").write_text(json.dumps({**CONFIG, section: value}))
+    with pytest.raises(FormatError, match=f"config.json: its '{section}' section is"):
+        rows_from_run(run)
+    config = {k: v for k, v in CONFIG.items() if k in ("data", "model")}  # a restored run's: what a file embeds
+    assert rows_from_run(_run(tmp_path / "restored", config))

@@ -308,7 +308,8 @@ def compress_run(run_or_model_path: str | Path, out_path: str | Path, quality: i
     source = Path(run_or_model_path)
     if source.is_dir() and Run(source).is_video():
         return _compress_video(Run(source), out_path, config)
-    if source.is_dir() and Run(source).has_config() and not Run(source).holds_final_model():
+    if (source.is_dir() and Run(source).has_config() and not Run(source).holds_final_model()
+            and Run(source).latest_model_dir() is not None):  # (without any, _encode_model says so)
         log.warning("%s has not finished training: compressing its latest saved model, %s", source,
                     Run(source).latest_model_dir())
     data, result = _encode_model(source, out_path, config)

@@ -192,7 +192,7 @@ def evaluate(
 
 
 def _finite(x: Any) -> Any:
-    # JSON has no inf/nan; a perfect reconstruction's PSNR is reported as null.
+    # JSON has no inf/nan: anything infinite left in a record (the means are capped at PSNR_CEILING_DB) is null.
     if isinstance(x, float) and not math.isfinite(x):
         return None
     return x

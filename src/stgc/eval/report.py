@@ -578,7 +578,8 @@ def describe_run(run_dir: Path, config: Mapping[str, Any] | None) -> tuple[str, 
     comp = cfg.get("compaction") or {}
     data = cfg.get("data") or {}
     preprocess = data.get("preprocess") or "none"
-    window = (cfg.get("train") or {}).get("quantization_aware") or {}
+    window = (cfg.get("train") or {}).get("quantization_aware")
+    window = window if isinstance(window, dict) else {}
     if window.get("iterations"):  # a rate-aware window (fine-tuning or not) makes another method than STG's
         family = "learned mask" if window.get("mask") else "rate-aware"
         setting = run_dir.name
@@ -600,6 +601,11 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True, plan: str | N
         raise DataError(run_dir, "not a run directory")
     run = Run(run_dir)
     config = run.read_config()
+    for name in ("data", "model", "train", "compaction"):
+        # Restored runs' config.json holds only what a bitstream embeds: any section may be absent or null.
+        if config is not None and config.get(name) is not None and not isinstance(config[name], dict):
+            raise FormatError(run.config_path, f"its {name!r} section is {type(config[name]).__name__} "
+                                               f"{config[name]!r:.40}, not an object")
     meta = read_json_object(run.experiment_path) or {}
     plans = meta.get("plans")
     if plan is not None and isinstance(plans, dict) and isinstance(plans.get(plan), dict):
@@ -633,6 +639,11 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True, plan: str | N
                 continue
             point = path.stem.removeprefix("eval_")
             bitstream = str(rec.get("bitstream") or f"{point}.stgc")
+            if path.name != run.eval_paths(bitstream=run_dir / Path(bitstream).name)[0].name:
+                # A copy of a record under another name (saved `stgc eval --json` output) is no point of its own.
+                log.warning("%s: left out of the report: it is not the record stgc eval writes for %s (that is "
+                            "%s)", path, bitstream, run.eval_paths(bitstream=run_dir / Path(bitstream).name)[0].name)
+                continue
             if not Run.scored_this_bitstream(rec, run_dir / bitstream):
                 log.warning("%s: left out of the report: %s is missing or was written again after this "
                             "evaluation (stgc eval it again)", path, bitstream)
