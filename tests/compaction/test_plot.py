@@ -49,6 +49,13 @@ def test_bad_logs_raise_data_error(tmp_path):
     with pytest.raises(DataError, match="line 2 is not JSON"):
         plot_compaction(log, tmp_path / "x.png")
     assert not (tmp_path / "x.png").exists()
+    # Records of the wrong types were drawn as if they were numbers (a PNG, exit 0).
+    for bad, said in (('{"iteration": "x"}', "iteration 'x' is not a non-negative integer"),
+                      ('{"iteration": 3, "ratio": "high"}', "ratio 'high' is not a number")):
+        log.write_text('{"iteration": 1, "ratio": 0.1}\n' + bad + "\n")
+        with pytest.raises(DataError, match=f"line 2: {said}"):
+            plot_compaction(log, tmp_path / "x.png")
+        assert not (tmp_path / "x.png").exists()
 
 
 def test_a_last_line_cut_short_by_a_kill_is_skipped_but_a_bad_middle_line_is_not(tmp_path):

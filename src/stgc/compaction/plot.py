@@ -33,6 +33,13 @@ def read_compaction_log(run_dir_or_jsonl: str | Path) -> list[dict[str, Any]]:
             raise DataError(path, f"line {number} is not JSON ({err.msg})") from None
         if not isinstance(record, dict) or "iteration" not in record:
             raise DataError(path, f"line {number} is not a pruning-step record (no 'iteration')")
+        iteration = record["iteration"]
+        if isinstance(iteration, bool) or not isinstance(iteration, int) or iteration < 0:
+            raise DataError(path, f"line {number}: iteration {iteration!r} is not a non-negative integer")
+        for key in ("ratio", "smoothed_loss", "gaussians_left", "removed"):
+            value = record.get(key)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+                raise DataError(path, f"line {number}: {key} {value!r} is not a number")
         records.append(record)
     if not records:
         raise DataError(path, "no pruning steps logged")
