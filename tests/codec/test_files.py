@@ -58,6 +58,9 @@ def test_compress_then_decompress_restores_an_equivalent_run(run_dir, tmp_path):
     kept = compress_run(run, tmp_path / "all.stgc", config=CodecConfig(drop_invisible=False))
     assert kept.num_gaussians == 2000 and kept.dropped_invisible == 0
     assert "dropped_invisible" not in read_stgc(tmp_path / "all.stgc").metadata
+    # The options a file would not show are recorded where they are not the defaults (the runner checks them).
+    assert "codec_options" not in read_stgc(run / "model.stgc").metadata
+    assert read_stgc(tmp_path / "all.stgc").metadata["codec_options"] == {"drop_invisible": False}
 
     out = tmp_path / "restored"
     iteration_dir = decompress(run / "model.stgc", out)

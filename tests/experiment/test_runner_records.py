@@ -80,8 +80,8 @@ def _run_config(run: Path) -> dict[str, Any]:
 
 
 @pytest.mark.parametrize("evaluated", [False, True], ids=["record-stale", "record-current"])
-@pytest.mark.parametrize("written", ["quality-5", "earlier-model", "ladder-allocation", "no-run-config",
-                                     "another-run", "damaged"])
+@pytest.mark.parametrize("written", ["quality-5", "earlier-model", "ladder-allocation", "zstd-level",
+                                     "no-run-config", "another-run", "damaged"])
 def test_a_codec_point_s_file_is_compressed_again_unless_it_is_the_point_the_runner_writes(
         tmp_path: Path, written: str, evaluated: bool) -> None:
     """A RUN/model_q1.stgc of another quality, of an earlier iteration's model, written with other codec options, of
@@ -97,6 +97,8 @@ def test_a_codec_point_s_file_is_compressed_again_unless_it_is_the_point_the_run
         _real_stgc(point, 1, made | {"iteration": 5})
     elif written == "ladder-allocation":
         _real_stgc(point, 1, made | {"allocation_option": "ladder"})
+    elif written == "zstd-level":
+        _real_stgc(point, 1, made | {"codec_options": {"zstd_level": 3}})
     elif written == "no-run-config":
         _real_stgc(point, 1, {k: v for k, v in made.items() if k != "run_config"})
     elif written == "another-run":

@@ -214,6 +214,20 @@ def window_depths(source: str | Path) -> WindowDepths | None:
                         optimised if window["allocation"] == "optimised" else None)
 
 
+# The codec options a file would not tell otherwise (quality is in the header, allocation in allocation_option,
+# embed_run_config in whether run_config is there): recorded where they are not the defaults.
+RECORDED_CODEC_OPTIONS = ("allocation_views", "zstd_level", "position_bits", "adaptive_delta", "outlier_guard",
+                          "drop_invisible")
+
+
+def custom_codec_options(config: CodecConfig) -> dict[str, Any]:
+    """{option: value} of `config`'s RECORDED_CODEC_OPTIONS that are not the defaults: what a file written with
+    it records as metadata `codec_options` (absent when empty), so that a reader can tell what wrote it."""
+    default = CodecConfig()
+    return {name: getattr(config, name) for name in RECORDED_CODEC_OPTIONS
+            if getattr(config, name) != getattr(default, name)}
+
+
 def written_without_window_depths(bitstream: str | Path, config: CodecConfig) -> bool:
     """Whether `bitstream`, written from its run's final model with the default allocation, measured its depths
     again although the model trained through a rate-aware window that `config` (the options it would be compressed
@@ -392,6 +406,9 @@ def _encode_model(source: Path, out_path: Path, config: CodecConfig) -> tuple[by
         metadata["run_config"] = {key: saved[key] for key in RESTORED_CONFIG_SECTIONS if key in saved}
     if config.allocation != "auto":
         metadata["allocation_option"] = config.allocation  # asked for: never replaced as an old default's choice
+    custom = custom_codec_options(config)
+    if custom:  # (a file of the defaults stays as it was, byte for byte)
+        metadata["codec_options"] = custom
     allocation: Allocation | WindowDepths | None = None
     window = window_depths(source) if config.allocation in ("auto", "trained") else None
     if window is not None and window.fits(config) and window.variant == model.variant:

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from stgc.codec import CodecConfig
-from stgc.codec.files import written_without_window_depths
+from stgc.codec.files import custom_codec_options, written_without_window_depths
 from stgc.codec.format import decode_metadata, read_capped, read_header
 from stgc.codec.video import is_video_stgc, read_video_index
 from stgc.compaction.config import idle_compaction_options
@@ -865,7 +865,8 @@ def _unlike_codec_point(path: Path, run: Run, codec: CodecConfig) -> str | None:
     build_compress_command) writes now, or None when it is: the quality its header stores, the model it holds
     (metadata `iteration` against the run's final iteration) and the codec options its metadata records (an
     allocation asked for by name, the run config left out). A whole-video container is checked segment by segment
-    against the run's segments. Options a file does not record (zstd level, layouts) cannot be checked."""
+    against the run's segments. A file written before its metadata recorded codec_options is taken as of the
+    defaults."""
     try:
         if is_video_stgc(path):
             segments = run.segments()
@@ -900,6 +901,12 @@ def _unlike_model(data: bytes, source: str, run: Run, codec: CodecConfig) -> str
     if metadata.get("allocation_option") != asked:
         return (f"was written with codec.allocation={metadata.get('allocation_option', 'auto')}, not "
                 f"{codec.allocation}")
+    recorded, asked_for = metadata.get("codec_options") or {}, custom_codec_options(codec)
+    if recorded != asked_for:  # files written before 2026-11-28 record none: taken as the defaults'
+        differing = sorted(set(recorded) | set(asked_for), key=str)
+        shown = ", ".join(f"codec.{name}={recorded.get(name, 'default')}" for name in differing
+                          if recorded.get(name) != asked_for.get(name))
+        return f"was written with {shown}, not the runner's options"
     if codec.embed_run_config and run.has_config() and "run_config" not in metadata:
         return "was written without the run's config (codec.embed_run_config=false)"
     if not codec.embed_run_config and "run_config" in metadata:
