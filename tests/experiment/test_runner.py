@@ -508,6 +508,17 @@ def test_an_old_or_unreadable_config_or_an_option_left_auto_is_compared_not_skip
     assert reuse_mismatch(idle, "DATA", "cpu", named) is None
     assert "remeasure_at_settle: unset then, true now" in (reuse_mismatch(idle, "DATA", "cpu", {
         **sets, "train.quantization_aware.remeasure_at_settle": "true"}) or "")
+    # A pruned run saved before the pair options existed pruned as the paper does: not one that asks for them.
+    pruned = {"compaction.method": "st-knn", "compaction.case": "2", "data.preprocess": "none"}
+    _trained_config(tmp_path / "pruned" / "stg", "cpu", pruned)
+    saved = json.loads((tmp_path / "pruned" / "stg" / "config.json").read_text())
+    for key in ("keeper_time_coverage", "merge_opacity", "pair_order"):
+        saved["compaction"].pop(key)
+    (tmp_path / "pruned" / "stg" / "config.json").write_text(json.dumps(saved))
+    assert reuse_mismatch(tmp_path / "pruned" / "stg", "DATA", "cpu", pruned) is None
+    for key, value in (("merge_opacity", "true"), ("pair_order", "size"), ("keeper_time_coverage", "0.5")):
+        assert f"compaction.{key}" in (reuse_mismatch(tmp_path / "pruned" / "stg", "DATA", "cpu",
+                                                      {**pruned, f"compaction.{key}": value}) or ""), key
 
 
 def test_a_run_on_part_of_the_recording_or_named_by_format_is_checked_against_the_data(tmp_path: Path) -> None:

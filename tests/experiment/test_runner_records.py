@@ -232,6 +232,12 @@ def test_a_run_shared_by_two_plans_keeps_each_plan_s_family_and_label(tmp_path: 
     named = {plan: [(row.family, row.name) for row in rows_from_run(out / "stg", plan=plan)]
              for plan in ("p1", "p2", "p3", None)}
     assert named["p2"][0] == ("Other", "Z") and named["p1"][0] == named["p3"][0] == named[None][0] == ("STG", "A")
+    from stgc.errors import DataError
+    from stgc.eval.report import report_from_runs
+
+    with pytest.raises(DataError, match="--plan 'P2': no run's experiment.json lists that plan .they list: p1, p2."):
+        report_from_runs([out / "stg"], tmp_path / "report", plan="P2")
+    assert report_from_runs([out / "stg"], tmp_path / "report", plan="p2").rows[0].family == "Other"
 
 
 def test_an_older_single_entry_experiment_json_is_read_as_the_first_plan_s(tmp_path: Path) -> None:

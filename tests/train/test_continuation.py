@@ -182,3 +182,20 @@ def test_a_window_opened_by_a_fine_tuning_takes_today_s_defaults_unless_its_sour
     windowed = source(QuantizationAwareConfig(iterations=50, rate_weight=1e-4, mask=True, remeasure_at_settle=False))
     again = continuation_configs(windowed, "SRC", 100, {"train.quantization_aware.iterations": "100"})
     assert not again["train"].quantization_aware.remeasure_at_settle and again["train"].quantization_aware.mask
+
+
+def test_a_fine_tuning_of_a_budgeted_run_reads_back(source, tmp_path):
+    """A fine-tuning carries its source's compaction section with method none: a source pruned against a loss
+    reference left loss_reference in it, and the fine-tuning's config.json could not be read back (its resume, the
+    runner's reuse check: 'compaction.loss_reference ... needs method st-knn')."""
+    import shutil
+
+    from stgc.options import configs_from_run
+
+    run = tmp_path / "finetuned"
+    shutil.copytree(source, run)
+    config = json.loads((run / Run.CONFIG).read_text())
+    config["compaction"].update(method="none", loss_reference=str(tmp_path / "reference"), loss_budget_db=0.3,
+                                loss_signal="probe_psnr")
+    (run / Run.CONFIG).write_text(json.dumps(config))
+    assert configs_from_run(run)["compaction"].method == "none"

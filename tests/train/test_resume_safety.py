@@ -289,3 +289,26 @@ def test_a_run_whose_data_folder_is_gone_continues_only_on_the_same_data(scene, 
     assert not new.exists()
     assert main(["finetune", str(source), "--data", str(moved), "--out", str(new), "--iterations", "3"]) == 0
     assert Run(new).training_finished()
+    # Its own folder, changed since: said as such.
+    image = sorted((moved / "ims").rglob("*.png"))[0]
+    image.write_bytes(image.read_bytes() + b"\0")
+    capsys.readouterr()
+    assert main(["finetune", str(new), "--out", str(tmp_path / "newer"), "--iterations", "3"]) == 2
+    assert f"{moved}: changed since {new} started training on it" in capsys.readouterr().err
+
+
+def test_the_data_fingerprint_names_the_views_images_and_masks_not_the_folder(tmp_path):
+    from stgc.data import DataConfig
+
+    scene = write_panoptic_scene(tmp_path / "a", views=4, frames=2, width=16, height=12, masks=True)
+    first = DataConfig().open(scene.root)
+    masks, images = sorted((scene.root / "seg").rglob("*.png")), sorted((scene.root / "ims").rglob("*.png"))
+    assert masks and images and first.has_masks
+    shutil.copytree(scene.root, tmp_path / "moved")
+    assert DataConfig().open(tmp_path / "moved").fingerprint == first.fingerprint
+    for changed in (masks[0], images[0]):
+        copy = tmp_path / f"changed_{changed.parts[-3]}"
+        shutil.copytree(scene.root, copy)
+        target = copy / changed.relative_to(scene.root)
+        target.write_bytes(target.read_bytes() + b"\0")  # another file, the same pixels where a reader ignores it
+        assert DataConfig().open(copy).fingerprint != first.fingerprint, changed

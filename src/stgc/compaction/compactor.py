@@ -11,6 +11,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from stgc.config import validate_config
 from stgc.errors import DataError
 from stgc.fileio import read_json_object
 from stgc.metrics import psnr_of_mse
@@ -56,7 +57,7 @@ class STKNNCompactor:
     """
 
     def __init__(self, config: CompactionConfig, total_iterations: int):
-        config.validate()
+        validate_config(config, "compaction")  # its fixed choices too (pair_order "Size" was taken for distance)
         self.config = config
         self.total_iterations = int(total_iterations)
         self.schedule: PruningSchedule = resolve_schedule(config, self.total_iterations)

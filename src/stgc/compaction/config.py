@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
-from typing import Literal, get_args
+from typing import Any, ClassVar, Literal, get_args
 
 from .criteria import CRITERIA, criteria_help
 
@@ -163,6 +163,11 @@ class CompactionConfig:
     )
     min_gaussians: int = field(default=0, metadata={"help": "never prune below this many Gaussians"})
 
+    # How a run saved before these options existed pruned (stgc.config.from_saved; the experiment runner's reuse
+    # check compares a plan's value with them, so an older run is not taken for one that asks for another).
+    SAVED_BEFORE: ClassVar[dict[str, Any]] = {"keeper_time_coverage": 0.0, "merge_opacity": False,
+                                              "pair_order": "distance"}
+
     def validate(self, prefix: str = "") -> None:
         """Raise ValueError naming the field when a value cannot work."""
         if self.method not in METHODS:
@@ -200,8 +205,9 @@ class CompactionConfig:
             raise ValueError(f"compaction.loss_smoothing {self.loss_smoothing!r}: expected one of {SMOOTHINGS}")
         if self.loss_signal not in LOSS_SIGNALS:
             raise ValueError(f"compaction.loss_signal {self.loss_signal!r}: expected one of {LOSS_SIGNALS}")
-        if self.loss_reference and not (self.method == "st-knn" and self.loss_budget_db > 0
-                                        and self.loss_signal in PROBE_SIGNALS):
+        # With method none every other option acts on nothing (a fine-tuning carries its source's section so).
+        budgeted = self.method == "st-knn" and self.loss_budget_db > 0 and self.loss_signal in PROBE_SIGNALS
+        if self.loss_reference and self.method != "none" and not budgeted:
             raise ValueError(f"compaction.loss_reference {self.loss_reference!r}: a reference run is the damage "
                              "budget's, so it needs method st-knn, loss_budget_db > 0 and loss_signal probe or "
                              "probe_psnr")

@@ -175,8 +175,9 @@ def merge_keeper_opacity(opacity_logit: torch.Tensor, remove: np.ndarray, keeper
 
 def size_relative_distances(pairs: PairMatches, log_scaling: np.ndarray, scene_extent: float) -> PairMatches:
     """`pairs` with each distance divided by the pair's size: the sum of its two Gaussians' largest activated scale
-    exp(s), over the scene extent as the distance's positions are. 1 is two spheres of those radii touching; a
-    Gaussian inside its neighbour is below it. A non-finite scale makes the pair's value NaN, which sorts last."""
+    exp(s), over the scene extent as the distance's positions are. For the positions alone 1 is two spheres of those
+    radii touching and a Gaussian inside its neighbour is below it; the rotation term is divided too (for small
+    Gaussians it dominates). A non-finite scale makes the pair's value NaN, which sorts last."""
     largest = np.exp(np.max(np.asarray(log_scaling, dtype=np.float64).reshape(len(log_scaling), -1), axis=1))
     with np.errstate(over="ignore", invalid="ignore"):
         size = (largest[pairs.reference] + largest[pairs.partner]) / float(scene_extent)

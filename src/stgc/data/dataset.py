@@ -321,7 +321,8 @@ class Dataset:
     @functools.cached_property
     def fingerprint(self) -> str:
         """sha256 of what training reads: every training and test view (camera name, frame, time, intrinsics, pose,
-        size, rounded to 1e-6) and the bytes of the files its pixels come from (`file_digest`), not where they lie:
+        size, rounded to 1e-6), the bytes of the files its pixels and its foreground mask come from (`file_digest`),
+        not where they lie:
         the same data moved to another folder has the same fingerprint, another capture with the same cameras or a
         re-rendered frame has another. A view whose pixels come from code (a callable) counts by its geometry."""
         digest = hashlib.sha256(self.format.encode())
@@ -337,6 +338,9 @@ class Dataset:
                     if path not in files:
                         files[path] = file_digest(path)
                     digest.update(f"|{files[path]}|{getattr(source, 'index', '')}".encode())
+                mask = self.mask_path(camera)  # training weighs its loss by the foreground mask
+                if mask is not None:
+                    digest.update(f"|mask {file_digest(Path(mask))}".encode())
         return digest.hexdigest()
 
     @property

@@ -721,6 +721,12 @@ def report_from_runs(
 ) -> Report:
     """`make_report` over any set of runs, each named as the experiment plan `plan` labelled it (`rows_from_run`).
     Runs without eval.json are listed in the report as missing."""
+    if plan is not None:
+        known = {name for d in run_dirs for name in
+                 ((read_json_object(Run(d).experiment_path, strict=False) or {}).get("plans") or {})}
+        if plan not in known:  # a misspelt name would name every run as the first plan did, silently
+            raise DataError(None, f"--plan {plan!r}: no run's experiment.json lists that plan"
+                                  + (f" (they list: {', '.join(sorted(map(str, known)))})" if known else ""))
     rows: list[ReportRow] = []
     missing = []
     for d in run_dirs:

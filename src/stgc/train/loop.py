@@ -40,6 +40,7 @@ from stgc.config import (
     check_choices,
     from_saved,
     same_option_value,
+    same_place,
     validate_config,
 )
 from stgc.data import DataConfig
@@ -1069,10 +1070,17 @@ def check_same_data(saved: Mapping[str, Any] | None, dataset: Dataset, run_path:
     is taken for it, and another capture (or the same one with other images) would be trained into the same model.
     A run that recorded none (started before the record existed) is taken as it is."""
     recorded = (saved or {}).get(DATA_FINGERPRINT)
-    if recorded is not None and recorded != dataset.fingerprint:
-        raise DataError(dataset.root, f"is not the data {run_path} trained on: its views or image files differ from "
-                                      f"those recorded in {run_path / Run.CONFIG}; continue the run on its own data, "
-                                      "or train this data into a new --out")
+    if recorded is None or recorded == dataset.fingerprint:
+        return
+    saved_path = ((saved or {}).get("data") or {}).get("path")
+    if saved_path and same_place(str(dataset.root), str(saved_path)):
+        raise DataError(dataset.root, f"changed since {run_path} started training on it: its views, or the bytes of "
+                                      f"its image or mask files, differ from those recorded in "
+                                      f"{run_path / Run.CONFIG} (a re-rendered or re-encoded frame counts); put the "
+                                      "data back as it was, or train it into a new --out")
+    raise DataError(dataset.root, f"is not the data {run_path} trained on: its views, or the bytes of its image or "
+                                  f"mask files, differ from those recorded in {run_path / Run.CONFIG}; continue the "
+                                  "run on its own data, or train this data into a new --out")
 
 
 def resolved_options(dataset: Dataset, data_cfg: DataConfig | None, model_cfg: ModelConfig | None,
