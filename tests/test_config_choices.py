@@ -189,8 +189,9 @@ def test_every_fixed_choice_option_is_checked(section, path, name, choices, opti
 
 
 def test_the_choices_alone_can_be_checked_where_a_section_s_other_checks_do_not_apply():
-    """`check_choices` checks the fixed choices only, of nested configs too, and lets None pass: for a section that
-    is carried rather than validated (a continuation's compaction section: method none, its loss reference kept)."""
+    """`check_choices` checks the fixed choices only, of nested configs too, and lets None pass (the trainer checks
+    the sections whose other checks run where they are used); a continuation's carried compaction section (method
+    none, its source's loss reference kept) passes both."""
     from stgc.compaction.config import CompactionConfig
     from stgc.config import check_choices
     from stgc.data import DataConfig
@@ -198,8 +199,9 @@ def test_the_choices_alone_can_be_checked_where_a_section_s_other_checks_do_not_
     check_choices(None, "compaction")
     carried = CompactionConfig(method="none", loss_reference="/elsewhere/run")
     check_choices(carried, "compaction")
+    validate_config(carried, "compaction")
     with pytest.raises(ValueError, match="loss_reference"):
-        validate_config(carried, "compaction")
+        validate_config(dataclasses.replace(carried, method="st-knn"), "compaction")
     with pytest.raises(ConfigError, match="^data.yuv_range: 'Full' is not one of limited, full$"):
         check_choices(DataConfig(yuv_range="Full"), "data")
     with pytest.raises(ConfigError, match="^train.densify.stats_views: 'Last' is not one of last, all$"):

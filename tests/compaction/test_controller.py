@@ -367,9 +367,11 @@ def test_a_reference_that_is_not_one_or_misses_iterations_is_refused_naming_its_
         STKNNCompactor(CompactionConfig(loss_reference=str(pruned), **common), 100)
     with pytest.raises(DataError, match="no compaction log"):
         STKNNCompactor(CompactionConfig(loss_reference=str(tmp_path / "absent"), **common), 100)
-    for bad in (dict(loss_budget_db=0.0), dict(loss_signal="training"), dict(method="none")):
+    for bad in (dict(loss_budget_db=0.0), dict(loss_signal="training"), dict(method="reference")):
         with pytest.raises(ValueError, match="loss_reference"):
             CompactionConfig(**{**common, "loss_reference": "x", **bad}).validate()
+    # With method none it acts on nothing, as every other option (a fine-tuning carries its source's section so).
+    CompactionConfig(**{**common, "loss_reference": "x", "method": "none"}).validate()
 
 
 def test_a_non_finite_probe_or_reference_is_no_signal():

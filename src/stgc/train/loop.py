@@ -415,8 +415,8 @@ class Trainer:
         evaluator: TestEvaluator | None = None,
     ):
         validate_config(train_cfg, "train")
-        # The other sections' fixed choices too, before anything is written (a continuation's compaction section
-        # keeps options its method none leaves idle, which CompactionConfig.validate would refuse: choices only).
+        # The other sections' fixed choices too, before anything is written (their other checks run where each
+        # section is used: the data's when it is opened, the compaction's in the compactor).
         for section, options in (("data", data_cfg), ("model", model_cfg), ("compaction", compaction_cfg)):
             check_choices(options, section)
         extent = dataset.scene_extent()
