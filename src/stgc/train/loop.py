@@ -1072,7 +1072,8 @@ def check_same_data(saved: Mapping[str, Any] | None, dataset: Dataset, run_path:
     recorded = (saved or {}).get(DATA_FINGERPRINT)
     if recorded is None or recorded == dataset.fingerprint:
         return
-    saved_path = ((saved or {}).get("data") or {}).get("path")
+    saved_data = (saved or {}).get("data")
+    saved_path = saved_data.get("path") if isinstance(saved_data, dict) else None
     if saved_path and same_place(str(dataset.root), str(saved_path)):
         raise DataError(dataset.root, f"changed since {run_path} started training on it: its views, or the bytes of "
                                       f"its image or mask files, differ from those recorded in "
