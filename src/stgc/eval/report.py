@@ -639,10 +639,11 @@ def rows_from_run(run_dir: str | Path, include_codec: bool = True, plan: str | N
                 continue
             point = path.stem.removeprefix("eval_")
             bitstream = str(rec.get("bitstream") or f"{point}.stgc")
-            if path.name != run.eval_paths(bitstream=run_dir / Path(bitstream).name)[0].name:
+            own_record = run.eval_paths(bitstream=run_dir / Path(bitstream).name)[0].name
+            if path.name != own_record:
                 # A copy of a record under another name (saved `stgc eval --json` output) is no point of its own.
                 log.warning("%s: left out of the report: it is not the record stgc eval writes for %s (that is "
-                            "%s)", path, bitstream, run.eval_paths(bitstream=run_dir / Path(bitstream).name)[0].name)
+                            "%s)", path, bitstream, own_record)
                 continue
             if not Run.scored_this_bitstream(rec, run_dir / bitstream):
                 log.warning("%s: left out of the report: %s is missing or was written again after this "
