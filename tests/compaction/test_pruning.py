@@ -298,9 +298,9 @@ def test_size_order_takes_overlapping_gaussians_before_small_close_neighbours():
     params["scaling"][2:] = float(np.log(0.1))  # radius 0.1: 0.02 apart is 0.1 size
     params["scaling"][2, 1] = float(np.log(0.2))  # the largest axis counts
     relative = size_relative_distances(_pairs([0, 2], [1, 3], [0.01, 0.02]), params["scaling"].numpy(), 1.0)
-    np.testing.assert_allclose(relative.distance, [0.01 / 0.004, 0.02 / 0.3])
-    np.testing.assert_allclose(size_relative_distances(_pairs([0], [1], [0.01]), params["scaling"].numpy(), 2.0)
-                               .distance, [0.01 / 0.002])  # sizes over the scene extent, as positions are
+    np.testing.assert_allclose(relative, [0.01 / 0.004, 0.02 / 0.3])
+    np.testing.assert_allclose(size_relative_distances(_pairs([0], [1], [0.01]), params["scaling"].numpy(), 2.0),
+                               [0.01 / 0.002])  # sizes over the scene extent, as positions are
     kept = {}
     for order in ("distance", "size"):
         config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5,
@@ -309,8 +309,50 @@ def test_size_order_takes_overlapping_gaussians_before_small_close_neighbours():
         event = STKNNCompactor(config, 10).step(1, 0.5, model, 1.0)
         assert event["matched_pairs"] == 2 and event["removed"] == 1
         kept[order] = model.params["xyz"][:, 0].tolist()
+        # The log names the selected pair's distance, whatever order took it.
+        assert event["max_selected_distance"] == pytest.approx(0.01 if order == "distance" else 0.02, rel=1e-3)
     assert kept["distance"] == pytest.approx([0.0, 0.5, 0.52])  # the small pair lost its later member
     assert kept["size"] == pytest.approx([0.0, 0.01, 0.5])  # the overlapping pair did
     scaling = params["scaling"].numpy().copy()
     scaling[3] = np.nan
-    assert np.isnan(size_relative_distances(_pairs([0, 2], [1, 3], [0.01, 0.02]), scaling, 1.0).distance[1])
+    assert np.isnan(size_relative_distances(_pairs([0, 2], [1, 3], [0.01, 0.02]), scaling, 1.0)[1])
+
+
+def test_weight_order_takes_the_pair_whose_loser_shows_least():
+    """Two pairs: the closer one's loser (the later mu_t) carries much blending weight, the farther one's little. The
+    paper's order removes the closer pair's loser; the weight order the farther pair's. Both the importance criterion
+    and the weight order in one step render the weights once."""
+    from stgc.compaction import CompactionConfig, STKNNCompactor
+    from stgc.compaction.pruning import loser_weights
+
+    xyz = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.5, 0.5, 0.5], [0.52, 0.5, 0.5]])
+    params = static_params(xyz, trbf_center=np.array([0.4, 0.6, 0.4, 0.6]))
+    weights = np.array([1.0, 5.0, 1.0, 0.5])
+    scores = params["trbf_center"].numpy().reshape(-1)
+    np.testing.assert_allclose(loser_weights(_pairs([0, 2], [1, 3], [0.01, 0.02]), scores, weights), [5.0, 0.5])
+    np.testing.assert_allclose(loser_weights(_pairs([1, 3], [0, 2], [0.01, 0.02]), scores, weights), [5.0, 0.5])
+    assert np.isnan(loser_weights(_pairs([0], [1], [0.01]), scores, np.array([1.0, np.inf, 1.0, 1.0]))[0])
+    with pytest.raises(ValueError, match="3 blending weights for 4"):
+        loser_weights(_pairs([0], [1], [0.01]), scores, weights[:3])
+    kept = {}
+    for order, criterion in (("distance", "timestamp"), ("weight", "timestamp"), ("weight", "importance")):
+        config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5,
+                                  ratio_min=0.5, ratio_max=0.5, pair_order=order, criterion=criterion)
+        model = make_model({k: v.clone() for k, v in params.items()})
+        calls = []
+
+        def importance() -> torch.Tensor:
+            calls.append(1)
+            return torch.from_numpy(weights.copy())
+
+        event = STKNNCompactor(config, 10).step(1, 0.5, model, 1.0, importance_fn=importance)
+        assert event["removed"] == 1
+        assert len(calls) == (0 if order == "distance" else 1)
+        kept[order, criterion] = model.params["xyz"][:, 0].tolist()
+    assert kept["distance", "timestamp"] == pytest.approx([0.0, 0.5, 0.52])
+    assert kept["weight", "timestamp"] == pytest.approx([0.0, 0.01, 0.5])  # the farther pair's faint loser went
+    assert kept["weight", "importance"] == pytest.approx([0.0, 0.01, 0.5])  # (there it is the criterion's loser too)
+    config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5, ratio_min=0.5,
+                              ratio_max=0.5, pair_order="weight")
+    with pytest.raises(ValueError, match="need importance_fn"):
+        STKNNCompactor(config, 10).step(1, 0.5, make_model({k: v.clone() for k, v in params.items()}), 1.0)

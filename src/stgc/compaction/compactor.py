@@ -22,6 +22,7 @@ from .matching import SpacetimeModel, match_spatiotemporal_pairs, to_float64_num
 from .plot import LOG_NAME, read_compaction_log
 from .pruning import (
     keeper_time_coverage,
+    loser_weights,
     merge_keeper_opacity,
     removal_scores,
     select_removals,
@@ -128,15 +129,30 @@ class STKNNCompactor:
         pairs = match_spatiotemporal_pairs(model, t, self.config.rotation_weight, self.config.sample_times)
         matched_at = time.perf_counter()
         max_removals = max(0, n_before - self.config.min_gaussians)
-        scores = removal_scores(model.params, self.config.criterion, importance_fn) if len(pairs) else np.zeros(n_before)
+        weights: np.ndarray | None = None
+
+        def blending_weights() -> np.ndarray:  # rendered once per step, whether the criterion or the order asks
+            nonlocal weights
+            if importance_fn is None:
+                raise ValueError("compaction: the importance criterion and pair_order 'weight' need importance_fn "
+                                 "(the blending weight of every Gaussian over the training views)")
+            if weights is None:
+                raw = importance_fn()
+                weights = (to_float64_numpy(raw) if torch.is_tensor(raw) else np.asarray(raw, np.float64)).reshape(-1)
+            return weights
+
+        scores = removal_scores(model.params, self.config.criterion, blending_weights) if len(pairs) else np.zeros(n_before)
         matched_pairs = len(pairs)
         if self.config.keeper_time_coverage > 0 and len(pairs):
             coverage = keeper_time_coverage(pairs, scores, to_float64_numpy(model.params["trbf_center"]),
                                             to_float64_numpy(model.params["trbf_scale"]))
             pairs = pairs.subset(coverage >= self.config.keeper_time_coverage)
+        order_by = None
         if self.config.pair_order == "size" and len(pairs):
-            pairs = size_relative_distances(pairs, to_float64_numpy(model.params["scaling"]), model.scene_extent)
-        selection = select_removals(pairs, ratio, scores, max_removals, ratio_of=matched_pairs)
+            order_by = size_relative_distances(pairs, to_float64_numpy(model.params["scaling"]), model.scene_extent)
+        elif self.config.pair_order == "weight" and len(pairs):
+            order_by = loser_weights(pairs, scores, blending_weights())
+        selection = select_removals(pairs, ratio, scores, max_removals, ratio_of=matched_pairs, order_by=order_by)
         if selection.remove.size:
             keep = torch.ones(n_before, dtype=torch.bool)
             keep[torch.from_numpy(selection.remove)] = False

@@ -145,12 +145,14 @@ class CompactionConfig:
             "(paper)"
         },
     )
-    pair_order: Literal["distance", "size"] = field(
+    pair_order: Literal["distance", "size", "weight"] = field(
         default="distance",
         metadata={
             "help": "which matched pairs the ratio takes first: 'distance' = the closest (paper), 'size' = the closest "
             "in units of the pair's size (the distance over the sum of the two Gaussians' largest scales), so that "
-            "Gaussians that overlap go before small neighbours that only lie close, such as fine detail"
+            "Gaussians that overlap go before small neighbours that only lie close, such as fine detail; 'weight' = "
+            "the pairs whose loser (by the criterion) shows least: its blending weight summed over the training views "
+            "(one per camera and per frame, as the importance criterion's; rendered at every pruning step)"
         },
     )
     merge_opacity: bool = field(

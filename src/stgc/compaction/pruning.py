@@ -1,7 +1,8 @@
 """Which Gaussians a pruning step removes (paper section III.2).
 
 The matched pairs are sorted by distance (ascending; equal distances in reference order) and the closest
-`ratio` fraction of them is selected (rounded to the nearest count). From each selected pair one member, the *loser*
+`ratio` fraction of them is selected (rounded to the nearest count); `compaction.pair_order` may sort them by
+another key (`size_relative_distances`, `loser_weights`). From each selected pair one member, the *loser*
 chosen by the criterion, is removed and the other, the *keeper*, must survive:
 
 - `timestamp` (paper): the loser has the later most-visible time mu_t;
@@ -105,18 +106,23 @@ def keeper_time_coverage(
 
 def select_removals(
     pairs: PairMatches, ratio: float, scores: np.ndarray, max_removals: int | None = None,
-    ratio_of: int | None = None,
+    ratio_of: int | None = None, order_by: np.ndarray | None = None,
 ) -> PruneSelection:
     """Gaussians to remove for the closest `ratio` fraction of `pairs` (rules in the module docstring).
 
     `ratio_of`: the pair count the ratio is a fraction of, when `pairs` is a filtered subset of the matched pairs
     (`keeper_time_coverage`): the step then selects as many pairs as it would unfiltered (at most all of `pairs`),
-    so that a filter changes which pairs go, not how fast the model is pruned."""
+    so that a filter changes which pairs go, not how fast the model is pruned.
+    `order_by`: [P] the key the pairs are taken by, smallest first, instead of their distance (`pair_order`; NaN
+    last); equal keys in reference order, as distances."""
     n_pairs = len(pairs)
     n_selected = min(n_pairs, int(np.floor(ratio * (n_pairs if ratio_of is None else ratio_of) + 0.5)))
     if n_selected == 0 or (max_removals is not None and max_removals <= 0):
         return PruneSelection(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), n_selected, 0, float("nan"))
-    order = np.lexsort((pairs.reference, pairs.distance))[:n_selected]
+    key = pairs.distance if order_by is None else np.asarray(order_by, dtype=np.float64)
+    if key.shape != (n_pairs,):
+        raise ValueError(f"order_by has shape {key.shape}; expected one key per pair ({n_pairs},)")
+    order = np.lexsort((pairs.reference, key))[:n_selected]
     a, b = pairs.reference[order], pairs.partner[order]
     a_loses = reference_loses(a, b, scores)
     losers = np.where(a_loses, a, b).tolist()
@@ -152,7 +158,7 @@ def select_removals(
         keepers=np.asarray(removed_for, dtype=np.int64)[by_index],
         selected_pairs=n_selected,
         conflicts=conflicts,
-        max_selected_distance=float(pairs.distance[order[-1]]),
+        max_selected_distance=float(np.max(pairs.distance[order])),
     )
 
 
@@ -173,13 +179,24 @@ def merge_keeper_opacity(opacity_logit: torch.Tensor, remove: np.ndarray, keeper
         flat[touched] = torch.log1p(-clear).sub(torch.log(clear)).to(flat.dtype)
 
 
-def size_relative_distances(pairs: PairMatches, log_scaling: np.ndarray, scene_extent: float) -> PairMatches:
-    """`pairs` with each distance divided by the pair's size: the sum of its two Gaussians' largest activated scale
-    exp(s), over the scene extent as the distance's positions are. For the positions alone 1 is two spheres of those
-    radii touching and a Gaussian inside its neighbour is below it; the rotation term is divided too (for small
+def size_relative_distances(pairs: PairMatches, log_scaling: np.ndarray, scene_extent: float) -> np.ndarray:
+    """[P] each pair's distance over its size (`pair_order = size`): the sum of its two Gaussians' largest activated
+    scale exp(s), over the scene extent as the distance's positions are. For the positions alone 1 is two spheres of
+    those radii touching and a Gaussian inside its neighbour is below it; the rotation term is divided too (for small
     Gaussians it dominates). A non-finite scale makes the pair's value NaN, which sorts last."""
     largest = np.exp(np.max(np.asarray(log_scaling, dtype=np.float64).reshape(len(log_scaling), -1), axis=1))
     with np.errstate(over="ignore", invalid="ignore"):
         size = (largest[pairs.reference] + largest[pairs.partner]) / float(scene_extent)
-        relative = np.where(np.isfinite(size) & (size > 0), pairs.distance / size, np.nan)
-    return PairMatches(pairs.reference, pairs.partner, relative, pairs.matched_references)
+        return np.where(np.isfinite(size) & (size > 0), pairs.distance / size, np.nan)
+
+
+def loser_weights(pairs: PairMatches, scores: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """[P] the blending weight of each pair's loser (the member `scores` removes; `weights` [N] per Gaussian, summed
+    over the training views), for `pair_order = weight`: the pairs whose removal takes least of what the views show
+    go first. A non-finite weight is NaN, which sorts last."""
+    losers = np.where(reference_loses(pairs.reference, pairs.partner, scores), pairs.reference, pairs.partner)
+    values = np.asarray(weights, dtype=np.float64).reshape(-1)
+    if values.size != scores.shape[0]:
+        raise ValueError(f"{values.size} blending weights for {scores.shape[0]} Gaussians")
+    picked = values[losers]
+    return np.where(np.isfinite(picked), picked, np.nan)
