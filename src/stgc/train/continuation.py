@@ -13,19 +13,14 @@ the whole history, and `continued_from.json` names RUN and the iteration NEW sta
 from __future__ import annotations
 
 import dataclasses
-import math
 import shutil
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from stgc.config import ConfigError, apply_overrides, split_sections, validate_config
-from stgc.data.dataset import Dataset
-from stgc.errors import DataError, StgcError
+from stgc.errors import StgcError
 from stgc.fileio import atomic_path, write_json
-from stgc.render import select_backend
 from stgc.run import Run, prepare_new_run
 from stgc.train.checkpoint import copy_checkpoint
 from stgc.train.config import (
@@ -35,7 +30,15 @@ from stgc.train.config import (
     refuse_unused_window_options,
     resolve_schedule,
 )
-from stgc.train.loop import RunLock, check_same_data, options_fingerprint, resolved_options, run_config, run_options
+from stgc.train.loop import (
+    RunLock,
+    check_same_data,
+    check_trainable,
+    options_fingerprint,
+    resolved_options,
+    run_config,
+    run_options,
+)
 
 
 def check_continuable(source: str | Path) -> None:
@@ -87,23 +90,6 @@ def continuation_configs(saved: Mapping[str, Any], source: str | Path, iteration
     configs["train"] = validate_config(train_cfg, "train")
     configs["compaction"] = dataclasses.replace(saved["compaction"], method="none")
     return configs
-
-
-def check_trainable(dataset: Dataset, train_cfg: TrainConfig, *, evaluate: bool) -> None:
-    """What the trainer refuses before it writes a new run, for a continuation: the trainer resumes NEW, so its own
-    checks would come after NEW's checkpoint, config.json and logs were written (and a corrected command would find a
-    run there). `evaluate`: whether the trainer gets a test evaluator."""
-    extent = dataset.scene_extent()  # the source's, unless DATA replaced its data
-    if not (math.isfinite(extent) and extent > 0):
-        raise DataError(dataset.root, f"the scene extent (1.1 x the spread of the training cameras' centres) is "
-                                      f"{extent:g}: training needs training cameras at two or more places")
-    if evaluate and (train_cfg.eval_every or train_cfg.eval_at_end) and not dataset.test:
-        raise DataError(dataset.root, "no test views to evaluate on (data.test_cameras): name some, or train "
-                                      "without evaluating (train.eval_at_end=false, train.eval_every=0)")
-    try:  # the trainer's device is the CPU
-        select_backend(train_cfg.backend, torch.device("cpu"))
-    except ValueError as exc:
-        raise ConfigError(f"train.backend: {exc}") from None
 
 
 def start_continuation(source: str | Path, out: str | Path, iterations: int, configs: Mapping[str, Any],

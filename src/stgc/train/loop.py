@@ -240,6 +240,24 @@ def _holds_a_training(run: Run) -> bool:
     return saved is not None and not run_config_problems(saved)
 
 
+def check_trainable(dataset: Dataset, train_cfg: TrainConfig, *, evaluate: bool) -> None:
+    """What the trainer refuses about its data and options before it writes anything (a continuation calls it before
+    it writes NEW, which the trainer then resumes). `evaluate`: whether the trainer gets a test evaluator."""
+    extent = dataset.scene_extent()
+    if not (math.isfinite(extent) and extent > 0):
+        raise DataError(dataset.root, f"the scene extent (1.1 x the spread of the training cameras' centres) is "
+                                      f"{extent:g}: the learning rates and the clone/split sizes scale with it, "
+                                      f"so training needs training cameras at two or more places")
+    if evaluate and (train_cfg.eval_every or train_cfg.eval_at_end) and not dataset.test:
+        # Otherwise it trained, then failed at its first evaluation (with eval_every, before any checkpoint).
+        raise DataError(dataset.root, "no test views to evaluate on (data.test_cameras): name some, or train "
+                                      "without evaluating (train.eval_at_end=false, train.eval_every=0)")
+    try:  # a backend the trainer's device (the CPU) cannot run
+        select_backend(train_cfg.backend, torch.device("cpu"))
+    except ValueError as exc:
+        raise ConfigError(f"train.backend: {exc}") from None
+
+
 def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig | None) -> None:
     """The learned mask keeps one logit per row: refuse, before training (and before the run's folder is written),
     a run in which something else may add or remove Gaussians inside the rate-aware window (the mask would lose
@@ -419,11 +437,7 @@ class Trainer:
         # section is used: the data's when it is opened, the compaction's in the compactor).
         for section, options in (("data", data_cfg), ("model", model_cfg), ("compaction", compaction_cfg)):
             check_choices(options, section)
-        extent = dataset.scene_extent()
-        if not (math.isfinite(extent) and extent > 0):
-            raise DataError(dataset.root, f"the scene extent (1.1 x the spread of the training cameras' centres) is "
-                                          f"{extent:g}: the learning rates and the clone/split sizes scale with it, "
-                                          f"so training needs training cameras at two or more places")
+        check_trainable(dataset, train_cfg, evaluate=evaluator is not None)
         model_options_given = model_cfg is not None
         if model is not None:
             model_cfg = _options_of_given_model(model, model_cfg)
@@ -436,14 +450,6 @@ class Trainer:
         self.compactor = self._make_compactor()
         self._check_loss_reference()
         check_mask_window(train_cfg, compaction_cfg)
-        if evaluator is not None and (train_cfg.eval_every or train_cfg.eval_at_end) and not dataset.test:
-            # It trained, then failed at its first evaluation (with eval_every, before any checkpoint).
-            raise DataError(dataset.root, "no test views to evaluate on (data.test_cameras): name some, or train "
-                                          "without evaluating (train.eval_at_end=false, train.eval_every=0)")
-        try:  # a backend the trainer's device (the CPU) cannot run: refused before anything is written
-            select_backend(train_cfg.backend, torch.device("cpu"))
-        except ValueError as exc:
-            raise ConfigError(f"train.backend: {exc}") from None
         # Claimed before anything in the folder is removed, truncated or written (a folder yet to be made, once made).
         self.lock = RunLock(out_dir)
         if Path(out_dir).is_dir():
