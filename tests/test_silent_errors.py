@@ -104,6 +104,11 @@ def test_compress_refuses_a_non_stgc_name_and_a_bad_allocation_at_once(trained_r
     assert "must end in .stgc" in capsys.readouterr().err
     assert main(["compress", str(trained_run), "--out", str(tmp_path / "m.stgc"), "--codec.allocation", "bogus"]) == 2
     assert "codec.allocation: 'bogus' is not one of auto, trained, optimised, ladder" in capsys.readouterr().err
+    # An option the chosen allocation never uses is refused, not ignored.
+    for mode in ("ladder", "trained"):
+        assert main(["compress", str(trained_run), "--out", str(tmp_path / "m.stgc"), "--set",
+                     f"codec.allocation={mode}", "--set", "codec.allocation_views=4"]) == 2
+        assert f"allocation {mode} renders no views" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
 
 

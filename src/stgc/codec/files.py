@@ -94,6 +94,12 @@ class CodecConfig:
         check(self.allocation in ALLOCATION_MODES, f"{prefix}allocation", self.allocation,
               f"one of {', '.join(ALLOCATION_MODES)}")
         check(self.allocation_views >= 1, f"{prefix}allocation_views", self.allocation_views, ">= 1")
+        # An option that would act on nothing is refused, not ignored (the user meant something by it).
+        default_views = CodecConfig.__dataclass_fields__["allocation_views"].default
+        check(self.allocation not in ("ladder", "trained") or self.allocation_views == default_views,
+              f"{prefix}allocation_views", self.allocation_views,
+              f"allocation {self.allocation} renders no views: leave it at {default_views} or use allocation "
+              "optimised or auto")
 
 
 @dataclass(frozen=True)
