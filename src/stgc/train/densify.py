@@ -182,8 +182,9 @@ def nonfinite_groups(model: STGModel, rows: torch.Tensor) -> dict[str, int]:
     for key, p in model.params.items():
         finite = torch.isfinite(p.detach())
         bad = ~(finite.flatten(1).all(dim=1) if p.ndim > 1 else finite)
-        if int((bad & rows).sum()):
-            counts[key] = int((bad & rows).sum())
+        count = int((bad & rows).sum())
+        if count:
+            counts[key] = count
     return counts
 
 
