@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -119,6 +120,51 @@ def test_only_a_lower_case_stgc_is_written_and_a_device_is_not_read(run_dir, tmp
         compress_run(run, tmp_path / "m.STGC")
     with pytest.raises(FormatError, match="not a regular file"):
         read_stgc("/dev/zero")
+
+
+@pytest.mark.skipif(not Path("/proc/self/mem").is_file(), reason="needs Linux's /proc/self/mem")
+def test_a_file_that_cannot_be_read_is_a_clear_error():
+    # /proc/self/mem is a regular file of size 0 whose read fails (EIO): as a permission or disk error would.
+    with pytest.raises(DataError, match="cannot read .stgc file"):
+        read_stgc("/proc/self/mem")
+
+
+def test_a_named_pipe_is_refused_unread_by_every_reader(tmp_path):
+    """A .stgc path that is a pipe blocks whoever opens it until a writer comes: every reader refuses it unopened
+    (`decompress` peeked at it for the video magic and hung). A watcher unblocks any reader that does open it and
+    records that one did, so the test fails instead of hanging."""
+    import os
+    import threading
+
+    from stgc.codec import decompress
+    from stgc.codec.video import is_video_stgc, read_video_index
+
+    fifo = tmp_path / "pipe.stgc"
+    os.mkfifo(fifo)
+    done, opened = threading.Event(), []
+
+    def unblock_readers() -> None:
+        while not done.is_set():
+            try:  # succeeds only while a reader has the pipe open (blocked in open or read)
+                fd = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+            except OSError:
+                done.wait(0.05)
+                continue
+            opened.append(True)
+            os.close(fd)
+
+    watcher = threading.Thread(target=unblock_readers, daemon=True)
+    watcher.start()
+    try:
+        assert not is_video_stgc(fifo)
+        for read in (read_stgc, read_video_index, lambda path: decompress(path, tmp_path / "out")):
+            with pytest.raises(FormatError, match="not a regular file"):
+                read(fifo)
+    finally:
+        done.set()
+        watcher.join()
+    assert not opened
+    assert not (tmp_path / "out").exists()
 
 
 def test_failures_leave_no_partial_output_and_name_the_file(run_dir, tmp_path):

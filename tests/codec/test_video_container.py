@@ -91,6 +91,9 @@ def test_the_encoder_refuses_what_a_reader_would(segments):
         encode_video([])
     with pytest.raises(FormatError):
         encode_video([(0, 5, b"not a bitstream" * 4)])
+    first, second = segments[0], segments[1]
+    with pytest.raises(FormatError, match=r"segment 1 \(frames %d\+%d\)" % second[:2]):  # which one is bad
+        encode_video([first, (second[0], second[1], second[2][:-3])])
 
 
 def test_a_single_model_reader_names_the_container_instead_of_misreading_it(segments, tmp_path):

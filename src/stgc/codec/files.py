@@ -75,7 +75,7 @@ class CodecConfig:
     adaptive_delta: bool = field(default=True, metadata={
         "help": "per section, also try the adaptive layouts (delta along the Morton order, centred, predicted, "
                 "byte-interleaved) and keep the smallest; off: plain planar bytes only (docs/stgc-format.md "
-                "section 8)"})
+                "section 3)"})
     outlier_guard: bool = field(default=True, metadata={
         "help": "add bits to an attribute group whose range a few outliers stretch (keeps the bulk's precision)"})
     drop_invisible: bool = field(default=True, metadata={

@@ -90,7 +90,10 @@ def read_capped(path: str | os.PathLike) -> bytes:
         raise FormatError(path, f"{size} bytes is larger than any valid .stgc file")
     if not path.is_file():  # a device or a pipe says size 0 and may never end
         raise FormatError(path, "not a regular file")
-    return path.read_bytes()
+    try:
+        return path.read_bytes()
+    except OSError as exc:  # permission, I/O error: as a missing file, never a bare OSError
+        raise DataError(path, f"cannot read .stgc file ({exc.strerror})") from None
 
 
 _HEADER = struct.Struct("<8sHBBIHHII")  # magic version variant quality N sections flags table_size table_crc

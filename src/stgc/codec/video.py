@@ -80,12 +80,13 @@ def encode_video(segments: Sequence[tuple[int, int, bytes]]) -> bytes:
     index = bytearray()
     offset = VIDEO_HEADER_SIZE + INDEX_ENTRY_SIZE * len(segments)
     expected_first = None
-    for first_frame, num_frames, payload in segments:
+    for k, (first_frame, num_frames, payload) in enumerate(segments):
         if num_frames < 1 or not 0 <= first_frame < MAX_FRAME or first_frame + num_frames > MAX_FRAME:
             raise ValueError(f"segment frames {first_frame}+{num_frames} out of range")
         if expected_first is not None and first_frame != expected_first:
             raise ValueError(f"segments must be consecutive: one starts at frame {first_frame}, expected {expected_first}")
-        decode(payload)  # a container never carries a segment its reader would refuse
+        # A container never carries a segment its reader would refuse.
+        decode(payload, source=f"segment {k} (frames {first_frame}+{num_frames})")
         index += _INDEX_ENTRY.pack(first_frame, num_frames, offset, len(payload), zlib.crc32(payload), 0)
         offset += len(payload)
         expected_first = first_frame + num_frames
@@ -165,6 +166,8 @@ def decode_video(data: bytes, source: str | None = None) -> list[DecodedModel]:
 
 def is_video_stgc(path: str | os.PathLike) -> bool:
     """Whether `path` is a file starting with the whole-video container's magic (a cheap peek, no validation)."""
+    if not Path(path).is_file():  # a pipe or a terminal would block the peek forever
+        return False
     try:
         with open(path, "rb") as f:
             return f.read(len(VIDEO_MAGIC)) == VIDEO_MAGIC
@@ -177,6 +180,8 @@ def read_video_index(path: str | os.PathLike) -> VideoIndex:
     path = Path(path)
     try:
         size = path.stat().st_size
+        if not path.is_file():  # a device or a pipe says size 0 and may never end
+            raise FormatError(path, "not a regular file")
         with open(path, "rb") as f:
             head = f.read(VIDEO_HEADER_SIZE)
             if len(head) == VIDEO_HEADER_SIZE and head[:8] == VIDEO_MAGIC:
