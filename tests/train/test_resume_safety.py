@@ -222,7 +222,7 @@ def test_a_second_trainer_of_a_run_folder_is_refused_while_another_process_train
 
 
 def test_a_trainer_holds_its_run_folder_until_its_run_ends(stopped, tmp_path):
-    from stgc.train.loop import RunInUseError
+    from stgc.run import RunInUseError
 
     run = _copy(stopped, tmp_path)
     first = _trainer(run, stop_after=2)

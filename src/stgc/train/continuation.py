@@ -21,7 +21,7 @@ from typing import Any
 from stgc.config import ConfigError, apply_overrides, split_sections, validate_config
 from stgc.errors import StgcError
 from stgc.fileio import atomic_path, write_json
-from stgc.run import Run, prepare_new_run
+from stgc.run import Run, RunLock, prepare_new_run
 from stgc.train.checkpoint import copy_checkpoint
 from stgc.train.config import (
     QuantizationAwareConfig,
@@ -31,7 +31,6 @@ from stgc.train.config import (
     resolve_schedule,
 )
 from stgc.train.loop import (
-    RunLock,
     check_same_data,
     check_trainable,
     options_fingerprint,

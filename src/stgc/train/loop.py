@@ -13,19 +13,15 @@ from RUN/checkpoint.pt makes exactly the draws an uninterrupted run would have m
 from __future__ import annotations
 
 import dataclasses
-import fcntl
-import gc
 import hashlib
 import json
 import logging
 import math
-import os
 import random
-import socket
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import IO, Any, Protocol, cast
+from typing import Any, Protocol, cast
 
 import numpy as np
 import torch
@@ -47,14 +43,14 @@ from stgc.data import DataConfig
 from stgc.data.cameras import Camera
 from stgc.data.config import initial_points_from_config
 from stgc.data.dataset import Dataset
-from stgc.errors import DataError, OutputError, StgcError
+from stgc.errors import DataError, StgcError
 from stgc.fileio import write_json
 from stgc.metrics import mse, psnr_of_mse, ssim
 from stgc.model import ModelConfig, STGModel
 from stgc.model.config import DecoderActivation
 from stgc.model.layout import Variant
 from stgc.render import BACKENDS, select_backend
-from stgc.run import Run, run_config_problems, run_contents
+from stgc.run import Run, RunLock, run_config_problems, run_contents
 from stgc.train.behaviour import BEHAVIOUR_KEY, recorded_behaviour
 from stgc.train.checkpoint import (
     OPTIONS,
@@ -287,129 +283,6 @@ def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig |
         raise ConfigError(
             f"train.quantization_aware.mask: the rate-aware window (iterations {first}-{sched.iterations}) overlaps "
             f"{'; '.join(overlapping)}: they change the Gaussians the mask learns over")
-
-
-# RUN/.lock: not one of the run's files (stgc.run.RUN_FILES), so a folder holding only a stale one holds no run.
-LOCK_NAME = ".lock"
-# Tries at locking a lock file that its releasing holders keep removing (each try follows a release).
-_LOCK_TRIES = 20
-
-
-class RunInUseError(OutputError):
-    """Another trainer holds the run folder (RunLock): it trains the run, or a fine-tuning is being started in it."""
-
-
-class RunLock:
-    """An exclusive advisory lock on a run folder (flock on RUN/.lock), held while a trainer or the start of a
-    fine-tuning writes the folder: two trainers in one folder (two resumes of a run, or a resume while a killed
-    driver's Ray worker still trains it) wrote every metrics row twice and interleaved their checkpoints. The kernel
-    releases it when its holder dies, so a killed run never leaves its folder locked. The file holds the holder's pid
-    and host, for the message that refuses a second trainer."""
-
-    def __init__(self, run_dir: str | Path):
-        self.run_dir = Path(run_dir)
-        self.path = self.run_dir / LOCK_NAME
-        self._file: IO[str] | None = None
-
-    @property
-    def held(self) -> bool:
-        return self._file is not None
-
-    def acquire(self) -> None:
-        """Take the lock (nothing to do while this object holds it); RunInUseError naming the folder and the holder
-        when another one holds it. The folder must exist."""
-        if self._file is not None:
-            return
-        collected = False
-        for _ in range(_LOCK_TRIES):
-            try:
-                handle = open(self.path, "a+")
-            except OSError:
-                return  # a folder that cannot be written: the run's own first write fails, naming its file
-            try:
-                fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = _lock_holder(handle)
-                handle.close()
-                if not collected and holder.get("pid") == os.getpid() and holder.get("host") == socket.gethostname():
-                    # A trainer this process dropped without running it (a test, a notebook) keeps its lock until the
-                    # garbage collector frees it: its strategies refer back to it, so dropping it frees nothing.
-                    gc.collect()
-                    collected = True
-                    continue
-                raise RunInUseError(self.run_dir, f"is being trained by {_holder_words(holder)}; two trainers in one "
-                                                  "run folder would both write its logs and checkpoints: wait until "
-                                                  "it ends, or stop it (a stopped process frees the folder)") from None
-            except OSError as exc:
-                handle.close()
-                log.warning("%s: cannot lock the run folder (%s): training without the guard against a second "
-                            "trainer in it", self.run_dir, exc.strerror or exc)
-                return
-            if not _same_file(handle, self.path):
-                handle.close()  # its last holder removed it when it released it: lock the one there now
-                continue
-            try:
-                handle.seek(0)
-                handle.truncate()
-                handle.write(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
-                handle.flush()
-            except OSError:
-                pass  # held all the same; a refused trainer just cannot name the holder
-            self._file = handle
-            return
-        raise RunInUseError(self.run_dir, f"{LOCK_NAME} is replaced as soon as it is locked: other trainers keep "
-                                          "starting and ending in this folder")
-
-    def release(self) -> None:
-        """Let the lock go (nothing to do when not held) and remove its file."""
-        handle, self._file = self._file, None
-        if handle is None:
-            return
-        try:
-            # Removed while still locked: a process that opened it meanwhile sees, once it locks it, that it is no
-            # longer the folder's lock file, and tries again (acquire).
-            if _same_file(handle, self.path):
-                self.path.unlink()
-        except OSError:
-            pass
-        handle.close()
-
-    def __enter__(self) -> RunLock:
-        self.acquire()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.release()
-
-
-def _same_file(handle: IO[str], path: Path) -> bool:
-    """Whether the open `handle` is the file at `path` (not one removed from there)."""
-    try:
-        there, mine = os.stat(path), os.fstat(handle.fileno())
-    except OSError:
-        return False
-    return (there.st_dev, there.st_ino) == (mine.st_dev, mine.st_ino)
-
-
-def _lock_holder(handle: IO[str]) -> dict[str, Any]:
-    """The pid and host a lock file names ({} when it names none: its holder had not written them yet)."""
-    try:
-        handle.seek(0)
-        holder = json.loads(handle.read() or "{}")
-    except (OSError, ValueError):
-        return {}
-    return holder if isinstance(holder, dict) else {}
-
-
-def _holder_words(holder: dict[str, Any]) -> str:
-    pid, host = holder.get("pid"), holder.get("host")
-    if not isinstance(pid, int):
-        return "another process"
-    if isinstance(host, str) and host != socket.gethostname():
-        return f"another process (pid {pid} on {host})"
-    if pid == os.getpid():
-        return f"another trainer of this process (pid {pid}; it holds the folder until its run ends)"
-    return f"another process (pid {pid})"
 
 
 class Trainer:
