@@ -19,7 +19,7 @@ import logging
 import math
 import random
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol, cast
 
@@ -283,6 +283,29 @@ def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig |
         raise ConfigError(
             f"train.quantization_aware.mask: the rate-aware window (iterations {first}-{sched.iterations}) overlaps "
             f"{'; '.join(overlapping)}: they change the Gaussians the mask learns over")
+
+
+def views_by_camera(views: Sequence[Camera]) -> list[list[Camera]]:
+    """`views` grouped by camera (cameras by name, each camera's views by frame)."""
+    by_name: dict[str, list[Camera]] = {}
+    for cam in views:
+        by_name.setdefault(str(cam.name), []).append(cam)
+    return [sorted(by_name[name], key=lambda c: c.frame) for name in sorted(by_name)]
+
+
+def importance_views(views: Sequence[Camera]) -> list[Camera]:
+    """The training views a Gaussian's blending weight is summed over (the importance criterion, pair_order
+    weight): every camera and every frame, at max(#cameras, #frames) renders instead of (#cameras x #frames), the
+    cameras taking the frames in turn. With one view per camera (as before 2026-11-28) a Gaussian whose lifetime
+    falls between the sampled frames scored 0 however much it showed, and lost every pair it was in."""
+    by_camera = views_by_camera(views)
+    frames = sorted({cam.frame for cams in by_camera for cam in cams})
+    count = max(len(by_camera), len(frames))
+    picked = []
+    for k in range(count):
+        target = frames[(k * len(frames)) // count]
+        picked.append(min(by_camera[k % len(by_camera)], key=lambda cam: (abs(cam.frame - target), cam.frame)))
+    return picked
 
 
 class Trainer:
@@ -703,18 +726,8 @@ class Trainer:
         return self.quantization.quantized_params(self.model)
 
     def importance_views(self) -> list[Any]:
-        """The views the importance criterion sums over: every training camera and every training frame, at
-        max(#cameras, #frames) renders instead of (#cameras x #frames), the cameras taking the frames in turn. With
-        one view per camera (as before 2026-11-28) a Gaussian whose lifetime falls between the sampled frames scored
-        0 however much it showed, and lost every pair it was in."""
-        by_camera = self._training_views_by_camera()
-        frames = sorted({cam.frame for cams in by_camera for cam in cams})
-        count = max(len(by_camera), len(frames))
-        views = []
-        for k in range(count):
-            target = frames[(k * len(frames)) // count]
-            views.append(min(by_camera[k % len(by_camera)], key=lambda cam: (abs(cam.frame - target), cam.frame)))
-        return views
+        """The views the blending weights are summed over (`importance_views` of the training views)."""
+        return importance_views(self.dataset.train)
 
     def _one_view_per_camera(self) -> list[Any]:
         """One view per training camera, their frames spread evenly over the segment."""
@@ -722,11 +735,7 @@ class Trainer:
         return [cams[(k * len(cams)) // max(len(by_camera), 1) % len(cams)] for k, cams in enumerate(by_camera)]
 
     def _training_views_by_camera(self) -> list[list[Any]]:
-        """The training views grouped by camera (cameras by name, each camera's views by frame)."""
-        by_name: dict[str, list[Any]] = {}
-        for cam in self.dataset.train:
-            by_name.setdefault(str(cam.name), []).append(cam)
-        return [sorted(by_name[name], key=lambda c: c.frame) for name in sorted(by_name)]
+        return views_by_camera(self.dataset.train)
 
     def probe_views(self) -> list[Any]:
         """The compaction controller's fixed probe set (compaction.probe_views training views): cameras and frames

@@ -1,0 +1,116 @@
+"""What a pruning step's removals cost before any training repairs them (issue #17, item 5): ST-KNN pruning of a
+trained run's model in one go, with no training between the steps, for each way of choosing and removing.
+
+Each variant starts from the run's final model and prunes it step by step, as a compaction step does (ST-KNN pairs at
+a training frame drawn with a fixed seed, the timestamp criterion, `keeper_time_coverage`, a fixed ratio of the
+matched pairs per step), until each target fraction of the Gaussians is gone, and scores the test views there.
+Variants: `distance` (the paper: closest pairs first), `distance+merge` (the keeper takes its losers' opacity,
+compaction.merge_opacity), `weight` and `weight+merge` (the pairs whose loser shows least first,
+compaction.pair_order=weight: its blending weight summed over the training views the trainer would use).
+Prints one row per variant and target: Gaussians left, test PSNR and its drop. The run is not changed.
+
+    .venv/bin/python benchmarks/pruning_oneshot.py RUN --targets 0.1,0.2,0.3 --variants distance,weight+merge
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stgc.compaction.matching import match_spatiotemporal_pairs, to_float64_numpy
+from stgc.compaction.pruning import (
+    keeper_time_coverage,
+    loser_weights,
+    merge_keeper_opacity,
+    removal_scores,
+    select_removals,
+)
+from stgc.eval.video import load_model_and_dataset
+from stgc.metrics import psnr
+from stgc.train.loop import importance_views
+
+VARIANTS = ("distance", "distance+merge", "weight", "weight+merge")
+
+
+def blending_weights(model, views, background) -> np.ndarray:  # type: ignore[no-untyped-def]
+    weights = torch.zeros(model.num_gaussians, dtype=torch.float64)
+    with torch.no_grad():
+        for cam in views:
+            out = model.render(cam, t=float(cam.time), background=background, return_weights=True)
+            weights.index_add_(0, out.index, out.raster.weights.to(torch.float64))
+    return weights.numpy()
+
+
+def test_psnr(model, dataset, background) -> float:  # type: ignore[no-untyped-def]
+    """Mean PSNR over the test views (as `stgc eval` scores them)."""
+    scores = []
+    with torch.no_grad():
+        for cam in dataset.test:
+            rgb = model.render(cam, t=float(cam.time), background=background).rgb.clamp(0.0, 1.0)
+            truth = torch.from_numpy(np.ascontiguousarray(dataset.load_image(cam)[..., :3])).double() / 255.0
+            scores.append(float(psnr(rgb.double(), truth)))
+    return float(np.mean(scores))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--targets", default="0.1,0.2,0.3", help="fractions of the Gaussians removed, ascending")
+    parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
+    parser.add_argument("--ratio", type=float, default=0.02, help="fraction of the matched pairs per step")
+    parser.add_argument("--coverage", type=float, default=0.5, help="compaction.keeper_time_coverage")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the frames the steps match at")
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    targets = [float(x) for x in args.targets.split(",")]
+    variants = args.variants.split(",")
+    unknown = sorted(set(variants) - set(VARIANTS))
+    if unknown:
+        parser.error(f"unknown variants {', '.join(unknown)}; choose from {', '.join(VARIANTS)}")
+
+    print(f"{'variant':<16} {'removed':>8} {'Gaussians':>9} {'test dB':>8} {'drop dB':>8} {'seconds':>8}")
+    for variant in variants:
+        model, dataset = load_model_and_dataset(args.run)
+        background = torch.tensor(dataset.background, dtype=torch.float32)
+        views = importance_views(dataset.train)
+        frames = sorted({float(cam.time) for cam in dataset.train})
+        rng = np.random.default_rng(args.seed)
+        start, started = model.num_gaussians, time.perf_counter()
+        before = test_psnr(model, dataset, background)
+        print(f"{variant:<16} {0.0:>8.1%} {start:>9} {before:>8.2f} {0.0:>8.2f} {0.0:>8.0f}", flush=True)
+        for target in targets:
+            floor = math.ceil(start * (1.0 - target))
+            while model.num_gaussians > floor:
+                t = float(rng.choice(frames))
+                pairs = match_spatiotemporal_pairs(model, t)
+                matched = len(pairs)
+                if matched == 0:
+                    break
+                scores = removal_scores(model.params, "timestamp")
+                coverage = keeper_time_coverage(pairs, scores, to_float64_numpy(model.params["trbf_center"]),
+                                                to_float64_numpy(model.params["trbf_scale"]))
+                pairs = pairs.subset(coverage >= args.coverage)
+                order_by = (loser_weights(pairs, scores, blending_weights(model, views, background))
+                            if variant.startswith("weight") and len(pairs) else None)
+                selection = select_removals(pairs, args.ratio, scores, model.num_gaussians - floor, ratio_of=matched,
+                                            order_by=order_by)
+                if selection.remove.size == 0:
+                    break
+                if variant.endswith("+merge"):
+                    merge_keeper_opacity(model.params["opacity"], selection.remove, selection.keepers)
+                keep = torch.ones(model.num_gaussians, dtype=torch.bool)
+                keep[torch.from_numpy(selection.remove)] = False
+                model.prune(keep)
+            score = test_psnr(model, dataset, background)
+            print(f"{variant:<16} {1.0 - model.num_gaussians / start:>8.1%} {model.num_gaussians:>9} {score:>8.2f} "
+                  f"{score - before:>8.2f} {time.perf_counter() - started:>8.0f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
