@@ -352,6 +352,18 @@ def test_weight_order_takes_the_pair_whose_loser_shows_least():
     assert kept["distance", "timestamp"] == pytest.approx([0.0, 0.5, 0.52])
     assert kept["weight", "timestamp"] == pytest.approx([0.0, 0.01, 0.5])  # the farther pair's faint loser went
     assert kept["weight", "importance"] == pytest.approx([0.0, 0.01, 0.5])  # (there it is the criterion's loser too)
+    # Equal weights (losers no training view shows): the closest pair first, not the first in the array.
+    unseen = np.array([1.0, 0.0, 1.0, 0.0])
+    selection = select_removals(_pairs([0, 2], [1, 3], [0.5, 0.001]), 0.5, scores,
+                                order_by=loser_weights(_pairs([0, 2], [1, 3], [0.5, 0.001]), scores, unseen))
+    assert selection.remove.tolist() == [3] and selection.max_selected_distance == pytest.approx(0.001)
+    # A step that selects nothing renders nothing.
+    config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.001,
+                              ratio_min=0.001, ratio_max=0.001, pair_order="weight")
+    calls.clear()
+    event = STKNNCompactor(config, 10).step(1, 0.5, make_model({k: v.clone() for k, v in params.items()}), 1.0,
+                                            importance_fn=importance)
+    assert event["selected_pairs"] == 0 and event["removed"] == 0 and calls == []
     config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5, ratio_min=0.5,
                               ratio_max=0.5, pair_order="weight")
     with pytest.raises(ValueError, match="need importance_fn"):

@@ -26,6 +26,7 @@ from .pruning import (
     merge_keeper_opacity,
     removal_scores,
     select_removals,
+    selected_count,
     size_relative_distances,
 )
 
@@ -150,7 +151,8 @@ class STKNNCompactor:
         order_by = None
         if self.config.pair_order == "size" and len(pairs):
             order_by = size_relative_distances(pairs, to_float64_numpy(model.params["scaling"]), model.scene_extent)
-        elif self.config.pair_order == "weight" and len(pairs):
+        elif (self.config.pair_order == "weight" and max_removals > 0
+              and selected_count(len(pairs), ratio, matched_pairs) > 0):  # (the renders only where a pair goes)
             order_by = loser_weights(pairs, scores, blending_weights())
         selection = select_removals(pairs, ratio, scores, max_removals, ratio_of=matched_pairs, order_by=order_by)
         if selection.remove.size:

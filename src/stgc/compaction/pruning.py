@@ -13,12 +13,13 @@ chosen by the criterion, is removed and the other, the *keeper*, must survive:
 Equal scores: the larger index loses (the older Gaussian of the array survives). A score that is not finite loses.
 
 Pairs can share Gaussians (chains i->j, j->k, or one Gaussian nearest to several). Selected pairs are resolved
-greedily, closest first, so the closest pairs decide. When a loser is removed, *every* selected pair it belongs to
-has lost a member, so all its partners in selected pairs are marked kept. Hence, for each selected pair in order:
+greedily in the order they are taken (closest first, or `pair_order`'s key), so the pairs taken first decide.
+When a loser is removed, *every* selected pair it belongs to has lost a member, so all its partners in selected
+pairs are marked kept. Hence, for each selected pair in order:
 - the loser is still free: it is removed and its selected partners are marked kept;
 - the loser is kept (a partner of a removed Gaussian): the pair is skipped; removing the keeper instead would go
-  against the criterion (and the keeper may itself be kept). When the keeper is removed too (by a closer pair, or
-  by a farther one later) the pair has lost a member anyway; when not, it keeps both: a *conflict*;
+  against the criterion (and the keeper may itself be kept). When the keeper is removed too (by a pair taken
+  before, or by one taken later) the pair has lost a member anyway; when not, it keeps both: a *conflict*;
 - the loser is already removed: nothing to do.
 So no selected pair loses both members and no kept Gaussian is removed; the removed set is exactly reproducible.
 Each removed Gaussian has one keeper, its partner in the pair that removed it (`merge_keeper_opacity` hands it the
@@ -45,7 +46,7 @@ class PruneSelection:
     remove: np.ndarray  # [R] int64, sorted indices of the Gaussians to remove
     keepers: np.ndarray  # [R] int64, the keeper of the pair that removed remove[k] (never itself removed)
     selected_pairs: int  # pairs taken by the ratio
-    conflicts: int  # selected pairs that keep both members: their loser is kept by a closer pair, their keeper stays
+    conflicts: int  # selected pairs that keep both members: their loser is kept by a pair taken before, their keeper stays
     max_selected_distance: float  # the distance of the farthest selected pair (nan when none)
 
 
@@ -104,25 +105,35 @@ def keeper_time_coverage(
     return np.where(finite[loser] & finite[keeper], coverage, np.where(finite[loser], 0.0, 1.0))
 
 
+def selected_count(n_pairs: int, ratio: float, ratio_of: int | None = None) -> int:
+    """How many of `n_pairs` pairs a step at `ratio` selects (of `ratio_of` matched pairs, when they were filtered)."""
+    return min(n_pairs, int(np.floor(ratio * (n_pairs if ratio_of is None else ratio_of) + 0.5)))
+
+
 def select_removals(
     pairs: PairMatches, ratio: float, scores: np.ndarray, max_removals: int | None = None,
     ratio_of: int | None = None, order_by: np.ndarray | None = None,
 ) -> PruneSelection:
-    """Gaussians to remove for the closest `ratio` fraction of `pairs` (rules in the module docstring).
+    """Gaussians to remove for the first `ratio` fraction of `pairs`, closest first or by `order_by` (rules in the
+    module docstring).
 
     `ratio_of`: the pair count the ratio is a fraction of, when `pairs` is a filtered subset of the matched pairs
     (`keeper_time_coverage`): the step then selects as many pairs as it would unfiltered (at most all of `pairs`),
     so that a filter changes which pairs go, not how fast the model is pruned.
     `order_by`: [P] the key the pairs are taken by, smallest first, instead of their distance (`pair_order`; NaN
-    last); equal keys in reference order, as distances."""
+    last); equal keys closest first (many losers share the weight 0: unseen from every training view), then in
+    reference order."""
     n_pairs = len(pairs)
-    n_selected = min(n_pairs, int(np.floor(ratio * (n_pairs if ratio_of is None else ratio_of) + 0.5)))
+    n_selected = selected_count(n_pairs, ratio, ratio_of)
     if n_selected == 0 or (max_removals is not None and max_removals <= 0):
         return PruneSelection(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), n_selected, 0, float("nan"))
-    key = pairs.distance if order_by is None else np.asarray(order_by, dtype=np.float64)
-    if key.shape != (n_pairs,):
-        raise ValueError(f"order_by has shape {key.shape}; expected one key per pair ({n_pairs},)")
-    order = np.lexsort((pairs.reference, key))[:n_selected]
+    if order_by is None:
+        order = np.lexsort((pairs.reference, pairs.distance))[:n_selected]
+    else:
+        key = np.asarray(order_by, dtype=np.float64)
+        if key.shape != (n_pairs,):
+            raise ValueError(f"order_by has shape {key.shape}; expected one key per pair ({n_pairs},)")
+        order = np.lexsort((pairs.reference, pairs.distance, key))[:n_selected]
     a, b = pairs.reference[order], pairs.partner[order]
     a_loses = reference_loses(a, b, scores)
     losers = np.where(a_loses, a, b).tolist()

@@ -46,6 +46,11 @@ def _importance_criterion(configs: Mapping[str, Any]) -> bool:
     return compaction is not None and compaction.method == "st-knn" and compaction.criterion == "importance"
 
 
+def _pruned_by_weight(configs: Mapping[str, Any]) -> bool:
+    compaction = configs.get("compaction")
+    return compaction is not None and compaction.method == "st-knn" and compaction.pair_order == "weight"
+
+
 def _error_guided_sampling(configs: Mapping[str, Any]) -> bool:
     train = configs["train"]
     return isinstance(train, TrainConfig) and train.ems.enabled
@@ -68,6 +73,12 @@ CHANGES: tuple[BehaviourChange, ...] = (
         "since 2026-11-28 an error-guided sampling candidate stays one after its event (the official loop), so one "
         "camera may make both events",
         _error_guided_sampling,
+    ),
+    BehaviourChange(
+        "pair-weight-ties-closest",
+        "since session 35 (2026-11-28) pair_order=weight takes pairs of equal loser weight (many are 0) closest "
+        "first, not in array order",
+        _pruned_by_weight,
     ),
 )
 
