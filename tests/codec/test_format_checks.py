@@ -180,6 +180,23 @@ def test_a_section_compressed_as_a_stream_without_its_content_size_decodes(full_
         decode(assemble(fields, sections), source="streamed.stgc")
 
 
+def test_a_section_payload_is_read_as_a_zstd_stream(full_file):
+    """§6 rule 4: a zstd payload is a stream, as zstd's own tools read it: several frames decode one after another
+    and a skippable frame is skipped (stgc writes one frame; another writer may not)."""
+    fields, sections = parse(full_file)
+    posi = section(sections, b"POSI")
+    raw = zstandard.ZstdDecompressor().decompress(posi.payload)
+    compressor = zstandard.ZstdCompressor(level=19)
+    skippable = struct.pack("<II", 0x184D2A50, 4) + b"junk"
+    expected = decode(full_file)
+    for payload in (compressor.compress(raw[: len(raw) // 2]) + compressor.compress(raw[len(raw) // 2:]),
+                    skippable + compressor.compress(raw), compressor.compress(raw) + skippable):
+        posi.payload = payload
+        decoded = decode(assemble(fields, sections), source="stream.stgc")
+        for name, values in expected.arrays.items():
+            np.testing.assert_array_equal(decoded.arrays[name], values, err_msg=name)
+
+
 # --- fields fixed by the spec, flags by version -----------------------------------------------------------------------
 
 @pytest.mark.parametrize("tag, bits", [(b"DECO", 8), (b"DECO", 200), (b"META", 16), (b"META", 0)])
