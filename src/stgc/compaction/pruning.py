@@ -46,7 +46,7 @@ class PruneSelection:
     remove: np.ndarray  # [R] int64, sorted indices of the Gaussians to remove
     keepers: np.ndarray  # [R] int64, the keeper of the pair that removed remove[k] (never itself removed)
     selected_pairs: int  # pairs taken by the ratio
-    conflicts: int  # selected pairs that keep both members: their loser is kept by a pair taken before, their keeper stays
+    conflicts: int  # selected pairs that keep both: their loser is kept by a pair taken before, their keeper stays
     max_selected_distance: float  # the distance of the farthest selected pair (nan when none)
 
 
