@@ -1,9 +1,9 @@
 """What a pruning step's removals cost before any training repairs them (issue #17, item 5): ST-KNN pruning of a
 trained run's model in one go, with no training between the steps, for each way of choosing and removing.
 
-Each variant starts from the run's final model and prunes it step by step, as a compaction step does (ST-KNN pairs at
-a training frame drawn with a fixed seed, the timestamp criterion, `keeper_time_coverage`, a fixed ratio of the
-matched pairs per step), until each target fraction of the Gaussians is gone, and scores the test views there.
+Each variant starts from the run's final model and prunes it step by step with the trainer's compaction step
+(`STKNNCompactor`: ST-KNN pairs at a training frame drawn with a fixed seed, the timestamp criterion,
+`keeper_time_coverage`, a fixed ratio of the matched pairs per step), until each target fraction of the Gaussians is gone, and scores the test views there.
 Variants: `distance` (the paper: closest pairs first), `distance+merge` (the keeper takes its losers' opacity,
 compaction.merge_opacity), `weight` and `weight+merge` (the pairs whose loser shows least first,
 compaction.pair_order=weight: its blending weight summed over the training views the trainer would use).
@@ -22,39 +22,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stgc.compaction.matching import match_spatiotemporal_pairs, to_float64_numpy
-from stgc.compaction.pruning import (
-    keeper_time_coverage,
-    loser_weights,
-    merge_keeper_opacity,
-    removal_scores,
-    select_removals,
-)
+from stgc.compaction import CompactionConfig, STKNNCompactor
+from stgc.eval.evaluate import evaluate
 from stgc.eval.video import load_model_and_dataset
-from stgc.metrics import psnr
-from stgc.train.loop import importance_views
+from stgc.train.loop import blending_weights, importance_views
 
 VARIANTS = ("distance", "distance+merge", "weight", "weight+merge")
 
 
-def blending_weights(model, views, background) -> np.ndarray:  # type: ignore[no-untyped-def]
-    weights = torch.zeros(model.num_gaussians, dtype=torch.float64)
-    with torch.no_grad():
-        for cam in views:
-            out = model.render(cam, t=float(cam.time), background=background, return_weights=True)
-            weights.index_add_(0, out.index, out.raster.weights.to(torch.float64))
-    return weights.numpy()
-
-
 def test_psnr(model, dataset, background) -> float:  # type: ignore[no-untyped-def]
-    """Mean PSNR over the test views (as `stgc eval` scores them)."""
-    scores = []
-    with torch.no_grad():
-        for cam in dataset.test:
-            rgb = model.render(cam, t=float(cam.time), background=background).rgb.clamp(0.0, 1.0)
-            truth = torch.from_numpy(np.ascontiguousarray(dataset.load_image(cam)[..., :3])).double() / 255.0
-            scores.append(float(psnr(rgb.double(), truth)))
-    return float(np.mean(scores))
+    """Mean PSNR over the test views, as `stgc eval` scores them."""
+    result = evaluate(lambda cam: model.render(cam, t=float(cam.time), background=background).rgb, dataset.test,
+                      dataset.load_image, warmup=0)
+    return float(result.overall["psnr"])
 
 
 def main() -> None:
@@ -81,32 +61,23 @@ def main() -> None:
         views = importance_views(dataset.train)
         frames = sorted({float(cam.time) for cam in dataset.train})
         rng = np.random.default_rng(args.seed)
-        start, started = model.num_gaussians, time.perf_counter()
+        start, started, iteration = model.num_gaussians, time.perf_counter(), 0
         before = test_psnr(model, dataset, background)
         print(f"{variant:<16} {0.0:>8.1%} {start:>9} {before:>8.2f} {0.0:>8.2f} {0.0:>8.0f}", flush=True)
         for target in targets:
-            floor = math.ceil(start * (1.0 - target))
-            while model.num_gaussians > floor:
-                t = float(rng.choice(frames))
-                pairs = match_spatiotemporal_pairs(model, t)
-                matched = len(pairs)
-                if matched == 0:
-                    break
-                scores = removal_scores(model.params, "timestamp")
-                coverage = keeper_time_coverage(pairs, scores, to_float64_numpy(model.params["trbf_center"]),
-                                                to_float64_numpy(model.params["trbf_scale"]))
-                pairs = pairs.subset(coverage >= args.coverage)
-                order_by = (loser_weights(pairs, scores, blending_weights(model, views, background))
-                            if variant.startswith("weight") and len(pairs) else None)
-                selection = select_removals(pairs, args.ratio, scores, model.num_gaussians - floor, ratio_of=matched,
-                                            order_by=order_by)
-                if selection.remove.size == 0:
-                    break
-                if variant.endswith("+merge"):
-                    merge_keeper_opacity(model.params["opacity"], selection.remove, selection.keepers)
-                keep = torch.ones(model.num_gaussians, dtype=torch.bool)
-                keep[torch.from_numpy(selection.remove)] = False
-                model.prune(keep)
+            # The trainer's compaction step itself, at a fixed ratio on every iteration, stopping at the target.
+            config = CompactionConfig(
+                case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=args.ratio, ratio_min=args.ratio,
+                ratio_max=args.ratio, criterion="timestamp", keeper_time_coverage=args.coverage,
+                pair_order="weight" if variant.startswith("weight") else "distance",
+                merge_opacity=variant.endswith("+merge"), min_gaussians=math.ceil(start * (1.0 - target)))
+            compactor = STKNNCompactor(config, total_iterations=1 << 30)
+            while model.num_gaussians > config.min_gaussians:
+                iteration += 1
+                event = compactor.step(iteration, float(rng.choice(frames)), model, 1.0,
+                                       importance_fn=lambda: blending_weights(model, views, background))
+                if event is not None and event["removed"] == 0 and event["selected_pairs"] > 0:
+                    break  # nothing left that the rules let go
             score = test_psnr(model, dataset, background)
             print(f"{variant:<16} {1.0 - model.num_gaussians / start:>8.1%} {model.num_gaussians:>9} {score:>8.2f} "
                   f"{score - before:>8.2f} {time.perf_counter() - started:>8.0f}", flush=True)

@@ -308,6 +308,19 @@ def importance_views(views: Sequence[Camera]) -> list[Camera]:
     return picked
 
 
+def blending_weights(model: STGModel, views: Sequence[Camera], background: torch.Tensor,
+                     backend: str = "auto") -> torch.Tensor:
+    """[N] float64: each Gaussian's blending weight (alpha x transmittance, summed over every pixel) summed over
+    `views`, each rendered at its own time."""
+    weights = torch.zeros(model.num_gaussians, dtype=torch.float64)
+    with torch.no_grad():
+        for cam in views:
+            out = model.render(cam, t=float(cam.time), background=background, backend=backend, return_weights=True)
+            if out.raster.weights is not None:
+                weights.index_add_(0, out.index, out.raster.weights.to(torch.float64))
+    return weights
+
+
 class Trainer:
     """Holds the state of one run. `train()` is the public entry point; tests drive `Trainer` directly.
 
@@ -731,11 +744,8 @@ class Trainer:
 
     def _one_view_per_camera(self) -> list[Any]:
         """One view per training camera, their frames spread evenly over the segment."""
-        by_camera = self._training_views_by_camera()
+        by_camera = views_by_camera(self.dataset.train)
         return [cams[(k * len(cams)) // max(len(by_camera), 1) % len(cams)] for k, cams in enumerate(by_camera)]
-
-    def _training_views_by_camera(self) -> list[list[Any]]:
-        return views_by_camera(self.dataset.train)
 
     def probe_views(self) -> list[Any]:
         """The compaction controller's fixed probe set (compaction.probe_views training views): cameras and frames
@@ -746,7 +756,7 @@ class Trainer:
         count = self.compaction_cfg.probe_views if self.compaction_cfg else len(views)
         if count <= len(views):
             return [views[(k * len(views)) // count] for k in range(count)]
-        by_camera = self._training_views_by_camera()
+        by_camera = views_by_camera(self.dataset.train)
         picked = []
         for j, cams in enumerate(by_camera):
             share = min(len(cams), count // len(by_camera) + (1 if j < count % len(by_camera) else 0))
@@ -772,16 +782,8 @@ class Trainer:
 
     def importance(self) -> torch.Tensor:
         """Accumulated blending weight of every Gaussian over the training views of `importance_views` (for the
-        compaction criterion 'importance')."""
-        weights = torch.zeros(self.model.num_gaussians, dtype=torch.float64)
-        with torch.no_grad():
-            for cam in self.importance_views():
-                out = self.model.render(cam, t=float(cam.time), background=self.background,
-                                        backend=self.cfg.backend, return_weights=True)
-                w = out.raster.weights
-                if w is not None:
-                    weights.index_add_(0, out.index, w.to(torch.float64))
-        return weights
+        compaction criterion 'importance' and pair_order 'weight')."""
+        return blending_weights(self.model, self.importance_views(), self.background, self.cfg.backend)
 
     # ------------------------------------------------------------------------------------------- the run
     def save_model(self, iteration: int) -> Path:
