@@ -202,6 +202,17 @@ def test_a_camera_in_both_blender_files_is_refused_not_held_out_whole(tmp_path):
                  _blender_multiview(tmp_path / "both", {("camA", 1), ("camC", 0), ("camC", 1)}))
 
 
+def test_a_blender_frame_without_the_camera_the_others_name_is_refused_as_such(tmp_path):
+    """One entry without 'camera' read the whole scene as monocular, and the error named another cause (a camera
+    "appears twice")."""
+    root = _blender_multiview(tmp_path, {("camC", 0), ("camC", 1)})
+    meta = json.loads((root / "transforms_train.json").read_text())
+    del meta["frames"][2]["camera"]
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    expect_error("transforms_train.json", "frame 'camB_0.png' names no camera while other frames do",
+                 open_dataset, root)
+
+
 @pytest.mark.parametrize("key, value, match", [
     ("fl_x", "abc", "a value cannot be read"), ("time", "abc", "time 'abc' is not a number"),
     ("time", float("inf"), "time inf is not a finite number"), ("frame_index", "x", "a value cannot be read")])
@@ -383,6 +394,22 @@ def test_poses_bounds_of_text_values_name_the_file(tmp_path):
     expect_error("poses_bounds.npy", "holds <U.* values, not real numbers", open_dataset, root)
     np.save(root / "poses_bounds.npy", rows.astype(complex))
     expect_error("poses_bounds.npy", "holds complex128 values, not real numbers", open_dataset, root)
+
+
+def test_empty_or_truncated_numpy_files_name_the_file(tmp_path):
+    """np.load raises EOFError on an empty file and BadZipFile on a truncated .npz: both were tracebacks that named
+    no file."""
+    root = make_n3dv(tmp_path / "n")
+    (root / "poses_bounds.npy").write_bytes(b"")
+    expect_error("poses_bounds.npy", "unreadable", open_dataset, root)
+
+    root = make_panoptic(tmp_path / "p")
+    np.savez(root / "init_pt_cld.npz", data=np.zeros((50, 7)))
+    whole = (root / "init_pt_cld.npz").read_bytes()
+    (root / "init_pt_cld.npz").write_bytes(whole[: len(whole) // 2])
+    expect_error("init_pt_cld.npz", "unreadable point cloud", open_dataset(root).data_points, 0)
+    (root / "init_pt_cld.npz").write_bytes(b"")
+    expect_error("init_pt_cld.npz", "unreadable point cloud", open_dataset(root).data_points, 0)
 
 
 @pytest.mark.parametrize("time", [float("inf"), float("nan")])

@@ -171,6 +171,30 @@ def test_the_triangulation_cache_key_changes_with_how_images_decode(tmp_path):
     assert key(limited) != key(full) and key(limited) != key(YuvFrame(yuv, 1, 4, 4, 8, "limited"))
 
 
+@pytest.mark.parametrize("damage", ["empty", "truncated"])
+def test_a_damaged_triangulation_cache_entry_is_computed_again(tmp_path, monkeypatch, damage):
+    """An empty or truncated cache file (a full disk, a killed copy) was an EOFError or BadZipFile on every later run
+    of that frame, until someone found the file and deleted it."""
+    from scenes import write_n3dv_scene
+
+    from stgc.data import triangulate
+
+    data = open_dataset(write_n3dv_scene(tmp_path / "scene"))
+    computed = triangulate.TriangulationResult(np.ones((2, 3), np.float32), np.ones((2, 3), np.float32),
+                                               np.full(2, 3), np.zeros(6), {"points": 2})
+    calls = []
+    monkeypatch.setattr(triangulate, "_triangulate", lambda *args: calls.append(args) or computed)
+    monkeypatch.setenv("STGC_CACHE_DIR", str(tmp_path / "cache"))
+    triangulate.triangulate_frame(data, 0)
+    (entry,) = (tmp_path / "cache" / "triangulation").glob("*.npz")
+    whole = entry.read_bytes()
+    entry.write_bytes(b"" if damage == "empty" else whole[: len(whole) // 2])
+    again = triangulate.triangulate_frame(data, 0)
+    assert len(calls) == 2 and np.array_equal(again.xyz, computed.xyz)
+    assert entry.read_bytes() == whole  # written again whole
+    assert triangulate.triangulate_frame(data, 0).stats.get("cached") and len(calls) == 2
+
+
 def test_shipped_colours_slightly_over_one_are_clipped_not_read_as_0_to_255():
     from stgc.data.readers._common import _rgb01
 

@@ -28,6 +28,7 @@ from ..fileio import atomic_path
 from .cameras import Camera
 from .dataset import Dataset
 from .readers import open_dataset
+from .readers._common import NUMPY_LOAD_ERRORS
 
 
 TRIANGULATION_SEED = 0  # COLMAP's random generator (RANSAC), fixed so that every run triangulates the same points
@@ -103,7 +104,7 @@ def triangulate_frame(dataset: Dataset, frame: int, *, views: list[str] | None =
             with np.load(cached, allow_pickle=False) as z:
                 return TriangulationResult(z["xyz"], z["rgb"], z["track_length"], z["errors"],
                                            {**json.loads(str(z["stats"])), "cached": True})
-        except (OSError, ValueError, KeyError):
+        except (*NUMPY_LOAD_ERRORS, KeyError):
             pass  # unreadable cache entry: recompute and overwrite
     result = _triangulate(dataset, frame, cameras, upsample, min_track_length)
     if key:

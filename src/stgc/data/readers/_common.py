@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import zipfile
 from pathlib import Path
 from typing import Any, cast
 
@@ -13,6 +14,9 @@ from ...errors import DataError
 from ..cameras import check_pose
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+# What np.load raises on a damaged file besides OSError/ValueError: EOFError when it is empty, BadZipFile when an
+# .npz is truncated.
+NUMPY_LOAD_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile)
 
 
 def _load_json(path: Path) -> dict[str, Any]:
@@ -88,7 +92,7 @@ def _npy_points(folder: Path, frame: int) -> tuple[np.ndarray, np.ndarray] | Non
         if f.is_file():
             try:
                 data = np.load(f)
-            except (ValueError, OSError) as exc:
+            except NUMPY_LOAD_ERRORS as exc:
                 raise DataError(f, f"unreadable point file: {exc}") from None
             if data.ndim != 2 or data.shape[1] < 6:
                 raise DataError(f, f"expected an [M, 6] array (x, y, z, r, g, b), got shape {data.shape}")

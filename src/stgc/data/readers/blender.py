@@ -49,6 +49,11 @@ def read_blender(path: Path, options: ReaderOptions) -> SourceScene:
                                 "transform_matrix")
             entries.append((split, f, meta, fr))
     multiview = all("camera" in e[3] for e in entries)
+    if not multiview and any("camera" in e[3] for e in entries):
+        # Read as monocular, the entries that name a camera gave "camera ... appears twice", far from the cause.
+        split, f, _, fr = next(e for e in entries if "camera" not in e[3])
+        raise DataError(f, f"frame {fr.get('file_path')!r} names no camera while other frames do: give every frame "
+                        "its 'camera' (multi-view) or none (monocular)")
     all_times = sorted({_time(f, fr) for _, f, _, fr in entries})
     cameras, test_names = [], []
     for split, f, meta, fr in entries:

@@ -11,7 +11,7 @@ from ...errors import DataError
 from ..cameras import Camera, intrinsics, llff_to_w2c
 from ..dataset import SourceScene, VideoFrame
 from ..images import image_size
-from ._common import IMAGE_EXTS, _checked, _npy_points
+from ._common import IMAGE_EXTS, NUMPY_LOAD_ERRORS, _checked, _npy_points
 from .registry import ReaderOptions, register_reader
 
 
@@ -28,7 +28,7 @@ def read_n3dv(path: Path, options: ReaderOptions) -> SourceScene:
         poses = np.load(meta_file)
     except FileNotFoundError:
         raise DataError(meta_file, "file is missing") from None
-    except (ValueError, OSError) as exc:
+    except NUMPY_LOAD_ERRORS as exc:
         raise DataError(meta_file, f"unreadable: {exc}") from None
     if poses.dtype.kind not in "fiu":
         raise DataError(meta_file, f"holds {poses.dtype} values, not real numbers (an [N_cams, 17] float array)")

@@ -10,7 +10,7 @@ import numpy as np
 from ...errors import DataError
 from ..cameras import Camera, opencv_to_corner_K
 from ..dataset import SourceScene
-from ._common import IMAGE_EXTS, _checked, _load_json, _rgb01
+from ._common import IMAGE_EXTS, NUMPY_LOAD_ERRORS, _checked, _load_json, _rgb01
 from .registry import ReaderOptions, register_reader
 
 
@@ -110,7 +110,7 @@ def _panoptic_points(npz: Path) -> tuple[np.ndarray, np.ndarray]:
             data = np.asarray(archive["data"], dtype=np.float64)
     except KeyError:
         raise DataError(npz, "no 'data' array (Dynamic 3D Gaussians' [N, 7]: x, y, z, r, g, b, seg)") from None
-    except (OSError, ValueError) as exc:
+    except NUMPY_LOAD_ERRORS as exc:
         raise DataError(npz, f"unreadable point cloud: {exc}") from None
     if data.ndim != 2 or data.shape[1] < 6:
         raise DataError(npz, f"'data' is {list(data.shape)}; expected [N, 7] (x, y, z, r, g, b, seg)")
