@@ -171,6 +171,35 @@ def test_the_triangulation_cache_key_changes_with_how_images_decode(tmp_path):
     assert key(limited) != key(full) and key(limited) != key(YuvFrame(yuv, 1, 4, 4, 8, "limited"))
 
 
+def test_auto_points_of_two_training_views_are_random_not_an_empty_triangulation(tmp_path, monkeypatch):
+    """COLMAP keeps no track of two views unless asked, and min_track_length 3 drops them anyway: 'auto' on a rig of
+    two training views triangulated nothing and failed ("no initial points found")."""
+    from scenes import write_n3dv_scene
+
+    from stgc.data import points
+
+    data = open_dataset(write_n3dv_scene(tmp_path, cams=3))  # cam00 held out: two training views
+    assert len(data.train_views) == 2
+    monkeypatch.setattr(points, "triangulate_frame", lambda *a, **k: pytest.fail("triangulated two views"))
+    with pytest.warns(UserWarning, match="random points"):
+        auto = initial_points(data, random_points_per_frame=50)
+        drawn = initial_points(data, source="random", random_points_per_frame=50)
+    assert len(auto) and np.array_equal(auto.xyz, drawn.xyz)
+
+
+def test_two_views_triangulate_at_min_track_length_2(blender_toys, tmp_path, monkeypatch):
+    """Two views give tracks of two only, which COLMAP dropped unless told to keep them (~4 s)."""
+    pytest.importorskip("pycolmap")
+    from stgc.data.triangulate import triangulate_frame
+
+    held_out = ",".join(f"cam{i:02d}" for i in range(16) if i not in (7, 8))
+    data = open_dataset(blender_toys, duration=1, test_cameras=held_out, format="n3dv")
+    monkeypatch.setenv("STGC_CACHE_DIR", str(tmp_path))
+    assert len(triangulate_frame(data, 0, min_track_length=3).xyz) == 0
+    pair = triangulate_frame(data, 0, min_track_length=2)
+    assert len(pair.xyz) >= 50 and pair.median_error < 0.5
+
+
 @pytest.mark.parametrize("damage", ["empty", "truncated"])
 def test_a_damaged_triangulation_cache_entry_is_computed_again(tmp_path, monkeypatch, damage):
     """An empty or truncated cache file (a full disk, a killed copy) was an EOFError or BadZipFile on every later run

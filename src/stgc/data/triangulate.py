@@ -69,7 +69,8 @@ def _cache_key(cameras: list[Camera], upsample: float, min_track_length: int,
                background: tuple[float, float, float]) -> str:
     """Digest of everything the result depends on: cameras, image files (path, size, mtime), how they decode (the
     background RGBA images are composited on, a YUV file's range and depth) and options."""
-    h = hashlib.sha256(f"v4 {upsample} {min_track_length} {tuple(background)}".encode())
+    two_view = " two-view-tracks" if min_track_length < 3 else ""  # `_triangulate` keeps them then
+    h = hashlib.sha256(f"v4 {upsample} {min_track_length} {tuple(background)}{two_view}".encode())
     for cam in cameras:
         h.update(cam.name.encode())
         h.update(np.ascontiguousarray(cam.K).tobytes() + np.ascontiguousarray(cam.w2c).tobytes())
@@ -176,7 +177,11 @@ def _triangulate(dataset: Dataset, frame: int, cameras: list[Camera], upsample: 
         t0 = time.perf_counter()
         out_dir = tmp / "sparse"
         out_dir.mkdir()
-        rec = pycolmap.triangulate_points(rec, db_path, image_dir, out_dir, clear_points=True,
+        options = pycolmap.IncrementalPipelineOptions()
+        # COLMAP drops the tracks of two views by default: min_track_length 2 (the only track two views give)
+        # found no point.
+        options.triangulation.ignore_two_view_tracks = min_track_length > 2
+        rec = pycolmap.triangulate_points(rec, db_path, image_dir, out_dir, clear_points=True, options=options,
                                           refine_intrinsics=False)
         timings["triangulate_s"] = time.perf_counter() - t0
         by_id = {image_id: names[img.name] for image_id, img in rec.images.items()}
