@@ -38,8 +38,8 @@ from stgc.train.video import train_video
 REPO = Path(__file__).resolve().parents[1]
 # A tiny video: 2 segments of 2 frames, long enough (in iterations) for a kill to land between checkpoints.
 SEGMENT_OVERRIDES = {
-    "train.iterations": "300", "train.schedule_scale": "1", "train.checkpoint_every": "50",
-    "train.save_iterations": "[300]", "train.threads": "1", "train.progress": "false",
+    "train.iterations": "200", "train.schedule_scale": "1", "train.checkpoint_every": "25",
+    "train.save_iterations": "[200]", "train.threads": "1", "train.progress": "false",
     "train.tensorboard": "false", "train.eval_at_end": "false", "train.eval_every": "0",
     "data.init_source": "random", "data.max_points_per_frame": "200",
 }
@@ -180,20 +180,27 @@ def _cli(*args: str) -> list[str]:
 
 # First in the module: it starts its own local Ray (in the driver it kills), before the two-node cluster below.
 def test_a_killed_driver_leaves_a_video_that_resume_finishes(video_scene, tmp_path):
+    """Also: Ray starts workers 15 steps nicer than the driver; the local Ray stgc starts keeps them at the driver's
+    priority, so a training task does not starve beside other work (the driver runs 3 steps nicer than this test,
+    so that a worker at an absolute niceness would show)."""
     temp = tempfile.mkdtemp(prefix="stgcray", dir="/tmp")
     env = {**os.environ, "RAY_TMPDIR": temp}
     out = tmp_path / "video"
     sets = [arg for key, value in SEGMENT_OVERRIDES.items() for arg in ("--set", f"{key}={value}")]
     # Longer than the other tests' segments, so that a worker cannot finish before it notices the driver is gone.
-    sets += ["--set", "train.iterations=1000"]
+    sets += ["--set", "train.iterations=600"]
     driver = subprocess.Popen(_cli("train", str(video_scene.root), "--out", str(out), "--segment-frames", "2", *sets),
-                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+                              preexec_fn=lambda: os.nice(3))
     try:
         segments = [Run(out / "segment_000"), Run(out / "segment_001")]
         deadline = time.monotonic() + 180
         while not any(s.checkpoint_path.is_file() for s in segments) and driver.poll() is None:
             assert time.monotonic() < deadline, "no segment reached its first checkpoint"
             time.sleep(0.02)
+        trainers = _ray_processes("ray::segment_", temp)
+        niceness = {pid: os.getpriority(os.PRIO_PROCESS, pid) for pid in trainers}
+        assert trainers and set(niceness.values()) == {os.nice(0) + 3}, niceness
         driver.kill()
         driver.wait()
         assert not all(s.training_finished() for s in segments)
@@ -214,7 +221,7 @@ def test_a_killed_driver_leaves_a_video_that_resume_finishes(video_scene, tmp_pa
         assert resumed.returncode == 0, resumed.stderr[-2000:]
         assert all(s.training_finished() for s in segments)
         starts = [segments[i].read_summary()["started_from_iteration"] for i in interrupted]
-        assert min(starts) >= 50  # a checkpointed segment continued, it did not start over
+        assert min(starts) >= 25  # a checkpointed segment continued, it did not start over
     finally:
         if driver.poll() is None:
             driver.kill()
@@ -236,27 +243,6 @@ def test_the_cli_names_an_unreachable_cluster(video_scene, tmp_path, capsys):
     assert not (tmp_path / "x").exists()
     assert main(["train", str(video_scene.root), "--out", str(tmp_path / "w"), "--ray-address", "auto"]) != 0
     assert "give --segment-frames" in capsys.readouterr().err
-
-
-def test_a_local_ray_runs_its_tasks_at_the_drivers_priority(tmp_path):
-    """Ray starts workers 15 steps nicer than the driver; the local Ray stgc starts keeps them at the driver's
-    priority, so a training task does not starve beside other work. In a child process (its own niceness, its own
-    local Ray), while no other Ray is attached to it."""
-    temp = tempfile.mkdtemp(prefix="stgcnice", dir="/tmp")
-    script = (
-        "import os\n"
-        "os.nice(3)\n"
-        "from stgc.distributed import Task, run_tasks\n"
-        "print('driver', os.nice(0), 'tasks', run_tasks([Task('a', os.nice, (0,))], use_ray=True, show_progress=False))\n"
-    )
-    try:
-        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=240,
-                             env={**os.environ, "RAY_TMPDIR": temp})
-    finally:
-        _kill_all(temp)
-        shutil.rmtree(temp, ignore_errors=True)
-    driver = os.nice(0) + 3
-    assert f"driver {driver} tasks [{driver}]" in out.stdout, out.stdout + out.stderr[-2000:]
 
 
 @pytest.fixture(scope="module")
@@ -305,7 +291,7 @@ def _final_params(run_dir: Path) -> dict[str, torch.Tensor]:
 
 
 def _kill_a_worker_mid_run(ray_tmpdir: str, runs: dict[str, Path],
-                           timeout_s: float = 120) -> tuple[threading.Thread, list[str]]:
+                           timeout_s: float = 300) -> tuple[threading.Thread, list[str]]:
     """A started thread that SIGKILLs the Ray worker (named ray::<task>, of the cluster with `ray_tmpdir`) of the
     first of `runs` (task name -> its run folder) caught between its first checkpoint and its end; the list
     receives that task's name."""
@@ -337,7 +323,7 @@ def test_a_worker_killed_mid_segment_is_retried_and_the_video_is_bit_identical(c
     assert killed, "no worker was caught mid-segment"
     victim = Run(tmp_path / "ray" / killed[0])
     summary = victim.read_summary()
-    assert summary["finished"] and summary["started_from_iteration"] >= 50  # resumed, not restarted
+    assert summary["finished"] and summary["started_from_iteration"] >= 25  # resumed, not restarted
 
     train_video(video_scene.root, configs, tmp_path / "inline", 2, use_ray=False)
     for name in ("segment_000", "segment_001"):
