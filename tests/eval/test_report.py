@@ -257,6 +257,8 @@ def test_a_rate_aware_run_without_experiment_json_is_not_reported_as_stg(tmp_pat
     assert describe_run(tmp_path / "mask-3e-4", masked) == ("learned mask", "mask-3e-4")
     rate_aware = {**plain, "train": {"quantization_aware": {**window, "mask": False}}}
     assert describe_run(tmp_path / "rate-1e-3", rate_aware) == ("rate-aware", "rate-1e-3")
+    control = {**plain, "train": {"quantization_aware": {"iterations": 500, "simulate": False}}}
+    assert describe_run(tmp_path / "control", control) == ("rate-aware control", "control")
 
 
 def test_a_record_with_a_value_that_is_no_number_names_its_file_and_a_baseline_may_be_a_runs_path(tmp_path):

@@ -581,7 +581,10 @@ def describe_run(run_dir: Path, config: Mapping[str, Any] | None) -> tuple[str, 
     window = (cfg.get("train") or {}).get("quantization_aware")
     window = window if isinstance(window, dict) else {}
     if window.get("iterations"):  # a rate-aware window (fine-tuning or not) makes another method than STG's
-        family = "learned mask" if window.get("mask") else "rate-aware"
+        if window.get("simulate") is False:  # the control: the window's learning rates without the quantization
+            family = "rate-aware control"
+        else:
+            family = "learned mask" if window.get("mask") else "rate-aware"
         setting = run_dir.name
     elif comp.get("method", "none") not in (None, "none", "reference"):  # a reference run prunes nothing
         family = f"ST-KNN ({comp.get('criterion', 'timestamp')})"

@@ -51,6 +51,11 @@ def _pruned_by_weight(configs: Mapping[str, Any]) -> bool:
     return compaction is not None and compaction.method == "st-knn" and compaction.pair_order == "weight"
 
 
+def _learned_mask(configs: Mapping[str, Any]) -> bool:
+    train = configs["train"]
+    return isinstance(train, TrainConfig) and train.quantization_aware.iterations > 0 and train.quantization_aware.mask
+
+
 def _error_guided_sampling(configs: Mapping[str, Any]) -> bool:
     train = configs["train"]
     return isinstance(train, TrainConfig) and train.ems.enabled
@@ -79,6 +84,12 @@ CHANGES: tuple[BehaviourChange, ...] = (
         "since session 35 (2026-11-28) pair_order=weight takes pairs of equal loser weight (many are 0) closest "
         "first, not in array order",
         _pruned_by_weight,
+    ),
+    BehaviourChange(
+        "mask-prices-rotation-index",
+        "since session 36 (2026-11-28) the learned mask's price of a Gaussian includes its quaternion's "
+        "largest-component index (about 2 bits)",
+        _learned_mask,
     ),
 )
 

@@ -190,7 +190,8 @@ class RateTerm:
 
     Left out: positions (stored as deltas along the Morton curve, so what they cost is how densely the Gaussians
     lie, not which values they take) and omega (scaled by the canonical quaternion's sign and norm; 2-3 % of a
-    file). Rotation is the smallest-three of the canonical quaternion, as stored."""
+    file). Rotation is the smallest-three of the canonical quaternion, as stored, and the index of its largest
+    component (a constant per Gaussian: it prices the Gaussian for the mask, and has no gradient)."""
 
     GROUPS = ("TCEN", "TSCL", "MOTN", "FDC_", "OPAC", "SCAL", "ROTN", "FT__")
 
@@ -218,7 +219,7 @@ class RateTerm:
     @staticmethod
     def row_bits(model: STGModel, keep: np.ndarray, groups: list[QuantizedGroup]) -> torch.Tensor:
         """[visible rows] each visible Gaussian's code lengths over the GROUPS' stored components, each interpolated
-        between its value's two nearest codes."""
+        between its value's two nearest codes (the quaternion's largest index: its own code's length)."""
         rows = torch.from_numpy(np.flatnonzero(keep))
         total = torch.zeros(len(rows), dtype=torch.float64)
         for group in groups:
@@ -232,6 +233,9 @@ class RateTerm:
                 below = code.detach().floor().clamp(max=levels - 2).long()
                 frac = code - below
                 total = total + lengths[below] * (1 - frac) + lengths[below + 1] * frac
+            if group.group.domain == QUAT_SMALLEST3:  # the index row, stored in ROTN beside the three
+                largest = group.codes[3].astype(np.int64)
+                total = total + torch.from_numpy(code_lengths(largest, 4)[largest])
         return total
 
 
