@@ -202,19 +202,6 @@ def test_a_camera_in_both_blender_files_is_refused_not_held_out_whole(tmp_path):
                  _blender_multiview(tmp_path / "both", {("camA", 1), ("camC", 0), ("camC", 1)}))
 
 
-def test_a_transforms_file_that_names_a_camera_model_is_a_real_capture_not_a_render(tmp_path):
-    """Every transforms file was read as a synthetic render: a real capture exported by nerfstudio or instant-ngp
-    trained without its per-camera colour correction (and with the decoder's defaults for renders)."""
-    assert open_dataset(_blender_multiview(tmp_path / "render", {("camC", 0), ("camC", 1)})).synthetic
-    for key, value in (("camera_model", "OPENCV"), ("k1", 0.0)):
-        root = _blender_multiview(tmp_path / key, {("camC", 0), ("camC", 1)})
-        meta = json.loads((root / "transforms_train.json").read_text())
-        meta[key] = value
-        (root / "transforms_train.json").write_text(json.dumps(meta))
-        data = open_dataset(root)
-        assert not data.synthetic and any("real capture" in note for note in data.summary()["notes"]), key
-
-
 def test_a_blender_frame_without_the_camera_the_others_name_is_refused_as_such(tmp_path):
     """One entry without 'camera' read the whole scene as monocular, and the error named another cause (a camera
     "appears twice")."""

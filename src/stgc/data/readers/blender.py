@@ -75,16 +75,10 @@ def read_blender(path: Path, options: ReaderOptions) -> SourceScene:
         points = lambda frame: _npy_points(points_dir, frame)
         description = "points3d/NNNN.npy (x, y, z, r, g, b) per frame"
     notes = [] if multiview else ["monocular: each image is its own view"]
-    # Blender and D-NeRF renders carry a field of view and no lens; the transforms files of real captures
-    # (nerfstudio, instant-ngp's colmap2nerf) name a camera model or its distortion terms, even when zero.
-    calibrated = any(key in fr or key in meta for _, _, meta, fr in entries
-                     for key in ("camera_model", *_DISTORTION_KEYS))
-    if calibrated:
-        notes.append("a calibrated camera (camera_model or distortion terms): a real capture, not a render")
     ranked = not multiview or not any("frame_index" in e[3] for e in entries)
     return SourceScene(name=root.name, format="blender", root=root, cameras=cameras, default_test=test_names,
                        meta_file=meta_file, fps=fps, multiview=multiview, points=points,
-                       points_description=description, notes=notes, synthetic=not calibrated,
+                       points_description=description, notes=notes, synthetic=True,
                        frame_positions=_positions_of_ranks(all_times) if ranked else None)
 
 
