@@ -199,8 +199,11 @@ def test_a_killed_driver_leaves_a_video_that_resume_finishes(video_scene, tmp_pa
             assert time.monotonic() < deadline, "no segment reached its first checkpoint"
             time.sleep(0.02)
         trainers = _ray_processes("ray::segment_", temp)
-        niceness = {pid: os.getpriority(os.PRIO_PROCESS, pid) for pid in trainers}
-        assert trainers and set(niceness.values()) == {os.nice(0) + 3}, niceness
+        assert trainers
+        driver_niceness = os.getpriority(os.PRIO_PROCESS, driver.pid)
+        if driver_niceness < 19:  # (at 19 Ray's own +15 would give the same)
+            niceness = {pid: os.getpriority(os.PRIO_PROCESS, pid) for pid in trainers}
+            assert set(niceness.values()) == {driver_niceness}, niceness
         driver.kill()
         driver.wait()
         assert not all(s.training_finished() for s in segments)

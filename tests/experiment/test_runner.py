@@ -902,6 +902,24 @@ def test_set_values_valid_with_a_run_s_own_options_and_a_fine_tuned_loss_referen
         run_plan("DATA", plan_path, tmp_path / "ft", runner=fake_runner, python=sys.executable, log=lambda m: None)
 
 
+@pytest.mark.parametrize("change, acting, idle", [
+    ("mask-prices-rotation-index",
+     {"train.quantization_aware.iterations": "100", "train.quantization_aware.rate_weight": "0.001",
+      "train.quantization_aware.mask": "true"},
+     {"train.quantization_aware.iterations": "100", "train.quantization_aware.rate_weight": "0.001"}),
+    ("two-view-tracks-kept", {"data.min_track_length": "2"},
+     {"data.min_track_length": "2", "data.init_source": "random"}),
+])
+def test_session_36_s_behaviour_changes_act_on_their_runs_only(change, acting, idle) -> None:
+    from stgc.options import resolve_configs
+    from stgc.train.behaviour import missing_behaviour
+
+    def acts(sets: dict[str, str]) -> bool:
+        return change in {c.name for c in missing_behaviour({}, resolve_configs("cpu", {}, {}, sets))}
+
+    assert acts(acting) and not acts(idle) and not acts({})
+
+
 def test_a_run_trained_before_a_behaviour_change_that_acts_on_it_is_not_reused(tmp_path: Path) -> None:
     """config.json records the behaviour changes its code had (stgc.train.behaviour): an ST-KNN run whose capped
     clone/split rounds reach its window trained before 'compaction-not-refilled' is another run; a run the change

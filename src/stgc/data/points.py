@@ -93,7 +93,7 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
     "triangulate" = SIFT + known-pose triangulation with pycolmap from the training views; "random" =
     uniform points in the region the cameras see (with a warning); "auto" = data if present, else
     triangulation if pycolmap imports and every frame has `min_track_length` training views (a point needs that
-    many), else random.
+    many) or masks give it hull points, else random.
 
     mask_points_per_frame > 0 adds, where the data has foreground masks, up to that many points per frame inside
     the masks' visual hull (`mask_hull_points`): the moving subjects, which triangulation misses."""
@@ -109,10 +109,16 @@ def initial_points(dataset: Dataset, source: str = "auto", frames: list[int] | N
     if source == "auto":
         if dataset.has_points:
             source = "data"
-        elif any(len(dataset.train_at(f)) < max(2, min_track_length) for f in frames):
-            # Monocular data (one view per frame), or too few views for a track of min_track_length.
+        elif any(len(dataset.train_at(f)) < 2 for f in frames):
+            # Monocular data: one view per frame, nothing to triangulate.
+            log.info("%s: fewer than 2 training views in some frame; random initial points", dataset.name)
+            source = "random"
+        elif (any(len(dataset.train_at(f)) < min_track_length for f in frames)
+              and not (mask_points_per_frame > 0 and dataset.has_masks)):
+            # Too few views for a track of min_track_length: triangulation would find nothing, and no visual hull
+            # fills the frame in (with one, triangulation stays: the hull's points were the frame's).
             log.info("%s: fewer than %d training views (min_track_length) in some frame; random initial points",
-                     dataset.name, max(2, min_track_length))
+                     dataset.name, min_track_length)
             source = "random"
         else:
             try:

@@ -56,6 +56,11 @@ def _learned_mask(configs: Mapping[str, Any]) -> bool:
     return isinstance(train, TrainConfig) and train.quantization_aware.iterations > 0 and train.quantization_aware.mask
 
 
+def _two_view_tracks(configs: Mapping[str, Any]) -> bool:
+    data = configs["data"]
+    return data.min_track_length < 3 and data.init_source in ("auto", "triangulate")
+
+
 def _error_guided_sampling(configs: Mapping[str, Any]) -> bool:
     train = configs["train"]
     return isinstance(train, TrainConfig) and train.ems.enabled
@@ -90,6 +95,12 @@ CHANGES: tuple[BehaviourChange, ...] = (
         "since session 36 (2026-11-28) the learned mask's price of a Gaussian includes its quaternion's "
         "largest-component index (about 2 bits)",
         _learned_mask,
+    ),
+    BehaviourChange(
+        "two-view-tracks-kept",
+        "since session 36 (2026-11-28) data.min_track_length 2 keeps COLMAP's two-view tracks (it dropped them: "
+        "fewer triangulated points)",
+        _two_view_tracks,
     ),
 )
 
