@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -109,6 +110,22 @@ def test_prunes_remove_rows_from_model_moments_and_statistics_alike():
     for ids in _row_ids(opt, model).values():
         assert torch.equal(ids, torch.tensor(expected, dtype=torch.float32))
     assert torch.equal(stats.grad_sum, torch.tensor(expected, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("values", [[], [float("nan")], [float("inf")], [float("-inf")],
+                                    [float("inf"), float("-inf")], [3e38, 3e38]])
+def test_the_non_finite_rows_are_found_exactly_whatever_the_sums_do(values):
+    """The scan first asks whether each parameter's sum is finite: an inf beside a -inf, or finite values whose sum
+    overflows, must still give exactly the rows with a NaN or inf."""
+    model = _model()
+    with torch.no_grad():
+        for k, value in enumerate(values):
+            model.params["motion"][3 + k, 1] = value
+    expected = torch.zeros(model.num_gaussians, dtype=torch.bool)
+    for p in model.params.values():
+        expected |= ~torch.isfinite(p.detach()).reshape(model.num_gaussians, -1).all(dim=1)
+    assert torch.equal(prune_mask_nonfinite(model), expected)
+    assert int(expected.sum()) == sum(not math.isfinite(v) for v in values)
 
 
 def test_opacity_reset_caps_opacity_and_clears_its_moments_only():
