@@ -26,7 +26,6 @@ from .pruning import (
     merge_keeper_opacity,
     removal_scores,
     select_removals,
-    selected_count,
     size_relative_distances,
 )
 
@@ -148,12 +147,12 @@ class STKNNCompactor:
             coverage = keeper_time_coverage(pairs, scores, to_float64_numpy(model.params["trbf_center"]),
                                             to_float64_numpy(model.params["trbf_scale"]))
             pairs = pairs.subset(coverage >= self.config.keeper_time_coverage)
-        order_by = None
-        if self.config.pair_order == "size" and len(pairs):
-            order_by = size_relative_distances(pairs, to_float64_numpy(model.params["scaling"]), model.scene_extent)
-        elif (self.config.pair_order == "weight" and max_removals > 0
-              and selected_count(len(pairs), ratio, matched_pairs) > 0):  # (the renders only where a pair goes)
-            order_by = loser_weights(pairs, scores, blending_weights())
+        order_by: Callable[[], np.ndarray] | None = None
+        if self.config.pair_order == "size":
+            order_by = lambda: size_relative_distances(pairs, to_float64_numpy(model.params["scaling"]),
+                                                       model.scene_extent)
+        elif self.config.pair_order == "weight":
+            order_by = lambda: loser_weights(pairs, scores, blending_weights())
         selection = select_removals(pairs, ratio, scores, max_removals, ratio_of=matched_pairs, order_by=order_by)
         if selection.remove.size:
             keep = torch.ones(n_before, dtype=torch.bool)

@@ -29,7 +29,7 @@ Mutual pairs were merged into one earlier (`matching.match_from_neighbors`).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -105,14 +105,9 @@ def keeper_time_coverage(
     return np.where(finite[loser] & finite[keeper], coverage, np.where(finite[loser], 0.0, 1.0))
 
 
-def selected_count(n_pairs: int, ratio: float, ratio_of: int | None = None) -> int:
-    """How many of `n_pairs` pairs a step at `ratio` selects (of `ratio_of` matched pairs, when they were filtered)."""
-    return min(n_pairs, int(np.floor(ratio * (n_pairs if ratio_of is None else ratio_of) + 0.5)))
-
-
 def select_removals(
     pairs: PairMatches, ratio: float, scores: np.ndarray, max_removals: int | None = None,
-    ratio_of: int | None = None, order_by: np.ndarray | None = None,
+    ratio_of: int | None = None, order_by: np.ndarray | Callable[[], np.ndarray] | None = None,
 ) -> PruneSelection:
     """Gaussians to remove for the first `ratio` fraction of `pairs`, closest first or by `order_by` (rules in the
     module docstring).
@@ -122,11 +117,13 @@ def select_removals(
     so that a filter changes which pairs go, not how fast the model is pruned.
     `order_by`: [P] the key the pairs are taken by, smallest first, instead of their distance (`pair_order`; NaN
     last); equal keys closest first (many losers share the weight 0: unseen from every training view), then in
-    reference order."""
+    reference order. A callable is asked only when the step selects a pair (the weight key costs renders)."""
     n_pairs = len(pairs)
-    n_selected = selected_count(n_pairs, ratio, ratio_of)
+    n_selected = min(n_pairs, int(np.floor(ratio * (n_pairs if ratio_of is None else ratio_of) + 0.5)))
     if n_selected == 0 or (max_removals is not None and max_removals <= 0):
         return PruneSelection(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), n_selected, 0, float("nan"))
+    if callable(order_by):
+        order_by = order_by()
     if order_by is None:
         order = np.lexsort((pairs.reference, pairs.distance))[:n_selected]
     else:
