@@ -212,7 +212,7 @@ def test_the_choices_alone_can_be_checked_where_a_section_s_other_checks_do_not_
     ("data", lambda: dataclasses.replace(DataConfig(), yuv_range="Full"),
      "data.yuv_range: 'Full' is not one of limited, full"),
     ("compaction", lambda: dataclasses.replace(CompactionConfig(), loss_signal="psnr"),
-     "compaction.loss_signal: 'psnr' is not one of training, probe, probe_psnr"),
+     "compaction.loss_signal: 'psnr' is not one of training, probe, probe_psnr, prune_damage"),
 ])
 def test_the_trainer_refuses_a_typo_in_any_section_before_the_run_folder_is_written(tiny_data, tmp_path, section,
                                                                                      options, message):

@@ -436,3 +436,52 @@ def test_the_probe_psnr_signal_holds_the_budget_in_the_psnr_it_names(tmp_path):
     with pytest.raises(DataError, match=r"old/compaction.jsonl.*logged no probe_mse.*train the reference again"):
         STKNNCompactor(dataclasses.replace(budgeted, loss_reference=str(old)), total)
     STKNNCompactor(dataclasses.replace(budgeted, loss_signal="probe", loss_reference=str(old)), total)
+
+
+def test_prune_damage_holds_the_prunes_own_psnr_cost_against_the_budget_spread_over_the_steps():
+    """loss_signal prune_damage: each step's damage is the probe's PSNR right before its prune minus right after it,
+    so training's progress between steps (here the probe MSE falling 20 % per interval) is no part of it; the
+    controller halves the ratio while the damage summed so far exceeds the budget's share of the steps so far and
+    rises one step otherwise."""
+    ctrl = AdaptiveRatio(initial=0.04, step=0.01, minimum=0.01, maximum=0.06)
+    assert [(ctrl.hold(spent, allowed), ctrl.ratio) for spent, allowed in
+            [(0.0, 0.0), (0.2, 0.1), (0.25, 0.2), (0.3, 0.3), (float("nan"), 0.4)]] == \
+        [(1, 0.05), (-1, 0.025), (-1, 0.0125), (1, 0.0225), (0, 0.0225)]
+
+    budget_db, total = 0.6, 100
+    cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.1, ratio_step=0.05,
+                           ratio_min=0.02, ratio_max=0.3, loss_signal="prune_damage", loss_budget_db=budget_db)
+    compactor = STKNNCompactor(cfg, total)
+    model = make_model(random_params(600, 3, motion_scale=0.02))
+    clock = {"iteration": 0}
+    calls: list[int] = []
+
+    def probe() -> ProbeResult:  # the error grows as the model loses Gaussians and falls as it trains
+        n = model.params["xyz"].shape[0]
+        calls.append(clock["iteration"])
+        return _probe(1.0, 1e-3 * 0.8 ** (clock["iteration"] / 10) * (600 / n) ** 2)
+
+    events = []
+    for it in range(1, total + 1):
+        clock["iteration"] = it
+        if (e := compactor.step(it, 0.5, model, float(it), probe_fn=probe)) is not None:
+            events.append(e)
+    steps = len(events)
+    assert steps == compactor.schedule.num_steps == 6
+    spent = 0.0
+    for k, e in enumerate(events):
+        assert e["damage_allowed_db"] == pytest.approx(budget_db * k / steps)
+        assert e["smoothed_loss"] == pytest.approx(spent)
+        assert e["ratio_direction"] == (-1 if spent > budget_db * k / steps else 1)
+        assert e["prune_damage_db"] == pytest.approx(20 * np.log10(e["gaussians_before"] / e["gaussians_left"]))
+        assert calls.count(e["iteration"]) == (2 if e["removed"] else 1)  # before and after the prune
+        spent += e["prune_damage_db"]
+    assert {e["ratio_direction"] for e in events} == {-1, 1}  # the budget both let the ratio rise and held it
+    assert compactor.prune_damage_db == pytest.approx(spent)
+    restored = STKNNCompactor(cfg, total)
+    restored.load_state_dict(json.loads(json.dumps(compactor.state_dict())))
+    assert restored.prune_damage_db == pytest.approx(spent)
+    with pytest.raises(ValueError, match="loss_budget_db"):
+        CompactionConfig(loss_signal="prune_damage").validate()
+    with pytest.raises(ValueError, match="loss_reference"):
+        dataclasses.replace(cfg, loss_reference="runs/stg").validate()

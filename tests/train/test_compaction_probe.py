@@ -64,6 +64,28 @@ def test_the_compaction_probe_is_a_fixed_spread_set_of_training_views_and_steers
     assert events[-1]["probe_psnr"] == pytest.approx(-10.0 * np.log10(read[-1].mse))
 
 
+
+def test_prune_damage_reads_the_probe_right_before_and_right_after_each_prune(scene, tmp_path):
+    """compaction.loss_signal 'prune_damage' through the trainer: a pruning step renders the probe, prunes, and
+    renders it again with nothing trained between; the logged damage is the PSNR between the two renders."""
+    dataset = open_dataset(scene.root)
+    start = STGModel.from_ply_arrays(scene.model.to_ply_arrays(), "lite", None, scene_extent=3.3)
+    compaction = CompactionConfig(case=0, window_start=0.25, window_end=0.75, interval=10, probe_views=4,
+                                  loss_signal="prune_damage", loss_budget_db=0.5, ratio_init=0.1, ratio_max=0.2)
+    trainer = Trainer(dataset, None, None, _config(80), compaction, tmp_path / "run", model=start)
+    read = []  # (Gaussians, probe) in call order
+    probe = trainer.probe
+    trainer.strategies[-1].probe = lambda: read.append((trainer.model.num_gaussians, probe())) or read[-1][1]
+    trainer.run()
+    events = [json.loads(line) for line in (tmp_path / "run" / "compaction.jsonl").read_text().splitlines()]
+    assert [e["iteration"] for e in events] == [20, 30, 40, 50] and all(e["removed"] for e in events)
+    assert len(read) == 2 * len(events)
+    for e, (before, after) in zip(events, zip(read[::2], read[1::2])):
+        assert (before[0], after[0]) == (e["gaussians_before"], e["gaussians_left"])
+        assert e["prune_damage_db"] == pytest.approx(10 * np.log10(after[1].mse / before[1].mse))
+        assert e["probe_psnr"] == pytest.approx(-10.0 * np.log10(before[1].mse))
+    assert sum(e["prune_damage_db"] for e in events) == pytest.approx(trainer.strategies[-1].compactor.prune_damage_db)
+
 def test_a_budget_run_reads_its_unpruned_reference_run_at_the_same_iterations(scene, tmp_path):
     """compaction.method 'reference' trains as without compaction and logs the probe loss at each pruning iteration;
     a run of the same configuration with loss_reference holds its budget against those values. Until its first

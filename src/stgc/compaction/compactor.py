@@ -63,13 +63,16 @@ class STKNNCompactor:
         self.total_iterations = int(total_iterations)
         self.schedule: PruningSchedule = resolve_schedule(config, self.total_iterations)
         self.smoother = LossSmoother(config.loss_smoothing, self.schedule.interval, config.ema_decay)
+        # prune_damage holds its budget in dB as an allowance (AdaptiveRatio.hold), not as a relative rise.
+        relative_budget = config.loss_budget_db > 0 and config.loss_signal != "prune_damage"
         self.controller = AdaptiveRatio(
             config.ratio_init, config.ratio_step, config.ratio_min, config.ratio_max, config.loss_tolerance,
             budget_for_psnr_drop(config.loss_budget_db, squared_error=config.loss_signal == "probe_psnr")
-            if config.loss_budget_db > 0 else 0.0,
+            if relative_budget else 0.0,
         )
         self.steps_done = 0
         self.total_removed = 0
+        self.prune_damage_db = 0.0  # the probe PSNR the prunes cost so far (loss_signal prune_damage)
         self.reference = (load_reference_losses(config.loss_reference, self.schedule, config.probe_views,
                                                 config.loss_signal) if config.loss_reference else None)
 
@@ -122,7 +125,14 @@ class STKNNCompactor:
                     "removed": 0, "gaussians_before": n_before, "gaussians_left": n_before, "total_removed": 0}
         reference = None if self.reference is None else self.reference[int(iteration)]
         previous, best = self.controller.previous_loss, self.controller.best_loss
-        direction = self.controller.update(smoothed, reference)
+        allowed_db: float | None = None
+        if self.config.loss_signal == "prune_damage":
+            # The budget spread evenly over the window: the steps so far may have cost their share of it.
+            allowed_db = self.config.loss_budget_db * self.steps_done / self.schedule.num_steps
+            smoothed = self.prune_damage_db
+            direction = self.controller.hold(self.prune_damage_db, allowed_db)
+        else:
+            direction = self.controller.update(smoothed, reference)
         ratio = self.controller.ratio
 
         started = time.perf_counter()
@@ -166,6 +176,13 @@ class STKNNCompactor:
         finished = time.perf_counter()
 
         removed = int(selection.remove.size)
+        step_damage_db: float | None = None
+        if self.config.loss_signal == "prune_damage":
+            assert probe is not None and probe_fn is not None
+            # Nothing trained since `probe`: the difference is the prune's alone (the keepers' merged opacity too).
+            step_damage_db = _psnr_drop(probe.mse, probe_fn().mse) if removed else 0.0
+            if step_damage_db is not None:  # a non-finite render is no measure; the controller then holds still
+                self.prune_damage_db += step_damage_db
         self.steps_done += 1
         self.total_removed += removed
         return {
@@ -181,6 +198,8 @@ class STKNNCompactor:
             "best_smoothed_loss": best,
             "reference_loss": reference,
             "loss_budget": self.controller.budget,
+            "prune_damage_db": step_damage_db,
+            "damage_allowed_db": allowed_db,
             "matched_references": pairs.matched_references,
             "matched_pairs": matched_pairs,
             "time_covered_pairs": len(pairs),
@@ -203,6 +222,7 @@ class STKNNCompactor:
             "total_iterations": self.total_iterations,
             "steps_done": self.steps_done,
             "total_removed": self.total_removed,
+            "prune_damage_db": self.prune_damage_db,
             "controller": self.controller.state_dict(),
             "smoother": self.smoother.state_dict(),
         }
@@ -220,8 +240,16 @@ class STKNNCompactor:
             )
         self.steps_done = int(state["steps_done"])
         self.total_removed = int(state["total_removed"])
+        self.prune_damage_db = float(state.get("prune_damage_db", 0.0))  # saved before the signal existed: none
         self.controller.load_state_dict(state["controller"])
         self.smoother.load_state_dict(state["smoother"])
+
+
+def _psnr_drop(mse_before: float, mse_after: float) -> float | None:
+    """The PSNR lost from `mse_before` to `mse_after` (dB, negative for a gain); None unless both are finite, > 0."""
+    if not (mse_before > 0 and mse_after > 0 and np.isfinite(mse_before) and np.isfinite(mse_after)):
+        return None
+    return float(10.0 * np.log10(mse_after / mse_before))
 
 
 def _psnr_of_mse(mse: float) -> float | None:
@@ -235,7 +263,7 @@ def load_reference_losses(run_dir: str, schedule: PruningSchedule, probe_views: 
     every pruning iteration of `schedule`, by iteration. Raises DataError naming the file when the run is not such a
     reference, does not cover the schedule, did not log that signal, or (its config.json says) probed a different
     number of views."""
-    key = _REFERENCE_FIELD[loss_signal]  # CompactionConfig.validate admits a reference only with a probe signal
+    key = _REFERENCE_FIELD[loss_signal]  # CompactionConfig.validate admits a reference only with a REFERENCE_SIGNALS one
     path = Path(run_dir) / LOG_NAME if Path(run_dir).is_dir() else Path(run_dir)
     config_path = path.parent / "config.json"
     if config_path.is_file():

@@ -32,9 +32,10 @@ CASE_WINDOWS: dict[int, tuple[float, float]] = {
 Method = Literal["none", "st-knn", "reference"]
 METHODS = get_args(Method)
 SMOOTHINGS = ("window_mean", "ema")
-LossSignal = Literal["training", "probe", "probe_psnr"]
-# The signals rendered on the fixed probe set (the ones a reference run's log can be held against).
-PROBE_SIGNALS = ("probe", "probe_psnr")
+LossSignal = Literal["training", "probe", "probe_psnr", "prune_damage"]
+# The signals rendered on the fixed probe set, and those of them a reference run's log can be held against.
+PROBE_SIGNALS = ("probe", "probe_psnr", "prune_damage")
+REFERENCE_SIGNALS = ("probe", "probe_psnr")
 LOSS_SIGNALS = get_args(LossSignal)
 
 
@@ -89,7 +90,8 @@ class CompactionConfig:
             "help": "damage budget of the ratio controller, as the PSNR drop it may see: > 0 compares the signal with "
             "the lowest value seen so far (ratio halved while it is worse by more than the loss increase this drop "
             "means, up one step otherwise) instead of with the previous step; 0 = paper (step to step). Best with "
-            "loss_signal probe_psnr (the drop measured as PSNR) or probe"
+            "loss_signal probe_psnr (the drop measured as PSNR) or probe. With loss_signal prune_damage: the PSNR "
+            "the prunes may cost the probe views in all, spread evenly over the window's steps"
         },
     )
     loss_reference: str = field(
@@ -116,7 +118,10 @@ class CompactionConfig:
             "loss (paper; each from a random timestamp and views, so it varies with what was drawn), 'probe' = the "
             "training loss of the current model on a fixed set of training views and times, rendered at every "
             "pruning step (it measures the model, not the sample), 'probe_psnr' = the same renders' mean squared error "
-            "(geometric mean over the views, the mean PSNR's), so that loss_budget_db holds the PSNR it names"
+            "(geometric mean over the views, the mean PSNR's), so that loss_budget_db holds the PSNR it names; "
+            "'prune_damage' = the PSNR the prunes themselves cost, without a reference run: the probe views' mean "
+            "PSNR right before each prune minus right after it (nothing trains between), summed over the steps and "
+            "held against loss_budget_db spread evenly over the window's steps (needs loss_budget_db > 0)"
         },
     )
     probe_views: int = field(
@@ -209,7 +214,10 @@ class CompactionConfig:
         if self.loss_signal not in LOSS_SIGNALS:
             raise ValueError(f"compaction.loss_signal {self.loss_signal!r}: expected one of {LOSS_SIGNALS}")
         # With method none every other option acts on nothing (a fine-tuning carries its source's section so).
-        budgeted = self.method == "st-knn" and self.loss_budget_db > 0 and self.loss_signal in PROBE_SIGNALS
+        budgeted = self.method == "st-knn" and self.loss_budget_db > 0 and self.loss_signal in REFERENCE_SIGNALS
+        if self.method == "st-knn" and self.loss_signal == "prune_damage" and self.loss_budget_db <= 0:
+            raise ValueError("compaction.loss_signal prune_damage holds the prunes' PSNR cost against "
+                             "compaction.loss_budget_db: set it > 0 (for example 0.3)")
         if self.loss_reference and self.method != "none" and not budgeted:
             raise ValueError(f"compaction.loss_reference {self.loss_reference!r}: a reference run is the damage "
                              "budget's, so it needs method st-knn, loss_budget_db > 0 and loss_signal probe or "
@@ -235,7 +243,7 @@ _ACTS_ONLY_WITH: dict[str, tuple[Callable[[CompactionConfig], bool], str]] = {
     "ema_decay": (lambda c: c.loss_signal == "training" and c.loss_smoothing == "ema",
                   "compaction.loss_smoothing=ema and compaction.loss_signal=training"),
     "probe_views": (lambda c: c.loss_signal in PROBE_SIGNALS or c.method == "reference",
-                    "compaction.loss_signal=probe or probe_psnr, or compaction.method=reference"),
+                    "compaction.loss_signal=probe, probe_psnr or prune_damage, or compaction.method=reference"),
 }
 # What a reference run (method=reference) shares with the pruned run it is the reference of: the pruning schedule,
 # at which it logs the probe loss, and the probe. It prunes nothing, so the matching, the criterion and the

@@ -23,6 +23,11 @@ the model's capacity its loss stops falling, while an unpruned model's keeps fal
 each step, the unpruned model's at the same iteration (compaction.loss_reference), the budget is held against it;
 then the first step has something to compare with too (the reference's loss), and an undamaged model raises the
 ratio there already: the first prune is at the initial ratio plus one step.
+
+Without a reference run the damage can still be read apart from training's progress: the probe rendered right
+before and right after a prune (nothing trained between) differs only by what the prune did. `hold` compares the
+sum of those drops so far with the budget spread evenly over the window's steps (compaction.loss_signal
+prune_damage), with the same additive increase and multiplicative decrease.
 """
 
 from __future__ import annotations
@@ -107,21 +112,37 @@ class AdaptiveRatio:
             against = self.best_loss if reference is None else reference
             if against is not None:
                 direction = -1 if loss > against * (1.0 + self.budget) else 1
-                # Additive increase, multiplicative decrease: the damage shows some steps after the prunes that
-                # caused it, so a ratio that only stepped down would keep pruning at nearly the rate that overshot.
-                proposed = self.ratio / 2.0 if direction < 0 else self.ratio + self.step
+                proposed = self._within_budget_or_not(direction)
         elif loss is not None and self.previous_loss is not None:
             change = loss - self.previous_loss
             if abs(change) > self.tolerance * abs(self.previous_loss):
                 direction = -1 if change > 0 else 1
                 proposed = self.ratio + direction * self.step
-        # Round away float drift (0.02 + 0.005 - 0.005 != 0.02) so that ratios are reproducible (and on the step grid
-        # in the paper's rule; halving leaves it).
-        self.ratio = round(min(self.maximum, max(self.minimum, proposed)), 12)
+        self._set(proposed)
         if loss is not None:
             self.previous_loss = loss
             self.best_loss = loss if self.best_loss is None else min(self.best_loss, loss)
         return direction
+
+    def hold(self, spent: float, allowed: float) -> int:
+        """The budget as an allowance (compaction.loss_signal prune_damage): halve the ratio while the damage `spent`
+        so far exceeds what is `allowed` by now, up one step otherwise; returns the direction. Non-finite values are
+        no signal (the ratio stays)."""
+        if not (math.isfinite(spent) and math.isfinite(allowed)):
+            return 0
+        direction = -1 if spent > allowed else 1
+        self._set(self._within_budget_or_not(direction))
+        return direction
+
+    def _within_budget_or_not(self, direction: int) -> float:
+        # Additive increase, multiplicative decrease: the damage shows some steps after the prunes that caused it,
+        # so a ratio that only stepped down would keep pruning at nearly the rate that overshot.
+        return self.ratio / 2.0 if direction < 0 else self.ratio + self.step
+
+    def _set(self, proposed: float) -> None:
+        # Round away float drift (0.02 + 0.005 - 0.005 != 0.02) so that ratios are reproducible (and on the step grid
+        # in the paper's rule; halving leaves it).
+        self.ratio = round(min(self.maximum, max(self.minimum, proposed)), 12)
 
     def state_dict(self) -> dict[str, Any]:
         return {"ratio": self.ratio, "previous_loss": self.previous_loss, "best_loss": self.best_loss}

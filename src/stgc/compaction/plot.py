@@ -48,7 +48,8 @@ def read_compaction_log(run_dir_or_jsonl: str | Path) -> list[dict[str, Any]]:
 
 # What the ratio controller compared between steps, by the records' `loss_signal` (older logs have none: training).
 _LOSS_LABELS = {"training": "smoothed training loss", "probe": "probe loss\n(fixed training views and times)",
-                "probe_psnr": "probe MSE\n(geometric mean over the views)"}
+                "probe_psnr": "probe MSE\n(geometric mean over the views)",
+                "prune_damage": "PSNR the prunes cost\nthe probe views so far (dB)"}
 
 
 def loss_label(records: list[dict[str, Any]]) -> str:
@@ -94,6 +95,10 @@ def plot_compaction(run_dir_or_jsonl: str | Path, out_png: str | Path) -> Path:
         if budgets:
             axes[2].legend(loc="upper left", fontsize="small")
         axes[2].set_ylabel("loss / reference - 1")
+    if any(r.get("damage_allowed_db") is not None for r in records):
+        axes[1].plot(iterations, series("damage_allowed_db"), color="black", linestyle=":",
+                     label="allowed by now (the budget spread over the steps)")
+        axes[1].legend(loc="upper left", fontsize="small")
     axes[1].set_ylabel(loss_label(records))
     axes[-1].plot(iterations, series("gaussians_left"), marker=".", color="tab:green")
     axes[-1].set_ylabel("Gaussians")
