@@ -145,3 +145,38 @@ def test_rows_closer_than_a_squared_distance_can_hold_are_not_taken_for_copies()
     pts[3] = pts[0]  # a real copy as well: every row still gets another row at distance 0
     nn, d = nearest_other(pts)
     assert d.tolist() == [0.0] * 4 and all(nn[i] not in (i, -1) for i in range(4))
+
+
+def _pair_at(b_offset: np.ndarray, b_quadratic: np.ndarray, extra: np.ndarray | None = None):
+    """Background lattice (spacing 1, extent 5) with A static at (2.5, 2.5, 2.5) and B beside it moving as
+    b_quadratic (t - 0.5)^2: at the same place at mu_t = 0.5 and t = 0.5, apart at the sampled times 0.25, 0.75."""
+    start = np.array([2.5, 2.5, 2.5])
+    rows = [_grid(5, 1.0), start[None], (start + b_offset)[None]] + ([] if extra is None else [extra])
+    params = static_params(np.vstack(rows))
+    a = len(rows[0])
+    params["motion"][a + 1, 3:6] = torch.as_tensor(b_quadratic, dtype=torch.float32)
+    return make_model(params, scene_extent=5.0), a, a + 1
+
+
+def test_sample_times_must_agree_too_and_enter_the_mean_distance():
+    # B drifts 0.01 further from A at the sampled times: still its neighbour there, the distance's mean moves.
+    model, a, b = _pair_at(np.array([0.02, 0.0, 0.0]), np.array([0.16, 0.0, 0.0]))
+    for k, expected in ((0, 0.02), (2, (0.02 + 0.02 + 0.03 + 0.03) / 4)):
+        m = match_spatiotemporal_pairs(model, 0.5, rotation_weight=0.0, sample_times=k)
+        (at,) = np.flatnonzero((m.reference == a) & (m.partner == b))
+        assert m.distance[at] == pytest.approx(expected / 5.0, rel=1e-5)
+    # B reaches another Gaussian C at the sampled times: matched at mu_t and t alone, not when those must agree.
+    model, a, b = _pair_at(np.array([0.02, 0.0, 0.0]), np.array([16.0, 0.0, 0.0]), extra=np.array([[3.53, 2.5, 2.5]]))
+    assert (a, b) in _pairs(match_spatiotemporal_pairs(model, 0.5, rotation_weight=0.0, sample_times=0))
+    assert (a, b) not in _pairs(match_spatiotemporal_pairs(model, 0.5, rotation_weight=0.0, sample_times=2))
+
+
+@pytest.mark.parametrize("rotation_weight", [0.01, 0.0])
+@pytest.mark.parametrize("diverged", ["rotation", "omega"])
+def test_a_row_with_a_non_finite_rotation_or_omega_is_never_matched(rotation_weight, diverged):
+    # A NaN quaternion read as the identity: the diverged row matched its healthy twin and could outlive it.
+    model, a, b = _pair_at(np.array([0.001, 0.0, 0.0]), np.zeros(3))
+    assert (a, b) in _pairs(match_spatiotemporal_pairs(model, 0.5, rotation_weight=rotation_weight))
+    model.params[diverged].data[a, 1] = float("nan")
+    assert not any(a in p for p in _pairs(match_spatiotemporal_pairs(model, 0.5, rotation_weight=rotation_weight)))
+    assert not np.isfinite(canonical_quaternions(np.array([[np.nan, 0.0, 0.0, 0.0]]))).all()

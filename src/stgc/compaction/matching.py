@@ -58,10 +58,11 @@ def _workers() -> int:
 
 
 def canonical_quaternions(q: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w, x, y, z) with w >= 0. A zero quaternion (STG's EMS inserts them) maps to identity."""
+    """Unit quaternions (w, x, y, z) with w >= 0. A zero quaternion (STG's EMS inserts them) maps to identity; a
+    non-finite one stays non-finite (a diverged row, which the searches leave out)."""
     q = np.asarray(q, dtype=np.float64)
     norm = np.linalg.norm(q, axis=1, keepdims=True)
-    degenerate = ~(norm[:, 0] > 1e-12)
+    degenerate = norm[:, 0] <= 1e-12
     out = q / np.where(norm > 1e-12, norm, 1.0)
     out[degenerate] = (1.0, 0.0, 0.0, 0.0)
     # A float -0.0 w keeps its sign bit; compare, do not use np.sign, so w == 0 rows are left as they are.
@@ -99,6 +100,13 @@ def spacetime_features(
             spaces.append(
                 knn_features(to_float64_numpy(model.means_at(time)), to_float64_numpy(model.rotations_at(time)), extent, rotation_weight)
             )
+        # A diverged rotation is never matched, also where the distance leaves rotations out (rotation_weight 0).
+        diverged = ~torch.isfinite(model.params["rotation"]).all(dim=1)
+        if "omega" in model.params:
+            diverged |= ~torch.isfinite(model.params["omega"]).all(dim=1)
+    rows = diverged.cpu().numpy()
+    for features in spaces:
+        features[rows] = np.nan
     return spaces
 
 
