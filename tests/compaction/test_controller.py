@@ -37,6 +37,9 @@ def test_ratio_follows_a_scripted_loss_sequence_and_its_bounds():
 def test_tolerance_dead_band():
     ctrl = AdaptiveRatio(0.02, 0.01, 0.0, 0.1, tolerance=0.05)
     assert [ctrl.update(x) for x in (1.0, 1.04, 1.2, 1.19, 1.0)] == [0, 0, -1, 0, 1]
+    # Relative to the previous loss: at a loss of 0.01 a rise of 0.0004 (4 %) is inside 5 %, one of 0.0012 is not.
+    small = AdaptiveRatio(0.02, 0.01, 0.0, 0.1, tolerance=0.05)
+    assert [small.update(x) for x in (0.01, 0.0104, 0.0116)] == [0, 0, -1]
 
 
 def test_window_mean_and_ema_smoothing():

@@ -12,7 +12,7 @@ from stgc.compaction import CompactionConfig
 from stgc.eval.evaluate import RunEvaluator, evaluate
 from stgc.train import TrainConfig, train
 from stgc.train.config import DensifyConfig, EMSConfig
-from stgc.train.loop import Trainer
+from stgc.train.loop import Trainer, blending_weights
 
 
 class Killed(Exception):
@@ -84,6 +84,11 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tiny_toys, make_model, t
     events_a = [(e["iteration"], e["removed"]) for e in straight.compaction_log.read()]
     events_b = [(e["iteration"], e["removed"]) for e in resumed.compaction_log.read()]
     assert events_a == events_b and len(events_a) >= 5 and sum(r for _, r in events_a) > 0
+    # Density control saw every compaction removal: its statistics keep one row per Gaussian, and what compaction
+    # removed lowers its growth cap (unseen, the rounds cloned the removals back: session 30).
+    for run in (straight, resumed):
+        assert run.density.removed_by_others == sum(r for _, r in events_a)
+        assert run.density.stats.grad_sum.shape[0] == run.model.num_gaussians
     # In the trainer's use, Adam's state follows every topology change: one state entry per live parameter.
     opt = resumed.optimizer
     for key, p in resumed.model.params.items():
@@ -125,7 +130,7 @@ def test_training_improves_test_psnr(tiny_toys, make_model, tmp_path):
     assert after >= before + 4.0  # measured: 14.9 -> 20.6 dB
 
 
-def test_importance_sums_blending_weights_over_one_view_per_camera(tiny_toys, make_model, tmp_path):
+def test_importance_sums_blending_weights_over_every_camera_and_frame(tiny_toys, make_model, tmp_path):
     trainer = Trainer(tiny_toys, None, None, _short_config(), None, tmp_path / "imp", model=make_model(tiny_toys, 200))
     views = trainer.importance_views()
     assert sorted(str(v.name) for v in views) == sorted(tiny_toys.train_views)
@@ -136,6 +141,24 @@ def test_importance_sums_blending_weights_over_one_view_per_camera(tiny_toys, ma
     with torch.no_grad():
         total_alpha = sum(float(trainer.model.render(v, t=v.time).alpha.sum()) for v in views)
     assert float(weights.sum()) == pytest.approx(total_alpha, rel=1e-4)
+
+
+def test_blending_weights_land_on_their_gaussians_rows_when_some_are_culled_at_the_views_times(tiny_toys, make_model):
+    """The render culls Gaussians invisible at its time, so its weights come for a subset of the rows (out.index):
+    each must be added to its own row. Half the rows live far outside the segment: they get 0, and the others get
+    what a model of them alone gives (the culled rows render nothing)."""
+    model = make_model(tiny_toys, 200)
+    far = torch.arange(model.num_gaussians) % 2 == 1
+    with torch.no_grad():
+        model.params["trbf_center"][far] = 50.0
+    views = tiny_toys.train[:3]
+    background = torch.zeros(3)
+    assert model.render(views[0], t=float(views[0].time), background=background).index.numel() < model.num_gaussians
+    weights = blending_weights(model, views, background)
+    model.prune(~far)
+    alone = blending_weights(model, views, background)
+    assert float(alone.sum()) > 0 and torch.all(weights[far] == 0)
+    torch.testing.assert_close(weights[~far], alone, rtol=1e-6, atol=1e-9)
 
 
 def test_importance_covers_every_frame_when_there_are_more_frames_than_cameras(tmp_path):

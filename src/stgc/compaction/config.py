@@ -157,7 +157,8 @@ class CompactionConfig:
             "in units of the pair's size (the distance over the sum of the two Gaussians' largest scales), so that "
             "Gaussians that overlap go before small neighbours that only lie close, such as fine detail; 'weight' = "
             "the pairs whose loser (by the criterion) shows least: its blending weight summed over the training views "
-            "(one per camera and per frame, as the importance criterion's; rendered at every pruning step), equal "
+            "(one per camera and per frame, as the importance criterion's; rendered at each pruning step that selects "
+            "a pair), equal "
             "weights closest first"
         },
     )

@@ -173,7 +173,8 @@ def select_removals(
 def merge_keeper_opacity(opacity_logit: torch.Tensor, remove: np.ndarray, keepers: np.ndarray) -> None:
     """In place: each keeper's base opacity sigmoid(o) becomes the union 1 - (1 - a_keeper) * prod(1 - a_loser) over
     the losers it keeps (`PruneSelection.keepers`), what the pair composites to where both are drawn at full
-    strength (their centre, for near duplicates). The result is held below 1 so that its logit stays finite."""
+    strength (their centre, for near duplicates). The result is held below 1 so that its logit stays finite, and
+    never below the keeper's own (a keeper more opaque than that bound keeps its logit)."""
     if remove.size == 0:
         return
     with torch.no_grad():
@@ -184,7 +185,8 @@ def merge_keeper_opacity(opacity_logit: torch.Tensor, remove: np.ndarray, keeper
         merged = log_clear.index_add(0, keeper_rows, log_clear[torch.from_numpy(remove).to(flat.device)])
         touched = torch.unique(keeper_rows)
         clear = merged[touched].exp().clamp_min(1e-6)
-        flat[touched] = torch.log1p(-clear).sub(torch.log(clear)).to(flat.dtype)
+        union = torch.log1p(-clear).sub(torch.log(clear)).to(flat.dtype)
+        flat[touched] = torch.maximum(flat[touched], union)
 
 
 def size_relative_distances(pairs: PairMatches, log_scaling: np.ndarray, scene_extent: float) -> np.ndarray:
