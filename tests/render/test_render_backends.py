@@ -60,8 +60,8 @@ def _fake_gsplat():
 
     from .gsplat_oracle import _fake_nerfacc, _indices_in_range
 
-    def fully_fused_projection(means, covars, quats, scales, viewmats, Ks, width, height, eps2d=0.3,
-                               near_plane=0.01, opacities=None):  # fmt: skip
+    def fully_fused_projection(means, covars, quats, scales, viewmats, Ks, width, height, *, eps2d, near_plane,
+                               opacities=None):  # fmt: skip  (no defaults: the backend must pass what it was given)
         assert covars is None and opacities is not None and opacities.shape == means.shape[:1]
         if means.shape[0] == 0:  # gsplat 1.5.3 divides by N on the host: a SIGFPE that kills the process
             raise ZeroDivisionError("fully_fused_projection with no Gaussians")
@@ -106,7 +106,8 @@ def test_gsplat_path_wiring_matches_numba(fresh_gsplat_state, monkeypatch):
             monkeypatch.setattr(api, "select_backend", lambda requested, device: "numba")
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # alpha_max matches gsplat 1.5.3's compiled-in 0.999: no warning
-            out = rasterize(*s.args(), bg, backend=backend, alpha_max=0.999, return_depth=True, return_weights=True)
+            out = rasterize(*s.args(), bg, backend=backend, alpha_max=0.999, return_depth=True, return_weights=True,
+                            eps2d=0.1, near_plane=3.5)  # not the defaults: each backend must pass them on
         assert out.backend == backend
         out.image.sum().backward()
         outs[backend] = (out, s.means.grad, s.features.grad)
@@ -188,6 +189,9 @@ def test_gsplat_warns_once_about_its_fixed_alpha_clamp(fresh_gsplat_state, monke
     scene = make_scene(30, 16, 16)
     with pytest.warns(RuntimeWarning, match="clamps alpha at 0.999"):
         rasterize(*scene.args(), alpha_max=0.99)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rasterize(*scene.args(), alpha_max=0.99)  # once
 
 
 def _layers(opacities, depths, backend):

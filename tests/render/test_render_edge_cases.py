@@ -156,6 +156,9 @@ def test_non_finite_input_is_rejected_by_name(name, bad):
         ("height", 2.5, "height: expected a positive integer"),
         ("backend", "cuda", "backend must be one of"),
         ("alpha_max", 1.0, "alpha_max"),
+        ("K", torch.tensor([[0.0, 0, 4], [0, 10, 4], [0, 0, 1]]), "K: focal lengths must be positive"),
+        ("near_plane", 0.0, "near_plane: expected a positive"),
+        ("eps2d", -0.1, "eps2d: expected a finite value >= 0"),
     ],
 )
 def test_bad_arguments_raise_value_error(name, value, message):
@@ -229,6 +232,8 @@ def test_numba_tile_lists_are_the_torch_binning_less_the_tiles_a_gaussian_cannot
                                               proj.visible, width, height, tile)
     tiles_x, tiles_y = tile_grid(width, height, tile)
     assert offsets.shape[0] == tiles_x * tiles_y + 1 and flat.shape[0] == offsets[-1] > 5000
+    m2d, conic = proj.means2d.numpy(), proj.conics.numpy()
+    alpha_floor = np.log(np.float32(255.0) * opacities.numpy().astype(np.float32))
     dropped = 0
     for t in range(tiles_x * tiles_y):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
@@ -237,4 +242,56 @@ def test_numba_tile_lists_are_the_torch_binning_less_the_tiles_a_gaussian_cannot
         want = [g for g in candidates if kernels._reaches_tile(gdata, g, x0 + 0.5, x1, y0 + 0.5, y1)]
         dropped += len(candidates) - len(want)
         assert flat[offsets[t]:offsets[t + 1]].tolist() == want, t
+        # Independently: a dropped Gaussian's alpha, as the compositor evaluates it in float32, is below 1/255 at
+        # every pixel centre of the tile.
+        gone = np.array(sorted(set(candidates) - set(want)), dtype=np.int64)
+        if gone.size:
+            px, py = np.meshgrid(np.arange(x0 + 0.5, x1 + 0.5, dtype=np.float32),
+                                 np.arange(y0 + 0.5, y1 + 0.5, dtype=np.float32))
+            dx = m2d[gone, 0, None] - px.reshape(1, -1)
+            dy = m2d[gone, 1, None] - py.reshape(1, -1)
+            a, b, c = (conic[gone, k, None] for k in range(3))
+            sigma = np.float32(0.5) * (a * dx * dx + c * dy * dy) + b * dx * dy
+            assert (sigma > alpha_floor[gone, None]).all(), t
     assert dropped > 0  # the ellipse test did cull some box tiles
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_the_near_plane_and_eps2d_given_are_the_ones_used(backend):
+    # Two Gaussians at depths 0.15 and 0.25 in front of the camera: a near plane of 0.2 culls the first only; and
+    # eps2d is the footprint's added variance (its radius grows with it).
+    means = torch.tensor([[0.0, 0.0, 0.15], [0.0, 0.0, 0.25]])
+    args = (means, torch.tensor([[1.0, 0, 0, 0]] * 2), torch.full((2, 3), 1e-4), torch.tensor([0.9, 0.9]),
+            torch.ones(2, 3), torch.tensor([[20.0, 0, 8], [0, 20, 6], [0, 0, 1]]), torch.eye(4), 16, 12)
+    assert rasterize(*args, backend=backend, near_plane=0.1).visible.tolist() == [True, True]
+    assert rasterize(*args, backend=backend, near_plane=0.2).visible.tolist() == [False, True]
+    small, large = (rasterize(*args, backend=backend, eps2d=e).radii[1, 0].item() for e in (0.3, 3.0))
+    assert large > small  # sqrt(2 ln(255 x 0.9)) x sqrt(eps2d + ~0): 2 px, then 6
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_with_eps2d_zero_a_gaussian_far_below_a_pixel_is_culled_not_drawn_as_a_square(backend):
+    # Its 2-D determinant is below the clamp that keeps the conic finite; drawn, the clamped conic painted every
+    # pixel of its tiles at full opacity (and differently per backend, their tiles differing).
+    out = rasterize(*_single([0.0, 0.0, 5.0], 1e-7, 0.9, [1.0, 1.0, 1.0], width=32, height=32), backend=backend,
+                    eps2d=0.0)
+    assert not out.visible.any() and out.alpha.max().item() == 0.0
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_footprint_beyond_every_bound_is_capped_and_renders_finite(backend):
+    # float64: a radius beyond 2^63 pixels wrapped to a negative int64 in numba (the Gaussian vanished) while torch
+    # capped it. float32, rotated: the covariance overflows to a non-finite conic; the Gaussian is culled and the
+    # image stays the background (0 x NaN made it NaN in the torch backend).
+    huge = list(_single([0.0, 0.0, 5.0], 1e18, 0.6, [1.0, 1.0, 1.0]))
+    huge[:5] = [a.double() for a in huge[:5]]
+    huge[5] = huge[5].double()
+    out = rasterize(*huge, backend=backend)
+    assert out.radii.min().item() > 2**29 and out.image.isfinite().all()
+    overflow = list(_single([0.0, 0.0, 5.0], 1e17, 0.6, [1.0, 1.0, 1.0]))
+    overflow[1] = torch.tensor([[0.8, 0.3, 0.4, 0.33]])
+    overflow[0].requires_grad_(True)
+    out = rasterize(*overflow, backend=backend)
+    assert out.image.isfinite().all()
+    out.image.sum().backward()  # numba's gradient stays finite; torch's autograd through the overflow is NaN
+    assert overflow[0].grad is not None and (backend == "torch" or overflow[0].grad.isfinite().all())

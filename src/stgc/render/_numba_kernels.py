@@ -47,7 +47,10 @@ def _reaches_tile(gdata, g, x0, x1, y0, y1):
             dy = my - (y0 if edge == 2 else y1)
             dx = -b * dy / a if a > 0 else 0.0
             dx = min(max(dx, mx - x1), mx - x0)
-        if 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy <= cut:
+        # The compositor evaluates sigma in float32, where these terms can cancel (a c close to b^2): a margin
+        # relative to their size (float32's epsilon is 1.2e-7) keeps every tile it would draw in.
+        terms = 0.5 * (abs(a) * dx * dx + abs(c) * dy * dy) + abs(b * dx * dy)
+        if 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy <= cut + 1e-6 * terms:
             return True
     return False
 

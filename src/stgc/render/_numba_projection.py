@@ -115,11 +115,12 @@ def project_forward(means, quats, scales, opacities, cam, width, height, means2d
         o = opacities[g]
         radii[g, 0] = 0
         radii[g, 1] = 0
-        if not (in_depth and det_raw > 0.0 and o >= ALPHA_MIN):
+        if not (in_depth and det_raw > DET_MIN and o >= ALPHA_MIN):  # (projection._screen_radii: why DET_MIN)
             continue
         extent = min(math.sqrt(2.0 * math.log(max(o, ALPHA_MIN) * 255.0)), RADIUS_SIGMAS)
-        rx = min(math.ceil(extent * math.sqrt(max(c00, 0.0))), MAX_RADIUS)
-        ry = min(math.ceil(extent * math.sqrt(max(c11, 0.0))), MAX_RADIUS)
+        # Capped before rounding up: ceil of a float beyond 2^63 wraps to a negative int64 (the Gaussian vanished).
+        rx = math.ceil(min(extent * math.sqrt(max(c00, 0.0)), MAX_RADIUS))
+        ry = math.ceil(min(extent * math.sqrt(max(c11, 0.0)), MAX_RADIUS))
         if not (math.isfinite(px) and math.isfinite(py)):
             continue
         if (rx > 0 or ry > 0) and px + rx > 0 and px - rx < width and py + ry > 0 and py - ry < height:

@@ -139,7 +139,9 @@ def _screen_radii(
     height: int,
 ) -> tuple[Tensor, Tensor]:
     opac = opacities.detach().to(var_x.dtype)
-    keep = in_depth & (det > 0) & (opac >= ALPHA_MIN)
+    # At or below DET_MIN the conic is clamped to nearly 0, which would paint the whole box at full opacity: with
+    # eps2d 0 such a footprint is far below a pixel (sub-1e-5 px), so it is culled, not drawn as a tile-sized square.
+    keep = in_depth & (det > DET_MIN) & (opac >= ALPHA_MIN)
     # sqrt(2 ln(255 o)) is where o * exp(-sigma) reaches 1/255 on the ellipse's principal axes.
     extent = torch.sqrt(2.0 * torch.log(torch.clamp(opac, min=ALPHA_MIN) * 255.0)).clamp(max=RADIUS_SIGMAS)
     rx = torch.ceil(extent * torch.sqrt(var_x.detach().clamp(min=0))).clamp(max=MAX_RADIUS)

@@ -139,8 +139,10 @@ def composite_torch(
         final_T = final_T.index_copy(0, tiles_cat, torch.cat(trans))
         depth = depth.index_copy(0, tiles_cat, torch.cat(deps))
     elif torch.is_grad_enabled():
-        # Nothing was composited: keep the inputs on the graph so their gradients are zeros (as with numba), not None.
-        color = color + 0.0 * (means2d.sum() + conics.sum() + opacities.sum() + colors.sum())
+        # Nothing was composited: keep the inputs on the graph so their gradients are zeros (as with numba), not None;
+        # through nan_to_num, since 0 x NaN (a culled Gaussian's overflowed conic) would turn the image into NaN.
+        link = sum(x.nan_to_num(0.0, 0.0, 0.0).sum() for x in (means2d, conics, opacities, colors))
+        color = color + 0.0 * link
 
     def to_image(x: Tensor) -> Tensor:
         rest = x.shape[2:]
