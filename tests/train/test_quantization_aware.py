@@ -499,16 +499,24 @@ def test_the_straight_through_gradient_of_a_rotation_stored_with_its_sign_flippe
         assert cosine[has & flipped].mean() > 0.9 and cosine[has & ~flipped].mean() > 0.9, key
 
 
-def test_a_fine_tuning_of_a_rate_aware_run_opens_its_own_window(scene, tmp_path, monkeypatch):
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    """For bookkeeping only: each optimised allocation renders its views about a hundred times."""
+    return write_panoptic_scene(tmp_path_factory.mktemp("qat-small"), views=4, frames=2, width=32, height=24)
+
+
+def test_a_fine_tuning_of_a_rate_aware_run_opens_its_own_window(small_scene, tmp_path, monkeypatch):
     import stgc.train.quantization as quantization
     from stgc.cli import main
 
+    scene = small_scene
     qualities = []
     real = quantization.optimise_on_views
     monkeypatch.setattr(quantization, "optimise_on_views", lambda *a, **k: qualities.append(a[2]) or real(*a, **k))
     common = ["--set", "train.progress=false", "--set", "train.tensorboard=false", "--set", "train.eval_at_end=false"]
     assert main(["train", str(scene.root), "--out", str(tmp_path / "a"), "--set", "train.iterations=20",
                  "--set", "train.schedule_scale=0.01", "--set", "data.init_source=random",
+                 "--set", "data.max_points_per_frame=300",
                  "--set", "train.densify.enabled=false", "--set", "train.densify.prune_until=0", *common]) == 0
 
     def finetune(source: str, out: str, quality: int) -> dict:
