@@ -652,11 +652,14 @@ def test_compaction_options_for_a_run_that_prunes_nothing_are_refused(scene, tmp
 @pytest.mark.parametrize("options, words", [
     (["--compaction", "st-knn", "--set", "compaction.window_start=0.1"], "window_start acts only with compaction.case=0"),
     (["--compaction", "st-knn", "--set", "compaction.ema_decay=0.9"], "ema_decay acts only with"),
+    (["--compaction", "st-knn", "--set", "compaction.loss_smoothing=ema"],  # the default signal: prune_damage
+     "loss_smoothing acts only with compaction.loss_signal=training"),
     (["--compaction", "st-knn", "--set", "compaction.loss_signal=probe", "--set", "compaction.loss_smoothing=ema"],
      "loss_smoothing acts only with compaction.loss_signal=training"),
     (["--compaction", "reference", "--set", "compaction.criterion=scale"],
      "criterion acts on nothing in a reference run"),
-    (["--compaction", "st-knn", "--set", "compaction.probe_views=4"], "probe_views acts only with"),
+    (["--compaction", "st-knn", "--set", "compaction.loss_signal=training", "--set", "compaction.probe_views=4"],
+     "probe_views acts only with"),
     (["--variant", "lite", "--set", "model.decoder_activation=clamp"], "the lite model has no decoder"),
     (["--set", "train.quantization_aware.rate_weight=0.001"], "without a rate-aware window"),
     (["--train.quantization_aware.quality", "1"], "without a rate-aware window"),

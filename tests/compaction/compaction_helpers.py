@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from stgc.compaction import PAPER_RULE, CompactionConfig
 from stgc.model import STGModel, param_widths
 
 LITE_WIDTHS = param_widths("lite")
@@ -35,3 +36,9 @@ def random_params(n: int, seed: int, motion_scale: float = 0.3) -> dict[str, tor
     params["omega"] *= 0.5
     params["scaling"] = params["scaling"] * 0.3 - 4.0
     return params
+
+
+def paper_rule(**options) -> CompactionConfig:
+    """A CompactionConfig of the paper's rule as written (PAPER_RULE; stgc's defaults differ since session 37),
+    with `options` on top: the scripted-loss tests drive the paper's step-to-step controller."""
+    return CompactionConfig(**{**PAPER_RULE, **options})

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from stgc.compaction import (
+    PAPER_RULE,
     ProbeResult,
     AdaptiveRatio,
     CompactionConfig,
@@ -20,7 +21,7 @@ from stgc.compaction import (
     resolve_schedule,
 )
 
-from .compaction_helpers import make_model, random_params
+from .compaction_helpers import make_model, paper_rule, random_params
 
 
 def test_ratio_follows_a_scripted_loss_sequence_and_its_bounds():
@@ -54,18 +55,18 @@ def test_window_mean_and_ema_smoothing():
 
 
 def test_case_windows_scale_with_the_total():
-    s = resolve_schedule(CompactionConfig(case=1), 30_000)
+    s = resolve_schedule(paper_rule(case=1), 30_000)
     assert (s.start, s.end, s.interval, s.num_steps) == (6000, 12000, 100, 60)
-    s = resolve_schedule(CompactionConfig(case=4), 4500)
+    s = resolve_schedule(paper_rule(case=4), 4500)
     assert (s.start, s.end, s.interval, s.num_steps) == (900, 3600, 15, 180)
     steps = [it for it in range(1, 4501) if s.is_pruning_iteration(it)]
     assert steps[0] == 900 and steps[-1] == 3585 and len(steps) == 180
-    s = resolve_schedule(CompactionConfig(case=0, window_start=0.5, window_end=0.6, interval=7), 100)
+    s = resolve_schedule(paper_rule(case=0, window_start=0.5, window_end=0.6, interval=7), 100)
     assert [it for it in range(101) if s.is_pruning_iteration(it)] == [50, 57]
     with pytest.raises(ValueError, match="ratio_init"):
-        STKNNCompactor(CompactionConfig(ratio_init=0.5, ratio_max=0.2), 100)
+        STKNNCompactor(paper_rule(ratio_init=0.5, ratio_max=0.2), 100)
     with pytest.raises(ValueError, match="case"):
-        STKNNCompactor(CompactionConfig(case=7), 100)
+        STKNNCompactor(paper_rule(case=7), 100)
 
 
 def _scripted_run(compactor, model, losses, first=1, events=None):
@@ -92,7 +93,7 @@ def _loss_script(total: int, interval: int, window_means: list[float]) -> list[f
 
 
 def test_compactor_follows_scripted_losses_and_prunes_at_the_schedule():
-    cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.1, ratio_step=0.05,
+    cfg = paper_rule(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.1, ratio_step=0.05,
                            ratio_min=0.05, ratio_max=0.2, criterion="timestamp")
     total = 100
     model = make_model(random_params(600, 3, motion_scale=0.02), scene_extent=1.0)
@@ -116,7 +117,7 @@ def test_compactor_follows_scripted_losses_and_prunes_at_the_schedule():
 
 
 def test_resume_gives_identical_events():
-    cfg = CompactionConfig(case=0, window_start=0.1, window_end=0.9, interval=8, ratio_init=0.1, ratio_step=0.02,
+    cfg = paper_rule(case=0, window_start=0.1, window_end=0.9, interval=8, ratio_init=0.1, ratio_step=0.02,
                            ratio_min=0.02, ratio_max=0.3)
     total = 80
     losses = list(np.random.default_rng(1).uniform(0.5, 1.0, total))
@@ -133,7 +134,7 @@ def test_resume_gives_identical_events():
     strip = lambda es: [{k: v for k, v in e.items() if not k.endswith("seconds")} for e in es]
     assert strip(events) == strip(straight)
     with pytest.raises(ValueError, match="different CompactionConfig"):
-        STKNNCompactor(CompactionConfig(), total).load_state_dict(state)
+        STKNNCompactor(paper_rule(), total).load_state_dict(state)
     # A state saved before an option existed resumes when the run leaves that option at its default.
     older = json.loads(json.dumps(state))
     del older["config"]["loss_budget_db"]
@@ -144,10 +145,10 @@ def test_resume_gives_identical_events():
 
 def test_method_none_and_min_gaussians():
     model = make_model(random_params(300, 5, motion_scale=0.0))
-    off = STKNNCompactor(CompactionConfig(method="none"), 100)
+    off = STKNNCompactor(paper_rule(method="none"), 100)
     assert all(off.step(it, 0.5, model, 1.0) is None for it in range(1, 101))
     floor = STKNNCompactor(
-        CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=1.0, ratio_max=1.0,
+        paper_rule(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=1.0, ratio_max=1.0,
                          ratio_min=1.0, min_gaussians=280),
         20,
     )
@@ -170,7 +171,7 @@ def test_optimizer_state_stays_aligned_after_pruning_with_a_real_adam():
     tag = model.params["xyz"].detach()[:, 0].clone()  # row identity: positions are distinct
     before = {k: {s: opt.state[p][s].clone() for s in ("exp_avg", "exp_avg_sq")} for k, p in model.params.items()}
     values = {k: p.detach().clone() for k, p in model.params.items()}
-    cfg = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5, ratio_min=0.5,
+    cfg = paper_rule(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5, ratio_min=0.5,
                            ratio_max=0.5)
     event = STKNNCompactor(cfg, 10).step(1, 0.4, model, 1.0)
     assert event["removed"] > 0
@@ -188,7 +189,7 @@ def test_optimizer_state_stays_aligned_after_pruning_with_a_real_adam():
 
 
 def test_importance_criterion_through_the_compactor():
-    cfg = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, criterion="importance",
+    cfg = paper_rule(case=0, window_start=0.0, window_end=1.0, interval=1, criterion="importance",
                            ratio_init=0.2, ratio_min=0.2, ratio_max=0.2)
     params = random_params(200, 8, motion_scale=0.0)
     model = make_model(params)
@@ -208,7 +209,7 @@ def test_importance_criterion_through_the_compactor():
 
 def test_on_prune_sees_each_removal_mask_aligned_with_the_model():
     """The trainer keeps per-Gaussian statistics of its own; on_prune hands it the exact rows model.prune kept."""
-    cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.2, ratio_min=0.1,
+    cfg = paper_rule(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.2, ratio_min=0.1,
                            ratio_max=0.3)
     model = make_model(random_params(400, 3, motion_scale=0.02), scene_extent=1.0)
     compactor = STKNNCompactor(cfg, 100)
@@ -226,9 +227,9 @@ def test_on_prune_sees_each_removal_mask_aligned_with_the_model():
 def test_a_probe_signal_steers_the_ratio_instead_of_the_training_losses():
     """loss_signal 'probe': the controller compares the probe's values (read once per pruning step), whatever the
     training losses drawn in between; the paper's rule stays the default."""
-    assert CompactionConfig().loss_signal == "training"
+    assert paper_rule().loss_signal == "training"
     total = 100
-    cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.7, interval=10, ratio_init=0.1, ratio_step=0.05,
+    cfg = paper_rule(case=0, window_start=0.2, window_end=0.7, interval=10, ratio_init=0.1, ratio_step=0.05,
                            ratio_min=0.05, ratio_max=0.3, loss_signal="probe")
     probe_values = iter([5.0, 4.0, 4.5, 4.5, 3.0, 3.5])
     calls = []
@@ -252,7 +253,7 @@ def test_a_probe_signal_steers_the_ratio_instead_of_the_training_losses():
     with pytest.raises(ValueError, match="probe_fn"):
         STKNNCompactor(cfg, total).step(20, 0.0, make_model(random_params(600, seed=1)), 1.0)
     with pytest.raises(ValueError, match="loss_signal"):
-        CompactionConfig(loss_signal="psnr").validate()
+        paper_rule(loss_signal="psnr").validate()
 
 
 def test_a_damage_budget_holds_the_accumulated_rise_not_the_step_to_step_change():
@@ -289,11 +290,16 @@ def test_the_budget_is_a_psnr_drop_in_the_config():
     # An L1-like loss grows with the RMS error: a 0.3 dB drop is 10^(0.3/20) - 1 = 3.5 % more loss.
     assert budget_for_psnr_drop(0.3) == pytest.approx(0.03514, abs=1e-5)
     assert budget_for_psnr_drop(20.0) == pytest.approx(9.0)
-    cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.7, interval=10, loss_signal="probe",
+    cfg = paper_rule(case=0, window_start=0.2, window_end=0.7, interval=10, loss_signal="probe",
                            loss_budget_db=0.3)
     compactor = STKNNCompactor(cfg, 100)
     assert compactor.controller.budget == pytest.approx(budget_for_psnr_drop(0.3))
-    assert STKNNCompactor(CompactionConfig(), 100).controller.budget == 0.0  # the paper's rule by default
+    assert STKNNCompactor(paper_rule(), 100).controller.budget == 0.0  # the paper's rule: no budget
+    # stgc's defaults (session 37): the prunes' own damage held within 0.3 dB, the least-seen losers first.
+    default = CompactionConfig()
+    assert (default.loss_signal, default.loss_budget_db, default.pair_order, default.ratio_max) == \
+        ("prune_damage", 0.3, "weight", 0.05)
+    assert {k: getattr(paper_rule(), k) for k in PAPER_RULE} == PAPER_RULE
     model = make_model(random_params(600, seed=1))
     probe_values = iter([1.0, 1.02, 1.05, 1.0, 0.9])
     events = [e for it in range(1, 101)
@@ -302,9 +308,9 @@ def test_the_budget_is_a_psnr_drop_in_the_config():
     assert [e["best_smoothed_loss"] for e in events] == [None, 1.0, 1.0, 1.0, 1.0]
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="loss_budget_db"):
-            CompactionConfig(loss_budget_db=bad).validate()
+            paper_rule(loss_budget_db=bad).validate()
     with pytest.raises(ValueError, match="set one of them"):
-        CompactionConfig(loss_budget_db=0.3, loss_tolerance=0.01).validate()
+        paper_rule(loss_budget_db=0.3, loss_tolerance=0.01).validate()
 
 
 def test_a_reference_loss_holds_the_budget_against_the_unpruned_run_not_the_best_seen():
@@ -334,18 +340,18 @@ def _reference_log(path, iterations, losses, **extra):
 def test_a_reference_run_prunes_nothing_and_its_log_steers_another_runs_budget(tmp_path):
     total = 100
     common = dict(case=0, window_start=0.2, window_end=0.7, interval=10, loss_signal="probe")
-    reference = STKNNCompactor(CompactionConfig(method="reference", **common), total)
+    reference = STKNNCompactor(paper_rule(method="reference", **common), total)
     model = make_model(random_params(600, seed=1))
     probe_values = iter([1.0, 0.9, 0.8, 0.7, 0.6])
     events = [e for it in range(1, total + 1)
               if (e := reference.step(it, 0.5, model, 3.0, probe_fn=lambda: _probe(next(probe_values)))) is not None]
     assert model.num_gaussians == 600 and [e["removed"] for e in events] == [0] * 5
-    assert [e["iteration"] for e in events] == list(resolve_schedule(CompactionConfig(**common), total).iterations())
+    assert [e["iteration"] for e in events] == list(resolve_schedule(paper_rule(**common), total).iterations())
     log = tmp_path / "ref"
     log.mkdir()
     (log / "compaction.jsonl").write_text("".join(json.dumps(e) + "\n" for e in events))
 
-    budgeted = CompactionConfig(method="st-knn", loss_budget_db=0.3, loss_reference=str(log), **common)
+    budgeted = paper_rule(method="st-knn", loss_budget_db=0.3, loss_reference=str(log), **common)
     compactor = STKNNCompactor(budgeted, total)
     pruned = make_model(random_params(600, seed=1))
     mine = iter([1.0, 0.92, 0.85, 0.69, 0.7])  # 0.85 > 0.8 x 1.035; 0.7 > 0.6 x 1.035
@@ -361,20 +367,20 @@ def test_a_reference_that_is_not_one_or_misses_iterations_is_refused_naming_its_
     common = dict(case=0, window_start=0.2, window_end=0.7, interval=10, loss_signal="probe", loss_budget_db=0.3)
     short = _reference_log(tmp_path / "short", [20, 30, 40], [1.0, 0.9, 0.8])
     with pytest.raises(DataError, match=r"short/compaction.jsonl.*no probe loss at iteration 50"):
-        STKNNCompactor(CompactionConfig(loss_reference=str(short), **common), 100)
+        STKNNCompactor(paper_rule(loss_reference=str(short), **common), 100)
     pruned = _reference_log(tmp_path / "pruned", [20, 30, 40, 50, 60], [1.0] * 5)
     lines = (pruned / "compaction.jsonl").read_text().splitlines()
     lines[1] = lines[1].replace('"removed": 0', '"removed": 7')
     (pruned / "compaction.jsonl").write_text("\n".join(lines) + "\n")
     with pytest.raises(DataError, match="iteration 30: not a reference run"):
-        STKNNCompactor(CompactionConfig(loss_reference=str(pruned), **common), 100)
+        STKNNCompactor(paper_rule(loss_reference=str(pruned), **common), 100)
     with pytest.raises(DataError, match="no compaction log"):
-        STKNNCompactor(CompactionConfig(loss_reference=str(tmp_path / "absent"), **common), 100)
+        STKNNCompactor(paper_rule(loss_reference=str(tmp_path / "absent"), **common), 100)
     for bad in (dict(loss_budget_db=0.0), dict(loss_signal="training"), dict(method="reference")):
         with pytest.raises(ValueError, match="loss_reference"):
-            CompactionConfig(**{**common, "loss_reference": "x", **bad}).validate()
+            paper_rule(**{**common, "loss_reference": "x", **bad}).validate()
     # With method none it acts on nothing, as every other option (a fine-tuning carries its source's section so).
-    CompactionConfig(**{**common, "loss_reference": "x", "method": "none"}).validate()
+    paper_rule(**{**common, "loss_reference": "x", "method": "none"}).validate()
 
 
 def test_a_non_finite_probe_or_reference_is_no_signal():
@@ -390,12 +396,12 @@ def test_a_non_finite_probe_or_reference_is_no_signal():
 
 
 def test_a_window_opening_at_zero_prunes_first_at_iteration_one_and_bad_numbers_are_refused():
-    s = resolve_schedule(CompactionConfig(case=0, window_start=0.0, window_end=0.5, interval=10), 100)
+    s = resolve_schedule(paper_rule(case=0, window_start=0.0, window_end=0.5, interval=10), 100)
     assert (s.start, s.num_steps) == (1, 5) and list(s.iterations()) == [1, 11, 21, 31, 41]
     for name in ("loss_tolerance", "ratio_step", "rotation_weight"):
         for bad in (float("nan"), float("inf"), -1.0):
             with pytest.raises(ValueError, match=f"compaction.{name}"):
-                CompactionConfig(**{name: bad}).validate()
+                paper_rule(**{name: bad}).validate()
 
 
 def test_the_probe_psnr_signal_holds_the_budget_in_the_psnr_it_names(tmp_path):
@@ -408,7 +414,7 @@ def test_the_probe_psnr_signal_holds_the_budget_in_the_psnr_it_names(tmp_path):
     assert budget_for_psnr_drop(10.0, squared_error=True) == pytest.approx(9.0)
     total = 100
     common = dict(case=0, window_start=0.2, window_end=0.7, interval=10)
-    reference = STKNNCompactor(CompactionConfig(method="reference", loss_signal="probe", **common), total)
+    reference = STKNNCompactor(paper_rule(method="reference", loss_signal="probe", **common), total)
     model = make_model(random_params(600, seed=1))
     reference_mse = [1e-3, 9e-4, 8e-4, 7e-4, 6e-4]
     probes = iter([_probe(1.0 - k / 10, mse) for k, mse in enumerate(reference_mse)])
@@ -420,7 +426,7 @@ def test_the_probe_psnr_signal_holds_the_budget_in_the_psnr_it_names(tmp_path):
     log.mkdir()
     (log / "compaction.jsonl").write_text("".join(json.dumps(e) + "\n" for e in events))
 
-    budgeted = CompactionConfig(method="st-knn", loss_signal="probe_psnr", loss_budget_db=0.3,
+    budgeted = paper_rule(method="st-knn", loss_signal="probe_psnr", loss_budget_db=0.3,
                                 loss_reference=str(log), **common)
     compactor = STKNNCompactor(budgeted, total)
     assert compactor.controller.budget == pytest.approx(10 ** 0.03 - 1)
@@ -452,7 +458,7 @@ def test_prune_damage_holds_the_prunes_own_psnr_cost_against_the_budget_spread_o
         [(1, 0.05), (-1, 0.025), (-1, 0.0125), (1, 0.0225), (0, 0.0225)]
 
     budget_db, total = 0.6, 100
-    cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.1, ratio_step=0.05,
+    cfg = paper_rule(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.1, ratio_step=0.05,
                            ratio_min=0.02, ratio_max=0.3, loss_signal="prune_damage", loss_budget_db=budget_db)
     compactor = STKNNCompactor(cfg, total)
     model = make_model(random_params(600, 3, motion_scale=0.02))
@@ -485,6 +491,6 @@ def test_prune_damage_holds_the_prunes_own_psnr_cost_against_the_budget_spread_o
     restored.load_state_dict(json.loads(json.dumps(compactor.state_dict())))
     assert restored.prune_damage_db == pytest.approx(spent)
     with pytest.raises(ValueError, match="loss_budget_db"):
-        CompactionConfig(loss_signal="prune_damage").validate()
+        paper_rule(loss_signal="prune_damage").validate()
     with pytest.raises(ValueError, match="loss_reference"):
         dataclasses.replace(cfg, loss_reference="runs/stg").validate()

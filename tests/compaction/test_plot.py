@@ -9,7 +9,6 @@ import pytest
 from PIL import Image
 
 from stgc.compaction import (
-    CompactionConfig,
     STKNNCompactor,
     plot_compaction,
     read_compaction_log,
@@ -17,12 +16,12 @@ from stgc.compaction import (
 from stgc.compaction.plot import loss_label
 from stgc.errors import DataError
 
-from .compaction_helpers import make_model, random_params
+from .compaction_helpers import make_model, paper_rule, random_params
 
 
 def test_plot_from_a_run_directory(tmp_path):
     model = make_model(random_params(300, 7, motion_scale=0.02))
-    compactor = STKNNCompactor(CompactionConfig(case=0, window_start=0.1, window_end=0.9, interval=5), 60)
+    compactor = STKNNCompactor(paper_rule(case=0, window_start=0.1, window_end=0.9, interval=5), 60)
     losses = np.random.default_rng(0).uniform(0.2, 0.3, 60)
     with open(tmp_path / "compaction.jsonl", "w") as f:
         for it in range(1, 61):

@@ -13,7 +13,7 @@ from stgc.compaction.pruning import keeper_time_coverage
 from stgc.compaction.matching import match_from_neighbors
 from stgc.model import STGModel
 
-from .compaction_helpers import make_model, static_params
+from .compaction_helpers import make_model, paper_rule, static_params
 
 
 def _pairs(ref, part, dist) -> PairMatches:
@@ -131,7 +131,6 @@ def test_mutual_pairs_are_merged_once():
 
 
 def test_a_registered_criterion_reaches_the_config_and_the_scores():
-    from stgc.compaction import CompactionConfig
     from stgc.compaction.criteria import CRITERIA, register_criterion
 
     @register_criterion("first-index", "the member with the smaller index (a test criterion)")
@@ -139,7 +138,7 @@ def test_a_registered_criterion_reaches_the_config_and_the_scores():
         return -np.arange(params["xyz"].shape[0], dtype=np.float64)
 
     try:
-        CompactionConfig(criterion="first-index").validate()
+        paper_rule(criterion="first-index").validate()
         params = {"xyz": torch.zeros(4, 3)}
         sel = select_removals(_pairs([0, 2], [1, 3], [0.1, 0.2]), 1.0, removal_scores(params, "first-index"))
         assert sel.remove.tolist() == [0, 2]
@@ -148,7 +147,7 @@ def test_a_registered_criterion_reaches_the_config_and_the_scores():
     finally:
         CRITERIA.pop("first-index")
     with pytest.raises(ValueError, match="first-index"):
-        CompactionConfig(criterion="first-index").validate()
+        paper_rule(criterion="first-index").validate()
 
 
 def test_a_member_whose_score_is_not_finite_is_the_one_removed():
@@ -202,7 +201,7 @@ def test_keeper_time_coverage_is_the_keepers_presence_over_the_losers_lifetime()
 
 
 def test_pairs_whose_keeper_does_not_cover_the_losers_lifetime_are_not_pruned():
-    from stgc.compaction import CompactionConfig, STKNNCompactor
+    from stgc.compaction import STKNNCompactor
 
     from .compaction_helpers import make_model
 
@@ -215,7 +214,7 @@ def test_pairs_whose_keeper_does_not_cover_the_losers_lifetime_are_not_pruned():
     params["trbf_scale"][:] = float(np.log(0.05))
     kept = {}
     for ratio, coverage in ((1.0, 0.0), (1.0, 0.5), (0.5, 0.0), (0.5, 0.5)):
-        config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=ratio,
+        config = paper_rule(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=ratio,
                                   ratio_min=ratio, ratio_max=ratio, keeper_time_coverage=coverage)
         model = make_model({k: v.clone() for k, v in params.items()})
         event = STKNNCompactor(config, 10).step(1, 0.5, model, 1.0)
@@ -229,7 +228,7 @@ def test_pairs_whose_keeper_does_not_cover_the_losers_lifetime_are_not_pruned():
     # that share a lifetime.
     assert kept[1.0, 0.5] == kept[0.5, 0.5] == pytest.approx([0.2, 0.25, 0.4, 0.5, 0.75, 0.8])
     with pytest.raises(ValueError, match="keeper_time_coverage"):
-        CompactionConfig(keeper_time_coverage=float("nan")).validate()
+        paper_rule(keeper_time_coverage=float("nan")).validate()
 
 
 def test_each_removal_names_the_keeper_of_the_pair_that_removed_it():
@@ -263,7 +262,7 @@ def test_merged_opacity_keeps_what_a_pair_of_duplicates_rendered():
     the pair's coverage again (exactly at its centre, nearly around it); without, half-opaque splats thin out."""
     from model.helpers import look_at_camera, point_cloud
 
-    from stgc.compaction import CompactionConfig, STKNNCompactor
+    from stgc.compaction import STKNNCompactor
 
     single = STGModel.from_points(point_cloud(40, seed=3), variant="lite")
     with torch.no_grad():
@@ -276,7 +275,7 @@ def test_merged_opacity_keeps_what_a_pair_of_duplicates_rendered():
         target = doubled.render(camera).rgb
     errors = {}
     for merge in (False, True):
-        config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=1.0,
+        config = paper_rule(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=1.0,
                                   ratio_min=1.0, ratio_max=1.0, merge_opacity=merge)
         model = make_model({k: v.clone() for k, v in doubled.params.items()}, doubled.scene_extent)
         event = STKNNCompactor(config, 10).step(1, 0.5, model, 1.0)
@@ -289,7 +288,7 @@ def test_merged_opacity_keeps_what_a_pair_of_duplicates_rendered():
 def test_size_order_takes_overlapping_gaussians_before_small_close_neighbours():
     """Two pairs: small Gaussians 0.01 apart (fine detail) and large ones 0.02 apart (one inside the other). The
     paper's order takes the closer small pair first; the size order the overlapping large pair."""
-    from stgc.compaction import CompactionConfig, STKNNCompactor
+    from stgc.compaction import STKNNCompactor
     from stgc.compaction.pruning import size_relative_distances
 
     xyz = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.5, 0.5, 0.5], [0.52, 0.5, 0.5]])
@@ -303,7 +302,7 @@ def test_size_order_takes_overlapping_gaussians_before_small_close_neighbours():
                                [0.01 / 0.002])  # sizes over the scene extent, as positions are
     kept = {}
     for order in ("distance", "size"):
-        config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5,
+        config = paper_rule(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5,
                                   ratio_min=0.5, ratio_max=0.5, pair_order=order)
         model = make_model({k: v.clone() for k, v in params.items()})
         event = STKNNCompactor(config, 10).step(1, 0.5, model, 1.0)
@@ -322,7 +321,7 @@ def test_weight_order_takes_the_pair_whose_loser_shows_least():
     """Two pairs: the closer one's loser (the later mu_t) carries much blending weight, the farther one's little. The
     paper's order removes the closer pair's loser; the weight order the farther pair's. Both the importance criterion
     and the weight order in one step render the weights once."""
-    from stgc.compaction import CompactionConfig, STKNNCompactor
+    from stgc.compaction import STKNNCompactor
     from stgc.compaction.pruning import loser_weights
 
     xyz = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.5, 0.5, 0.5], [0.52, 0.5, 0.5]])
@@ -336,7 +335,7 @@ def test_weight_order_takes_the_pair_whose_loser_shows_least():
         loser_weights(_pairs([0], [1], [0.01]), scores, weights[:3])
     kept = {}
     for order, criterion in (("distance", "timestamp"), ("weight", "timestamp"), ("weight", "importance")):
-        config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5,
+        config = paper_rule(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5,
                                   ratio_min=0.5, ratio_max=0.5, pair_order=order, criterion=criterion)
         model = make_model({k: v.clone() for k, v in params.items()})
         calls = []
@@ -358,13 +357,13 @@ def test_weight_order_takes_the_pair_whose_loser_shows_least():
                                 order_by=loser_weights(_pairs([0, 2], [1, 3], [0.5, 0.001]), scores, unseen))
     assert selection.remove.tolist() == [3] and selection.max_selected_distance == pytest.approx(0.001)
     # A step that selects nothing renders nothing.
-    config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.001,
+    config = paper_rule(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.001,
                               ratio_min=0.001, ratio_max=0.001, pair_order="weight")
     calls.clear()
     event = STKNNCompactor(config, 10).step(1, 0.5, make_model({k: v.clone() for k, v in params.items()}), 1.0,
                                             importance_fn=importance)
     assert event["selected_pairs"] == 0 and event["removed"] == 0 and calls == []
-    config = CompactionConfig(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5, ratio_min=0.5,
+    config = paper_rule(case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=0.5, ratio_min=0.5,
                               ratio_max=0.5, pair_order="weight")
     with pytest.raises(ValueError, match="need importance_fn"):
         STKNNCompactor(config, 10).step(1, 0.5, make_model({k: v.clone() for k, v in params.items()}), 1.0)

@@ -26,6 +26,9 @@ _LITE_SECTIONS = {b"POSI": 3, b"TCEN": 1, b"TSCL": 1, b"MOTN": 9, b"FDC_": 3, b"
                   b"OMGA": 4}  # tag: components
 
 
+FAKE_COMPACTION_DEFAULTS = {"pair_order": "weight", "loss_signal": "prune_damage", "loss_budget_db": 0.3}
+
+
 def _record(out: Path, argv: list[str]) -> None:
     with open(out.parent / "invocations.txt", "a") as f:
         f.write(" ".join(argv) + "\n")
@@ -94,6 +97,11 @@ def main(argv: list[str]) -> int:
                       "criterion": sets.get("compaction.criterion", "timestamp")}
         if "compaction.case" in sets:
             compaction["case"] = int(sets["compaction.case"])
+        # Options whose default is not how a config.json without them trained (CompactionConfig.SAVED_BEFORE):
+        # written as a real run writes them (today's defaults; test_runner.py checks that they are).
+        for key, default in FAKE_COMPACTION_DEFAULTS.items():
+            value = sets.get(f"compaction.{key}", default)
+            compaction[key] = float(value) if key == "loss_budget_db" else value
         # mask_points_per_frame: a data section without it is read as a config from before it existed (0).
         data = {"path": argv[1], "preprocess": preprocess,
                 "mask_points_per_frame": int(sets.get("data.mask_points_per_frame", 1000))}
@@ -101,8 +109,10 @@ def main(argv: list[str]) -> int:
         preset = argv[argv.index("--preset") + 1] if "--preset" in argv else "cpu"
         train = json.loads(os.environ.get("STGC_FAKE_TRAIN", "{}")).get(preset, {"iterations": 10})
         _set_train_options(train, sets)
+        behaviour = json.loads(os.environ.get("STGC_FAKE_BEHAVIOUR", "[]"))
         (out / "config.json").write_text(json.dumps({"data": data, "model": {}, "train": train,
-                                                     "compaction": compaction, "sets": sets}))
+                                                     "compaction": compaction, "sets": sets,
+                                                     "behaviour": behaviour}))
         (out / "checkpoint.pt").write_bytes(b"fake")
         if "--resume" not in argv:
             time.sleep(float(sets.get("fake.sleep", 0)))

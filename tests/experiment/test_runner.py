@@ -12,6 +12,7 @@ from typing import Any
 
 import pytest
 
+from stgc.compaction import PAPER_RULE
 from stgc.config import to_dict
 from stgc.errors import FormatError
 from stgc.experiment import (
@@ -24,12 +25,15 @@ from stgc.experiment import (
     table3_plan,
 )
 from stgc.experiment.runner import subprocess_runner
+from stgc.train.behaviour import recorded_behaviour
 from stgc.train.config import PRESETS, train_preset
 
 FAKE_CLI = Path(__file__).with_name("fake_stgc_cli.py")
 # The train section a training of each preset writes in config.json, for the fake's (it imports no stgc: a
 # subprocess per run): the runner reads a run's config.json as a training's and compares it with the plan.
 os.environ["STGC_FAKE_TRAIN"] = json.dumps({name: to_dict(train_preset(name)) for name in PRESETS})
+# And the behaviour changes a training of today records (a run without them was trained before them all).
+os.environ["STGC_FAKE_BEHAVIOUR"] = json.dumps(recorded_behaviour())
 
 
 def fake_runner(cmd: list[str], log_path: Path) -> int:
@@ -77,13 +81,24 @@ overrides = { "compaction.method" = "st-knn", "compaction.case" = 2, "fake.fail"
 """
 
 
+def test_the_fake_cli_writes_today_s_compaction_defaults() -> None:
+    from fake_stgc_cli import FAKE_COMPACTION_DEFAULTS
+
+    from stgc.compaction import CompactionConfig
+
+    assert {k: getattr(CompactionConfig(), k) for k in FAKE_COMPACTION_DEFAULTS} == FAKE_COMPACTION_DEFAULTS
+
+
 def test_builtin_plans_match_the_paper() -> None:
     t2, t3 = table2_plan(), table3_plan()
     assert [r.label for r in t2.runs] == ["Trained model", "with preprocessing", "Case 1", "Case 2", "Case 3",
                                          "Case 4"]
     assert t2.runs[0].overrides == {"data.preprocess": "none", "compaction.method": "none"}
+    # The paper's rule as written, whatever stgc's defaults (they hold a damage budget since session 37).
     assert t2.runs[5].overrides == {"data.preprocess": "stg-isolated", "compaction.method": "st-knn",
-                                    "compaction.case": "4", "compaction.criterion": "timestamp"}
+                                    "compaction.case": "4", "compaction.criterion": "timestamp",
+                                    "compaction.pair_order": "distance", "compaction.loss_signal": "training",
+                                    "compaction.loss_budget_db": "0.0", "compaction.ratio_max": "0.02"}
     assert {r.overrides.get("compaction.criterion") for r in t3.runs} == {None, "scale", "timestamp"}
     assert t3.baseline == "ST-KNN (scale)" and len(t3.runs) == 9
     # Shared runs have the same name in both tables, so one folder serves both.
@@ -509,7 +524,8 @@ def test_an_old_or_unreadable_config_or_an_option_left_auto_is_compared_not_skip
     assert "remeasure_at_settle: unset then, true now" in (reuse_mismatch(idle, "DATA", "cpu", {
         **sets, "train.quantization_aware.remeasure_at_settle": "true"}) or "")
     # A pruned run saved before the pair options existed pruned as the paper does: not one that asks for them.
-    pruned = {"compaction.method": "st-knn", "compaction.case": "2", "data.preprocess": "none"}
+    pruned = {"compaction.method": "st-knn", "compaction.case": "2", "data.preprocess": "none",
+              **{f"compaction.{k}": str(v) for k, v in PAPER_RULE.items()}}
     _trained_config(tmp_path / "pruned" / "stg", "cpu", pruned)
     saved = json.loads((tmp_path / "pruned" / "stg" / "config.json").read_text())
     for key in ("keeper_time_coverage", "merge_opacity", "pair_order"):
@@ -519,6 +535,10 @@ def test_an_old_or_unreadable_config_or_an_option_left_auto_is_compared_not_skip
     for key, value in (("merge_opacity", "true"), ("pair_order", "size"), ("keeper_time_coverage", "0.5")):
         assert f"compaction.{key}" in (reuse_mismatch(tmp_path / "pruned" / "stg", "DATA", "cpu",
                                                       {**pruned, f"compaction.{key}": value}) or ""), key
+    # Nor is it one of today's defaults (the least-seen losers first, since session 37).
+    today = {k: v for k, v in pruned.items() if k != "compaction.pair_order"}
+    assert "compaction.pair_order: distance in its config.json, weight in the plan" in (
+        reuse_mismatch(tmp_path / "pruned" / "stg", "DATA", "cpu", today) or "")
 
 
 def test_a_run_on_part_of_the_recording_or_named_by_format_is_checked_against_the_data(tmp_path: Path) -> None:
@@ -742,7 +762,8 @@ def test_set_compaction_options_skip_the_runs_that_prune_nothing_and_a_plan_that
     smoothing = load_plan_toml_text(tmp_path, MINI_PLAN + '[[runs]]\nname = "c2"\nfamily = "ST-KNN"\n'
                                     'overrides = { "compaction.method" = "st-knn", "compaction.case" = 2 }\n'
                                     '[[runs]]\nname = "c2-ema"\nfamily = "ST-KNN"\noverrides = { '
-                                    '"compaction.method" = "st-knn", "compaction.loss_smoothing" = "ema" }\n')
+                                    '"compaction.method" = "st-knn", "compaction.loss_signal" = "training", '
+                                    '"compaction.loss_smoothing" = "ema" }\n')
     decay = {"compaction.ema_decay": "0.8"}
     assert ["compaction.ema_decay" in run_overrides(smoothing, spec, decay, tmp_path) for spec in smoothing.runs] \
         == [False, False, True]
@@ -937,8 +958,10 @@ def test_a_run_trained_before_a_behaviour_change_that_acts_on_it_is_not_reused(t
         (run / "config.json").write_text(json.dumps(saved))
         return run
 
+    # (The paper's pair order: the weight order's own change, 'pair-weight-ties-closest', would act too.)
     pruned = {"compaction.method": "st-knn", "data.preprocess": "none", "train.densify.interval": "500",
-              "train.densify.rounds": "20", "train.densify.max_growth": "2", "train.densify.prune_in_rounds": "true"}
+              "train.densify.rounds": "20", "train.densify.max_growth": "2", "train.densify.prune_in_rounds": "true",
+              "compaction.pair_order": "distance"}
     assert reuse_mismatch(saved_run("today", pruned, recorded_behaviour()), "DATA", "cpu", pruned) is None
     before = reuse_mismatch(saved_run("before", pruned, None), "DATA", "cpu", pruned) or ""
     assert "compaction-not-refilled" in before

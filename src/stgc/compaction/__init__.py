@@ -5,7 +5,7 @@ exact rules and defaults are in docs/compaction.md.
 """
 
 from .compactor import ProbeResult, STKNNCompactor
-from .config import CASE_WINDOWS, CompactionConfig, PruningSchedule, resolve_schedule
+from .config import CASE_WINDOWS, PAPER_RULE, CompactionConfig, PruningSchedule, resolve_schedule
 from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
 from .matching import (
     PairMatches,
@@ -21,6 +21,7 @@ from .pruning import PruneSelection, removal_scores, select_removals
 
 __all__ = [
     "CASE_WINDOWS",
+    "PAPER_RULE",
     "AdaptiveRatio",
     "CompactionConfig",
     "LossSmoother",

@@ -230,8 +230,9 @@ class STKNNCompactor:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a `state_dict()`; the config and schedule must be the ones this compactor was built with."""
         saved = state.get("config")
-        # An option added since the state was saved is taken at its default (what the saving code did).
-        defaults = dataclasses.asdict(CompactionConfig())
+        # An option added since the state was saved is read as the saving code trained it (SAVED_BEFORE, else the
+        # default of the day it was added, which is today's for options whose default never changed).
+        defaults = {**dataclasses.asdict(CompactionConfig()), **CompactionConfig.SAVED_BEFORE}
         if saved is not None and {**defaults, **saved} != dataclasses.asdict(self.config):
             raise ValueError("compaction state was saved with a different CompactionConfig; resume with the same config")
         if int(state.get("total_iterations", self.total_iterations)) != self.total_iterations:

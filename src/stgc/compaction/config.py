@@ -39,6 +39,13 @@ REFERENCE_SIGNALS = ("probe", "probe_psnr")
 LOSS_SIGNALS = get_args(LossSignal)
 
 
+# The paper's rule as written (Sec. III.2): the closest pairs first, the smoothed training loss compared step to step,
+# the ratio within 0.1-2 %. The defaults were these until session 37; `stgc train --set compaction.<key>=<value>` for
+# each, or `replace(CompactionConfig(...), **PAPER_RULE)`, trains it.
+PAPER_RULE: dict[str, Any] = {"pair_order": "distance", "loss_signal": "training", "loss_budget_db": 0.0,
+                              "ratio_max": 0.02}
+
+
 @dataclass(frozen=True)
 class CompactionConfig:
     """Spatiotemporal KNN pruning during training with a rendering-loss-adaptive pruning ratio."""
@@ -79,13 +86,13 @@ class CompactionConfig:
         default=0.001, metadata={"help": "ratio change per step: minus when the smoothed loss rose, plus when it fell"}
     )
     ratio_min: float = field(default=0.001, metadata={"help": "lower bound of the pruning ratio"})
-    ratio_max: float = field(default=0.02, metadata={"help": "upper bound of the pruning ratio"})
+    ratio_max: float = field(default=0.05, metadata={"help": "upper bound of the pruning ratio (the paper's rule: 0.02)"})
     loss_tolerance: float = field(
         default=0.0,
         metadata={"help": "relative loss change treated as 'no change' (ratio kept); 0 = paper (any change counts)"},
     )
     loss_budget_db: float = field(
-        default=0.0,
+        default=0.3,
         metadata={
             "help": "damage budget of the ratio controller, as the PSNR drop it may see: > 0 compares the signal with "
             "the lowest value seen so far (ratio halved while it is worse by more than the loss increase this drop "
@@ -112,7 +119,7 @@ class CompactionConfig:
     )
     ema_decay: float = field(default=0.98, metadata={"help": "EMA decay per iteration (loss_smoothing = ema)"})
     loss_signal: LossSignal = field(
-        default="training",
+        default="prune_damage",
         metadata={
             "help": "the loss the ratio controller compares between pruning steps: 'training' = the smoothed training "
             "loss (paper; each from a random timestamp and views, so it varies with what was drawn), 'probe' = the "
@@ -151,7 +158,7 @@ class CompactionConfig:
         },
     )
     pair_order: Literal["distance", "size", "weight"] = field(
-        default="distance",
+        default="weight",
         metadata={
             "help": "which matched pairs the ratio takes first: 'distance' = the closest (paper), 'size' = the closest "
             "in units of the pair's size (the distance over the sum of the two Gaussians' largest scales), so that "
@@ -175,7 +182,8 @@ class CompactionConfig:
     # How a run saved before these options existed pruned (stgc.config.from_saved; the experiment runner's reuse
     # check compares a plan's value with them, so an older run is not taken for one that asks for another).
     SAVED_BEFORE: ClassVar[dict[str, Any]] = {"keeper_time_coverage": 0.0, "merge_opacity": False,
-                                              "pair_order": "distance"}
+                                              "pair_order": "distance", "loss_signal": "training",
+                                              "loss_budget_db": 0.0}
 
     def validate(self, prefix: str = "") -> None:
         """Raise ValueError naming the field when a value cannot work."""

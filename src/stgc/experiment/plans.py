@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from stgc.compaction.config import PAPER_RULE
 from stgc.codec.format import QUALITY_LEVELS
 from stgc.config import ConfigError
 from stgc.errors import DataError, FormatError
@@ -86,9 +87,11 @@ def _uncompacted(preprocess: str) -> RunSpec:
 
 
 def _stknn(case: int, criterion: str, preprocess: str, family: str) -> RunSpec:
+    # The paper's tables: its rule as written, whatever stgc's defaults.
+    paper = {f"compaction__{key}": value for key, value in PAPER_RULE.items()}
     return _spec(f"st-knn-{criterion}-case{case}" + ("" if preprocess == PAPER_PREPROCESS else f"-{preprocess}"),
                  family, f"Case {case}", data__preprocess=preprocess, compaction__method="st-knn",
-                 compaction__case=case, compaction__criterion=criterion)
+                 compaction__case=case, compaction__criterion=criterion, **paper)
 
 
 def table2_plan(preprocess: str = PAPER_PREPROCESS) -> Plan:
