@@ -83,7 +83,8 @@ class CompactionConfig:
         default=0.005, metadata={"help": "fraction of the matched pairs (closest first) pruned at the first step"}
     )
     ratio_step: float = field(
-        default=0.001, metadata={"help": "ratio change per step: minus when the smoothed loss rose, plus when it fell"}
+        default=0.001, metadata={"help": "ratio change per step: minus when the smoothed loss rose, plus when it fell "
+                                         "(with a damage budget: plus within it; over it the ratio halves)"}
     )
     ratio_min: float = field(default=0.001, metadata={"help": "lower bound of the pruning ratio"})
     ratio_max: float = field(default=0.05, metadata={"help": "upper bound of the pruning ratio (the paper's rule: 0.02)"})

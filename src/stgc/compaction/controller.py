@@ -112,7 +112,7 @@ class AdaptiveRatio:
             against = self.best_loss if reference is None else reference
             if against is not None:
                 direction = -1 if loss > against * (1.0 + self.budget) else 1
-                proposed = self._within_budget_or_not(direction)
+                proposed = self._aimd_step(direction)
         elif loss is not None and self.previous_loss is not None:
             change = loss - self.previous_loss
             if abs(change) > self.tolerance * abs(self.previous_loss):
@@ -131,10 +131,10 @@ class AdaptiveRatio:
         if not (math.isfinite(spent) and math.isfinite(allowed)):
             return 0
         direction = -1 if spent > allowed else 1
-        self._set(self._within_budget_or_not(direction))
+        self._set(self._aimd_step(direction))
         return direction
 
-    def _within_budget_or_not(self, direction: int) -> float:
+    def _aimd_step(self, direction: int) -> float:
         # Additive increase, multiplicative decrease: the damage shows some steps after the prunes that caused it,
         # so a ratio that only stepped down would keep pruning at nearly the rate that overshot.
         return self.ratio / 2.0 if direction < 0 else self.ratio + self.step
