@@ -80,7 +80,7 @@ class CompactionConfig:
         metadata={"help": "which member of a selected pair is removed: " + criteria_help()},
     )
     ratio_init: float = field(
-        default=0.005, metadata={"help": "fraction of the matched pairs (closest first) pruned at the first step"}
+        default=0.005, metadata={"help": "fraction of the matched pairs (in pair_order) pruned at the first step"}
     )
     ratio_step: float = field(
         default=0.001, metadata={"help": "ratio change per step: minus when the smoothed loss rose, plus when it fell "
