@@ -70,7 +70,8 @@ def main() -> None:
                 case=0, window_start=0.0, window_end=1.0, interval=1, ratio_init=args.ratio, ratio_min=args.ratio,
                 ratio_max=args.ratio, criterion="timestamp", keeper_time_coverage=args.coverage,
                 pair_order="weight" if variant.startswith("weight") else "distance",
-                merge_opacity=variant.endswith("+merge"), min_gaussians=math.ceil(start * (1.0 - target)))
+                merge_opacity=variant.endswith("+merge"), min_gaussians=math.ceil(start * (1.0 - target)),
+                loss_signal="training", loss_budget_db=0.0)  # the ratio is fixed: no signal to render
             compactor = STKNNCompactor(config, total_iterations=1 << 30)
             while model.num_gaussians > config.min_gaussians:
                 iteration += 1
