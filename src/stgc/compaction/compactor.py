@@ -53,7 +53,8 @@ _REFERENCE_FIELD = {"probe": "smoothed_loss", "probe_psnr": "probe_mse"}
 class STKNNCompactor:
     """Spatiotemporal KNN compaction, stepped by the trainer once per iteration after the optimizer step.
 
-    >>> compactor = STKNNCompactor(CompactionConfig(case=1), total_iterations=4500)
+    >>> config = replace(CompactionConfig(case=1), **PAPER_RULE)   # the defaults also need probe_fn, importance_fn
+    >>> compactor = STKNNCompactor(config, total_iterations=4500)
     >>> event = compactor.step(iteration, t, model, loss)   # None, or a dict for RUN/compaction.jsonl
     """
 
