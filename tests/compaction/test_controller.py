@@ -21,6 +21,8 @@ from stgc.compaction import (
     resolve_schedule,
 )
 
+from stgc.compaction.config import idle_compaction_options
+
 from .compaction_helpers import make_model, paper_rule, random_params
 
 
@@ -297,8 +299,8 @@ def test_the_budget_is_a_psnr_drop_in_the_config():
     assert STKNNCompactor(paper_rule(), 100).controller.budget == 0.0  # the paper's rule: no budget
     # stgc's defaults (session 37): the prunes' own damage held within 0.3 dB, the least-seen losers first.
     default = CompactionConfig()
-    assert (default.loss_signal, default.loss_budget_db, default.pair_order, default.ratio_max) == \
-        ("prune_damage", 0.3, "weight", 0.05)
+    assert (default.loss_signal, default.loss_budget_db, default.pair_order, default.ratio_max,
+            default.ratio_increase) == ("prune_damage", 0.3, "weight", 0.2, "slow_start")
     assert {k: getattr(paper_rule(), k) for k in PAPER_RULE} == PAPER_RULE
     model = make_model(random_params(600, seed=1))
     probe_values = iter([1.0, 1.02, 1.05, 1.0, 0.9])
@@ -494,3 +496,55 @@ def test_prune_damage_holds_the_prunes_own_psnr_cost_against_the_budget_spread_o
         paper_rule(loss_signal="prune_damage").validate()
     with pytest.raises(ValueError, match="loss_reference"):
         dataclasses.replace(cfg, loss_reference="runs/stg").validate()
+
+
+def test_slow_start_doubles_the_ratio_until_the_budget_first_holds_it_then_steps():
+    """ratio_increase slow_start: within the budget the ratio doubles (at least one step) until the first halving,
+    and from then on rises one step at a time (additive increase, multiplicative decrease); additive steps from the
+    start. The state round-trips mid-window, and one saved before slow start existed resumes additive."""
+    schedule = [(0.0, 0.0), (0.0, 0.1), (0.0, 0.2), (0.5, 0.3), (0.5, 0.6), (0.5, 0.7)]
+    slow = AdaptiveRatio(initial=0.01, step=0.01, minimum=0.0, maximum=0.2, budget=0.0, slow_start=True)
+    assert [(slow.hold(s, a), slow.ratio) for s, a in schedule[:3]] == [(1, 0.02), (1, 0.04), (1, 0.08)]
+    resumed = AdaptiveRatio(initial=0.01, step=0.01, minimum=0.0, maximum=0.2, slow_start=True)
+    resumed.load_state_dict(json.loads(json.dumps(slow.state_dict())))
+    assert [(resumed.hold(s, a), resumed.ratio) for s, a in schedule[3:]] == [(-1, 0.04), (1, 0.05), (1, 0.06)]
+    additive = AdaptiveRatio(initial=0.01, step=0.01, minimum=0.0, maximum=0.2)
+    assert [additive.hold(s, a) and additive.ratio for s, a in schedule[:3]] == [0.02, 0.03, 0.04]
+    zero = AdaptiveRatio(initial=0.0, step=0.01, minimum=0.0, maximum=0.2, slow_start=True)
+    assert [zero.hold(0.0, 0.0) and zero.ratio for _ in range(3)] == [0.01, 0.02, 0.04]  # at least one step
+    capped = AdaptiveRatio(initial=0.15, step=0.01, minimum=0.0, maximum=0.2, slow_start=True)
+    assert capped.hold(0.0, 0.0) == 1 and capped.ratio == 0.2
+    old = {"ratio": 0.05, "previous_loss": None, "best_loss": None}  # a checkpoint from before session 39
+    resumed_old = AdaptiveRatio(initial=0.01, step=0.01, minimum=0.0, maximum=0.2, slow_start=True)
+    resumed_old.load_state_dict(old)
+    assert resumed_old.hold(0.0, 0.0) == 1 and resumed_old.ratio == pytest.approx(0.06)
+
+    # The compactor: slow start only with a budget (the paper's rule steps), idle (refused) without one.
+    budgeted = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10)
+    assert STKNNCompactor(budgeted, 100).controller.slow_start
+    assert not STKNNCompactor(dataclasses.replace(budgeted, ratio_increase="additive"), 100).controller.slow_start
+    assert "compaction.ratio_increase" in idle_compaction_options(paper_rule())
+    assert "compaction.ratio_increase" not in idle_compaction_options(budgeted)
+
+
+def test_an_unmeasured_prune_damage_backs_the_ratio_off_instead_of_reading_as_free():
+    """A non-finite probe render after a prune leaves its damage unknown: the next step halves the ratio (as over
+    budget) rather than counting the prune as costing nothing, and the flag survives a resume between the steps."""
+    cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.2, ratio_max=0.4,
+                           ratio_increase="additive", ratio_step=0.01, pair_order="distance")
+    compactor = STKNNCompactor(cfg, 100)
+    model = make_model(random_params(600, 3, motion_scale=0.02))
+    renders = iter([1e-3, float("nan"), 1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3])
+    events = []
+    for it in range(1, 100 + 1):
+        if it == 21:  # between the first pruning step (20), whose damage is unknown, and the second
+            resumed = STKNNCompactor(cfg, 100)
+            resumed.load_state_dict(json.loads(json.dumps(compactor.state_dict())))
+            compactor = resumed
+        if (e := compactor.step(it, 0.5, model, 1.0, probe_fn=lambda: _probe(1.0, next(renders)))) is not None:
+            events.append(e)
+        if len(events) == 3:
+            break
+    assert events[0]["prune_damage_db"] is None and events[0]["removed"] > 0
+    assert [e["ratio_direction"] for e in events] == [1, -1, 1]
+    assert [e["ratio"] for e in events] == pytest.approx([0.21, 0.105, 0.115])

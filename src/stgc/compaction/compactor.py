@@ -70,10 +70,12 @@ class STKNNCompactor:
             config.ratio_init, config.ratio_step, config.ratio_min, config.ratio_max, config.loss_tolerance,
             budget_for_psnr_drop(config.loss_budget_db, squared_error=config.loss_signal == "probe_psnr")
             if relative_budget else 0.0,
+            slow_start=config.loss_budget_db > 0 and config.ratio_increase == "slow_start",
         )
         self.steps_done = 0
         self.total_removed = 0
         self.prune_damage_db = 0.0  # the probe PSNR the prunes cost so far (loss_signal prune_damage)
+        self.damage_unmeasured = False  # the last prune's damage could not be measured (a non-finite probe render)
         self.reference = (load_reference_losses(config.loss_reference, self.schedule, config.probe_views,
                                                 config.loss_signal) if config.loss_reference else None)
 
@@ -131,7 +133,11 @@ class STKNNCompactor:
             # The budget spread evenly over the window: the steps so far may have cost their share of it.
             allowed_db = self.config.loss_budget_db * self.steps_done / self.schedule.num_steps
             smoothed = self.prune_damage_db
-            direction = self.controller.hold(self.prune_damage_db, allowed_db)
+            if self.damage_unmeasured:
+                direction = self.controller.back_off()
+                self.damage_unmeasured = False
+            else:
+                direction = self.controller.hold(self.prune_damage_db, allowed_db)
         else:
             direction = self.controller.update(smoothed, reference)
         ratio = self.controller.ratio
@@ -182,7 +188,9 @@ class STKNNCompactor:
             assert probe is not None and probe_fn is not None
             # Nothing trained since `probe`: the difference is the prune's alone (the keepers' merged opacity too).
             step_damage_db = _psnr_drop(probe.mse, probe_fn().mse) if removed else 0.0
-            if step_damage_db is not None:  # a non-finite render is no measure; the controller then holds still
+            if step_damage_db is None:  # a non-finite render is no measure: the next step backs off
+                self.damage_unmeasured = True
+            else:
                 self.prune_damage_db += step_damage_db
         self.steps_done += 1
         self.total_removed += removed
@@ -224,6 +232,7 @@ class STKNNCompactor:
             "steps_done": self.steps_done,
             "total_removed": self.total_removed,
             "prune_damage_db": self.prune_damage_db,
+            "damage_unmeasured": self.damage_unmeasured,
             "controller": self.controller.state_dict(),
             "smoother": self.smoother.state_dict(),
         }
@@ -243,6 +252,7 @@ class STKNNCompactor:
         self.steps_done = int(state["steps_done"])
         self.total_removed = int(state["total_removed"])
         self.prune_damage_db = float(state.get("prune_damage_db", 0.0))  # saved before the signal existed: none
+        self.damage_unmeasured = bool(state.get("damage_unmeasured", False))
         self.controller.load_state_dict(state["controller"])
         self.smoother.load_state_dict(state["smoother"])
 

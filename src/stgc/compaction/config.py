@@ -87,7 +87,16 @@ class CompactionConfig:
                                          "(with a damage budget: plus within it; over it the ratio halves)"}
     )
     ratio_min: float = field(default=0.001, metadata={"help": "lower bound of the pruning ratio"})
-    ratio_max: float = field(default=0.05, metadata={"help": "upper bound of the pruning ratio (the paper's rule: 0.02)"})
+    ratio_max: float = field(default=0.2, metadata={"help": "upper bound of the pruning ratio (the paper's rule: 0.02)"})
+    ratio_increase: Literal["additive", "slow_start"] = field(
+        default="slow_start",
+        metadata={
+            "help": "how the damage budget (loss_budget_db > 0) raises the ratio while within it: 'additive' = one "
+            "ratio_step per step; 'slow_start' = doubled (at least one step) until the budget first halves it, then "
+            "one step, as TCP's slow start, so that a model that loses nothing to the first prunes is not pruned "
+            "at a fraction of the rate it affords for half the window"
+        },
+    )
     loss_tolerance: float = field(
         default=0.0,
         metadata={"help": "relative loss change treated as 'no change' (ratio kept); 0 = paper (any change counts)"},
@@ -184,7 +193,7 @@ class CompactionConfig:
     # check compares a plan's value with them, so an older run is not taken for one that asks for another).
     SAVED_BEFORE: ClassVar[dict[str, Any]] = {"keeper_time_coverage": 0.0, "merge_opacity": False,
                                               "pair_order": "distance", "loss_signal": "training",
-                                              "loss_budget_db": 0.0}
+                                              "loss_budget_db": 0.0, "ratio_increase": "additive"}
 
     def validate(self, prefix: str = "") -> None:
         """Raise ValueError naming the field when a value cannot work."""
@@ -252,6 +261,8 @@ _ACTS_ONLY_WITH: dict[str, tuple[Callable[[CompactionConfig], bool], str]] = {
                        "compaction.loss_signal=training (the probe loss is not smoothed)"),
     "ema_decay": (lambda c: c.loss_signal == "training" and c.loss_smoothing == "ema",
                   "compaction.loss_smoothing=ema and compaction.loss_signal=training"),
+    "ratio_increase": (lambda c: c.loss_budget_db > 0,
+                       "compaction.loss_budget_db > 0 (the paper's step-to-step rule raises the ratio by one step)"),
     "probe_views": (lambda c: c.loss_signal in PROBE_SIGNALS or c.method == "reference",
                     "compaction.loss_signal=probe, probe_psnr or prune_damage, or compaction.method=reference"),
 }
