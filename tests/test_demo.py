@@ -30,3 +30,29 @@ def test_the_demo_renders_its_video_again_after_a_new_training(tmp_path: Path, m
     monkeypatch.setattr(demo, "render_video", lambda run, path: rendered.append(path))
     demo.run_demo(tmp_path)
     assert rendered == [video]
+
+
+def test_a_demo_folder_from_another_stgc_version_is_refused_with_the_remedy(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """`make demo` has no --out: over a demo_out whose finished runs were made with other options (an older stgc's
+    defaults) the plan runner rightly refuses to reuse them, and the demo must say how to go on, deleting nothing."""
+    import json
+
+    from stgc.experiment import runner
+
+    old = tmp_path / "demo_out" / "stg"
+    old.mkdir(parents=True)
+    (old / "config.json").write_text(json.dumps({"data": {}, "model": {}, "train": {"iterations": 10},
+                                                 "compaction": {"method": "st-knn"}}))
+    trained: list[list[str]] = []
+
+    def no_training(cmd: list[str], log_path: Path) -> int:
+        trained.append(cmd)
+        return 1
+
+    real_run_plan = runner.run_plan
+    monkeypatch.setattr(demo, "run_plan", lambda *a, **k: real_run_plan(*a, **{**k, "runner": no_training}))
+    assert demo.run_demo(tmp_path / "demo_out") == 1
+    assert f"rm -rf {tmp_path / 'demo_out'}" in caplog.text and "another version of stgc" in caplog.text
+    assert (old / "config.json").is_file()
+    assert all("stg" != Path(cmd[cmd.index("--out") + 1]).name for cmd in trained if "--out" in cmd)

@@ -139,10 +139,10 @@ def test_resume_gives_identical_events():
         STKNNCompactor(paper_rule(), total).load_state_dict(state)
     # A state saved before an option existed resumes when the run leaves that option at its default.
     older = json.loads(json.dumps(state))
-    del older["config"]["loss_budget_db"]
+    del older["config"]["loss_budget_db"], older["config"]["keeper_time_coverage"]
     STKNNCompactor(cfg, total).load_state_dict(older)
     with pytest.raises(ValueError, match="different CompactionConfig"):
-        STKNNCompactor(dataclasses.replace(cfg, loss_budget_db=0.3), total).load_state_dict(older)
+        STKNNCompactor(dataclasses.replace(cfg, keeper_time_coverage=0.5), total).load_state_dict(older)
 
 
 def test_method_none_and_min_gaussians():
@@ -311,8 +311,14 @@ def test_the_budget_is_a_psnr_drop_in_the_config():
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="loss_budget_db"):
             paper_rule(loss_budget_db=bad).validate()
-    with pytest.raises(ValueError, match="set one of them"):
-        paper_rule(loss_budget_db=0.3, loss_tolerance=0.01).validate()
+    # The tolerance's refusal names every option the step-to-step rule needs (the defaults hold a budget and probe).
+    for asked in (paper_rule(loss_budget_db=0.3, loss_tolerance=0.01), CompactionConfig(loss_tolerance=0.01)):
+        with pytest.raises(ValueError, match="loss_tolerance .*loss_budget_db=0 .*loss_signal training or probe"):
+            asked.validate()
+    CompactionConfig(loss_tolerance=0.01, loss_budget_db=0.0, loss_signal="probe").validate()
+    with pytest.raises(ValueError, match="loss_signal training compares .* step to step.*loss_budget_db=0"):
+        CompactionConfig(loss_signal="training").validate()  # the default budget is the probe signals'
+    CompactionConfig(loss_signal="training", loss_budget_db=0.0).validate()
 
 
 def test_a_reference_loss_holds_the_budget_against_the_unpruned_run_not_the_best_seen():
@@ -378,7 +384,7 @@ def test_a_reference_that_is_not_one_or_misses_iterations_is_refused_naming_its_
         STKNNCompactor(paper_rule(loss_reference=str(pruned), **common), 100)
     with pytest.raises(DataError, match="no compaction log"):
         STKNNCompactor(paper_rule(loss_reference=str(tmp_path / "absent"), **common), 100)
-    for bad in (dict(loss_budget_db=0.0), dict(loss_signal="training"), dict(method="reference")):
+    for bad in (dict(loss_budget_db=0.0), dict(loss_signal="training", loss_budget_db=0.0), dict(method="reference")):
         with pytest.raises(ValueError, match="loss_reference"):
             paper_rule(**{**common, "loss_reference": "x", **bad}).validate()
     # With method none it acts on nothing, as every other option (a fine-tuning carries its source's section so).

@@ -26,7 +26,8 @@ _LITE_SECTIONS = {b"POSI": 3, b"TCEN": 1, b"TSCL": 1, b"MOTN": 9, b"FDC_": 3, b"
                   b"OMGA": 4}  # tag: components
 
 
-FAKE_COMPACTION_DEFAULTS = {"pair_order": "weight", "loss_signal": "prune_damage", "loss_budget_db": 0.3}
+FAKE_COMPACTION_DEFAULTS = {"pair_order": "weight", "loss_signal": "prune_damage", "loss_budget_db": 0.3,
+                            "ratio_increase": "slow_start"}
 
 
 def _record(out: Path, argv: list[str]) -> None:

@@ -87,6 +87,9 @@ def test_the_fake_cli_writes_today_s_compaction_defaults() -> None:
     from stgc.compaction import CompactionConfig
 
     assert {k: getattr(CompactionConfig(), k) for k in FAKE_COMPACTION_DEFAULTS} == FAKE_COMPACTION_DEFAULTS
+    # Every option a config.json without it reads otherwise than today's default: the fake must write it.
+    changed = {k for k, v in CompactionConfig.SAVED_BEFORE.items() if getattr(CompactionConfig(), k) != v}
+    assert changed <= set(FAKE_COMPACTION_DEFAULTS)
 
 
 def test_builtin_plans_match_the_paper() -> None:
@@ -763,7 +766,7 @@ def test_set_compaction_options_skip_the_runs_that_prune_nothing_and_a_plan_that
                                     'overrides = { "compaction.method" = "st-knn", "compaction.case" = 2 }\n'
                                     '[[runs]]\nname = "c2-ema"\nfamily = "ST-KNN"\noverrides = { '
                                     '"compaction.method" = "st-knn", "compaction.loss_signal" = "training", '
-                                    '"compaction.loss_smoothing" = "ema" }\n')
+                                    '"compaction.loss_budget_db" = 0, "compaction.loss_smoothing" = "ema" }\n')
     decay = {"compaction.ema_decay": "0.8"}
     assert ["compaction.ema_decay" in run_overrides(smoothing, spec, decay, tmp_path) for spec in smoothing.runs] \
         == [False, False, True]

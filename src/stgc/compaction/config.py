@@ -132,7 +132,8 @@ class CompactionConfig:
         default="prune_damage",
         metadata={
             "help": "the loss the ratio controller compares between pruning steps: 'training' = the smoothed training "
-            "loss (paper; each from a random timestamp and views, so it varies with what was drawn), 'probe' = the "
+            "loss (paper; each from a random timestamp and views, so it varies with what was drawn; only with "
+            "loss_budget_db=0, the paper's step-to-step comparison), 'probe' = the "
             "training loss of the current model on a fixed set of training views and times, rendered at every "
             "pruning step (it measures the model, not the sample), 'probe_psnr' = the same renders' mean squared error "
             "(geometric mean over the views, the mean PSNR's), so that loss_budget_db holds the PSNR it names; "
@@ -226,12 +227,20 @@ class CompactionConfig:
         if not (math.isfinite(self.loss_budget_db) and self.loss_budget_db >= 0):
             raise ValueError(f"compaction.loss_budget_db {self.loss_budget_db}: must be a finite number >= 0")
         if self.loss_budget_db > 0 and self.loss_tolerance > 0:
-            raise ValueError("compaction.loss_tolerance applies to the paper's step-to-step comparison; with "
-                             "loss_budget_db > 0 the budget is the tolerance: set one of them")
+            raise ValueError("compaction.loss_tolerance applies to the paper's step-to-step comparison, which needs "
+                             "compaction.loss_budget_db=0 (default 0.3) and compaction.loss_signal training or probe "
+                             "(default prune_damage); with a budget the budget is the tolerance")
         if self.loss_smoothing not in SMOOTHINGS:
             raise ValueError(f"compaction.loss_smoothing {self.loss_smoothing!r}: expected one of {SMOOTHINGS}")
         if self.loss_signal not in LOSS_SIGNALS:
             raise ValueError(f"compaction.loss_signal {self.loss_signal!r}: expected one of {LOSS_SIGNALS}")
+        if self.method == "st-knn" and self.loss_signal == "training" and self.loss_budget_db > 0:
+            # The budget's default (0.3 dB) is the probe signals'; a training signal asked alone is the paper's rule.
+            raise ValueError("compaction.loss_signal training compares the smoothed training loss step to step (the "
+                             "paper's rule, with compaction.loss_budget_db=0); the damage budget "
+                             f"(compaction.loss_budget_db {self.loss_budget_db}, default 0.3) needs a probe signal "
+                             "that measures the model, not the sample: set compaction.loss_budget_db=0, or "
+                             "loss_signal probe, probe_psnr or prune_damage")
         # With method none every other option acts on nothing (a fine-tuning carries its source's section so).
         budgeted = self.method == "st-knn" and self.loss_budget_db > 0 and self.loss_signal in REFERENCE_SIGNALS
         if self.method == "st-knn" and self.loss_signal == "prune_damage" and self.loss_budget_db <= 0:

@@ -476,6 +476,8 @@ class RunOutcome:
     seconds: float = 0.0
     message: str = ""
     bitstream: str | None = None
+    # Failed because its folder holds a run made with other settings (reuse refused; nothing was trained).
+    stale: bool = False
 
 
 @dataclass
@@ -708,7 +710,7 @@ def _run_spec(spec: RunSpec, run_dir: Path, data_path: str | Path, preset: str |
     extra = dict(extra or {})
     mismatch = reuse_mismatch(run_dir, data_path, preset, overrides, spec, extra, check_config=check_config)
     if mismatch is not None:
-        outcome.status = "failed"
+        outcome.status, outcome.stale = "failed", True
         outcome.message = (f"{run_dir} holds a run made with other settings ({mismatch}); give another --out, or "
                            "remove that run to train it again")
         say(f"[{spec.name}] FAILED: {outcome.message}")
