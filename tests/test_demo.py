@@ -53,6 +53,6 @@ def test_a_demo_folder_from_another_stgc_version_is_refused_with_the_remedy(
     real_run_plan = runner.run_plan
     monkeypatch.setattr(demo, "run_plan", lambda *a, **k: real_run_plan(*a, **{**k, "runner": no_training}))
     assert demo.run_demo(tmp_path / "demo_out") == 1
-    assert f"rm -rf {tmp_path / 'demo_out'}" in caplog.text and "another version of stgc" in caplog.text
+    assert f"rm -rf {tmp_path / 'demo_out'}" in caplog.text and "made with other options or data" in caplog.text
     assert (old / "config.json").is_file()
     assert all("stg" != Path(cmd[cmd.index("--out") + 1]).name for cmd in trained if "--out" in cmd)

@@ -102,8 +102,8 @@ def run_demo(out_dir: Path, data: Path | None = None) -> int:
             _log.error("demo: %s failed: %s", o.name, o.message)
         if any(o.stale for o in result.failed):
             # The demo's folder is the demo's own, but it may hold results: name the remedy, delete nothing.
-            _log.error("demo: %s holds a demo made by another version of stgc (its options differ from today's "
-                       "defaults); remove it (rm -rf %s) and run the demo again", out_dir, out_dir)
+            _log.error("demo: %s holds a demo made with other options or data (an older stgc's defaults, or another "
+                       "scene); remove it (rm -rf %s) and run the demo again", out_dir, out_dir)
         return 1
     by_name = {o.name: o for o in result.outcomes}
     compacted_run = out_dir / "st-knn"

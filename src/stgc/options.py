@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from stgc.compaction import CompactionConfig
-from stgc.compaction.config import idle_compaction_options, why_idle
+from stgc.compaction.config import idle_compaction_options, refuse_training_signal_with_budget, why_idle
 from stgc.config import ConfigError, apply_overrides, from_saved, split_sections, validate_config
 from stgc.data import DataConfig
 from stgc.data.config import data_config_from_saved
@@ -64,6 +64,10 @@ def resolve_configs(
             configs[section] = apply_overrides(configs[section], overrides, section)
     for section, cfg in configs.items():
         validate_config(cfg, section)
+    try:
+        refuse_training_signal_with_budget(configs["compaction"])
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     refuse_unused_feature_options(configs, given)
     return configs
 

@@ -20,8 +20,9 @@ from stgc.compaction import (
     match_spatiotemporal_pairs,
     resolve_schedule,
 )
-
 from stgc.compaction.config import idle_compaction_options
+from stgc.config import ConfigError
+from stgc.options import resolve_configs
 
 from .compaction_helpers import make_model, paper_rule, random_params
 
@@ -313,12 +314,16 @@ def test_the_budget_is_a_psnr_drop_in_the_config():
             paper_rule(loss_budget_db=bad).validate()
     # The tolerance's refusal names every option the step-to-step rule needs (the defaults hold a budget and probe).
     for asked in (paper_rule(loss_budget_db=0.3, loss_tolerance=0.01), CompactionConfig(loss_tolerance=0.01)):
-        with pytest.raises(ValueError, match="loss_tolerance .*loss_budget_db=0 .*loss_signal training or probe"):
+        with pytest.raises(ValueError, match="loss_tolerance .*loss_budget_db=0 .*loss_signal training, probe or probe_psnr"):
             asked.validate()
     CompactionConfig(loss_tolerance=0.01, loss_budget_db=0.0, loss_signal="probe").validate()
-    with pytest.raises(ValueError, match="loss_signal training compares .* step to step.*loss_budget_db=0"):
-        CompactionConfig(loss_signal="training").validate()  # the default budget is the probe signals'
-    CompactionConfig(loss_signal="training", loss_budget_db=0.0).validate()
+    # A new run asking for the paper's signal alone would keep the default budget, the probe signals': refused where
+    # options are given; a run saved with the pair (allowed until session 39) still validates, so it reads back.
+    with pytest.raises(ConfigError, match="loss_signal training compares .* step to step.*loss_budget_db=0"):
+        resolve_configs("cpu", {}, {}, {"compaction.method": "st-knn", "compaction.loss_signal": "training"})
+    resolve_configs("cpu", {}, {}, {"compaction.method": "st-knn", "compaction.loss_signal": "training",
+                                    "compaction.loss_budget_db": "0"})
+    CompactionConfig(loss_signal="training").validate()
 
 
 def test_a_reference_loss_holds_the_budget_against_the_unpruned_run_not_the_best_seen():
@@ -525,6 +530,18 @@ def test_slow_start_doubles_the_ratio_until_the_budget_first_holds_it_then_steps
     resumed_old.load_state_dict(old)
     assert resumed_old.hold(0.0, 0.0) == 1 and resumed_old.ratio == pytest.approx(0.06)
 
+    # A compactor state saved before ratio_increase existed (read as additive) resumes under the paper's rule, where
+    # the option acts on nothing, whatever its value there; with a budget it is a difference.
+    paper = STKNNCompactor(paper_rule(case=0, window_start=0.2, window_end=0.8, interval=10), 100)
+    saved = json.loads(json.dumps(paper.state_dict()))
+    del saved["config"]["ratio_increase"]
+    STKNNCompactor(paper_rule(case=0, window_start=0.2, window_end=0.8, interval=10), 100).load_state_dict(saved)
+    with_budget = json.loads(json.dumps(STKNNCompactor(CompactionConfig(), 100).state_dict()))
+    del with_budget["config"]["ratio_increase"]
+    with pytest.raises(ValueError, match="different CompactionConfig"):
+        STKNNCompactor(CompactionConfig(), 100).load_state_dict(with_budget)
+    STKNNCompactor(CompactionConfig(ratio_increase="additive"), 100).load_state_dict(with_budget)
+
     # The compactor: slow start only with a budget (the paper's rule steps), idle (refused) without one.
     budgeted = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10)
     assert STKNNCompactor(budgeted, 100).controller.slow_start
@@ -554,3 +571,4 @@ def test_an_unmeasured_prune_damage_backs_the_ratio_off_instead_of_reading_as_fr
     assert events[0]["prune_damage_db"] is None and events[0]["removed"] > 0
     assert [e["ratio_direction"] for e in events] == [1, -1, 1]
     assert [e["ratio"] for e in events] == pytest.approx([0.21, 0.105, 0.115])
+    assert [e["backed_off_unmeasured"] for e in events] == [False, True, False]  # the log says why it halved

@@ -933,6 +933,8 @@ def test_set_values_valid_with_a_run_s_own_options_and_a_fine_tuned_loss_referen
      {"train.quantization_aware.iterations": "100", "train.quantization_aware.rate_weight": "0.001"}),
     ("two-view-tracks-kept", {"data.min_track_length": "2"},
      {"data.min_track_length": "2", "data.init_source": "random"}),
+    ("unmeasured-prune-damage-backs-off", {"compaction.method": "st-knn"},
+     {"compaction.method": "st-knn", "compaction.loss_signal": "probe_psnr"}),
 ])
 def test_session_36_s_behaviour_changes_act_on_their_runs_only(change, acting, idle) -> None:
     from stgc.options import resolve_configs
@@ -961,10 +963,10 @@ def test_a_run_trained_before_a_behaviour_change_that_acts_on_it_is_not_reused(t
         (run / "config.json").write_text(json.dumps(saved))
         return run
 
-    # (The paper's pair order: the weight order's own change, 'pair-weight-ties-closest', would act too.)
+    # (The paper's pair order and signal: the weight order's and the prune-damage budget's own changes would act too.)
     pruned = {"compaction.method": "st-knn", "data.preprocess": "none", "train.densify.interval": "500",
               "train.densify.rounds": "20", "train.densify.max_growth": "2", "train.densify.prune_in_rounds": "true",
-              "compaction.pair_order": "distance"}
+              "compaction.pair_order": "distance", "compaction.loss_signal": "training", "compaction.loss_budget_db": "0"}
     assert reuse_mismatch(saved_run("today", pruned, recorded_behaviour()), "DATA", "cpu", pruned) is None
     before = reuse_mismatch(saved_run("before", pruned, None), "DATA", "cpu", pruned) or ""
     assert "compaction-not-refilled" in before

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from stgc.experiment.plans import BUILTIN_PLANS, PAPER_PREPROCESS, load_plan
-from stgc.options import resolve_configs
 from stgc.experiment.runner import check_plan_options, finetune_overrides, run_overrides
+from stgc.options import resolve_configs
 
 PLANS = sorted((Path(__file__).resolve().parents[2] / "benchmarks" / "plans").glob("*.toml"))
 

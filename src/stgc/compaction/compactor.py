@@ -16,7 +16,7 @@ from stgc.errors import DataError
 from stgc.fileio import read_json_object
 from stgc.metrics import psnr_of_mse
 
-from .config import PROBE_SIGNALS, CompactionConfig, PruningSchedule, resolve_schedule
+from .config import PROBE_SIGNALS, CompactionConfig, PruningSchedule, idle_compaction_options, resolve_schedule
 from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
 from .matching import SpacetimeModel, match_spatiotemporal_pairs, to_float64_numpy
 from .plot import LOG_NAME, read_compaction_log
@@ -129,11 +129,13 @@ class STKNNCompactor:
         reference = None if self.reference is None else self.reference[int(iteration)]
         previous, best = self.controller.previous_loss, self.controller.best_loss
         allowed_db: float | None = None
+        backed_off = False  # the ratio halved because the last prune's damage was not measured
         if self.config.loss_signal == "prune_damage":
             # The budget spread evenly over the window: the steps so far may have cost their share of it.
             allowed_db = self.config.loss_budget_db * self.steps_done / self.schedule.num_steps
             smoothed = self.prune_damage_db
-            if self.damage_unmeasured:
+            backed_off = self.damage_unmeasured
+            if backed_off:
                 direction = self.controller.back_off()
                 self.damage_unmeasured = False
             else:
@@ -209,6 +211,7 @@ class STKNNCompactor:
             "loss_budget": self.controller.budget,
             "prune_damage_db": step_damage_db,
             "damage_allowed_db": allowed_db,
+            "backed_off_unmeasured": backed_off,
             "matched_references": pairs.matched_references,
             "matched_pairs": matched_pairs,
             "time_covered_pairs": len(pairs),
@@ -243,7 +246,9 @@ class STKNNCompactor:
         # An option added since the state was saved is read as the saving code trained it (SAVED_BEFORE, else the
         # default of the day it was added, which is today's for options whose default never changed).
         defaults = {**dataclasses.asdict(CompactionConfig()), **CompactionConfig.SAVED_BEFORE}
-        if saved is not None and {**defaults, **saved} != dataclasses.asdict(self.config):
+        # Options that act on nothing here are no difference (ratio_increase without a budget, as in PAPER_RULE).
+        idle = {key.removeprefix("compaction.") for key in idle_compaction_options(self.config)}
+        if saved is not None and _without({**defaults, **saved}, idle) != _without(dataclasses.asdict(self.config), idle):
             raise ValueError("compaction state was saved with a different CompactionConfig; resume with the same config")
         if int(state.get("total_iterations", self.total_iterations)) != self.total_iterations:
             raise ValueError(
@@ -255,6 +260,10 @@ class STKNNCompactor:
         self.damage_unmeasured = bool(state.get("damage_unmeasured", False))
         self.controller.load_state_dict(state["controller"])
         self.smoother.load_state_dict(state["smoother"])
+
+
+def _without(options: dict[str, Any], names: set[str]) -> dict[str, Any]:
+    return {key: value for key, value in options.items() if key not in names}
 
 
 def _psnr_drop(mse_before: float, mse_after: float) -> float | None:

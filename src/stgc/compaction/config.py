@@ -228,19 +228,12 @@ class CompactionConfig:
             raise ValueError(f"compaction.loss_budget_db {self.loss_budget_db}: must be a finite number >= 0")
         if self.loss_budget_db > 0 and self.loss_tolerance > 0:
             raise ValueError("compaction.loss_tolerance applies to the paper's step-to-step comparison, which needs "
-                             "compaction.loss_budget_db=0 (default 0.3) and compaction.loss_signal training or probe "
-                             "(default prune_damage); with a budget the budget is the tolerance")
+                             "compaction.loss_budget_db=0 (default 0.3) and compaction.loss_signal training, probe or "
+                             "probe_psnr (default prune_damage); with a budget the budget is the tolerance")
         if self.loss_smoothing not in SMOOTHINGS:
             raise ValueError(f"compaction.loss_smoothing {self.loss_smoothing!r}: expected one of {SMOOTHINGS}")
         if self.loss_signal not in LOSS_SIGNALS:
             raise ValueError(f"compaction.loss_signal {self.loss_signal!r}: expected one of {LOSS_SIGNALS}")
-        if self.method == "st-knn" and self.loss_signal == "training" and self.loss_budget_db > 0:
-            # The budget's default (0.3 dB) is the probe signals'; a training signal asked alone is the paper's rule.
-            raise ValueError("compaction.loss_signal training compares the smoothed training loss step to step (the "
-                             "paper's rule, with compaction.loss_budget_db=0); the damage budget "
-                             f"(compaction.loss_budget_db {self.loss_budget_db}, default 0.3) needs a probe signal "
-                             "that measures the model, not the sample: set compaction.loss_budget_db=0, or "
-                             "loss_signal probe, probe_psnr or prune_damage")
         # With method none every other option acts on nothing (a fine-tuning carries its source's section so).
         budgeted = self.method == "st-knn" and self.loss_budget_db > 0 and self.loss_signal in REFERENCE_SIGNALS
         if self.method == "st-knn" and self.loss_signal == "prune_damage" and self.loss_budget_db <= 0:
@@ -260,6 +253,19 @@ class CompactionConfig:
             raise ValueError(f"compaction.keeper_time_coverage {self.keeper_time_coverage}: must be in [0, 1]")
         if self.min_gaussians < 0:
             raise ValueError(f"compaction.min_gaussians {self.min_gaussians}: must be >= 0")
+
+
+def refuse_training_signal_with_budget(compaction: CompactionConfig) -> None:
+    """Raise ValueError for a new run that asks for the training-loss signal under a damage budget. The budget's
+    default (0.3 dB) is the probe signals', and `loss_signal=training` asked alone means the paper's step-to-step
+    rule; the pair was allowed until session 39, so runs saved with it still read, resume and compare (this is not
+    part of `validate`, which a saved config passes through)."""
+    if compaction.method == "st-knn" and compaction.loss_signal == "training" and compaction.loss_budget_db > 0:
+        raise ValueError("compaction.loss_signal training compares the smoothed training loss step to step (the "
+                         "paper's rule, with compaction.loss_budget_db=0); the damage budget "
+                         f"(compaction.loss_budget_db {compaction.loss_budget_db}, default 0.3) needs a probe signal "
+                         "that measures the model, not the sample: set compaction.loss_budget_db=0, or "
+                         "loss_signal probe, probe_psnr or prune_damage")
 
 
 # Options that act only with another option's value, and that value in words (for the refusal).

@@ -51,6 +51,11 @@ def _pruned_by_weight(configs: Mapping[str, Any]) -> bool:
     return compaction is not None and compaction.method == "st-knn" and compaction.pair_order == "weight"
 
 
+def _prune_damage_budget(configs: Mapping[str, Any]) -> bool:
+    compaction = configs.get("compaction")
+    return compaction is not None and compaction.method == "st-knn" and compaction.loss_signal == "prune_damage"
+
+
 def _learned_mask(configs: Mapping[str, Any]) -> bool:
     train = configs["train"]
     return isinstance(train, TrainConfig) and train.quantization_aware.iterations > 0 and train.quantization_aware.mask
@@ -95,6 +100,12 @@ CHANGES: tuple[BehaviourChange, ...] = (
         "since session 36 (2026-11-28) the learned mask's price of a Gaussian includes its quaternion's "
         "largest-component index (about 2 bits)",
         _learned_mask,
+    ),
+    BehaviourChange(
+        "unmeasured-prune-damage-backs-off",
+        "since session 39 (2026-11-29) a prune whose damage the probe could not measure (a non-finite render after "
+        "it) halves the ratio at the next step instead of counting as free",
+        _prune_damage_budget,
     ),
     BehaviourChange(
         "two-view-tracks-kept",
