@@ -80,11 +80,14 @@ class CompactionConfig:
         metadata={"help": "which member of a selected pair is removed: " + criteria_help()},
     )
     ratio_init: float = field(
-        default=0.005, metadata={"help": "fraction of the matched pairs (in pair_order) pruned at the first step"}
+        default=0.005, metadata={"help": "fraction of the matched pairs (in pair_order) pruned at the first step "
+                                          "(the paper's rule; the prune_damage budget and a loss_reference raise it "
+                                          "once before the first prune)"}
     )
     ratio_step: float = field(
         default=0.001, metadata={"help": "ratio change per step: minus when the smoothed loss rose, plus when it fell "
-                                         "(with a damage budget: plus within it; over it the ratio halves)"}
+                                         "(with a damage budget: plus within it, or doubled with ratio_increase "
+                                         "slow_start; over it the ratio halves)"}
     )
     ratio_min: float = field(default=0.001, metadata={"help": "lower bound of the pruning ratio"})
     ratio_max: float = field(default=0.2, metadata={"help": "upper bound of the pruning ratio (the paper's rule: 0.02)"})

@@ -25,7 +25,8 @@ the model's capacity its loss stops falling, while an unpruned model's keeps fal
 1.8 dB lost on a test view with the probe held within 0.3 dB's worth of its own best). Given a `reference` loss at
 each step, the unpruned model's at the same iteration (compaction.loss_reference), the budget is held against it;
 then the first step has something to compare with too (the reference's loss), and an undamaged model raises the
-ratio there already: the first prune is at the initial ratio plus one step.
+ratio there already: the first prune is at the initial ratio plus one increase (one step, or doubled in slow
+start), as with `hold`, whose first allowance is 0 and so is never exceeded.
 
 Without a reference run the damage can still be read apart from training's progress: the probe rendered right
 before and right after a prune (nothing trained between) differs only by what the prune did. `hold` compares the
@@ -85,7 +86,8 @@ def budget_for_psnr_drop(drop_db: float, squared_error: bool = False) -> float:
 
 class AdaptiveRatio:
     """The pruning ratio: down one step when the smoothed loss rose, up one step when it fell, clamped; or, with a
-    damage `budget`, halved while the loss exceeds the best seen by more than the budget, up one step otherwise."""
+    damage `budget` (or `hold`), halved while over it and increased otherwise: up one step, or doubled while
+    `slow_start` lasts (until the first halving)."""
 
     def __init__(self, initial: float, step: float, minimum: float, maximum: float, tolerance: float = 0.0,
                  budget: float = 0.0, slow_start: bool = False):
