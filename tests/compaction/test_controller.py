@@ -301,7 +301,7 @@ def test_the_budget_is_a_psnr_drop_in_the_config():
     # stgc's defaults (session 37): the prunes' own damage held within 0.3 dB, the least-seen losers first.
     default = CompactionConfig()
     assert (default.loss_signal, default.loss_budget_db, default.pair_order, default.ratio_max,
-            default.ratio_increase) == ("prune_damage", 0.3, "weight", 0.2, "slow_start")
+            default.ratio_increase) == ("prune_damage", 0.3, "weight", 0.05, "additive")
     assert {k: getattr(paper_rule(), k) for k in PAPER_RULE} == PAPER_RULE
     model = make_model(random_params(600, seed=1))
     probe_values = iter([1.0, 1.02, 1.05, 1.0, 0.9])
@@ -536,16 +536,17 @@ def test_slow_start_doubles_the_ratio_until_the_budget_first_holds_it_then_steps
     saved = json.loads(json.dumps(paper.state_dict()))
     del saved["config"]["ratio_increase"]
     STKNNCompactor(paper_rule(case=0, window_start=0.2, window_end=0.8, interval=10), 100).load_state_dict(saved)
-    with_budget = json.loads(json.dumps(STKNNCompactor(CompactionConfig(), 100).state_dict()))
+    slow = CompactionConfig(ratio_increase="slow_start")
+    with_budget = json.loads(json.dumps(STKNNCompactor(slow, 100).state_dict()))
     del with_budget["config"]["ratio_increase"]
     with pytest.raises(ValueError, match="different CompactionConfig"):
-        STKNNCompactor(CompactionConfig(), 100).load_state_dict(with_budget)
-    STKNNCompactor(CompactionConfig(ratio_increase="additive"), 100).load_state_dict(with_budget)
+        STKNNCompactor(slow, 100).load_state_dict(with_budget)
+    STKNNCompactor(CompactionConfig(), 100).load_state_dict(with_budget)
 
     # The compactor: slow start only with a budget (the paper's rule steps), idle (refused) without one.
     budgeted = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10)
-    assert STKNNCompactor(budgeted, 100).controller.slow_start
-    assert not STKNNCompactor(dataclasses.replace(budgeted, ratio_increase="additive"), 100).controller.slow_start
+    assert STKNNCompactor(dataclasses.replace(budgeted, ratio_increase="slow_start"), 100).controller.slow_start
+    assert not STKNNCompactor(budgeted, 100).controller.slow_start
     assert "compaction.ratio_increase" in idle_compaction_options(paper_rule())
     assert "compaction.ratio_increase" not in idle_compaction_options(budgeted)
 
