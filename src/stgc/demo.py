@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import logging
+import shlex
 import signal
 import subprocess
 import sys
@@ -103,7 +104,7 @@ def run_demo(out_dir: Path, data: Path | None = None) -> int:
         if any(o.stale for o in result.failed):
             # The demo's folder is the demo's own, but it may hold results: name the remedy, delete nothing.
             _log.error("demo: %s holds a demo made with other options or data (an older stgc's defaults, or another "
-                       "scene); remove it (rm -rf %s) and run the demo again", out_dir, out_dir)
+                       "scene); remove it (rm -rf %s) and run the demo again", out_dir, shlex.quote(str(out_dir)))
         return 1
     by_name = {o.name: o for o in result.outcomes}
     compacted_run = out_dir / "st-knn"

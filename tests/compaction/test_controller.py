@@ -547,6 +547,8 @@ def test_slow_start_doubles_the_ratio_until_the_budget_first_holds_it_then_steps
     budgeted = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10)
     assert STKNNCompactor(dataclasses.replace(budgeted, ratio_increase="slow_start"), 100).controller.slow_start
     assert not STKNNCompactor(budgeted, 100).controller.slow_start
+    with pytest.raises(ValueError, match="ratio_increase 'slowstart'"):  # the API has no Literal parsing
+        CompactionConfig(ratio_increase="slowstart").validate()  # type: ignore[arg-type]
     assert "compaction.ratio_increase" in idle_compaction_options(paper_rule())
     assert "compaction.ratio_increase" not in idle_compaction_options(budgeted)
 

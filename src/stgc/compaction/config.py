@@ -37,6 +37,8 @@ LossSignal = Literal["training", "probe", "probe_psnr", "prune_damage"]
 PROBE_SIGNALS = ("probe", "probe_psnr", "prune_damage")
 REFERENCE_SIGNALS = ("probe", "probe_psnr")
 LOSS_SIGNALS = get_args(LossSignal)
+RatioIncrease = Literal["additive", "slow_start"]
+RATIO_INCREASES = get_args(RatioIncrease)
 
 
 # The paper's rule as written (Sec. III.2): the closest pairs first, the smoothed training loss compared step to step,
@@ -91,7 +93,7 @@ class CompactionConfig:
     )
     ratio_min: float = field(default=0.001, metadata={"help": "lower bound of the pruning ratio"})
     ratio_max: float = field(default=0.05, metadata={"help": "upper bound of the pruning ratio (the paper's rule: 0.02)"})
-    ratio_increase: Literal["additive", "slow_start"] = field(
+    ratio_increase: RatioIncrease = field(
         default="additive",
         metadata={
             "help": "how the damage budget (loss_budget_db > 0) raises the ratio while within it: 'additive' = one "
@@ -236,6 +238,8 @@ class CompactionConfig:
                              "probe_psnr (default prune_damage); with a budget the budget is the tolerance")
         if self.loss_smoothing not in SMOOTHINGS:
             raise ValueError(f"compaction.loss_smoothing {self.loss_smoothing!r}: expected one of {SMOOTHINGS}")
+        if self.ratio_increase not in RATIO_INCREASES:
+            raise ValueError(f"compaction.ratio_increase {self.ratio_increase!r}: expected one of {RATIO_INCREASES}")
         if self.loss_signal not in LOSS_SIGNALS:
             raise ValueError(f"compaction.loss_signal {self.loss_signal!r}: expected one of {LOSS_SIGNALS}")
         # With method none every other option acts on nothing (a fine-tuning carries its source's section so).
