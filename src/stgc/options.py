@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from stgc.compaction import CompactionConfig
-from stgc.compaction.config import idle_compaction_options, refuse_training_signal_with_budget, why_idle
+from stgc.compaction.config import idle_compaction_options, why_idle
 from stgc.config import ConfigError, apply_overrides, from_saved, split_sections, validate_config
 from stgc.data import DataConfig
 from stgc.data.config import data_config_from_saved
@@ -64,10 +64,7 @@ def resolve_configs(
             configs[section] = apply_overrides(configs[section], overrides, section)
     for section, cfg in configs.items():
         validate_config(cfg, section)
-    try:
-        refuse_training_signal_with_budget(configs["compaction"])
-    except ValueError as exc:
-        raise ConfigError(str(exc)) from None
+    refuse_training_signal_with_budget(configs["compaction"])
     refuse_unused_feature_options(configs, given)
     return configs
 
@@ -137,6 +134,19 @@ def refuse_unused_model_options(model: ModelConfig, given: Iterable[str]) -> Non
     if unused:
         raise ConfigError(f"{', '.join(unused)}: the lite model has no decoder; choose the full model "
                           "(--variant full) or drop them")
+
+
+def refuse_training_signal_with_budget(compaction: CompactionConfig) -> None:
+    """Raise ConfigError for a new run that asks for the training-loss signal under a damage budget. The budget's
+    default (0.3 dB) is the probe signals', and `loss_signal=training` asked alone means the paper's step-to-step
+    rule. The pair was allowed until session 39: runs saved with it still read and resume (this is not part of
+    `validate`, which a saved config passes through), while a plan row asking for it is refused like a new run."""
+    if compaction.method == "st-knn" and compaction.loss_signal == "training" and compaction.loss_budget_db > 0:
+        raise ConfigError("compaction.loss_signal training compares the smoothed training loss step to step (the "
+                          "paper's rule, with compaction.loss_budget_db=0); the damage budget "
+                          f"(compaction.loss_budget_db {compaction.loss_budget_db}, default 0.3) needs a probe signal "
+                          "that measures the model, not the sample: set compaction.loss_budget_db=0, or "
+                          "loss_signal probe, probe_psnr or prune_damage")
 
 
 def refuse_unused_compaction_options(compaction: CompactionConfig, given: Iterable[str]) -> None:

@@ -263,19 +263,6 @@ class CompactionConfig:
             raise ValueError(f"compaction.min_gaussians {self.min_gaussians}: must be >= 0")
 
 
-def refuse_training_signal_with_budget(compaction: CompactionConfig) -> None:
-    """Raise ValueError for a new run that asks for the training-loss signal under a damage budget. The budget's
-    default (0.3 dB) is the probe signals', and `loss_signal=training` asked alone means the paper's step-to-step
-    rule; the pair was allowed until session 39, so runs saved with it still read, resume and compare (this is not
-    part of `validate`, which a saved config passes through)."""
-    if compaction.method == "st-knn" and compaction.loss_signal == "training" and compaction.loss_budget_db > 0:
-        raise ValueError("compaction.loss_signal training compares the smoothed training loss step to step (the "
-                         "paper's rule, with compaction.loss_budget_db=0); the damage budget "
-                         f"(compaction.loss_budget_db {compaction.loss_budget_db}, default 0.3) needs a probe signal "
-                         "that measures the model, not the sample: set compaction.loss_budget_db=0, or "
-                         "loss_signal probe, probe_psnr or prune_damage")
-
-
 # Options that act only with another option's value, and that value in words (for the refusal).
 _ACTS_ONLY_WITH: dict[str, tuple[Callable[[CompactionConfig], bool], str]] = {
     "window_start": (lambda c: c.case == 0, "compaction.case=0 (a case 1-4 has its window)"),
