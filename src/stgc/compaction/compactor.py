@@ -148,6 +148,17 @@ class STKNNCompactor:
         pairs = match_spatiotemporal_pairs(model, t, self.config.rotation_weight, self.config.sample_times)
         matched_at = time.perf_counter()
         max_removals = max(0, n_before - self.config.min_gaussians)
+        matched_pairs = len(pairs)
+        rate_capped = False
+        if self.config.removal_rate_max > 0:
+            cap = int(self.config.removal_rate_max * self.schedule.interval * n_before)
+            max_removals = min(max_removals, cap)
+            if matched_pairs and ratio * matched_pairs > cap:
+                # The step uses only the cap's share of the pairs: the controller goes on from the ratio used (as
+                # TCP does not grow a window it cannot fill), so that a halving halves what is removed.
+                ratio = cap / matched_pairs
+                self.controller.limit(ratio)
+                rate_capped = True
         weights: np.ndarray | None = None
 
         def blending_weights() -> np.ndarray:  # rendered once per step, whether the criterion or the order asks
@@ -161,7 +172,6 @@ class STKNNCompactor:
             return weights
 
         scores = removal_scores(model.params, self.config.criterion, blending_weights) if len(pairs) else np.zeros(n_before)
-        matched_pairs = len(pairs)
         if self.config.keeper_time_coverage > 0 and len(pairs):
             coverage = keeper_time_coverage(pairs, scores, to_float64_numpy(model.params["trbf_center"]),
                                             to_float64_numpy(model.params["trbf_scale"]))
@@ -208,6 +218,7 @@ class STKNNCompactor:
             "previous_smoothed_loss": previous,
             "best_smoothed_loss": best,
             "reference_loss": reference,
+            "rate_capped": rate_capped,
             "loss_budget": self.controller.budget,
             "prune_damage_db": step_damage_db,
             "damage_allowed_db": allowed_db,

@@ -45,7 +45,7 @@ RATIO_INCREASES = get_args(RatioIncrease)
 # the ratio within 0.1-2 %. The defaults were these until session 37; `stgc train --set compaction.<key>=<value>` for
 # each, or `replace(CompactionConfig(...), **PAPER_RULE)`, trains it.
 PAPER_RULE: dict[str, Any] = {"pair_order": "distance", "loss_signal": "training", "loss_budget_db": 0.0,
-                              "ratio_max": 0.02}
+                              "ratio_max": 0.02, "removal_rate_max": 0.0}
 
 
 @dataclass(frozen=True)
@@ -101,6 +101,16 @@ class CompactionConfig:
             "one step, as TCP's slow start (with ratio_max 0.2 it removed over half of both shared scenes within "
             "0.3 dB in the cpu preset, but 0.85 of the demo's in its short schedule for 1.6 dB: benchmarks/RESULTS.md, "
             "session 39)"
+        },
+    )
+    removal_rate_max: float = field(
+        default=0.0,
+        metadata={
+            "help": "the most a pruning step may remove, as a share of the model's Gaussians per training iteration "
+            "since the previous step (times the interval: 0.001 is 3 % per step at the cpu preset's interval of 30, "
+            "0.5 % at the demo's 5): what a prune takes, training must make good before the next one, so the cap "
+            "counts iterations, not steps; where it binds the ratio is lowered to what the step used. 0 = no cap "
+            "(the paper)"
         },
     )
     loss_tolerance: float = field(
@@ -200,7 +210,8 @@ class CompactionConfig:
     # check compares a plan's value with them, so an older run is not taken for one that asks for another).
     SAVED_BEFORE: ClassVar[dict[str, Any]] = {"keeper_time_coverage": 0.0, "merge_opacity": False,
                                               "pair_order": "distance", "loss_signal": "training",
-                                              "loss_budget_db": 0.0, "ratio_increase": "additive"}
+                                              "loss_budget_db": 0.0, "ratio_increase": "additive",
+                                              "removal_rate_max": 0.0}
 
     def validate(self, prefix: str = "") -> None:
         """Raise ValueError naming the field when a value cannot work."""
@@ -226,6 +237,8 @@ class CompactionConfig:
                 f"compaction.ratio_init {self.ratio_init}: must lie in [ratio_min, ratio_max] = "
                 f"[{self.ratio_min}, {self.ratio_max}]"
             )
+        if not (0.0 <= self.removal_rate_max <= 1.0):  # also refuses NaN
+            raise ValueError(f"compaction.removal_rate_max {self.removal_rate_max}: must be in [0, 1] (0 = no cap)")
         for name in ("ratio_step", "loss_tolerance", "rotation_weight"):  # NaN or inf would silently freeze the rule
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):

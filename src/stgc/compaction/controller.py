@@ -147,6 +147,12 @@ class AdaptiveRatio:
         self._set(self._aimd_step(-1))
         return -1
 
+    def limit(self, used: float) -> None:
+        """The step could use only the ratio `used` (a cap on removals bound it): go on from there, not from a ratio
+        that was never applied (kept within [minimum, maximum])."""
+        if math.isfinite(used):
+            self._set(min(self.ratio, used))
+
     def _aimd_step(self, direction: int) -> float:
         # Additive increase, multiplicative decrease: the damage shows some steps after the prunes that caused it,
         # so a ratio that only stepped down would keep pruning at nearly the rate that overshot.
