@@ -575,3 +575,49 @@ def test_an_unmeasured_prune_damage_backs_the_ratio_off_instead_of_reading_as_fr
     assert [e["ratio_direction"] for e in events] == [1, -1, 1]
     assert [e["ratio"] for e in events] == pytest.approx([0.21, 0.105, 0.115])
     assert [e["backed_off_unmeasured"] for e in events] == [False, True, False]  # the log says why it halved
+
+
+def test_a_removal_rate_cap_bounds_each_step_and_the_ratio_goes_on_from_what_was_used():
+    """removal_rate_max: a step removes at most that share of the model per training iteration since the previous
+    step (x the interval). Where the cap binds, the controller's ratio becomes the one the step used, so that a
+    halving halves what is removed (a ratio left above the cap would halve and still be capped: no back-off)."""
+    rate, interval = 0.002, 10
+    cfg = CompactionConfig(case=0, window_start=0.1, window_end=0.9, interval=interval, ratio_init=0.2, ratio_max=0.8,
+                           ratio_increase="slow_start", removal_rate_max=rate, loss_budget_db=0.05,
+                           pair_order="distance")
+    compactor = STKNNCompactor(cfg, 100)
+    model = make_model(random_params(600, 3, motion_scale=0.02))
+    clock = {"iteration": 0}
+
+    def probe() -> ProbeResult:  # free prunes until iteration 50, then each costs its share of the model
+        n = model.params["xyz"].shape[0]
+        return _probe(1.0, 1e-3 * ((600 / n) ** 2 if clock["iteration"] >= 50 else 1.0))
+
+    events = []
+    for it in range(1, 101):
+        clock["iteration"] = it
+        if (e := compactor.step(it, 0.5, model, 1.0, probe_fn=probe)) is not None:
+            events.append(e)
+    assert len(events) == 8
+    for e in events:
+        cap = int(rate * interval * e["gaussians_before"])
+        assert e["removed"] <= cap
+        if e["rate_capped"]:
+            assert e["ratio"] == pytest.approx(cap / e["matched_pairs"])
+    assert events[0]["rate_capped"] and events[0]["removed"] == int(rate * interval * 600)
+    halvings = [(before, after) for before, after in zip(events, events[1:]) if after["ratio_direction"] == -1]
+    assert halvings and any(before["rate_capped"] for before, _ in halvings)
+    for before, after in halvings:  # half of what the step before used, whatever ratio it had asked for
+        assert after["ratio"] <= before["ratio"] / 2 + 1e-12
+        assert not after["rate_capped"] and after["removed"] < before["removed"]
+
+    # Off (0, the paper's) by default and in PAPER_RULE; a state saved before the option existed resumes uncapped.
+    assert paper_rule().removal_rate_max == 0.0
+    saved = json.loads(json.dumps(STKNNCompactor(dataclasses.replace(cfg, removal_rate_max=0.0), 100).state_dict()))
+    del saved["config"]["removal_rate_max"]
+    STKNNCompactor(dataclasses.replace(cfg, removal_rate_max=0.0), 100).load_state_dict(saved)
+    with pytest.raises(ValueError, match="different CompactionConfig"):
+        STKNNCompactor(cfg, 100).load_state_dict(saved)
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="removal_rate_max"):
+            dataclasses.replace(cfg, removal_rate_max=bad).validate()
