@@ -101,8 +101,13 @@ class AdaptiveRatio:
         self.maximum = float(maximum)
         self.tolerance = float(tolerance)
         self.budget = float(budget)
-        # With a budget: double the ratio while the budget has never held it back (then one step at a time).
+        # With a budget: double the ratio below `threshold`, one step at a time above it (TCP's slow start and
+        # congestion avoidance). The threshold is unknown (None: no limit) until the budget first halves the ratio;
+        # each back-off then sets it to half the ratio it started from, so that after the halvings the ratio doubles
+        # back to the level that last cost too little, not one step at a time from the bottom.
         self.slow_start = bool(slow_start)
+        self.threshold: float | None = None
+        self._backing_off = False
         self.previous_loss: float | None = None
         self.best_loss: float | None = None
 
@@ -157,9 +162,16 @@ class AdaptiveRatio:
         # Additive increase, multiplicative decrease: the damage shows some steps after the prunes that caused it,
         # so a ratio that only stepped down would keep pruning at nearly the rate that overshot.
         if direction < 0:
-            self.slow_start = False
+            if not self._backing_off:  # a run of halvings is one back-off (as one loss event in TCP)
+                self.threshold = self.ratio / 2.0
+            self._backing_off = True
             return self.ratio / 2.0
-        return max(2.0 * self.ratio, self.ratio + self.step) if self.slow_start else self.ratio + self.step
+        self._backing_off = False
+        additive = self.ratio + self.step
+        if not self.slow_start or (self.threshold is not None and self.ratio >= self.threshold):
+            return additive
+        doubled = max(2.0 * self.ratio, additive)
+        return doubled if self.threshold is None else max(min(doubled, self.threshold), additive)
 
     def _set(self, proposed: float) -> None:
         # Round away float drift (0.02 + 0.005 - 0.005 != 0.02) so that ratios are reproducible (and on the step grid
@@ -168,7 +180,7 @@ class AdaptiveRatio:
 
     def state_dict(self) -> dict[str, Any]:
         return {"ratio": self.ratio, "previous_loss": self.previous_loss, "best_loss": self.best_loss,
-                "slow_start": self.slow_start}
+                "slow_start": self.slow_start, "threshold": self.threshold, "backing_off": self._backing_off}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.ratio = float(state["ratio"])
@@ -178,3 +190,10 @@ class AdaptiveRatio:
         self.best_loss = None if best is None else float(best)
         # Saved before slow start existed: the ratio rose one step at a time.
         self.slow_start = bool(state.get("slow_start", False))
+        if "threshold" in state:
+            self.threshold = None if state["threshold"] is None else float(state["threshold"])
+            self._backing_off = bool(state["backing_off"])
+        else:
+            # Saved before the threshold existed (session 39): slow start ended for good at the first halving.
+            self.threshold = None
+            self._backing_off = False

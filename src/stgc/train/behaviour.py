@@ -56,6 +56,12 @@ def _prune_damage_budget(configs: Mapping[str, Any]) -> bool:
     return compaction is not None and compaction.method == "st-knn" and compaction.loss_signal == "prune_damage"
 
 
+def _slow_start_budget(configs: Mapping[str, Any]) -> bool:
+    compaction = configs.get("compaction")
+    return (compaction is not None and compaction.method == "st-knn" and compaction.loss_budget_db > 0
+            and getattr(compaction, "ratio_increase", "additive") == "slow_start")
+
+
 def _learned_mask(configs: Mapping[str, Any]) -> bool:
     train = configs["train"]
     return isinstance(train, TrainConfig) and train.quantization_aware.iterations > 0 and train.quantization_aware.mask
@@ -106,6 +112,12 @@ CHANGES: tuple[BehaviourChange, ...] = (
         "since session 39 (2026-11-29) a prune whose damage the probe could not measure (a non-finite render after "
         "it) halves the ratio at the next step instead of counting as free",
         _prune_damage_budget,
+    ),
+    BehaviourChange(
+        "slow-start-threshold",
+        "since session 40 (2026-11-29) slow start doubles the ratio again after a back-off, up to half the ratio the "
+        "back-off started from (it rose one step at a time after the first halving)",
+        _slow_start_budget,
     ),
     BehaviourChange(
         "two-view-tracks-kept",
