@@ -301,7 +301,7 @@ def test_the_budget_is_a_psnr_drop_in_the_config():
     # stgc's defaults (session 37): the prunes' own damage held within 0.3 dB, the least-seen losers first.
     default = CompactionConfig()
     assert (default.loss_signal, default.loss_budget_db, default.pair_order, default.ratio_max,
-            default.ratio_increase) == ("prune_damage", 0.3, "weight", 0.05, "additive")
+            default.ratio_increase, default.removal_rate_max) == ("prune_damage", 0.3, "weight", 0.2, "slow_start", 0.001)
     assert {k: getattr(paper_rule(), k) for k in PAPER_RULE} == PAPER_RULE
     model = make_model(random_params(600, seed=1))
     probe_values = iter([1.0, 1.02, 1.05, 1.0, 0.9])
@@ -525,6 +525,22 @@ def test_slow_start_doubles_the_ratio_until_the_budget_first_holds_it_then_steps
     assert [zero.hold(0.0, 0.0) and zero.ratio for _ in range(3)] == [0.01, 0.02, 0.04]  # at least one step
     capped = AdaptiveRatio(initial=0.15, step=0.01, minimum=0.0, maximum=0.2, slow_start=True)
     assert capped.hold(0.0, 0.0) == 1 and capped.ratio == 0.2
+    # After a back-off (a run of halvings) the ratio doubles again up to half the ratio the back-off started from
+    # (TCP's threshold), then steps; the next back-off sets the threshold again. The state keeps both.
+    over, within = (0.5, 0.1), (0.0, 0.1)
+    tcp = AdaptiveRatio(initial=0.16, step=0.01, minimum=0.0, maximum=0.2, slow_start=True)
+    assert [(tcp.hold(*over), tcp.ratio) for _ in range(3)] == [(-1, 0.08), (-1, 0.04), (-1, 0.02)]
+    assert tcp.threshold == 0.08
+    resumed_tcp = AdaptiveRatio(initial=0.16, step=0.01, minimum=0.0, maximum=0.2, slow_start=True)
+    resumed_tcp.load_state_dict(json.loads(json.dumps(tcp.state_dict())))
+    assert [resumed_tcp.hold(*within) and resumed_tcp.ratio for _ in range(4)] == pytest.approx([0.04, 0.08, 0.09, 0.1])
+    assert resumed_tcp.hold(*over) == -1 and resumed_tcp.threshold == pytest.approx(0.05)
+    assert [resumed_tcp.hold(*within) and resumed_tcp.ratio for _ in range(2)] == pytest.approx([0.06, 0.07])
+    # Session 39's slow start ended for good at the first halving: its states resume so.
+    ended = {"ratio": 0.02, "previous_loss": None, "best_loss": None, "slow_start": False}
+    resumed_ended = AdaptiveRatio(initial=0.01, step=0.01, minimum=0.0, maximum=0.2, slow_start=True)
+    resumed_ended.load_state_dict(ended)
+    assert resumed_ended.hold(*within) == 1 and resumed_ended.ratio == pytest.approx(0.03)
     old = {"ratio": 0.05, "previous_loss": None, "best_loss": None}  # a checkpoint from before session 39
     resumed_old = AdaptiveRatio(initial=0.01, step=0.01, minimum=0.0, maximum=0.2, slow_start=True)
     resumed_old.load_state_dict(old)
@@ -541,12 +557,12 @@ def test_slow_start_doubles_the_ratio_until_the_budget_first_holds_it_then_steps
     del with_budget["config"]["ratio_increase"]
     with pytest.raises(ValueError, match="different CompactionConfig"):
         STKNNCompactor(slow, 100).load_state_dict(with_budget)
-    STKNNCompactor(CompactionConfig(), 100).load_state_dict(with_budget)
+    STKNNCompactor(CompactionConfig(ratio_increase="additive"), 100).load_state_dict(with_budget)
 
     # The compactor: slow start only with a budget (the paper's rule steps), idle (refused) without one.
     budgeted = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10)
     assert STKNNCompactor(dataclasses.replace(budgeted, ratio_increase="slow_start"), 100).controller.slow_start
-    assert not STKNNCompactor(budgeted, 100).controller.slow_start
+    assert not STKNNCompactor(dataclasses.replace(budgeted, ratio_increase="additive"), 100).controller.slow_start
     with pytest.raises(ValueError, match="ratio_increase 'slowstart'"):  # the API has no Literal parsing
         CompactionConfig(ratio_increase="slowstart").validate()  # type: ignore[arg-type]
     assert "compaction.ratio_increase" in idle_compaction_options(paper_rule())
@@ -557,7 +573,7 @@ def test_an_unmeasured_prune_damage_backs_the_ratio_off_instead_of_reading_as_fr
     """A non-finite probe render after a prune leaves its damage unknown: the next step halves the ratio (as over
     budget) rather than counting the prune as costing nothing, and the flag survives a resume between the steps."""
     cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.2, ratio_max=0.4,
-                           ratio_increase="additive", ratio_step=0.01, pair_order="distance")
+                           ratio_increase="additive", ratio_step=0.01, pair_order="distance", removal_rate_max=0.0)
     compactor = STKNNCompactor(cfg, 100)
     model = make_model(random_params(600, 3, motion_scale=0.02))
     renders = iter([1e-3, float("nan"), 1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3])

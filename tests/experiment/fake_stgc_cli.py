@@ -27,7 +27,7 @@ _LITE_SECTIONS = {b"POSI": 3, b"TCEN": 1, b"TSCL": 1, b"MOTN": 9, b"FDC_": 3, b"
 
 
 FAKE_COMPACTION_DEFAULTS = {"pair_order": "weight", "loss_signal": "prune_damage", "loss_budget_db": 0.3,
-                            "ratio_increase": "additive"}
+                            "ratio_increase": "slow_start", "ratio_max": 0.2, "removal_rate_max": 0.001}
 
 
 def _record(out: Path, argv: list[str]) -> None:
@@ -102,7 +102,7 @@ def main(argv: list[str]) -> int:
         # written as a real run writes them (today's defaults; test_runner.py checks that they are).
         for key, default in FAKE_COMPACTION_DEFAULTS.items():
             value = sets.get(f"compaction.{key}", default)
-            compaction[key] = float(value) if key == "loss_budget_db" else value
+            compaction[key] = value if isinstance(default, str) else float(value)
         # mask_points_per_frame: a data section without it is read as a config from before it existed (0).
         data = {"path": argv[1], "preprocess": preprocess,
                 "mask_points_per_frame": int(sets.get("data.mask_points_per_frame", 1000))}

@@ -101,7 +101,8 @@ def test_builtin_plans_match_the_paper() -> None:
     assert t2.runs[5].overrides == {"data.preprocess": "stg-isolated", "compaction.method": "st-knn",
                                     "compaction.case": "4", "compaction.criterion": "timestamp",
                                     "compaction.pair_order": "distance", "compaction.loss_signal": "training",
-                                    "compaction.loss_budget_db": "0.0", "compaction.ratio_max": "0.02"}
+                                    "compaction.loss_budget_db": "0.0", "compaction.ratio_max": "0.02",
+                                    "compaction.removal_rate_max": "0.0"}
     assert {r.overrides.get("compaction.criterion") for r in t3.runs} == {None, "scale", "timestamp"}
     assert t3.baseline == "ST-KNN (scale)" and len(t3.runs) == 9
     # Shared runs have the same name in both tables, so one folder serves both.
@@ -935,6 +936,8 @@ def test_set_values_valid_with_a_run_s_own_options_and_a_fine_tuned_loss_referen
      {"data.min_track_length": "2", "data.init_source": "random"}),
     ("unmeasured-prune-damage-backs-off", {"compaction.method": "st-knn"},
      {"compaction.method": "st-knn", "compaction.loss_signal": "probe_psnr"}),
+    ("slow-start-threshold", {"compaction.method": "st-knn"},
+     {"compaction.method": "st-knn", "compaction.ratio_increase": "additive"}),
 ])
 def test_session_36_s_behaviour_changes_act_on_their_runs_only(change, acting, idle) -> None:
     from stgc.options import resolve_configs
