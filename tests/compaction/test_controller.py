@@ -301,7 +301,7 @@ def test_the_budget_is_a_psnr_drop_in_the_config():
     # stgc's defaults (session 37): the prunes' own damage held within 0.3 dB, the least-seen losers first.
     default = CompactionConfig()
     assert (default.loss_signal, default.loss_budget_db, default.pair_order, default.ratio_max,
-            default.ratio_increase, default.removal_rate_max) == ("prune_damage", 0.3, "weight", 0.2, "slow_start", 0.001)
+            default.ratio_increase, default.removal_rate_max) == ("prune_damage", 0.3, "weight", 0.05, "additive", 0.0)
     assert {k: getattr(paper_rule(), k) for k in PAPER_RULE} == PAPER_RULE
     model = make_model(random_params(600, seed=1))
     probe_values = iter([1.0, 1.02, 1.05, 1.0, 0.9])

@@ -92,25 +92,25 @@ class CompactionConfig:
                                          "slow_start; over it the ratio halves)"}
     )
     ratio_min: float = field(default=0.001, metadata={"help": "lower bound of the pruning ratio"})
-    ratio_max: float = field(default=0.2, metadata={"help": "upper bound of the pruning ratio (the paper's rule: 0.02; "
-                                                    "0.05 until session 40)"})
+    ratio_max: float = field(default=0.05, metadata={"help": "upper bound of the pruning ratio (the paper's rule: 0.02)"})
     ratio_increase: RatioIncrease = field(
-        default="slow_start",
+        default="additive",
         metadata={
             "help": "how the damage budget (loss_budget_db > 0) raises the ratio while within it: 'additive' = one "
             "ratio_step per step; 'slow_start' = doubled (at least one step) until the budget first halves it, then "
-            "one step, as TCP's slow start (the default since session 40, with removal_rate_max bounding what a "
-            "step takes; additive before)"
+            "one step; after each back-off it doubles again up to half the ratio the back-off started from (TCP's "
+            "slow start and threshold). With ratio_max 0.2 it removed over half of both shared scenes in the cpu "
+            "preset, for 0.08-0.49 dB on panoptic_basketball (0.3 dB budget): benchmarks/RESULTS.md, sessions 39-40"
         },
     )
     removal_rate_max: float = field(
-        default=0.001,
+        default=0.0,
         metadata={
             "help": "the most a pruning step may remove, as a share of the model's Gaussians per training iteration "
             "since the previous step (times the interval: 0.001 is 3 in 100 per step at the cpu preset's interval of "
             "30, 1 in 200 at the demo's 5): what a prune takes, training must make good before the next one, so the cap "
             "counts iterations, not steps; where it binds the ratio is lowered to what the step used. 0 = no cap "
-            "(the paper; until session 40)"
+            "(the paper)"
         },
     )
     loss_tolerance: float = field(
