@@ -150,6 +150,31 @@ def test_a_checkpoint_is_not_resumed_under_other_options(stopped, tmp_path, caps
     assert (run / Run.METRICS).read_text() == metrics
 
 
+def test_a_checkpoint_from_before_an_option_existed_resumes_as_it_trained(stopped, tmp_path):
+    """A checkpoint whose recorded options lack one added since (compaction.removal_rate_max, session 40) trained as
+    the option's SAVED_BEFORE says: it resumes under a config.json that reads so, and is refused under another
+    value of the option."""
+    from stgc.train.checkpoint import OPTIONS, OPTIONS_FINGERPRINT
+    from stgc.train.loop import options_fingerprint
+
+    run = _copy(stopped, tmp_path)
+    checkpoint = torch.load(run / Run.CHECKPOINT, weights_only=False)
+    assert checkpoint[OPTIONS].pop("compaction.removal_rate_max") == 0.0
+    checkpoint[OPTIONS_FINGERPRINT] = options_fingerprint(checkpoint[OPTIONS])
+    torch.save(checkpoint, run / Run.CHECKPOINT)
+    config = json.loads((run / Run.CONFIG).read_text())
+    del config["compaction"]["removal_rate_max"]  # as the code of the day wrote it
+    (run / Run.CONFIG).write_text(json.dumps(config))
+    assert _trainer(run, checkpoint_every=0, progress=False).start_iteration == 5  # where `stopped` stopped
+    from stgc.train.loop import Trainer
+
+    configs = configs_from_run(run)
+    capped = dataclasses.replace(configs["compaction"], removal_rate_max=0.5)
+    with pytest.raises(DataError, match="compaction.removal_rate_max: the checkpoint's 0.0, this run's 0.5"):
+        Trainer(configs["data"].open(configs["data_path"]), configs["data"], configs["model"], configs["train"],
+                capped, run, resume=True)
+
+
 def test_a_resume_that_changes_only_how_the_run_executes_is_accepted(stopped, tmp_path):
     run = _copy(stopped, tmp_path)
     threads = torch.get_num_threads()

@@ -586,6 +586,11 @@ class Trainer:
             return
         recorded_options = ckpt.get(OPTIONS)
         theirs: dict[str, Any] = recorded_options if isinstance(recorded_options, dict) else {}
+        # An option added since the checkpoint was written: it trained as the option's SAVED_BEFORE says (never as
+        # a value given now), as config.json is read back.
+        theirs = {**{name: value for name, value in _saved_before_options().items() if name not in theirs}, **theirs}
+        if theirs and options_fingerprint(theirs) == self.options_fingerprint:
+            return
         missing = object()
         differences = [f"{name}: the checkpoint's {theirs.get(name)!r}, this run's {self.options.get(name)!r}"
                        for name in sorted(set(theirs) | set(self.options))
@@ -1008,6 +1013,15 @@ def run_options(config: dict[str, Any]) -> dict[str, Any]:
     options = {f"{name}.{key}": value for name, section in sections.items()
                for key, value in _flat(json.loads(json.dumps(dataclasses.asdict(section)))).items()}
     return {name: value for name, value in options.items() if name not in EXECUTION_OPTIONS}
+
+
+def _saved_before_options() -> dict[str, Any]:
+    """Every section's SAVED_BEFORE (how a config saved before an option existed trained), as `run_options` names
+    the options."""
+    return {f"{section}.{dotted}": value
+            for section, cls in (("data", DataConfig), ("model", ModelConfig), ("train", TrainConfig),
+                                 ("compaction", CompactionConfig))
+            for dotted, value in json.loads(json.dumps(getattr(cls, "SAVED_BEFORE", {}))).items()}
 
 
 def options_fingerprint(options: dict[str, Any]) -> str:
