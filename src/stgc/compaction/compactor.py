@@ -151,7 +151,8 @@ class STKNNCompactor:
         matched_pairs = len(pairs)
         rate_capped = False
         if self.config.removal_rate_max > 0:
-            cap = int(self.config.removal_rate_max * self.schedule.interval * n_before)
+            # At least one a step, or a small model with a short interval would never be pruned at all.
+            cap = max(1, int(self.config.removal_rate_max * self.schedule.interval * n_before))
             max_removals = min(max_removals, cap)
             if matched_pairs and ratio * matched_pairs > cap:
                 # The step uses only the cap's share of the pairs: the controller goes on from the ratio used (as

@@ -97,9 +97,10 @@ class CompactionConfig:
         default="additive",
         metadata={
             "help": "how the damage budget (loss_budget_db > 0) raises the ratio while within it: 'additive' = one "
-            "ratio_step per step; 'slow_start' = doubled (at least one step) until the budget first halves it, then "
-            "one step; after each back-off it doubles again up to half the ratio the back-off started from (TCP's "
-            "slow start and threshold). With ratio_max 0.2 it removed over half of both shared scenes in the cpu "
+            "ratio_step per step; 'slow_start' = doubled (at least one step) until the budget first halves it; after "
+            "each back-off it doubles again up to half the ratio the back-off started from, then rises one step at a "
+            "time (TCP's slow start and threshold; since session 40: session 39's rule stepped after the first "
+            "halving). With ratio_max 0.2 it removed over half of both shared scenes in the cpu "
             "preset, for 0.08-0.49 dB on panoptic_basketball (0.3 dB budget): benchmarks/RESULTS.md, sessions 39-40"
         },
     )
@@ -109,8 +110,9 @@ class CompactionConfig:
             "help": "the most a pruning step may remove, as a share of the model's Gaussians per training iteration "
             "since the previous step (times the interval: 0.001 is 3 in 100 per step at the cpu preset's interval of "
             "30, 1 in 200 at the demo's 5): what a prune takes, training must make good before the next one, so the cap "
-            "counts iterations, not steps; where it binds the ratio is lowered to what the step used. 0 = no cap "
-            "(the paper)"
+            "counts iterations, not steps (at least one Gaussian a step); where it binds the ratio is lowered to the "
+            "cap's share of the matched pairs (logged as the step's ratio, even below ratio_min; conflicts between "
+            "pairs leave the removals at 65-90 percent of the cap). 0 = no cap (the paper)"
         },
     )
     loss_tolerance: float = field(

@@ -19,7 +19,9 @@ that best by more than `budget` (relative), and rises one step otherwise (additi
 the damage shows some steps after the prunes that caused it). So the accumulated damage, not its change, is held.
 With `slow_start` the ratio doubles instead of rising one step until the budget first halves it (TCP's slow start):
 an additive climb from 0.5 % by 0.1 % per step took 45 of a window's 100 steps to reach 5 % while the prunes cost
-nothing measurable (issue #17, session 38), and so left a third of the window's pruning unspent.
+nothing measurable (issue #17, session 38), and so left a third of the window's pruning unspent. Each back-off
+(a run of halvings) sets a threshold at half the ratio it started from, and the ratio doubles again up to it before
+stepping (TCP's threshold; session 40: stepping from the bottom of a back-off left half the allowance unspent).
 `budget_for_psnr_drop` turns a PSNR drop into it. The best seen so far understates the damage: once pruning takes
 the model's capacity its loss stops falling, while an unpruned model's keeps falling to the end (issue #17 measured
 1.8 dB lost on a test view with the probe held within 0.3 dB's worth of its own best). Given a `reference` loss at
@@ -86,8 +88,8 @@ def budget_for_psnr_drop(drop_db: float, squared_error: bool = False) -> float:
 
 class AdaptiveRatio:
     """The pruning ratio: down one step when the smoothed loss rose, up one step when it fell, clamped; or, with a
-    damage `budget` (or `hold`), halved while over it and increased otherwise: up one step, or doubled while
-    `slow_start` lasts (until the first halving)."""
+    damage `budget` (or `hold`), halved while over it and increased otherwise: up one step, or with `slow_start`
+    doubled below the threshold (none until the first back-off, then half the ratio each back-off started from)."""
 
     def __init__(self, initial: float, step: float, minimum: float, maximum: float, tolerance: float = 0.0,
                  budget: float = 0.0, slow_start: bool = False):
@@ -194,6 +196,8 @@ class AdaptiveRatio:
             self.threshold = None if state["threshold"] is None else float(state["threshold"])
             self._backing_off = bool(state["backing_off"])
         else:
-            # Saved before the threshold existed (session 39): slow start ended for good at the first halving.
+            # Saved before the threshold existed (session 39): a state whose slow start had ended (the first halving)
+            # steps on as it did; one still doubling takes up the threshold at its first back-off (a behaviour
+            # change, `slow-start-threshold`).
             self.threshold = None
             self._backing_off = False
