@@ -59,7 +59,7 @@ def _prune_damage_budget(configs: Mapping[str, Any]) -> bool:
 def _slow_start_budget(configs: Mapping[str, Any]) -> bool:
     compaction = configs.get("compaction")
     return (compaction is not None and compaction.method == "st-knn" and compaction.loss_budget_db > 0
-            and getattr(compaction, "ratio_increase", "additive") == "slow_start")
+            and compaction.ratio_increase == "slow_start")
 
 
 def _learned_mask(configs: Mapping[str, Any]) -> bool:

@@ -585,12 +585,13 @@ class Trainer:
         if recorded is None or recorded == self.options_fingerprint:
             return
         recorded_options = ckpt.get(OPTIONS)
-        theirs: dict[str, Any] = recorded_options if isinstance(recorded_options, dict) else {}
-        # An option added since the checkpoint was written: it trained as the option's SAVED_BEFORE says (never as
-        # a value given now), as config.json is read back.
-        theirs = {**{name: value for name, value in _saved_before_options().items() if name not in theirs}, **theirs}
-        if theirs and options_fingerprint(theirs) == self.options_fingerprint:
-            return
+        theirs: dict[str, Any] = {}
+        if isinstance(recorded_options, dict):
+            # An option added since the checkpoint was written: it trained as the option's SAVED_BEFORE says (never
+            # as a value given now), as config.json is read back.
+            theirs = {**_saved_before_options(), **recorded_options}
+            if options_fingerprint(theirs) == self.options_fingerprint:
+                return
         missing = object()
         differences = [f"{name}: the checkpoint's {theirs.get(name)!r}, this run's {self.options.get(name)!r}"
                        for name in sorted(set(theirs) | set(self.options))
@@ -1018,9 +1019,9 @@ def run_options(config: dict[str, Any]) -> dict[str, Any]:
 def _saved_before_options() -> dict[str, Any]:
     """Every section's SAVED_BEFORE (how a config saved before an option existed trained), as `run_options` names
     the options."""
-    return {f"{section}.{dotted}": value
-            for section, cls in (("data", DataConfig), ("model", ModelConfig), ("train", TrainConfig),
-                                 ("compaction", CompactionConfig))
+    from stgc.options import section_classes  # here: stgc.options imports stgc.train, which imports this module
+
+    return {f"{section}.{dotted}": value for section, cls in section_classes().items()
             for dotted, value in json.loads(json.dumps(getattr(cls, "SAVED_BEFORE", {}))).items()}
 
 
