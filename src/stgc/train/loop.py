@@ -1019,9 +1019,10 @@ def run_options(config: dict[str, Any]) -> dict[str, Any]:
 def _saved_before_options() -> dict[str, Any]:
     """Every section's SAVED_BEFORE (how a config saved before an option existed trained), as `run_options` names
     the options."""
-    from stgc.options import section_classes  # here: stgc.options imports stgc.train, which imports this module
-
-    return {f"{section}.{dotted}": value for section, cls in section_classes().items()
+    # The sections as `run_options` reads them (stgc.options.section_classes is a layer above training).
+    return {f"{section}.{dotted}": value
+            for section, cls in (("data", DataConfig), ("model", ModelConfig), ("train", TrainConfig),
+                                 ("compaction", CompactionConfig))
             for dotted, value in json.loads(json.dumps(getattr(cls, "SAVED_BEFORE", {}))).items()}
 
 
