@@ -305,7 +305,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     result = run_plan(
         args.data, args.plan, args.out, preset=args.preset, extra_overrides=args.set or [],
         codec_qualities=sorted(set(args.codec_quality or [])), preprocess=args.preprocess, bd_method=args.bd_method,
-        use_ray=not args.no_ray, ray_address=args.ray_address,
+        use_ray=not args.no_ray, ray_address=args.ray_address, seeds=args.seeds or (),
     )
     print(result)
     if result.failed:
@@ -487,6 +487,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override applied to every run")
     p.add_argument("--codec-quality", type=int, action="append", choices=QUALITY_LEVELS,
                    help="also add .stgc rate points at this quality (repeat for several)")
+    p.add_argument("--seeds", type=int, nargs="+", metavar="SEED",
+                   help="train every run once per seed (train.seed; seed 0 keeps the run's name, seed s is "
+                   "<name>-seed<s>); the report gives each run's mean over its seeds, the spread, and the change "
+                   "against the baseline seed by seed (a plan may say seeds = [...] itself)")
     add_ray_arguments(p, "run")
 
     p.add_argument("--preprocess", choices=[m for m in PREPROCESS_MODES if m != "none"],

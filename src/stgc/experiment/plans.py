@@ -25,6 +25,13 @@ PLAN.toml:
     name = "st-knn-budget"
     loss_reference = "stg"     # an earlier run with compaction.method=reference: this run's damage budget holds
                                # its probe loss against that one's (sets compaction.loss_reference; trains after it)
+
+A plan may also say `seeds = [0, 1, 2]` (or `stgc experiment --seeds 0 1 2` for any plan): every run is then trained
+once per seed (train.seed), seed 0 under the run's name and seed s under `<name>-seed<s>`, so that a plan's earlier
+runs (trained with the default seed 0) count as its seed 0. A run's `from` and `loss_reference` name the same
+seed's run. Two runs of one configuration differ by a few tenths of a dB on a real capture (0.34 dB between two
+seeds of panoptic_basketball's `cpu` preset), so a difference at that line needs several seeds; the report then
+gives each run's mean over its seeds and the spread, and its change against the baseline seed by seed.
 """
 
 from __future__ import annotations
@@ -33,7 +40,7 @@ import difflib
 import re
 import tomllib
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +54,7 @@ PAPER_PREPROCESS = "stg-isolated"
 CASES = (1, 2, 3, 4)
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 # Every key a PLAN.toml may hold: a misspelt one would otherwise be dropped and change the experiment silently.
-PLAN_KEYS = ("name", "baseline", "title", "runs")
+PLAN_KEYS = ("name", "baseline", "title", "runs", "seeds")
 RUN_KEYS = ("name", "family", "label", "overrides", "from", "iterations", "codec_qualities", "loss_reference")
 
 
@@ -63,6 +70,14 @@ class RunSpec:
     # A run of the same plan trained with compaction.method=reference: this run's damage budget holds its probe
     # loss against that one's (compaction.loss_reference = its folder); it trains after it.
     reference: str | None = None
+    # In a plan with seeds: the train.seed of this run, and the name of the plan entry it is that seed of.
+    seed: int | None = None
+    entry: str | None = None
+
+    @property
+    def entry_name(self) -> str:
+        """The plan entry this run trains: its own name, or in a plan with seeds the entry it is one seed of."""
+        return self.entry or self.name
 
 
 @dataclass(frozen=True)
@@ -72,6 +87,45 @@ class Plan:
     baseline: str | None = None
     title: str = ""
     notes: tuple[str, ...] = field(default_factory=tuple)
+    seeds: tuple[int, ...] = ()  # every entry trained once per seed (`with_seeds`); () = once, as configured
+
+
+def seed_run_name(entry: str, seed: int) -> str:
+    """The folder of seed `seed` of plan entry `entry`: seed 0 (train.seed's default) keeps the entry's name."""
+    return entry if seed == 0 else f"{entry}-seed{seed}"
+
+
+def with_seeds(plan: Plan, seeds: Sequence[int]) -> Plan:
+    """`plan` with each run trained once per seed (train.seed = s, named `seed_run_name`), its `from` and
+    loss_reference the same seed's runs. Raises ConfigError for seeds that are not distinct integers >= 0, a run
+    that sets train.seed itself, or a plan already expanded with other seeds."""
+    seeds = tuple(seeds)
+    if not seeds:
+        return plan
+    if not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds) or len(set(seeds)) != len(
+            seeds):
+        raise ConfigError(f"plan {plan.name}: seeds {list(seeds)}: distinct integers >= 0")
+    if plan.seeds:
+        if plan.seeds != seeds:
+            raise ConfigError(f"plan {plan.name} trains seeds {list(plan.seeds)}; --seeds {' '.join(map(str, seeds))} "
+                              "asks for others: give them in one place")
+        return plan
+    runs = []
+    for spec in plan.runs:
+        if "train.seed" in spec.overrides:
+            raise ConfigError(f"plan {plan.name}, run {spec.name!r}: sets train.seed, which the plan's seeds set "
+                              "for every run")
+        for seed in seeds:
+            runs.append(replace(spec, name=seed_run_name(spec.name, seed),
+                                overrides={**spec.overrides, "train.seed": str(seed)},
+                                source=None if spec.source is None else seed_run_name(spec.source, seed),
+                                reference=None if spec.reference is None else seed_run_name(spec.reference, seed),
+                                seed=seed, entry=spec.name))
+    names = [r.name for r in runs]
+    clash = sorted({n for n in names if names.count(n) > 1})
+    if clash:
+        raise ConfigError(f"plan {plan.name}: with seeds, {', '.join(clash)} would name two runs; rename the entry")
+    return replace(plan, runs=tuple(runs), seeds=seeds)
 
 
 def _spec(name: str, family: str, label: str, **overrides: Any) -> RunSpec:
@@ -215,8 +269,16 @@ def load_plan_toml(path: str | Path) -> Plan:
     plan_name = str(data.get("name", path.stem))
     if not _NAME.match(plan_name):  # it names OUT/results-<plan>.csv and OUT/report-<plan>/
         raise FormatError(path, f"plan name {plan_name!r}: use letters, digits, '.', '_' or '-' (it names files)")
-    return Plan(plan_name, tuple(runs), None if baseline is None else str(baseline),
-                str(data.get("title", "")))
+    plan = Plan(plan_name, tuple(runs), None if baseline is None else str(baseline), str(data.get("title", "")))
+    seeds = data.get("seeds")
+    if seeds is None:
+        return plan
+    if not isinstance(seeds, list) or not seeds:
+        raise FormatError(path, f"seeds = {seeds!r}: a non-empty list of distinct integers >= 0")
+    try:
+        return with_seeds(plan, seeds)
+    except ConfigError as exc:
+        raise FormatError(path, str(exc)) from None
 
 
 def _refuse_unknown_keys(table: Mapping[str, Any], known: Sequence[str], path: Path, where: str) -> None:
@@ -250,9 +312,13 @@ def check_codec_baseline(plan: Plan, codec_qualities: Sequence[int]) -> None:
                           "has no codec rate points: give --codec-quality Q")
 
 
-def load_plan(plan: str | Path | Plan, preprocess: str | None = None) -> Plan:
+def load_plan(plan: str | Path | Plan, preprocess: str | None = None, seeds: Sequence[int] = ()) -> Plan:
     """A Plan from a built-in name ("table2", "table3"; `preprocess` picks their preprocessing rule), a
-    PLAN.toml path, or a Plan."""
+    PLAN.toml path, or a Plan; with `seeds`, each run trained once per seed (`with_seeds`)."""
+    return with_seeds(_load_plan(plan, preprocess), seeds)
+
+
+def _load_plan(plan: str | Path | Plan, preprocess: str | None) -> Plan:
     if isinstance(plan, Plan):
         return plan
     key = str(plan)

@@ -65,6 +65,7 @@ from stgc.eval.report import (
     remove_report,
 )
 from stgc.experiment.plans import Plan, RunSpec, check_codec_baseline, load_plan
+from stgc.experiment.spread import baseline_entry, seed_spread, spread_markdown, write_spread_csv
 from stgc.fileio import atomic_open, read_json_object, write_json
 from stgc.options import (
     configs_from_run,
@@ -83,7 +84,7 @@ from stgc.train.continuation import check_window_fits, continuation_configs
 
 _log = logging.getLogger(__name__)
 
-RESULT_COLUMNS = ("plan", "name", "family", "label", "status", "rate_point", "num_gaussians", "size_mb", "mbps", "psnr",
+RESULT_COLUMNS = ("plan", "name", "family", "label", "seed", "status", "rate_point", "num_gaussians", "size_mb", "mbps", "psnr",
                   "psnr_yuv", "ssim", "lpips", "fps", "train_seconds", "overrides", "run_dir")
 CLI_MODULE = "stgc.cli"
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -533,7 +534,9 @@ def _result_row(plan: Plan, o: RunOutcome, out_dir: Path) -> dict[str, Any]:
         rel = o.run_dir.relative_to(out_dir)
     except ValueError:
         rel = o.run_dir
-    return {"plan": plan.name, "name": o.name, "family": o.family, "label": o.label, "status": o.status, **row,
+    spec = next((spec for spec in plan.runs if spec.name == o.run_dir.name), None)
+    return {"plan": plan.name, "name": o.name, "family": o.family, "label": o.label,
+            "seed": None if spec is None else spec.seed, "status": o.status, **row,
             "overrides": " ".join(f"{k}={v}" for k, v in o.overrides.items()),
             "run_dir": str(rel) + (f"/{o.bitstream}" if o.bitstream else "")}
 
@@ -573,6 +576,30 @@ def _report_rows(outcomes: Sequence[RunOutcome]) -> list[ReportRow]:
     return list(_reported(outcomes).values())
 
 
+def _write_report(plan: Plan, outcomes: Sequence[RunOutcome], report_dir: Path, bd_method: str) -> Report | None:
+    """The plan's report (None, and an earlier one's files removed, where no run has a result). A plan with
+    several seeds reports each entry's mean over its seeds, with the spread and the change against the baseline
+    seed by seed (spread.py) as a table of the report and report_dir/seeds.csv."""
+    rows = _report_rows(outcomes)
+    if not rows:
+        remove_report(report_dir)
+        (report_dir / "seeds.csv").unlink(missing_ok=True)
+        return None
+    notes: tuple[str, ...] = ()
+    (report_dir / "seeds.csv").unlink(missing_ok=True)  # an earlier report's, with other seeds or none
+    if len(plan.seeds) > 1:
+        reported = _reported(outcomes)
+        spreads = seed_spread(plan, {(o.run_dir.name, o.bitstream): reported[id(o)]
+                                     for o in outcomes if id(o) in reported})
+        rows = [spread.mean_row() for spread in spreads]
+        report_dir.mkdir(parents=True, exist_ok=True)
+        write_spread_csv(report_dir / "seeds.csv", spreads)
+        notes = (spread_markdown(spreads, baseline_entry(plan)),)
+    return make_report(rows, report_dir, plan.baseline, title=plan.title or f"Plan {plan.name}",
+                       bd_method=bd_method,  # type: ignore[arg-type]
+                       notes=notes, baseline_may_be_missing=True)  # the plan's: its runs may have failed
+
+
 def run_plan(
     data_path: str | Path,
     plan: str | Path | Plan,
@@ -592,6 +619,7 @@ def run_plan(
     check_options: bool = True,
     use_ray: bool = False,
     ray_address: str | None = None,
+    seeds: Sequence[int] = (),
 ) -> PlanResult:
     """Train, evaluate (and optionally compress + evaluate at each codec quality) every run of `plan` under
     OUT, skipping what is already done; write OUT/results-<plan>.csv and the report in OUT/report-<plan>.
@@ -599,10 +627,11 @@ def run_plan(
     `extra_overrides` apply to every run and win over the plan's own. Each run (training, evaluation, its codec
     points) is a task (`stgc.distributed.run_tasks`): with use_ray on a local Ray or the cluster at
     `ray_address`, else one after another here. `runner(cmd, log_path) -> exit status` and `command_builder` are
-    injectable (tests use a fake trainer)."""
+    injectable (tests use a fake trainer). `seeds`: train every run once per seed (plans.with_seeds); the report
+    then gives each run's mean over its seeds and the spread (spread.py)."""
     if use_ray and ray_address is not None:
         check_reachable(ray_address)  # refused in seconds, before anything is written
-    plan = load_plan(plan, preprocess)
+    plan = load_plan(plan, preprocess, seeds)
     # Absolute: a worker on another node reads relative paths against its own working directory.
     data_path, out_dir = Path(data_path).resolve(), Path(out_dir).resolve()
     extra = parse_overrides(extra_overrides)
@@ -675,14 +704,7 @@ def run_plan(
     write_results(results_csv, plan, result.outcomes, out_dir)
 
     if make_report_files and not dry_run:
-        rows = _report_rows(result.outcomes)
-        report_dir = out_dir / f"report-{plan.name}"
-        if rows:
-            result.report = make_report(rows, report_dir, plan.baseline, title=plan.title or f"Plan {plan.name}",
-                                        bd_method=bd_method,  # type: ignore[arg-type]
-                                        baseline_may_be_missing=True)  # the plan's: its runs may have failed
-        else:
-            remove_report(report_dir)
+        result.report = _write_report(plan, result.outcomes, out_dir / f"report-{plan.name}", bd_method)
     return result
 
 
