@@ -144,6 +144,7 @@ def test_a_plan_over_seeds_reports_each_run_s_mean_spread_and_change_against_the
     report = json.loads((out / "report-mini" / "report.json").read_text())
     case1 = next(r for r in report["rows"] if r["extra"].get("run") == "c1")
     assert case1["psnr"] == pytest.approx(29.5) and case1["extra"]["seeds"] == [0, 1, 2]
+    assert case1["extra"]["fps"] == pytest.approx(5.0)  # the record's other numbers are averaged too
     assert len(report["rows"]) == 6
     md = (out / "report-mini" / "report.md").read_text()
     assert "## Over the seeds" in md and "| Case 1 (c1) | 0 1 2 |" in md and "-0.40 ± 0.10 [-0.50, -0.30]" in md

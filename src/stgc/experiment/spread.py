@@ -47,10 +47,15 @@ class EntrySpread:
             values = self.values(name)
             return statistics.fmean(values) if values else None
         gaussians = mean("num_gaussians")
+        rows = list(self.rows.values())
+        # The record's other numbers (YUV-PSNR, LPIPS, FPS, training time) where every seed has one, averaged too.
+        numbers = {key: statistics.fmean(float(row.extra[key]) for row in rows) for key in rows[0].extra
+                   if all(_is_number(row.extra.get(key)) for row in rows)} if rows else {}
         return ReportRow(name=self.label, family=self.family, mbps=mean("mbps"), psnr=mean("psnr"),
                          num_gaussians=None if gaussians is None else round(gaussians), size_mb=mean("size_mb"),
-                         ssim=mean("ssim"), extra={"run": self.entry, "seeds": sorted(self.rows),
-                                                   **_shared_test_set(self.rows.values())})
+                         ssim=mean("ssim"), lpips=mean("lpips"),
+                         extra={**numbers, "run": self.entry, "seeds": sorted(self.rows),
+                                **_shared_test_set(rows)})
 
     def paired(self) -> tuple[list[float], list[float]]:
         """The changes against the baseline, seed by seed: PSNR (dB) and share of Gaussians removed."""
@@ -68,6 +73,10 @@ class EntrySpread:
                 "delta_psnr_min": min(delta, default=None), "delta_psnr_max": max(delta, default=None),
                 "removed_mean": _mean(removed), "removed_min": min(removed, default=None),
                 "removed_max": max(removed, default=None), "paired_seeds": " ".join(map(str, sorted(self.delta_psnr)))}
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _mean(values: Sequence[float]) -> float | None:
