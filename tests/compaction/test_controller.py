@@ -637,3 +637,51 @@ def test_a_removal_rate_cap_bounds_each_step_and_the_ratio_goes_on_from_what_was
     for bad in (-0.1, 1.5, float("nan")):
         with pytest.raises(ValueError, match="removal_rate_max"):
             dataclasses.replace(cfg, removal_rate_max=bad).validate()
+
+
+def test_the_steps_after_an_opacity_reset_prune_nothing_and_the_ratio_waits():
+    """reset_settle_steps: right after an opacity reset every opacity is at most opacity_reset_value, so blending
+    weights rank Gaussians by size and the probe cannot see what a prune takes; the steps within that many after a
+    reset (at or before them) remove nothing, leave the controller as it was, and count toward the budget's spread."""
+    cfg = CompactionConfig(case=0, window_start=0.1, window_end=0.9, interval=10, ratio_init=0.05, ratio_max=0.2,
+                           loss_budget_db=0.3, pair_order="distance", reset_settle_steps=2)
+
+    def run(config: CompactionConfig, resets: tuple[int, ...]) -> list[dict]:
+        compactor = STKNNCompactor(config, 100, opacity_resets=resets)
+        model = make_model(random_params(600, 3, motion_scale=0.02))
+        events = []
+        for it in range(1, 101):
+            n = model.params["xyz"].shape[0]
+            if (e := compactor.step(it, 0.5, model, 1.0, probe_fn=lambda: _probe(1.0, 1e-3))) is not None:
+                assert e["gaussians_before"] == n and model.params["xyz"].shape[0] == n - e["removed"]
+                events.append(e)
+        return events
+
+    events = run(cfg, (10, 50))
+    assert [e["iteration"] for e in events] == [10, 20, 30, 40, 50, 60, 70, 80]
+    settling = [e["iteration"] for e in events if e.get("settling")]
+    assert settling == [10, 20, 50, 60]
+    assert all(e["removed"] == 0 for e in events if e.get("settling"))
+    assert all(e["removed"] > 0 for e in events if not e.get("settling"))
+    # The ratio waits: the first prune after the settling uses the ratio a first prune uses; the steps counted.
+    unsettled = run(cfg, ())
+    first = events[2]
+    assert first["ratio"] == pytest.approx(unsettled[0]["ratio"]) and first["step"] == 3
+    assert all(e["ratio"] == pytest.approx(cfg.ratio_init) for e in events[:2])
+    assert first["damage_allowed_db"] == pytest.approx(0.3 * 2 / 8)
+    # No reset, or none before the window, or the option off (the paper's): every step prunes.
+    for config, resets in ((cfg, ()), (cfg, (90,)), (dataclasses.replace(cfg, reset_settle_steps=0), (10, 50))):
+        assert not any(e.get("settling") for e in run(config, resets))
+    assert paper_rule().reset_settle_steps == 0 and CompactionConfig.SAVED_BEFORE["reset_settle_steps"] == 0
+    with pytest.raises(ValueError, match="reset_settle_steps"):
+        dataclasses.replace(cfg, reset_settle_steps=-1).validate()
+
+
+def test_the_schedule_lists_the_opacity_resets_density_control_makes():
+    from stgc.train.config import resolve_schedule, train_preset
+
+    for preset in ("cpu", "paper"):
+        schedule = resolve_schedule(train_preset(preset).resolved(False, None))
+        resets = schedule.opacity_resets()
+        assert resets and set(resets) == {i for i in range(1, schedule.iterations + 1)
+                                          if schedule.is_opacity_reset(i)}

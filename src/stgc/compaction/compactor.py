@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -58,10 +58,13 @@ class STKNNCompactor:
     >>> event = compactor.step(iteration, t, model, loss)   # None, or a dict for RUN/compaction.jsonl
     """
 
-    def __init__(self, config: CompactionConfig, total_iterations: int):
+    def __init__(self, config: CompactionConfig, total_iterations: int, opacity_resets: Sequence[int] = ()):
+        """`opacity_resets`: the iterations at which training resets every opacity (reset_settle_steps waits after
+        them)."""
         validate_config(config, "compaction")  # its fixed choices too (pair_order "Size" was taken for distance)
         self.config = config
         self.total_iterations = int(total_iterations)
+        self.opacity_resets = tuple(sorted(int(i) for i in opacity_resets))
         self.schedule: PruningSchedule = resolve_schedule(config, self.total_iterations)
         self.smoother = LossSmoother(config.loss_smoothing, self.schedule.interval, config.ema_decay)
         # prune_damage holds its budget in dB as an allowance (AdaptiveRatio.hold), not as a relative rise.
@@ -108,6 +111,12 @@ class STKNNCompactor:
         self.smoother.add(loss)
         if not self.schedule.is_pruning_iteration(iteration):
             return None
+        if self.config.method != "reference" and self._settling(iteration):
+            n = int(model.params["xyz"].shape[0])
+            self.steps_done += 1
+            return {"iteration": int(iteration), "t": float(t), "step": self.steps_done, "ratio": self.controller.ratio,
+                    "loss_signal": self.config.loss_signal, "settling": True, "removed": 0, "gaussians_before": n,
+                    "gaussians_left": n, "total_removed": self.total_removed, "criterion": self.config.criterion}
 
         smoothed: float | None
         probe: ProbeResult | None = None
@@ -238,6 +247,13 @@ class STKNNCompactor:
             "match_seconds": round(matched_at - started, 4),
             "prune_seconds": round(finished - matched_at, 4),
         }
+
+    def _settling(self, iteration: int) -> bool:
+        """Whether the pruning step at `iteration` is one of the reset_settle_steps after an opacity reset (at or
+        before it): the opacities are still growing back."""
+        resets = [i for i in self.opacity_resets if i <= iteration]
+        settle = self.config.reset_settle_steps * self.schedule.interval
+        return bool(resets) and settle > 0 and iteration - resets[-1] < settle
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to resume (plain Python values: JSON- and torch.save-friendly)."""

@@ -45,7 +45,7 @@ RATIO_INCREASES = get_args(RatioIncrease)
 # the ratio within 0.1-2 %. The defaults were these until session 37; `stgc train --set compaction.<key>=<value>` for
 # each, or `replace(CompactionConfig(...), **PAPER_RULE)`, trains it.
 PAPER_RULE: dict[str, Any] = {"pair_order": "distance", "loss_signal": "training", "loss_budget_db": 0.0,
-                              "ratio_max": 0.02, "removal_rate_max": 0.0}
+                              "ratio_max": 0.02, "removal_rate_max": 0.0, "reset_settle_steps": 0}
 
 
 @dataclass(frozen=True)
@@ -113,6 +113,17 @@ class CompactionConfig:
             "counts iterations, not steps (at least one Gaussian a step); where it binds the ratio is lowered to the "
             "cap's share of the matched pairs (logged as the step's ratio, even below ratio_min; conflicts between "
             "pairs leave the removals at 65-90 percent of the cap). 0 = no cap (the paper)"
+        },
+    )
+    reset_settle_steps: int = field(
+        default=0,
+        metadata={
+            "help": "pruning steps after an opacity reset (train.densify.opacity_reset_interval) that prune nothing, "
+            "while the opacities grow back: right after a reset every opacity is at most opacity_reset_value, so the "
+            "blending weights (pair_order weight, the importance criterion) rank the Gaussians by their size instead "
+            "of by what they show, and the probe cannot see what a prune takes (the official schedule resets at 6k, "
+            "the first iteration of every case's window). The steps count toward the damage budget's spread; the "
+            "ratio waits. 0 = prune from the first step (paper)"
         },
     )
     loss_tolerance: float = field(
@@ -213,7 +224,7 @@ class CompactionConfig:
     SAVED_BEFORE: ClassVar[dict[str, Any]] = {"keeper_time_coverage": 0.0, "merge_opacity": False,
                                               "pair_order": "distance", "loss_signal": "training",
                                               "loss_budget_db": 0.0, "ratio_increase": "additive",
-                                              "removal_rate_max": 0.0}
+                                              "removal_rate_max": 0.0, "reset_settle_steps": 0}
 
     def validate(self, prefix: str = "") -> None:
         """Raise ValueError naming the field when a value cannot work."""
@@ -276,6 +287,8 @@ class CompactionConfig:
             raise ValueError(f"compaction.keeper_time_coverage {self.keeper_time_coverage}: must be in [0, 1]")
         if self.min_gaussians < 0:
             raise ValueError(f"compaction.min_gaussians {self.min_gaussians}: must be >= 0")
+        if self.reset_settle_steps < 0:
+            raise ValueError(f"compaction.reset_settle_steps {self.reset_settle_steps}: must be >= 0")
 
 
 # Options that act only with another option's value, and that value in words (for the refusal).

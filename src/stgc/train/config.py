@@ -436,6 +436,17 @@ class Schedule:
     def is_densify_step(self, iteration: int) -> bool:
         return iteration > self.densify_start and (iteration - self.densify_start) % self.densify_interval == 0
 
+    def is_opacity_reset(self, iteration: int) -> bool:
+        return bool(self.opacity_reset_interval) and iteration % self.opacity_reset_interval == 0 \
+            and iteration < self.opacity_reset_until
+
+    def opacity_resets(self) -> tuple[int, ...]:
+        """The iterations at which density control resets every opacity (`is_opacity_reset`)."""
+        if not self.opacity_reset_interval:
+            return ()
+        return tuple(range(self.opacity_reset_interval, min(self.opacity_reset_until, self.iterations + 1),
+                           self.opacity_reset_interval))
+
     def first_densify_step(self, start: int) -> int | None:
         """The first iteration >= `start` at which density control acts (is_densify_step), or None when the run
         has none left."""

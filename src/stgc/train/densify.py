@@ -334,8 +334,7 @@ class DensityControl:
             # one the render culls stops the next save (a resume replays to the same stop). With the learned mask
             # (rows_fixed) the row stays: the rate-aware window's quantization stops the next step, naming it.
             report["pruned_nonfinite"] = self._prune_nonfinite(iteration, model, nonfinite)
-        if sched.opacity_reset_interval and iteration % sched.opacity_reset_interval == 0 \
-                and iteration < sched.opacity_reset_until:
+        if sched.is_opacity_reset(iteration):
             model.reset_opacity(d.opacity_reset_value)
             report["opacity_reset"] = 1
         return report

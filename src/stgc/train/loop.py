@@ -544,7 +544,8 @@ class Trainer:
         cfg = self.compaction_cfg
         if cfg is None or cfg.method == "none":
             return None
-        return STKNNCompactor(cfg, total_iterations=self.schedule.iterations)
+        return STKNNCompactor(cfg, total_iterations=self.schedule.iterations,
+                              opacity_resets=self.schedule.opacity_resets())
 
     def _make_foreground_masks(self) -> ForegroundMasks | None:
         """The masks of the mask term, or None when the term is off or the data has no masks (said once)."""
