@@ -150,7 +150,7 @@ def spread_markdown(spreads: Sequence[EntrySpread], baseline: str | None) -> str
     """The table the report adds: each entry's mean and spread over its seeds, and the change against `baseline`
     seed by seed (mean, sample standard deviation, range)."""
     def number(values: Sequence[float], digits: int = 2, sign: str = "") -> str:
-        return "–" if not values else f"{statistics.fmean(values):{sign}.{digits}f}"
+        return "–" if not values else f"{statistics.fmean(values):{sign},.{digits}f}"
 
     def sd(values: Sequence[float]) -> str:
         return "–" if len(values) < 2 else f"{statistics.stdev(values):.2f}"
