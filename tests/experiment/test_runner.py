@@ -102,7 +102,7 @@ def test_builtin_plans_match_the_paper() -> None:
                                     "compaction.case": "4", "compaction.criterion": "timestamp",
                                     "compaction.pair_order": "distance", "compaction.loss_signal": "training",
                                     "compaction.loss_budget_db": "0.0", "compaction.ratio_max": "0.02",
-                                    "compaction.removal_rate_max": "0.0"}
+                                    "compaction.removal_rate_max": "0.0", "compaction.reset_settle_steps": "0"}
     assert {r.overrides.get("compaction.criterion") for r in t3.runs} == {None, "scale", "timestamp"}
     assert t3.baseline == "ST-KNN (scale)" and len(t3.runs) == 9
     # Shared runs have the same name in both tables, so one folder serves both.
