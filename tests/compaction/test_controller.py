@@ -669,7 +669,9 @@ def test_the_steps_after_an_opacity_reset_prune_nothing_and_the_ratio_waits():
     assert first["ratio"] == pytest.approx(unsettled[0]["ratio"]) and first["step"] == 3
     assert all(e["ratio"] == pytest.approx(cfg.ratio_init) for e in events[:2])
     assert first["damage_allowed_db"] == pytest.approx(0.3 * 2 / 8)
-    # No reset, or none before the window, or the option off (the paper's): every step prunes.
+    # A reset shortly before the window: the steps within the wait of it still wait.
+    assert [e["iteration"] for e in run(cfg, (5,)) if e.get("settling")] == [10, 20]
+    # No reset, none until after the last step, or the option off (the paper's): every step prunes.
     for config, resets in ((cfg, ()), (cfg, (90,)), (dataclasses.replace(cfg, reset_settle_steps=0), (10, 50))):
         assert not any(e.get("settling") for e in run(config, resets))
     assert paper_rule().reset_settle_steps == 0 and CompactionConfig.SAVED_BEFORE["reset_settle_steps"] == 0

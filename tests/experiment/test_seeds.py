@@ -112,6 +112,9 @@ def test_a_plan_over_seeds_reports_each_run_s_mean_spread_and_change_against_the
     assert {(r["name"], r["seed"]) for r in rows if r["name"].startswith("c1")} == {
         ("c1", "0"), ("c1-q4", "0"), ("c1-seed1", "1"), ("c1-seed1-q4", "1"), ("c1-seed2", "2"),
         ("c1-seed2-q4", "2")}
+    # Each seed's runs are curves of their own: every seed's unpruned run is its STG curve's one point.
+    assert {r["name"]: r["rate_point"] for r in rows if r["name"].startswith("stg") and "-q" not in r["name"]} == {
+        "stg": "rp01", "stg-seed1": "rp01", "stg-seed2": "rp01"}
 
     # The stand-in trainer's scores (fake_stgc_cli._eval_record): PSNR 30 - 0.3 case - 0.1 seed (1 + case), Gaussians
     # 100,000 / (1 + case) - 100 seed case; the baseline is STG's run, stg, of the same seed.
@@ -163,3 +166,49 @@ def test_the_cli_passes_its_seeds_to_the_plan(monkeypatch: pytest.MonkeyPatch) -
         "R", (), {"failed": [], "__str__": lambda self: "ok"})())
     assert stgc.cli.main(["experiment", "DATA", "--plan", "table2", "--out", "OUT", "--seeds", "0", "3", "--no-ray"]) == 0
     assert calls[0]["seeds"] == [0, 3]
+
+
+
+def test_a_seed_missing_from_a_run_is_said_and_a_seed_option_for_every_run_is_refused(tmp_path: Path) -> None:
+    out = tmp_path / "exp"
+    quiet = {"runner": fake_runner, "python": sys.executable, "log": lambda m: None, "preset": "cpu"}
+    path = _plan(tmp_path, "seeds = [1, 2]")
+    with pytest.raises(ConfigError, match="--set train.seed"):
+        run_plan("DATA", path, out, extra_overrides=["train.seed=5"], **quiet)
+    assert not run_plan("DATA", path, out, **quiet).failed
+    # The baseline "STG" is a family; the plan's runs are "-seed<s>" folders, the report's points the entries'.
+    md = (out / "report-mini" / "report.md").read_text()
+    assert "| Case 1 (c1) | 1 2 |" in md and "fewer seeds" not in md
+    # One seed of one run is not this plan's any more (made with other options): its row fails, the others stand,
+    # and the report says which means are over fewer seeds.
+    config = json.loads((out / "c3-seed2" / "config.json").read_text())
+    config["compaction"]["case"] = 4
+    (out / "c3-seed2" / "config.json").write_text(json.dumps(config))
+    result = run_plan("DATA", path, out, **quiet)
+    assert [o.name for o in result.failed] == ["c3-seed2"]
+    md = (out / "report-mini" / "report.md").read_text()
+    assert "Averaged over fewer seeds than the plan's [1, 2]** (a run failed): c3, c3" not in md
+    assert "Averaged over fewer seeds than the plan's [1, 2]** (a run failed): c3;" in md
+    with open(out / "report-mini" / "seeds.csv") as f:
+        by_entry = {row["entry"]: row for row in csv.DictReader(f)}
+    assert by_entry["c3"]["seeds"] == "1" and by_entry["c3"]["paired_seeds"] == "1"
+    assert by_entry["c1"]["seeds"] == "1 2"
+
+
+def test_a_seed_scored_on_other_views_is_not_paired_with_the_baseline(tmp_path: Path) -> None:
+    from stgc.eval.report import ReportRow
+    from stgc.experiment.spread import seed_spread
+
+    plan = load_plan_toml(_plan(tmp_path, "seeds = [1, 2]"))
+
+    def row(psnr: float, gaussians: int, cameras: list[str], data: str = "DATA") -> ReportRow:
+        return ReportRow("x", "f", 1.0, psnr, gaussians, extra={"data": data, "cameras": cameras})
+
+    data = str(tmp_path / "DATA")  # the same folder however written
+    rows = {("stg-seed1", None): row(30.0, 1000, ["0"], data), ("stg-seed2", None): row(29.0, 1000, ["0"]),
+            ("c1-seed1", None): row(29.5, 500, ["0"], str(tmp_path / "." / "DATA")),
+            ("c1-seed2", None): row(29.0, 400, ["1"])}  # another test camera
+    (tmp_path / "DATA").mkdir()
+    c1 = next(s for s in seed_spread(plan, rows) if s.entry == "c1")
+    assert c1.delta_psnr == pytest.approx({1: -0.5}) and c1.removed == pytest.approx({1: 0.5})
+    assert "cameras" not in c1.mean_row().extra  # its seeds were scored on different views

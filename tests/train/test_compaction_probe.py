@@ -186,3 +186,20 @@ def test_a_budget_run_reads_its_unpruned_reference_run_at_the_same_iterations(sc
     # A continuation (stgc finetune) of the budgeted run prunes nothing: the loss reference it keeps is not checked.
     Trainer(dataset, None, None, _config(90), dataclasses.replace(budgeted, method="none"), tmp_path / "longer",
             model=start())
+
+
+def test_the_trainer_tells_compaction_when_it_resets_the_opacities(scene, tmp_path):
+    """compaction.reset_settle_steps through the trainer: the steps right after density control's opacity reset
+    prune nothing (the reset itself: tests/train/test_densify; the rule: tests/compaction)."""
+    dataset = open_dataset(scene.root)
+    start = STGModel.from_ply_arrays(scene.model.to_ply_arrays(), "lite", None, scene_extent=3.3)
+    config = dataclasses.replace(_config(80), densify=DensifyConfig(enabled=False, opacity_reset_interval=20,
+                                                                   opacity_reset_until=21))
+    compaction = CompactionConfig(case=0, window_start=0.25, window_end=0.75, interval=10, probe_views=4,
+                                  loss_budget_db=0.5, ratio_init=0.1, ratio_max=0.2, reset_settle_steps=2)
+    trainer = Trainer(dataset, None, None, config, compaction, tmp_path / "run", model=start)
+    assert trainer.compactor is not None and trainer.compactor.opacity_resets == (20,)
+    trainer.run()
+    events = [json.loads(line) for line in (tmp_path / "run" / "compaction.jsonl").read_text().splitlines()]
+    assert [(e["iteration"], bool(e.get("settling"))) for e in events] == [(20, True), (30, True), (40, False),
+                                                                          (50, False)]

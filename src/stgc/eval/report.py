@@ -143,6 +143,13 @@ def _same_field(key: str, first: Any, second: Any) -> bool:
     return (not Path(first).exists() or not Path(second).exists()) and Path(first).name == Path(second).name
 
 
+def same_test_set(first: ReportRow, second: ReportRow) -> bool:
+    """Whether two rows were scored on one test set, as far as both say (a field a row does not name agrees with
+    any; a data folder by its place, or by its name where it is gone)."""
+    a, b = _identity(first), _identity(second)
+    return all(a[k] is None or b[k] is None or _same_field(k, a[k], b[k]) for k in TEST_SET_FIELDS)
+
+
 def _test_sets(rows: Sequence[ReportRow]) -> tuple[list[int], list[dict[str, Any]]]:
     """(the test set of each row, as an index into the list of test sets; that list, in order of first appearance).
     A field a row does not name agrees with any: such a row joins the first test set the fields it names allow."""

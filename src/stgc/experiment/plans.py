@@ -29,7 +29,7 @@ PLAN.toml:
 A plan may also say `seeds = [0, 1, 2]` (or `stgc experiment --seeds 0 1 2` for any plan): every run is then trained
 once per seed (train.seed), seed 0 under the run's name and seed s under `<name>-seed<s>`, so that a plan's earlier
 runs (trained with the default seed 0) count as its seed 0. A run's `from` and `loss_reference` name the same
-seed's run. Two runs of one configuration differ by a few tenths of a dB on a real capture (0.34 dB between two
+seed's run. Two runs of one configuration differ by a few tenths of a dB on a real capture (0.34-0.41 dB between
 seeds of panoptic_basketball's `cpu` preset), so a difference at that line needs several seeds; the report then
 gives each run's mean over its seeds and the spread, and its change against the baseline seed by seed.
 """

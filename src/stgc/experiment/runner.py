@@ -543,7 +543,12 @@ def _result_row(plan: Plan, o: RunOutcome, out_dir: Path) -> dict[str, Any]:
 
 def write_results(path: Path, plan: Plan, outcomes: Sequence[RunOutcome], out_dir: Path) -> None:
     reported = _reported(outcomes)
-    points = rate_points(list(reported.values()))
+    # Each seed's runs are curves of their own: two seeds of one entry are not two rate points of one curve.
+    seed_of = {spec.name: spec.seed for spec in plan.runs}
+    points: dict[int, str] = {}
+    for seed in {seed_of.get(o.run_dir.name) for o in outcomes}:
+        points |= rate_points([reported[id(o)] for o in outcomes
+                              if id(o) in reported and seed_of.get(o.run_dir.name) == seed])
     with atomic_open(path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=RESULT_COLUMNS)
         writer.writeheader()
@@ -587,7 +592,7 @@ def _write_report(plan: Plan, outcomes: Sequence[RunOutcome], report_dir: Path, 
         return None
     notes: tuple[str, ...] = ()
     (report_dir / "seeds.csv").unlink(missing_ok=True)  # an earlier report's, with other seeds or none
-    if len(plan.seeds) > 1:
+    if plan.seeds:
         reported = _reported(outcomes)
         spreads = seed_spread(plan, {(o.run_dir.name, o.bitstream): reported[id(o)]
                                      for o in outcomes if id(o) in reported})
@@ -595,6 +600,11 @@ def _write_report(plan: Plan, outcomes: Sequence[RunOutcome], report_dir: Path, 
         report_dir.mkdir(parents=True, exist_ok=True)
         write_spread_csv(report_dir / "seeds.csv", spreads)
         notes = (spread_markdown(spreads, baseline_entry(plan)),)
+        uneven = sorted(spread.entry for spread in spreads if sorted(spread.rows) != list(sorted(plan.seeds)))
+        if uneven:  # a failed seed: those rows' means are over fewer seeds than the others'
+            notes = (f"**Averaged over fewer seeds than the plan's {list(plan.seeds)}** (a run failed): "
+                     f"{', '.join(uneven)}; compare their rows with the others' with care (the seeds table says "
+                     "which seeds each has).", *notes)
     return make_report(rows, report_dir, plan.baseline, title=plan.title or f"Plan {plan.name}",
                        bd_method=bd_method,  # type: ignore[arg-type]
                        notes=notes, baseline_may_be_missing=True)  # the plan's: its runs may have failed
@@ -635,6 +645,9 @@ def run_plan(
     # Absolute: a worker on another node reads relative paths against its own working directory.
     data_path, out_dir = Path(data_path).resolve(), Path(out_dir).resolve()
     extra = parse_overrides(extra_overrides)
+    if plan.seeds and "train.seed" in extra:
+        raise ConfigError(f"--set train.seed: plan {plan.name} trains seeds {list(plan.seeds)}, one per run; give "
+                          "the seeds there (--seeds), not as an option of every run")
     say = log or _log.info  # stgc's one channel for messages: stderr, silenced by -q
     results_csv = out_dir / f"results-{plan.name}.csv"
     result = PlanResult(plan, out_dir, results_csv=results_csv)

@@ -16,7 +16,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from stgc.eval.report import CODEC_SUFFIX, ReportRow
+from stgc.eval.report import CODEC_SUFFIX, TEST_SET_FIELDS, ReportRow, same_test_set
 from stgc.experiment.plans import Plan
 from stgc.fileio import atomic_open
 
@@ -32,7 +32,7 @@ class EntrySpread:
     entry: str  # the plan entry's name, "-q<Q>" added for a codec point
     family: str
     label: str
-    position: tuple[int, str] = (0, "")  # the entry's place in the plan, then its bitstream ("" for the model)
+    position: tuple[int, int, str] = (0, 0, "")  # the entry's place in the plan, then its bitstream's name
     rows: dict[int, ReportRow] = field(default_factory=dict)  # by seed
     delta_psnr: dict[int, float] = field(default_factory=dict)  # against the baseline run of the same seed, dB
     removed: dict[int, float] = field(default_factory=dict)  # share of the baseline's Gaussians gone, same seed
@@ -48,7 +48,7 @@ class EntrySpread:
             return statistics.fmean(values) if values else None
         gaussians = mean("num_gaussians")
         rows = list(self.rows.values())
-        # The record's other numbers (YUV-PSNR, LPIPS, FPS, training time) where every seed has one, averaged too.
+        # The report's other columns (YUV-PSNR, FPS) read the record's numbers: the point's are the seeds' means.
         numbers = {key: statistics.fmean(float(row.extra[key]) for row in rows) for key in rows[0].extra
                    if all(_is_number(row.extra.get(key)) for row in rows)} if rows else {}
         return ReportRow(name=self.label, family=self.family, mbps=mean("mbps"), psnr=mean("psnr"),
@@ -89,14 +89,12 @@ def _sd(values: Sequence[float]) -> float | None:
 
 
 def _shared_test_set(rows: Iterable[ReportRow]) -> dict[str, object]:
-    """The test-set fields all seeds' rows agree on (the report keeps rows of different test sets apart)."""
+    """The first seed's test-set fields where every seed's row was scored on that test set (the report keeps rows
+    of different test sets apart); none where they differ."""
     rows = list(rows)
-    shared: dict[str, object] = {}
-    for key in ("data", "cameras", "frames", "downscale"):
-        values = [row.extra.get(key) for row in rows]
-        if values and all(v == values[0] for v in values) and values[0] is not None:
-            shared[key] = values[0]
-    return shared
+    if not rows or not all(same_test_set(rows[0], row) for row in rows[1:]):
+        return {}
+    return {key: rows[0].extra[key] for key in TEST_SET_FIELDS if rows[0].extra.get(key) is not None}
 
 
 def baseline_entry(plan: Plan) -> str | None:
@@ -129,7 +127,9 @@ def seed_spread(plan: Plan, rows: Mapping[tuple[str, str | None], ReportRow]) ->
             continue
         entry = spec.entry_name + ("" if bitstream is None else f"-{Path(bitstream).stem.removeprefix('model_')}")
         if entry not in spreads:
-            spreads[entry] = EntrySpread(entry, row.family, row.name, (order[spec.entry_name], bitstream or ""))
+            # (by the bitstream's name's length first: model_q4 before model_q10)
+            spreads[entry] = EntrySpread(entry, row.family, row.name,
+                                         (order[spec.entry_name], len(bitstream or ""), bitstream or ""))
         spreads[entry].rows[spec.seed] = row
     base = baseline_entry(plan)
     baseline = spreads.get(base) if base is not None else None
@@ -137,7 +137,7 @@ def seed_spread(plan: Plan, rows: Mapping[tuple[str, str | None], ReportRow]) ->
         for spread in spreads.values():
             for seed, row in spread.rows.items():
                 reference = baseline.rows.get(seed)
-                if reference is None:
+                if reference is None or not same_test_set(row, reference):  # other views: no change
                     continue
                 if row.psnr is not None and reference.psnr is not None and math.isfinite(row.psnr - reference.psnr):
                     spread.delta_psnr[seed] = row.psnr - reference.psnr
@@ -150,10 +150,12 @@ def spread_markdown(spreads: Sequence[EntrySpread], baseline: str | None) -> str
     """The table the report adds: each entry's mean and spread over its seeds, and the change against `baseline`
     seed by seed (mean, sample standard deviation, range)."""
     def number(values: Sequence[float], digits: int = 2, sign: str = "") -> str:
-        return "–" if not values else f"{statistics.fmean(values):{sign},.{digits}f}"
+        mean = _mean(values)
+        return "–" if mean is None else f"{mean:{sign},.{digits}f}"
 
     def sd(values: Sequence[float]) -> str:
-        return "–" if len(values) < 2 else f"{statistics.stdev(values):.2f}"
+        spread = _sd(values)
+        return "–" if spread is None else f"{spread:.2f}"
 
     lines = ["## Over the seeds", "",
              f"Each run trained once per seed; a row's numbers are means over its seeds. The change against "

@@ -442,10 +442,7 @@ class Schedule:
 
     def opacity_resets(self) -> tuple[int, ...]:
         """The iterations at which density control resets every opacity (`is_opacity_reset`)."""
-        if not self.opacity_reset_interval:
-            return ()
-        return tuple(range(self.opacity_reset_interval, min(self.opacity_reset_until, self.iterations + 1),
-                           self.opacity_reset_interval))
+        return tuple(i for i in range(1, self.iterations + 1) if self.is_opacity_reset(i))
 
     def first_densify_step(self, start: int) -> int | None:
         """The first iteration >= `start` at which density control acts (is_densify_step), or None when the run
