@@ -677,13 +677,3 @@ def test_the_steps_after_an_opacity_reset_prune_nothing_and_the_ratio_waits():
     assert paper_rule().reset_settle_steps == 0 and CompactionConfig.SAVED_BEFORE["reset_settle_steps"] == 0
     with pytest.raises(ValueError, match="reset_settle_steps"):
         dataclasses.replace(cfg, reset_settle_steps=-1).validate()
-
-
-def test_the_schedule_lists_the_opacity_resets_density_control_makes():
-    from stgc.train.config import resolve_schedule, train_preset
-
-    for preset in ("cpu", "paper"):
-        schedule = resolve_schedule(train_preset(preset).resolved(False, None))
-        resets = schedule.opacity_resets()
-        assert resets and set(resets) == {i for i in range(1, schedule.iterations + 1)
-                                          if schedule.is_opacity_reset(i)}
