@@ -166,7 +166,7 @@ def test_a_record_of_a_model_the_run_did_not_end_with_is_not_a_result(tmp_path: 
     """The runner's rows leave out what `stgc report` leaves out of the same run (scored_earlier_model): a record of
     an earlier iteration's model, or one made while the run trained."""
     from stgc.experiment.plans import load_plan_toml
-    from stgc.experiment.runner import RunOutcome, _report_rows, write_results
+    from stgc.experiment.runner import RunOutcome, _reported, write_results
 
     run = tmp_path / "stg"
     run.mkdir()
@@ -183,7 +183,7 @@ def test_a_record_of_a_model_the_run_did_not_end_with_is_not_a_result(tmp_path: 
     assert rows["stg"]["psnr"] == "25.0"
     assert rows["stg-q1"]["psnr"] == rows["stg-q1"]["mbps"] == rows["stg-q1"]["rate_point"] == ""
     assert rows["stg-q2"]["psnr"] == ""
-    assert [row.name for row in _report_rows(outcomes)] == ["trained"]
+    assert [row.name for row in _reported(outcomes).values()] == ["trained"]
 
 
 def test_a_failed_run_s_row_holds_no_numbers_of_an_earlier_evaluation(tmp_path: Path) -> None:

@@ -84,8 +84,8 @@ from stgc.train.continuation import check_window_fits, continuation_configs
 
 _log = logging.getLogger(__name__)
 
-RESULT_COLUMNS = ("plan", "name", "family", "label", "seed", "status", "rate_point", "num_gaussians", "size_mb", "mbps", "psnr",
-                  "psnr_yuv", "ssim", "lpips", "fps", "train_seconds", "overrides", "run_dir")
+RESULT_COLUMNS = ("plan", "name", "family", "label", "seed", "status", "rate_point", "num_gaussians", "size_mb", "mbps",
+                  "psnr", "psnr_yuv", "ssim", "lpips", "fps", "train_seconds", "overrides", "run_dir")
 CLI_MODULE = "stgc.cli"
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
@@ -577,30 +577,25 @@ def _reportable_record(o: RunOutcome) -> dict[str, Any] | None:
     return o.record
 
 
-def _report_rows(outcomes: Sequence[RunOutcome]) -> list[ReportRow]:
-    return list(_reported(outcomes).values())
-
-
 def _write_report(plan: Plan, outcomes: Sequence[RunOutcome], report_dir: Path, bd_method: str) -> Report | None:
-    """The plan's report (None, and an earlier one's files removed, where no run has a result). A plan with
-    several seeds reports each entry's mean over its seeds, with the spread and the change against the baseline
-    seed by seed (spread.py) as a table of the report and report_dir/seeds.csv."""
-    rows = _report_rows(outcomes)
-    if not rows:
-        remove_report(report_dir)
-        (report_dir / "seeds.csv").unlink(missing_ok=True)
-        return None
-    notes: tuple[str, ...] = ()
+    """The plan's report (None, and an earlier one's files removed, where no run has a result). A plan over seeds
+    reports each entry's mean over its seeds, with the spread and the change against the baseline seed by seed
+    (spread.py) as a table of the report and report_dir/seeds.csv."""
     (report_dir / "seeds.csv").unlink(missing_ok=True)  # an earlier report's, with other seeds or none
+    reported = _reported(outcomes)
+    if not reported:
+        remove_report(report_dir)
+        return None
+    rows = list(reported.values())
+    notes: tuple[str, ...] = ()
     if plan.seeds:
-        reported = _reported(outcomes)
         spreads = seed_spread(plan, {(o.run_dir.name, o.bitstream): reported[id(o)]
                                      for o in outcomes if id(o) in reported})
         rows = [spread.mean_row() for spread in spreads]
         report_dir.mkdir(parents=True, exist_ok=True)
         write_spread_csv(report_dir / "seeds.csv", spreads)
         notes = (spread_markdown(spreads, baseline_entry(plan)),)
-        uneven = sorted(spread.entry for spread in spreads if sorted(spread.rows) != list(sorted(plan.seeds)))
+        uneven = sorted(spread.entry for spread in spreads if sorted(spread.rows) != sorted(plan.seeds))
         if uneven:  # a failed seed: those rows' means are over fewer seeds than the others'
             notes = (f"**Averaged over fewer seeds than the plan's {list(plan.seeds)}** (a run failed): "
                      f"{', '.join(uneven)}; compare their rows with the others' with care (the seeds table says "
