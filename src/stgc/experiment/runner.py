@@ -528,15 +528,14 @@ def _die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
-def _result_row(plan: Plan, o: RunOutcome, out_dir: Path) -> dict[str, Any]:
+def _result_row(plan: Plan, o: RunOutcome, out_dir: Path, seed: int | None) -> dict[str, Any]:
     row = record_fields(_reportable_record(o) or {})
     try:
         rel = o.run_dir.relative_to(out_dir)
     except ValueError:
         rel = o.run_dir
-    spec = next((spec for spec in plan.runs if spec.name == o.run_dir.name), None)
-    return {"plan": plan.name, "name": o.name, "family": o.family, "label": o.label,
-            "seed": None if spec is None else spec.seed, "status": o.status, **row,
+    return {"plan": plan.name, "name": o.name, "family": o.family, "label": o.label, "seed": seed,
+            "status": o.status, **row,
             "overrides": " ".join(f"{k}={v}" for k, v in o.overrides.items()),
             "run_dir": str(rel) + (f"/{o.bitstream}" if o.bitstream else "")}
 
@@ -553,7 +552,7 @@ def write_results(path: Path, plan: Plan, outcomes: Sequence[RunOutcome], out_di
         writer = csv.DictWriter(f, fieldnames=RESULT_COLUMNS)
         writer.writeheader()
         for o in outcomes:
-            row = _result_row(plan, o, out_dir)
+            row = _result_row(plan, o, out_dir, seed_of.get(o.run_dir.name))
             row["rate_point"] = points.get(id(reported[id(o)])) if id(o) in reported else None
             writer.writerow({k: ("" if row.get(k) is None else row[k]) for k in RESULT_COLUMNS})
 

@@ -44,8 +44,7 @@ class EntrySpread:
     def mean_row(self) -> ReportRow:
         """The entry's point in the report: each number the mean over its seeds."""
         def mean(name: str) -> float | None:
-            values = self.values(name)
-            return statistics.fmean(values) if values else None
+            return _mean(self.values(name))
         gaussians = mean("num_gaussians")
         rows = list(self.rows.values())
         # The report's other columns (YUV-PSNR, FPS) read the record's numbers: the point's are the seeds' means.
