@@ -677,3 +677,94 @@ def test_the_steps_after_an_opacity_reset_prune_nothing_and_the_ratio_waits():
     assert paper_rule().reset_settle_steps == 0 and CompactionConfig.SAVED_BEFORE["reset_settle_steps"] == 0
     with pytest.raises(ValueError, match="reset_settle_steps"):
         dataclasses.replace(cfg, reset_settle_steps=-1).validate()
+
+
+def _costly_scene_probe(model, costs_of):
+    """A probe whose PSNR drops by the summed cost (dB) of the Gaussians missing from the model it started with, a
+    cost read from each row's own position (rows keep their values through prunes); `keep` masks rows as a trial."""
+    start_cost = float(costs_of(model.params["xyz"]).sum())
+
+    def probe(keep: torch.Tensor | None = None) -> ProbeResult:
+        present = costs_of(model.params["xyz"])
+        missing = start_cost - float(present.sum() if keep is None else present[keep].sum())
+        return _probe(1.0, 1e-3 * 10.0 ** (missing / 10.0))
+
+    return probe, start_cost
+
+
+def test_prune_trials_keep_the_summed_damage_within_the_allowance_and_measure_what_they_apply():
+    """prune_trials: a prune is rendered (its Gaussians masked out) before it is applied; one that would take the summed
+    damage over the allowance is not applied, the ratio halves and a smaller selection is tried. A few costly
+    Gaussians among cheap ones: without trials the summed damage overshoots the allowance; with them it never does,
+    and what the log says the prunes cost is what the model lost."""
+    cfg = CompactionConfig(case=0, window_start=0.1, window_end=0.9, interval=10, ratio_init=0.1, ratio_max=0.4,
+                           ratio_increase="slow_start", loss_budget_db=1.0, pair_order="distance", prune_trials=3)
+
+    def costs_of(xyz: torch.Tensor) -> torch.Tensor:  # 1 in 20 costs 0.2 dB, the others 0.002 dB
+        return torch.where(xyz[:, 0] < 0.05, 0.2, 0.002).double()
+
+    def run(config: CompactionConfig) -> tuple[list[dict], float, int]:
+        model = make_model(random_params(600, 3, motion_scale=0.02))
+        probe, start_cost = _costly_scene_probe(model, costs_of)
+        calls = {"n": 0}
+
+        def counted(keep: torch.Tensor | None = None) -> ProbeResult:
+            calls["n"] += 1
+            return probe(keep)
+
+        compactor = STKNNCompactor(config, 100)
+        events = [e for it in range(1, 101) if (e := compactor.step(it, 0.5, model, 1.0, probe_fn=counted)) is not None]
+        lost = start_cost - float(costs_of(model.params["xyz"]).sum())
+        return events, lost, calls["n"]
+
+    events, lost, calls = run(cfg)
+    spent = np.cumsum([e["prune_damage_db"] for e in events])
+    allowance = [cfg.loss_budget_db * e["step"] / len(events) for e in events]
+    assert all(s <= a + 1e-9 for s, a in zip(spent, allowance))
+    assert spent[-1] == pytest.approx(lost, abs=1e-9)  # the trials' damage is the applied prunes' damage
+    assert calls == sum(1 + e["prune_trials"] for e in events)  # one probe before each step, no render after
+    rejected = [e for e in events if e["trials_rejected"]]
+    assert rejected and all(e["ratio_direction"] == -1 for e in rejected)
+    assert sum(e["removed"] for e in events) > 0
+    for e in rejected:  # the applied selection is the halved ratio's, or nothing after the last trial
+        assert e["removed"] == 0 or e["trials_rejected"] < e["prune_trials"]
+
+    # Without trials the same scene overshoots the allowance (and pays back by backing off after the fact).
+    untried, untried_lost, untried_calls = run(dataclasses.replace(cfg, prune_trials=0))
+    untried_spent = np.cumsum([e["prune_damage_db"] for e in untried])
+    assert any(s > cfg.loss_budget_db * e["step"] / len(untried) + 1e-9 for s, e in zip(untried_spent, untried))
+    assert untried_spent[-1] == pytest.approx(untried_lost, abs=1e-9)
+    assert all(e["prune_trials"] == 0 for e in untried)
+
+    # One trial: a prune that does not fit removes nothing that step.
+    single, _, _ = run(dataclasses.replace(cfg, prune_trials=1))
+    assert any(e["trials_rejected"] == 1 and e["removed"] == 0 for e in single)
+
+    # Off (0) by default, in states saved before it, and idle (refused) with a signal that has no allowance.
+    assert CompactionConfig().prune_trials == 0 and CompactionConfig.SAVED_BEFORE["prune_trials"] == 0
+    assert "compaction.prune_trials" in idle_compaction_options(paper_rule())
+    assert "compaction.prune_trials" not in idle_compaction_options(cfg)
+    with pytest.raises(ValueError, match="prune_trials"):
+        dataclasses.replace(cfg, prune_trials=-1).validate()
+
+
+def test_a_prune_trial_with_merged_opacity_renders_the_keepers_merged_and_leaves_the_model_as_it_was():
+    """With merge_opacity the trial renders the keepers' merged opacity (what applying the prune would leave) through
+    the model's params_replaced, and a rejected trial leaves every opacity as it was."""
+    cfg = CompactionConfig(case=0, window_start=0.1, window_end=0.9, interval=10, ratio_init=0.1, ratio_max=0.4,
+                           loss_budget_db=1e-6, pair_order="distance", prune_trials=1, merge_opacity=True)
+    model = make_model(random_params(600, 3, motion_scale=0.02))
+    before = model.params["opacity"].detach().clone()
+    seen: list[torch.Tensor] = []
+
+    def probe(keep: torch.Tensor | None = None) -> ProbeResult:
+        if keep is not None:
+            seen.append(model.params["opacity"].detach().clone())
+            return _probe(1.0, 2e-3)  # 3 dB: over any allowance
+        return _probe(1.0, 1e-3)
+
+    compactor = STKNNCompactor(cfg, 100)
+    event = next(e for it in range(1, 101) if (e := compactor.step(it, 0.5, model, 1.0, probe_fn=probe)) is not None)
+    assert event["trials_rejected"] == 1 and event["removed"] == 0
+    assert len(seen) == 1 and (seen[0] > before).any() and (seen[0] >= before).all()  # keepers merged in the trial
+    assert torch.equal(model.params["opacity"].detach(), before)  # and nothing of it left behind

@@ -203,3 +203,23 @@ def test_the_trainer_tells_compaction_when_it_resets_the_opacities(scene, tmp_pa
     events = [json.loads(line) for line in (tmp_path / "run" / "compaction.jsonl").read_text().splitlines()]
     assert [(e["iteration"], bool(e.get("settling"))) for e in events] == [(20, True), (30, True), (40, False),
                                                                           (50, False)]
+
+
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_a_prune_trial_renders_exactly_what_the_pruned_model_renders(scene, tmp_path, backend):
+    """compaction.prune_trials decides on the probe of the model with the selected Gaussians masked out
+    (Trainer.probe(keep)) and then applies the prune without rendering again: the masked render must be the pruned
+    model's, bit for bit, on both rasterizer backends; and a trial leaves the model as it was."""
+    dataset = open_dataset(scene.root)
+    start = STGModel.from_ply_arrays(scene.model.to_ply_arrays(), "lite", None, scene_extent=3.3)
+    compaction = CompactionConfig(case=0, window_start=0.25, window_end=0.75, interval=10, probe_views=4,
+                                  prune_trials=2)
+    trainer = Trainer(dataset, None, None, dataclasses.replace(_config(80), backend=backend), compaction,
+                      tmp_path / "run", model=start)
+    n = trainer.model.num_gaussians
+    keep = torch.from_numpy(np.random.default_rng(0).random(n) > 0.3)
+    whole, trial = trainer.probe(), trainer.probe(keep)
+    assert trainer.model.num_gaussians == n and trainer.probe() == whole
+    assert trial.mse != whole.mse  # the mask took something the probe sees
+    trainer.model.prune(keep)
+    assert trainer.probe() == trial

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -21,6 +22,7 @@ from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
 from .matching import SpacetimeModel, match_spatiotemporal_pairs, to_float64_numpy
 from .plot import LOG_NAME, read_compaction_log
 from .pruning import (
+    PruneSelection,
     keeper_time_coverage,
     loser_weights,
     merge_keeper_opacity,
@@ -32,6 +34,8 @@ from .pruning import (
 
 class PrunableModel(SpacetimeModel, Protocol):
     def prune(self, keep: torch.Tensor) -> None: ...
+
+    def params_replaced(self, params: Mapping[str, torch.Tensor] | None) -> AbstractContextManager[None]: ...
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,13 +102,14 @@ class STKNNCompactor:
         loss: float,
         importance_fn: Callable[[], torch.Tensor | np.ndarray] | None = None,
         on_prune: Callable[[torch.Tensor], Any] | None = None,
-        probe_fn: Callable[[], ProbeResult] | None = None,
+        probe_fn: Callable[..., ProbeResult] | None = None,
     ) -> dict[str, Any] | None:
         """Record this iteration's training loss; at a pruning iteration adjust the ratio and prune the model.
 
         `on_prune(keep)` is called with the boolean keep mask right after `model.prune(keep)`, so a caller
         holding per-Gaussian state of its own (the trainer's densification statistics) can drop the same rows.
-        `probe_fn()`: the model on a fixed probe set, the controller's signal when loss_signal is a probe's.
+        `probe_fn()`: the model on a fixed probe set, the controller's signal when loss_signal is a probe's;
+        `probe_fn(keep)` (prune_trials): the same as if only the rows where the bool mask `keep` is True were kept.
         Returns the pruning step's log record, or None on other iterations (and always with method 'none')."""
         if not self.enabled:
             return None
@@ -193,6 +198,29 @@ class STKNNCompactor:
         elif self.config.pair_order == "weight":
             order_by = lambda: loser_weights(pairs, scores, blending_weights())
         selection = select_removals(pairs, ratio, scores, max_removals, ratio_of=matched_pairs, order_by=order_by)
+        step_damage_db: float | None = None
+        trials = rejected = 0
+        if self.config.prune_trials > 0 and self.config.loss_signal == "prune_damage" and selection.remove.size:
+            assert probe is not None and probe_fn is not None
+            # What the prune may cost: the allowance once this step is done, less what the prunes so far spent.
+            affordable_db = self.config.loss_budget_db * (self.steps_done + 1) / self.schedule.num_steps \
+                - self.prune_damage_db
+            while True:
+                trials += 1
+                damage_db = self._trial_damage(model, selection, probe, probe_fn)
+                if damage_db is not None and damage_db <= affordable_db:  # a non-finite render never fits
+                    step_damage_db = damage_db
+                    break
+                rejected += 1
+                tried = self.controller.ratio
+                direction = self.controller.back_off()
+                ratio = self.controller.ratio
+                smaller = ratio < tried and trials < self.config.prune_trials  # none below ratio_min
+                selection = select_removals(pairs, ratio if smaller else 0.0, scores, max_removals,
+                                            ratio_of=matched_pairs, order_by=order_by)
+                if not selection.remove.size:
+                    step_damage_db = 0.0
+                    break
         if selection.remove.size:
             keep = torch.ones(n_before, dtype=torch.bool)
             keep[torch.from_numpy(selection.remove)] = False
@@ -205,11 +233,11 @@ class STKNNCompactor:
         finished = time.perf_counter()
 
         removed = int(selection.remove.size)
-        step_damage_db: float | None = None
         if self.config.loss_signal == "prune_damage":
             assert probe is not None and probe_fn is not None
-            # Nothing trained since `probe`: the difference is the prune's alone (the keepers' merged opacity too).
-            step_damage_db = _psnr_drop(probe.mse, probe_fn().mse) if removed else 0.0
+            if step_damage_db is None:  # no trial: measured now
+                # Nothing trained since `probe`: the difference is the prune's alone (the keepers' merged opacity too).
+                step_damage_db = _psnr_drop(probe.mse, probe_fn().mse) if removed else 0.0
             if step_damage_db is None:  # a non-finite render is no measure: the next step backs off
                 self.damage_unmeasured = True
             else:
@@ -233,6 +261,8 @@ class STKNNCompactor:
             "prune_damage_db": step_damage_db,
             "damage_allowed_db": allowed_db,
             "backed_off_unmeasured": backed_off,
+            "prune_trials": trials,
+            "trials_rejected": rejected,
             "matched_references": pairs.matched_references,
             "matched_pairs": matched_pairs,
             "time_covered_pairs": len(pairs),
@@ -247,6 +277,20 @@ class STKNNCompactor:
             "match_seconds": round(matched_at - started, 4),
             "prune_seconds": round(finished - matched_at, 4),
         }
+
+    def _trial_damage(self, model: PrunableModel, selection: PruneSelection, probe: ProbeResult,
+                      probe_fn: Callable[..., ProbeResult]) -> float | None:
+        """The probe PSNR that pruning `selection` would cost, rendered without applying it (None: not finite)."""
+        keep = torch.ones(int(model.params["xyz"].shape[0]), dtype=torch.bool)
+        keep[torch.from_numpy(selection.remove)] = False
+        keep = keep.to(model.params["xyz"].device)
+        replaced: dict[str, torch.Tensor] | None = None
+        if self.config.merge_opacity:
+            opacity = model.params["opacity"].detach().clone()
+            merge_keeper_opacity(opacity, selection.remove, selection.keepers)
+            replaced = {**model.params, "opacity": opacity}
+        with model.params_replaced(replaced):
+            return _psnr_drop(probe.mse, probe_fn(keep).mse)
 
     def _settling(self, iteration: int) -> bool:
         """Whether the pruning step at `iteration` is one of the reset_settle_steps after an opacity reset (at or

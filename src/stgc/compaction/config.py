@@ -126,6 +126,17 @@ class CompactionConfig:
             "ratio waits. 0 = prune from the first step (paper)"
         },
     )
+    prune_trials: int = field(
+        default=0,
+        metadata={
+            "help": "with loss_signal prune_damage: each step's prune is rendered on the probe views before it is "
+            "applied (the pruned Gaussians' opacity masked to 0, a render equal to the pruned model's), and one that "
+            "would take the summed damage over the allowance, this step's share included, is not applied: the ratio "
+            "halves (a back-off, as an overshoot would have caused) and the step tries the smaller selection, up to "
+            "this many renders, then prunes nothing. The steps' unspent allowance carries over as before. 0 = the "
+            "prune is applied and measured after it, an overshoot paid back by the next steps' back-offs"
+        },
+    )
     loss_tolerance: float = field(
         default=0.0,
         metadata={"help": "relative loss change treated as 'no change' (ratio kept); 0 = paper (any change counts)"},
@@ -224,7 +235,8 @@ class CompactionConfig:
     SAVED_BEFORE: ClassVar[dict[str, Any]] = {"keeper_time_coverage": 0.0, "merge_opacity": False,
                                               "pair_order": "distance", "loss_signal": "training",
                                               "loss_budget_db": 0.0, "ratio_increase": "additive",
-                                              "removal_rate_max": 0.0, "reset_settle_steps": 0}
+                                              "removal_rate_max": 0.0, "reset_settle_steps": 0,
+                                              "prune_trials": 0}
 
     def validate(self, prefix: str = "") -> None:
         """Raise ValueError naming the field when a value cannot work."""
@@ -289,6 +301,8 @@ class CompactionConfig:
             raise ValueError(f"compaction.min_gaussians {self.min_gaussians}: must be >= 0")
         if self.reset_settle_steps < 0:
             raise ValueError(f"compaction.reset_settle_steps {self.reset_settle_steps}: must be >= 0")
+        if self.prune_trials < 0:
+            raise ValueError(f"compaction.prune_trials {self.prune_trials}: must be >= 0 (0 = measure after the prune)")
 
 
 # Options that act only with another option's value, and that value in words (for the refusal).
@@ -301,6 +315,8 @@ _ACTS_ONLY_WITH: dict[str, tuple[Callable[[CompactionConfig], bool], str]] = {
                   "compaction.loss_smoothing=ema and compaction.loss_signal=training"),
     "ratio_increase": (lambda c: c.loss_budget_db > 0,
                        "compaction.loss_budget_db > 0 (the paper's step-to-step rule raises the ratio by one step)"),
+    "prune_trials": (lambda c: c.loss_signal == "prune_damage",
+                     "compaction.loss_signal=prune_damage (the trials are held against its allowance)"),
     "probe_views": (lambda c: c.loss_signal in PROBE_SIGNALS or c.method == "reference",
                     "compaction.loss_signal=probe, probe_psnr or prune_damage, or compaction.method=reference"),
 }

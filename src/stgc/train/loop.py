@@ -771,15 +771,19 @@ class Trainer:
             picked += [cams[(phase + (i * len(cams)) // share) % len(cams)] for i in range(share)]
         return picked
 
-    def probe(self) -> ProbeResult:
+    def probe(self, keep: torch.Tensor | None = None) -> ProbeResult:
         """The current model on the probe views, each at its own time: its training loss (as train_step computes it,
         colour correction included) and its mean squared error (of the render clamped to [0, 1] as evaluation
-        scores it; geometric mean over the views). A signal of the model, free of which views an iteration drew."""
+        scores it; geometric mean over the views). A signal of the model, free of which views an iteration drew.
+        `keep` (bool per Gaussian): as if only those rows were kept (their render is the pruned model's: the others'
+        opacity is scaled to 0, and rows that faint are culled before rasterization)."""
         total, log_mse = 0.0, 0.0
         views = self.probe_views()
+        opacity_scale = None if keep is None else keep.to(torch.float32)
         with torch.no_grad():
             for cam in views:
-                out = self.model.render(cam, t=float(cam.time), background=self.background, backend=self.cfg.backend)
+                out = self.model.render(cam, t=float(cam.time), background=self.background, backend=self.cfg.backend,
+                                        opacity_scale=opacity_scale)
                 rgb = out.rgb if self.colour is None else self.colour.apply(out.rgb, cam.name)
                 gt = self.images.get(cam)
                 total += float(self.view_loss(rgb, gt, cam)[0])

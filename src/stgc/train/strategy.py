@@ -89,7 +89,7 @@ class CompactionStrategy:
     """ST-KNN compaction with its adaptive ratio; every pruning step is a line of RUN/compaction.jsonl."""
 
     def __init__(self, compactor: STKNNCompactor, record: Callable[[dict[str, Any]], None], density: DensityControl,
-                 importance: Callable[[], torch.Tensor | np.ndarray], probe: Callable[[], ProbeResult] | None = None):
+                 importance: Callable[[], torch.Tensor | np.ndarray], probe: Callable[..., ProbeResult] | None = None):
         self.compactor, self.record, self.density, self.importance = compactor, record, density, importance
         self.probe = probe
 
