@@ -211,3 +211,22 @@ def test_a_seed_scored_on_other_views_is_not_paired_with_the_baseline(tmp_path: 
     c1 = next(s for s in seed_spread(plan, rows) if s.entry == "c1")
     assert c1.delta_psnr == pytest.approx({1: -0.5}) and c1.removed == pytest.approx({1: 0.5})
     assert "cameras" not in c1.mean_row().extra  # its seeds were scored on different views
+
+
+def test_a_report_that_fails_leaves_no_seeds_table_behind(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """seeds.csv goes beside a report that was written: one whose report failed leaves neither (an earlier seeds
+    table, of other runs, would be read as this report's)."""
+    import stgc.experiment.runner as runner
+
+    out = tmp_path / "exp"
+    quiet = {"runner": fake_runner, "python": sys.executable, "log": lambda m: None, "preset": "cpu"}
+    run_plan("DATA", _plan(tmp_path), out, seeds=[0, 1], **quiet)
+    assert (out / "report-mini" / "seeds.csv").exists()
+
+    def failing(*args: object, **kwargs: object) -> None:
+        raise OSError("disk full")
+
+    monkeypatch.setattr(runner, "make_report", failing)
+    with pytest.raises(OSError, match="disk full"):
+        run_plan("DATA", _plan(tmp_path), out, seeds=[0, 1], **quiet)
+    assert not (out / "report-mini" / "seeds.csv").exists()

@@ -65,7 +65,7 @@ from stgc.eval.report import (
     remove_report,
 )
 from stgc.experiment.plans import Plan, RunSpec, check_codec_baseline, load_plan
-from stgc.experiment.spread import baseline_entry, seed_spread, spread_markdown, write_spread_csv
+from stgc.experiment.spread import EntrySpread, baseline_entry, seed_spread, spread_markdown, write_spread_csv
 from stgc.fileio import atomic_open, read_json_object, write_json
 from stgc.options import (
     configs_from_run,
@@ -587,21 +587,23 @@ def _write_report(plan: Plan, outcomes: Sequence[RunOutcome], report_dir: Path, 
         return None
     rows = list(reported.values())
     notes: tuple[str, ...] = ()
+    spreads: list[EntrySpread] = []
     if plan.seeds:
         spreads = seed_spread(plan, {(o.run_dir.name, o.bitstream): reported[id(o)]
                                      for o in outcomes if id(o) in reported})
         rows = [spread.mean_row() for spread in spreads]
-        report_dir.mkdir(parents=True, exist_ok=True)
-        write_spread_csv(report_dir / "seeds.csv", spreads)
         notes = (spread_markdown(spreads, baseline_entry(plan)),)
         uneven = sorted(spread.entry for spread in spreads if sorted(spread.rows) != sorted(plan.seeds))
         if uneven:  # a failed seed: those rows' means are over fewer seeds than the others'
             notes = (f"**Averaged over fewer seeds than the plan's {list(plan.seeds)}** (a run failed): "
                      f"{', '.join(uneven)}; compare their rows with the others' with care (the seeds table says "
                      "which seeds each has).", *notes)
-    return make_report(rows, report_dir, plan.baseline, title=plan.title or f"Plan {plan.name}",
-                       bd_method=bd_method,  # type: ignore[arg-type]
-                       notes=notes, baseline_may_be_missing=True)  # the plan's: its runs may have failed
+    report = make_report(rows, report_dir, plan.baseline, title=plan.title or f"Plan {plan.name}",
+                         bd_method=bd_method,  # type: ignore[arg-type]
+                         notes=notes, baseline_may_be_missing=True)  # the plan's: its runs may have failed
+    if spreads:  # beside a report that was written, never left from a failed one
+        write_spread_csv(report_dir / "seeds.csv", spreads)
+    return report
 
 
 def run_plan(
