@@ -298,10 +298,12 @@ def test_the_budget_is_a_psnr_drop_in_the_config():
     compactor = STKNNCompactor(cfg, 100)
     assert compactor.controller.budget == pytest.approx(budget_for_psnr_drop(0.3))
     assert STKNNCompactor(paper_rule(), 100).controller.budget == 0.0  # the paper's rule: no budget
-    # stgc's defaults (session 37): the prunes' own damage held within 0.3 dB, the least-seen losers first.
+    # stgc's defaults (sessions 37 and 42): the prunes' own damage held within 0.3 dB, the least-seen losers first,
+    # slow start paced by the removal rate, a wait after the opacity reset, each prune tried before it is applied.
     default = CompactionConfig()
     assert (default.loss_signal, default.loss_budget_db, default.pair_order, default.ratio_max,
-            default.ratio_increase, default.removal_rate_max) == ("prune_damage", 0.3, "weight", 0.05, "additive", 0.0)
+            default.ratio_increase, default.removal_rate_max, default.reset_settle_steps,
+            default.prune_trials) == ("prune_damage", 0.3, "weight", 0.5, "slow_start", 0.002, 10, 3)
     assert {k: getattr(paper_rule(), k) for k in PAPER_RULE} == PAPER_RULE
     model = make_model(random_params(600, seed=1))
     probe_values = iter([1.0, 1.02, 1.05, 1.0, 0.9])
@@ -472,7 +474,8 @@ def test_prune_damage_holds_the_prunes_own_psnr_cost_against_the_budget_spread_o
 
     budget_db, total = 0.6, 100
     cfg = paper_rule(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.1, ratio_step=0.05,
-                           ratio_min=0.02, ratio_max=0.3, loss_signal="prune_damage", loss_budget_db=budget_db)
+                           ratio_min=0.02, ratio_max=0.3, loss_signal="prune_damage", loss_budget_db=budget_db,
+                           prune_trials=0)  # measured after the prune: the scripted probe reads the renders in turn
     compactor = STKNNCompactor(cfg, total)
     model = make_model(random_params(600, 3, motion_scale=0.02))
     clock = {"iteration": 0}
@@ -573,7 +576,8 @@ def test_an_unmeasured_prune_damage_backs_the_ratio_off_instead_of_reading_as_fr
     """A non-finite probe render after a prune leaves its damage unknown: the next step halves the ratio (as over
     budget) rather than counting the prune as costing nothing, and the flag survives a resume between the steps."""
     cfg = CompactionConfig(case=0, window_start=0.2, window_end=0.8, interval=10, ratio_init=0.2, ratio_max=0.4,
-                           ratio_increase="additive", ratio_step=0.01, pair_order="distance", removal_rate_max=0.0)
+                           ratio_increase="additive", ratio_step=0.01, pair_order="distance", removal_rate_max=0.0,
+                           prune_trials=0)
     compactor = STKNNCompactor(cfg, 100)
     model = make_model(random_params(600, 3, motion_scale=0.02))
     renders = iter([1e-3, float("nan"), 1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3])
@@ -600,7 +604,7 @@ def test_a_removal_rate_cap_bounds_each_step_and_the_ratio_goes_on_from_what_was
     rate, interval = 0.002, 10
     cfg = CompactionConfig(case=0, window_start=0.1, window_end=0.9, interval=interval, ratio_init=0.2, ratio_max=0.8,
                            ratio_increase="slow_start", removal_rate_max=rate, loss_budget_db=0.05,
-                           pair_order="distance")
+                           pair_order="distance", prune_trials=0)
     compactor = STKNNCompactor(cfg, 100)
     model = make_model(random_params(600, 3, motion_scale=0.02))
     clock = {"iteration": 0}
@@ -644,7 +648,7 @@ def test_the_steps_after_an_opacity_reset_prune_nothing_and_the_ratio_waits():
     weights rank Gaussians by size and the probe cannot see what a prune takes; the steps within that many after a
     reset (at or before them) remove nothing, leave the controller as it was, and count toward the budget's spread."""
     cfg = CompactionConfig(case=0, window_start=0.1, window_end=0.9, interval=10, ratio_init=0.05, ratio_max=0.2,
-                           loss_budget_db=0.3, pair_order="distance", reset_settle_steps=2)
+                           loss_budget_db=0.3, pair_order="distance", reset_settle_steps=2, prune_trials=0)
 
     def run(config: CompactionConfig, resets: tuple[int, ...]) -> list[dict]:
         compactor = STKNNCompactor(config, 100, opacity_resets=resets)
@@ -740,8 +744,8 @@ def test_prune_trials_keep_the_summed_damage_within_the_allowance_and_measure_wh
     single, _, _ = run(dataclasses.replace(cfg, prune_trials=1))
     assert any(e["trials_rejected"] == 1 and e["removed"] == 0 for e in single)
 
-    # Off (0) by default, in states saved before it, and idle (refused) with a signal that has no allowance.
-    assert CompactionConfig().prune_trials == 0 and CompactionConfig.SAVED_BEFORE["prune_trials"] == 0
+    # Off (0) in states saved before it (and in the paper's rule, where it is idle: refused), on by default.
+    assert CompactionConfig().prune_trials == 3 and CompactionConfig.SAVED_BEFORE["prune_trials"] == 0
     assert "compaction.prune_trials" in idle_compaction_options(paper_rule())
     assert "compaction.prune_trials" not in idle_compaction_options(cfg)
     with pytest.raises(ValueError, match="prune_trials"):

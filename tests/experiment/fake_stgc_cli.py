@@ -27,7 +27,8 @@ _LITE_SECTIONS = {b"POSI": 3, b"TCEN": 1, b"TSCL": 1, b"MOTN": 9, b"FDC_": 3, b"
 
 
 FAKE_COMPACTION_DEFAULTS = {"pair_order": "weight", "loss_signal": "prune_damage", "loss_budget_db": 0.3,
-                            "ratio_increase": "additive"}
+                            "ratio_increase": "slow_start", "ratio_max": 0.5, "removal_rate_max": 0.002,
+                            "reset_settle_steps": 10, "prune_trials": 3}
 
 
 def _record(out: Path, argv: list[str]) -> None:

@@ -936,8 +936,8 @@ def test_set_values_valid_with_a_run_s_own_options_and_a_fine_tuned_loss_referen
      {"data.min_track_length": "2", "data.init_source": "random"}),
     ("unmeasured-prune-damage-backs-off", {"compaction.method": "st-knn"},
      {"compaction.method": "st-knn", "compaction.loss_signal": "probe_psnr"}),
-    ("slow-start-threshold", {"compaction.method": "st-knn", "compaction.ratio_increase": "slow_start"},
-     {"compaction.method": "st-knn"}),
+    ("slow-start-threshold", {"compaction.method": "st-knn"},  # slow start: the default since session 42
+     {"compaction.method": "st-knn", "compaction.ratio_increase": "additive"}),
 ])
 def test_session_36_s_behaviour_changes_act_on_their_runs_only(change, acting, idle) -> None:
     from stgc.options import resolve_configs

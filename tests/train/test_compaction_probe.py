@@ -71,7 +71,8 @@ def test_prune_damage_reads_the_probe_right_before_and_right_after_each_prune(sc
     dataset = open_dataset(scene.root)
     start = STGModel.from_ply_arrays(scene.model.to_ply_arrays(), "lite", None, scene_extent=3.3)
     compaction = CompactionConfig(case=0, window_start=0.25, window_end=0.75, interval=10, probe_views=4,
-                                  loss_signal="prune_damage", loss_budget_db=0.5, ratio_init=0.1, ratio_max=0.2)
+                                  loss_signal="prune_damage", loss_budget_db=0.5, ratio_init=0.1, ratio_max=0.2,
+                                  ratio_increase="additive", removal_rate_max=0.0, prune_trials=0)
     trainer = Trainer(dataset, None, None, _config(80), compaction, tmp_path / "run", model=start)
     read = []  # (Gaussians, probe) in call order
     probe = trainer.probe

@@ -92,49 +92,50 @@ class CompactionConfig:
                                          "slow_start; over it the ratio halves)"}
     )
     ratio_min: float = field(default=0.001, metadata={"help": "lower bound of the pruning ratio"})
-    ratio_max: float = field(default=0.05, metadata={"help": "upper bound of the pruning ratio (the paper's rule: 0.02)"})
+    ratio_max: float = field(default=0.5, metadata={"help": "upper bound of the pruning ratio (the paper's rule: 0.02; 0.05 until session 42, when removal_rate_max took over pacing the prunes)"})
     ratio_increase: RatioIncrease = field(
-        default="additive",
+        default="slow_start",
         metadata={
             "help": "how the damage budget (loss_budget_db > 0) raises the ratio while within it: 'additive' = one "
             "ratio_step per step; 'slow_start' = doubled (at least one step) until the budget first halves it; after "
             "each back-off it doubles again up to half the ratio the back-off started from, then rises one step at a "
             "time (TCP's slow start and threshold; since session 40: session 39's rule stepped after the first "
-            "halving). With ratio_max 0.2 it removed over half of both shared scenes in the cpu "
-            "preset, for 0.08-0.49 dB on panoptic_basketball (0.3 dB budget): benchmarks/RESULTS.md, sessions 39-40"
+            "halving). The default since session 42 (additive before), paced by removal_rate_max and held by "
+            "reset_settle_steps and prune_trials: benchmarks/RESULTS.md, sessions 39-42"
         },
     )
     removal_rate_max: float = field(
-        default=0.0,
+        default=0.002,
         metadata={
             "help": "the most a pruning step may remove, as a share of the model's Gaussians per training iteration "
             "since the previous step (times the interval: 0.001 is 3 in 100 per step at the cpu preset's interval of "
             "30, 1 in 200 at the demo's 5): what a prune takes, training must make good before the next one, so the cap "
             "counts iterations, not steps (at least one Gaussian a step); where it binds the ratio is lowered to the "
             "cap's share of the matched pairs (logged as the step's ratio, even below ratio_min; conflicts between "
-            "pairs leave the removals at 65-90 percent of the cap). 0 = no cap (the paper)"
+            "pairs leave the removals at 65-90 percent of the cap). 0 = no cap (the paper; the default until session 42)"
         },
     )
     reset_settle_steps: int = field(
-        default=0,
+        default=10,
         metadata={
             "help": "pruning steps after an opacity reset (train.densify.opacity_reset_interval) that prune nothing, "
             "while the opacities grow back: right after a reset every opacity is at most opacity_reset_value, so the "
             "blending weights (pair_order weight, the importance criterion) rank the Gaussians by their size instead "
             "of by what they show, and the probe cannot see what a prune takes (the official schedule resets at 6k, "
             "the first iteration of every case's window). The steps count toward the damage budget's spread; the "
-            "ratio waits. 0 = prune from the first step (paper)"
+            "ratio waits. 0 = prune from the first step (paper; the default until session 42)"
         },
     )
     prune_trials: int = field(
-        default=0,
+        default=3,
         metadata={
             "help": "with loss_signal prune_damage: each step's prune is rendered on the probe views before it is "
             "applied (the pruned Gaussians' opacity masked to 0, a render equal to the pruned model's), and one that "
             "would take the summed damage over the allowance, this step's share included, is not applied: the ratio "
             "halves (a back-off, as an overshoot would have caused) and the step tries the smaller selection, up to "
             "this many renders, then prunes nothing. The steps' unspent allowance carries over as before. 0 = the "
-            "prune is applied and measured after it, an overshoot paid back by the next steps' back-offs"
+            "prune is applied and measured after it, an overshoot paid back by the next steps' back-offs (the default "
+            "until session 42)"
         },
     )
     loss_tolerance: float = field(
