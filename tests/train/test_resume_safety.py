@@ -152,14 +152,15 @@ def test_a_checkpoint_is_not_resumed_under_other_options(stopped, tmp_path, caps
 
 def test_a_checkpoint_from_before_an_option_existed_resumes_as_it_trained(stopped, tmp_path):
     """A checkpoint whose recorded options lack one added since (compaction.removal_rate_max, session 40) trained as
-    the option's SAVED_BEFORE says: it resumes under a config.json that reads so, and is refused under another
-    value of the option."""
+    the option's SAVED_BEFORE says (0, not today's default 0.002): it resumes under a config.json that reads so, and
+    is refused under another value of the option. (The run trains without compaction, where the option acts on
+    nothing, so its recorded value can be taken out whatever it was.)"""
     from stgc.train.checkpoint import OPTIONS, OPTIONS_FINGERPRINT
     from stgc.train.loop import options_fingerprint
 
     run = _copy(stopped, tmp_path)
     checkpoint = torch.load(run / Run.CHECKPOINT, weights_only=False)
-    assert checkpoint[OPTIONS].pop("compaction.removal_rate_max") == 0.0
+    assert checkpoint[OPTIONS].pop("compaction.removal_rate_max") == 0.002  # today's default
     checkpoint[OPTIONS_FINGERPRINT] = options_fingerprint(checkpoint[OPTIONS])
     torch.save(checkpoint, run / Run.CHECKPOINT)
     config = json.loads((run / Run.CONFIG).read_text())

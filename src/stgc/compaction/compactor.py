@@ -200,8 +200,11 @@ class STKNNCompactor:
         selection = select_removals(pairs, ratio, scores, max_removals, ratio_of=matched_pairs, order_by=order_by)
         step_damage_db: float | None = None
         trials = rejected = 0
-        if self.config.prune_trials > 0 and self.config.loss_signal == "prune_damage" and selection.remove.size:
-            assert probe is not None and probe_fn is not None
+        # A probe that is not finite before the prune measures nothing: the prune is applied and found unmeasured
+        # after it, as without trials (the next step backs off), rather than tried N times in vain.
+        if self.config.prune_trials > 0 and self.config.loss_signal == "prune_damage" and selection.remove.size \
+                and probe is not None and _psnr_of_mse(probe.mse) is not None:
+            assert probe_fn is not None
             # What the prune may cost: the allowance once this step is done, less what the prunes so far spent.
             affordable_db = self.config.loss_budget_db * (self.steps_done + 1) / self.schedule.num_steps \
                 - self.prune_damage_db
@@ -216,8 +219,11 @@ class STKNNCompactor:
                 direction = self.controller.back_off()
                 ratio = self.controller.ratio
                 smaller = ratio < tried and trials < self.config.prune_trials  # none below ratio_min
+                tried_removals = selection.remove
                 selection = select_removals(pairs, ratio if smaller else 0.0, scores, max_removals,
                                             ratio_of=matched_pairs, order_by=order_by)
+                if np.array_equal(selection.remove, tried_removals):  # max_removals bound both: the same trial again
+                    selection = select_removals(pairs, 0.0, scores, max_removals, ratio_of=matched_pairs)
                 if not selection.remove.size:
                     step_damage_db = 0.0
                     break

@@ -179,8 +179,9 @@ class CompactionConfig:
             "pruning step (it measures the model, not the sample), 'probe_psnr' = the same renders' mean squared error "
             "(geometric mean over the views, the mean PSNR's), so that loss_budget_db holds the PSNR it names; "
             "'prune_damage' = the PSNR the prunes themselves cost, without a reference run: the probe views' mean "
-            "PSNR right before each prune minus right after it (nothing trains between), summed over the steps and "
-            "held against loss_budget_db spread evenly over the window's steps (needs loss_budget_db > 0)"
+            "PSNR right before each prune minus right after it (nothing trains between; with prune_trials the 'after' "
+            "is the trial's render of the model without the selection, taken before it is applied), summed over the "
+            "steps and held against loss_budget_db spread evenly over the window's steps (needs loss_budget_db > 0)"
         },
     )
     probe_views: int = field(
