@@ -228,9 +228,7 @@ class STKNNCompactor:
                     step_damage_db = 0.0
                     break
         if selection.remove.size:
-            keep = torch.ones(n_before, dtype=torch.bool)
-            keep[torch.from_numpy(selection.remove)] = False
-            keep = keep.to(model.params["xyz"].device)
+            keep = _keep_mask(model, selection)
             if self.config.merge_opacity:
                 merge_keeper_opacity(model.params["opacity"], selection.remove, selection.keepers)
             model.prune(keep)
@@ -287,9 +285,7 @@ class STKNNCompactor:
     def _trial_damage(self, model: PrunableModel, selection: PruneSelection, probe: ProbeResult,
                       probe_fn: Callable[..., ProbeResult]) -> float | None:
         """The probe PSNR that pruning `selection` would cost, rendered without applying it (None: not finite)."""
-        keep = torch.ones(int(model.params["xyz"].shape[0]), dtype=torch.bool)
-        keep[torch.from_numpy(selection.remove)] = False
-        keep = keep.to(model.params["xyz"].device)
+        keep = _keep_mask(model, selection)
         replaced: dict[str, torch.Tensor] | None = None
         if self.config.merge_opacity:
             opacity = model.params["opacity"].detach().clone()
@@ -338,6 +334,13 @@ class STKNNCompactor:
         self.damage_unmeasured = bool(state.get("damage_unmeasured", False))
         self.controller.load_state_dict(state["controller"])
         self.smoother.load_state_dict(state["smoother"])
+
+
+def _keep_mask(model: PrunableModel, selection: PruneSelection) -> torch.Tensor:
+    """The bool mask of the model's rows that `selection` keeps, on the model's device."""
+    keep = torch.ones(int(model.params["xyz"].shape[0]), dtype=torch.bool)
+    keep[torch.from_numpy(selection.remove)] = False
+    return keep.to(model.params["xyz"].device)
 
 
 def _without(options: dict[str, Any], names: set[str]) -> dict[str, Any]:

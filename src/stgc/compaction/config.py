@@ -92,7 +92,9 @@ class CompactionConfig:
                                          "slow_start; over it the ratio halves)"}
     )
     ratio_min: float = field(default=0.001, metadata={"help": "lower bound of the pruning ratio"})
-    ratio_max: float = field(default=0.5, metadata={"help": "upper bound of the pruning ratio (the paper's rule: 0.02; 0.05 until session 42, when removal_rate_max took over pacing the prunes)"})
+    ratio_max: float = field(default=0.5, metadata={"help": "upper bound of the pruning ratio (the paper's rule: "
+                                                            "0.02; 0.05 until session 42, when removal_rate_max took "
+                                                            "over pacing the prunes)"})
     ratio_increase: RatioIncrease = field(
         default="slow_start",
         metadata={
@@ -134,8 +136,8 @@ class CompactionConfig:
             "would take the summed damage over the allowance, this step's share included, is not applied: the ratio "
             "halves (a back-off, as an overshoot would have caused) and the step tries the smaller selection, up to "
             "this many renders, then prunes nothing. The steps' unspent allowance carries over as before. 0 = the "
-            "prune is applied and measured after it, an overshoot paid back by the next steps' back-offs (the default "
-            "until session 42)"
+            "prune is applied and measured after it, an overshoot paid back by the next steps' back-offs (how stgc "
+            "pruned until session 42)"
         },
     )
     loss_tolerance: float = field(
