@@ -26,6 +26,12 @@ CLONE_SPLIT_VALUES = {"rounds": "3", "grad_threshold": "1e-4", "percent_dense": 
     ({"data.preprocess_fraction": "0.5"}, "data.preprocess_fraction: given for a run whose data.preprocess is none"),
     ({"model.variant": "lite", "train.lr.decoder": "0.1"}, "train.lr.decoder: the lite model has no decoder"),
     ({"model.variant": "lite", "train.lr.features_t": "0.1"}, "train.lr.features_t: the lite model"),
+    ({"compaction.method": "st-knn", "train.densify.opacity_reset_interval": "0",
+      "compaction.reset_settle_steps": "5"}, "compaction.reset_settle_steps: waits after an opacity reset"),
+    # The cpu preset's first reset is at 900 of 9,000 iterations: a custom window that ends before it.
+    ({"compaction.method": "st-knn", "compaction.case": "0", "compaction.window_start": "0.01",
+      "compaction.window_end": "0.09", "compaction.reset_settle_steps": "5"},
+     "none comes at or before the run's last pruning step"),
 ])
 def test_options_of_a_part_of_training_that_is_switched_off_are_refused(sets, refused):
     """They were recorded in config.json and ignored: EMS options without EMS, clone/split options without
@@ -57,6 +63,10 @@ def test_they_are_refused_from_every_layer_that_gives_them(tmp_path, capsys):
     ("cpu", {"data.preprocess": "stg-isolated", "data.preprocess_fraction": "0.5"}),
     ("cpu", {"train.lr.decoder": "0.1", "train.lr.features_t": "0.1"}),
     ("cpu", {"model.variant": "lite", "train.lr.features_dc": "0.01"}),
+    ("cpu", {"compaction.method": "st-knn", "compaction.reset_settle_steps": "5"}),
+    # A window that ends at the first reset (900) still settles after it.
+    ("cpu", {"compaction.method": "st-knn", "compaction.case": "0", "compaction.window_start": "0.01",
+             "compaction.window_end": "0.101", "compaction.reset_settle_steps": "5"}),
     # The paper preset's own clone/split option (stats_views last) is no option given.
     ("paper", {"train.densify.enabled": "false"}),
 ])

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from stgc.compaction import CompactionConfig
-from stgc.compaction.config import idle_compaction_options, why_idle
+from stgc.compaction.config import idle_compaction_options, resolve_schedule as resolve_pruning_schedule, why_idle
 from stgc.config import ConfigError, apply_overrides, from_saved, split_sections, validate_config
 from stgc.data import DataConfig
 from stgc.data.config import data_config_from_saved
@@ -18,7 +18,7 @@ from stgc.errors import FormatError, StgcError
 from stgc.model import ModelConfig
 from stgc.model.config import idle_model_options
 from stgc.run import Run, check_run_config
-from stgc.train.config import TrainConfig, refuse_preset_option, train_preset
+from stgc.train.config import TrainConfig, first_opacity_reset, refuse_preset_option, train_preset
 
 
 def section_classes() -> dict[str, type]:
@@ -175,8 +175,8 @@ FULL_MODEL_RATES = ("decoder", "features_t")
 def _feature_idle_reasons(configs: Mapping[str, Any]) -> dict[str, str]:
     """{option (dotted, with its section): why it acts on nothing} for the options of a part of training that the
     run's other options switch off: point preprocessing (data.preprocess none), error-guided sampling
-    (train.ems.enabled false), clone/split (train.densify.enabled false) and the full model's parameters (a lite
-    model)."""
+    (train.ems.enabled false), clone/split (train.densify.enabled false), the full model's parameters (a lite
+    model) and compaction's settling after opacity resets (no reset at or before the last pruning step)."""
     data, model, train = configs.get("data"), configs.get("model"), configs.get("train")
     idle: dict[str, str] = {}
     if data is not None and data.preprocess == "none":
@@ -190,6 +190,14 @@ def _feature_idle_reasons(configs: Mapping[str, Any]) -> dict[str, str]:
         idle |= {f"train.densify.{name}": "acts only in clone/split rounds, and train.densify.enabled is false (no "
                                           "round is run); enable densification or drop it"
                  for name in CLONE_SPLIT_OPTIONS}
+    compaction = configs.get("compaction")
+    if train is not None and compaction is not None and compaction.method == "st-knn":
+        pruning = resolve_pruning_schedule(compaction, train.iterations).iterations()
+        reset = first_opacity_reset(train)
+        if not pruning or reset is None or reset > pruning[-1]:
+            idle["compaction.reset_settle_steps"] = (
+                "waits after an opacity reset, and none comes at or before the run's last pruning step "
+                f"({pruning[-1] if pruning else 'none'}); drop it")
     if train is not None and model is not None and model.variant == "lite":
         idle |= {f"train.lr.{name}": "the lite model has no decoder and no time features to learn at this rate; "
                                      "choose the full model (--variant full) or drop it"

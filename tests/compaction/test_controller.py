@@ -739,6 +739,14 @@ def test_prune_trials_keep_the_summed_damage_within_the_allowance_and_measure_wh
     assert untried_spent[-1] == pytest.approx(untried_lost, abs=1e-9)
     assert all(e["prune_trials"] == 0 for e in untried)
 
+    # Under a removal-rate cap, a step whose capped selection was rejected applies less than the cap's share: the
+    # log does not call it capped.
+    capped_cfg = dataclasses.replace(cfg, removal_rate_max=0.002)  # at most 12 a step
+    assert run(dataclasses.replace(capped_cfg, prune_trials=0))[0][0]["rate_capped"]  # the cap binds at once
+    backed_off = [e for e in run(capped_cfg)[0] if e["trials_rejected"] and e["removed"]]
+    assert backed_off and not any(e["rate_capped"] for e in backed_off)
+    assert all(e["removed"] < 12 for e in backed_off)
+
     # One trial: a prune that does not fit removes nothing that step.
     single, _, _ = run(dataclasses.replace(cfg, prune_trials=1))
     assert any(e["trials_rejected"] == 1 and e["removed"] == 0 for e in single)

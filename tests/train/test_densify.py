@@ -12,7 +12,14 @@ import torch
 
 from stgc.config import ConfigError, validate_config
 from stgc.model import STGModel
-from stgc.train.config import DensifyConfig, FloaterConfig, QuantizationAwareConfig, TrainConfig, resolve_schedule
+from stgc.train.config import (
+    DensifyConfig,
+    FloaterConfig,
+    QuantizationAwareConfig,
+    TrainConfig,
+    first_opacity_reset,
+    resolve_schedule,
+)
 from stgc.train.densify import (
     DensificationStats,
     apply_prune,
@@ -446,3 +453,16 @@ def test_clone_split_does_not_refill_what_compaction_removed():
                               np.zeros((0, 3)))
     uncapped.rows_kept(keep)
     assert uncapped.cap() == 0
+
+
+@pytest.mark.parametrize("reset_options", [
+    {}, {"opacity_reset_interval": 0}, {"opacity_reset_interval": 500, "opacity_reset_until": 400},
+    {"opacity_reset_interval": 500, "opacity_reset_until": 1600}, {"opacity_reset_interval": 20000},
+])
+@pytest.mark.parametrize("scale", [0.05, 0.3, 1.0])
+def test_the_first_opacity_reset_is_known_before_the_data_resolves_the_schedule(reset_options, scale):
+    """`first_opacity_reset` (which option checks use before any data is read) is the schedule's first reset."""
+    cfg = replace(TrainConfig(iterations=9000, schedule_scale=scale),
+                  densify=replace(DensifyConfig(), **reset_options))
+    resets = resolve_schedule(cfg.resolved(sparse_cloud=True, family=None)).opacity_resets()
+    assert first_opacity_reset(cfg) == (resets[0] if resets else None)

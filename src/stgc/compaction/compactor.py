@@ -215,6 +215,7 @@ class STKNNCompactor:
                     step_damage_db = damage_db
                     break
                 rejected += 1
+                rate_capped = False  # what is tried next is below the cap's share
                 tried = self.controller.ratio
                 direction = self.controller.back_off()
                 ratio = self.controller.ratio

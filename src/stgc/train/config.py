@@ -497,6 +497,20 @@ def refuse_unused_window_options(train: TrainConfig, given: Iterable[str]) -> No
         raise ConfigError("; ".join(f"{key}: {reasons[key]}" for key in unused))
 
 
+def _scaled(iteration: int, scale: float) -> int:
+    return max(1, int(round(iteration * scale)))
+
+
+def first_opacity_reset(cfg: TrainConfig) -> int | None:
+    """The first iteration at which density control resets every opacity (the first of
+    `Schedule.opacity_resets`), or None when the run has none. It needs no data: the reset options are not left to
+    it."""
+    d, s = cfg.densify, cfg.schedule_scale
+    interval = _scaled(d.opacity_reset_interval, s) if d.opacity_reset_interval > 0 else 0
+    return interval if interval and interval < _scaled(d.opacity_reset_until, s) and interval <= cfg.iterations \
+        else None
+
+
 def resolve_schedule(cfg: TrainConfig) -> Schedule:
     """Scale every schedule point but `iterations` by `cfg.schedule_scale` (never below one iteration)."""
     s = cfg.schedule_scale
@@ -504,7 +518,7 @@ def resolve_schedule(cfg: TrainConfig) -> Schedule:
         raise ValueError(f"train.schedule_scale must be positive, got {s}")
 
     def scaled(x: int) -> int:
-        return max(1, int(round(x * s)))
+        return _scaled(x, s)
 
     d = cfg.densify
     if not d.is_resolved:
