@@ -64,6 +64,9 @@ def test_they_are_refused_from_every_layer_that_gives_them(tmp_path, capsys):
     ("cpu", {"train.lr.decoder": "0.1", "train.lr.features_t": "0.1"}),
     ("cpu", {"model.variant": "lite", "train.lr.features_dc": "0.01"}),
     ("cpu", {"compaction.method": "st-knn", "compaction.reset_settle_steps": "5"}),
+    # No wait is what a run without resets does: a plan that pins it stays valid when the resets are switched off.
+    ("cpu", {"compaction.method": "st-knn", "compaction.reset_settle_steps": "0",
+             "train.densify.opacity_reset_interval": "0"}),
     # A window that ends at the first reset (900) still settles after it.
     ("cpu", {"compaction.method": "st-knn", "compaction.case": "0", "compaction.window_start": "0.01",
              "compaction.window_end": "0.101", "compaction.reset_settle_steps": "5"}),

@@ -191,7 +191,9 @@ def _feature_idle_reasons(configs: Mapping[str, Any]) -> dict[str, str]:
                                           "round is run); enable densification or drop it"
                  for name in CLONE_SPLIT_OPTIONS}
     compaction = configs.get("compaction")
-    if train is not None and compaction is not None and compaction.method == "st-knn":
+    # 0 (no wait) is what a run without resets does: a plan that pins it stays valid under --set that drops them.
+    if train is not None and compaction is not None and compaction.method == "st-knn" \
+            and compaction.reset_settle_steps > 0:
         pruning = resolve_pruning_schedule(compaction, train.iterations).iterations()
         reset = first_opacity_reset(train)
         if not pruning or reset is None or reset > pruning[-1]:
