@@ -28,10 +28,13 @@ CLONE_SPLIT_VALUES = {"rounds": "3", "grad_threshold": "1e-4", "percent_dense": 
     ({"model.variant": "lite", "train.lr.features_t": "0.1"}, "train.lr.features_t: the lite model"),
     ({"compaction.method": "st-knn", "train.densify.opacity_reset_interval": "0",
       "compaction.reset_settle_steps": "5"}, "compaction.reset_settle_steps: waits after an opacity reset"),
-    # The cpu preset's first reset is at 900 of 9,000 iterations: a custom window that ends before it.
+    # The cpu preset resets at 900 and 1,800 of 9,000 iterations (interval 30): a custom window that ends before the
+    # first, and one that starts 900 iterations after the last, where 5 steps' wait ends 150 iterations after it.
     ({"compaction.method": "st-knn", "compaction.case": "0", "compaction.window_start": "0.01",
       "compaction.window_end": "0.09", "compaction.reset_settle_steps": "5"},
-     "none comes at or before the run's last pruning step"),
+     "no pruning step comes within 5 steps after one"),
+    ({"compaction.method": "st-knn", "compaction.case": "0", "compaction.window_start": "0.3",
+      "compaction.window_end": "0.5", "compaction.reset_settle_steps": "5"}, "resets at 900, 1800"),
 ])
 def test_options_of_a_part_of_training_that_is_switched_off_are_refused(sets, refused):
     """They were recorded in config.json and ignored: EMS options without EMS, clone/split options without
@@ -67,7 +70,10 @@ def test_they_are_refused_from_every_layer_that_gives_them(tmp_path, capsys):
     # No wait is what a run without resets does: a plan that pins it stays valid when the resets are switched off.
     ("cpu", {"compaction.method": "st-knn", "compaction.reset_settle_steps": "0",
              "train.densify.opacity_reset_interval": "0"}),
-    # A window that ends at the first reset (900) still settles after it.
+    # A window that ends at the first reset (900) still settles after it; one that starts within the wait after the
+    # last (1,800 + 5 x 30) too.
+    ("cpu", {"compaction.method": "st-knn", "compaction.case": "0", "compaction.window_start": "0.21",
+             "compaction.window_end": "0.5", "compaction.reset_settle_steps": "5"}),
     ("cpu", {"compaction.method": "st-knn", "compaction.case": "0", "compaction.window_start": "0.01",
              "compaction.window_end": "0.101", "compaction.reset_settle_steps": "5"}),
     # The paper preset's own clone/split option (stats_views last) is no option given.

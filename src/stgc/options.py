@@ -10,7 +10,8 @@ from pathlib import Path
 from typing import Any
 
 from stgc.compaction import CompactionConfig
-from stgc.compaction.config import idle_compaction_options, resolve_schedule as resolve_pruning_schedule, why_idle
+from stgc.compaction.config import idle_compaction_options, settling_after_reset, why_idle
+from stgc.compaction.config import resolve_schedule as resolve_pruning_schedule
 from stgc.config import ConfigError, apply_overrides, from_saved, split_sections, validate_config
 from stgc.data import DataConfig
 from stgc.data.config import data_config_from_saved
@@ -18,7 +19,7 @@ from stgc.errors import FormatError, StgcError
 from stgc.model import ModelConfig
 from stgc.model.config import idle_model_options
 from stgc.run import Run, check_run_config
-from stgc.train.config import TrainConfig, first_opacity_reset, refuse_preset_option, train_preset
+from stgc.train.config import TrainConfig, opacity_reset_iterations, refuse_preset_option, train_preset
 
 
 def section_classes() -> dict[str, type]:
@@ -176,7 +177,7 @@ def _feature_idle_reasons(configs: Mapping[str, Any]) -> dict[str, str]:
     """{option (dotted, with its section): why it acts on nothing} for the options of a part of training that the
     run's other options switch off: point preprocessing (data.preprocess none), error-guided sampling
     (train.ems.enabled false), clone/split (train.densify.enabled false), the full model's parameters (a lite
-    model) and compaction's settling after opacity resets (no reset at or before the last pruning step)."""
+    model) and compaction's wait after opacity resets (no pruning step within the wait after a reset)."""
     data, model, train = configs.get("data"), configs.get("model"), configs.get("train")
     idle: dict[str, str] = {}
     if data is not None and data.preprocess == "none":
@@ -194,12 +195,13 @@ def _feature_idle_reasons(configs: Mapping[str, Any]) -> dict[str, str]:
     # 0 (no wait) is what a run without resets does: a plan that pins it stays valid under --set that drops them.
     if train is not None and compaction is not None and compaction.method == "st-knn" \
             and compaction.reset_settle_steps > 0:
-        pruning = resolve_pruning_schedule(compaction, train.iterations).iterations()
-        reset = first_opacity_reset(train)
-        if not pruning or reset is None or reset > pruning[-1]:
+        pruning = resolve_pruning_schedule(compaction, train.iterations)
+        resets = opacity_reset_iterations(train)
+        settle = compaction.reset_settle_steps * pruning.interval
+        if not any(settling_after_reset(step, resets, settle) for step in pruning.iterations()):
             idle["compaction.reset_settle_steps"] = (
-                "waits after an opacity reset, and none comes at or before the run's last pruning step "
-                f"({pruning[-1] if pruning else 'none'}); drop it")
+                f"waits after an opacity reset, and no pruning step comes within {compaction.reset_settle_steps} "
+                f"steps after one (resets at {', '.join(map(str, resets)) or 'none'}); drop it")
     if train is not None and model is not None and model.variant == "lite":
         idle |= {f"train.lr.{name}": "the lite model has no decoder and no time features to learn at this rate; "
                                      "choose the full model (--variant full) or drop it"

@@ -17,7 +17,7 @@ from stgc.train.config import (
     FloaterConfig,
     QuantizationAwareConfig,
     TrainConfig,
-    first_opacity_reset,
+    opacity_reset_iterations,
     resolve_schedule,
 )
 from stgc.train.densify import (
@@ -458,11 +458,11 @@ def test_clone_split_does_not_refill_what_compaction_removed():
 @pytest.mark.parametrize("reset_options", [
     {}, {"opacity_reset_interval": 0}, {"opacity_reset_interval": 500, "opacity_reset_until": 400},
     {"opacity_reset_interval": 500, "opacity_reset_until": 1600}, {"opacity_reset_interval": 20000},
+    {"opacity_reset_interval": 10000, "opacity_reset_until": 30000}, {"opacity_reset_interval": 3000},
 ])
 @pytest.mark.parametrize("scale", [0.05, 0.3, 1.0])
-def test_the_first_opacity_reset_is_known_before_the_data_resolves_the_schedule(reset_options, scale):
-    """`first_opacity_reset` (which option checks use before any data is read) is the schedule's first reset."""
+def test_the_opacity_resets_are_known_before_the_data_resolves_the_schedule(reset_options, scale):
+    """`opacity_reset_iterations` (which option checks use before any data is read) is the schedule's resets."""
     cfg = replace(TrainConfig(iterations=9000, schedule_scale=scale),
                   densify=replace(DensifyConfig(), **reset_options))
-    resets = resolve_schedule(cfg.resolved(sparse_cloud=True, family=None)).opacity_resets()
-    assert first_opacity_reset(cfg) == (resets[0] if resets else None)
+    assert opacity_reset_iterations(cfg) == resolve_schedule(cfg.resolved(sparse_cloud=True, family=None)).opacity_resets()

@@ -17,7 +17,14 @@ from stgc.errors import DataError
 from stgc.fileio import read_json_object
 from stgc.metrics import psnr_of_mse
 
-from .config import PROBE_SIGNALS, CompactionConfig, PruningSchedule, idle_compaction_options, resolve_schedule
+from .config import (
+    PROBE_SIGNALS,
+    CompactionConfig,
+    PruningSchedule,
+    idle_compaction_options,
+    resolve_schedule,
+    settling_after_reset,
+)
 from .controller import AdaptiveRatio, LossSmoother, budget_for_psnr_drop
 from .matching import SpacetimeModel, match_spatiotemporal_pairs, to_float64_numpy
 from .plot import LOG_NAME, read_compaction_log
@@ -298,9 +305,8 @@ class STKNNCompactor:
     def _settling(self, iteration: int) -> bool:
         """Whether the pruning step at `iteration` is one of the reset_settle_steps after an opacity reset (at or
         before it): the opacities are still growing back."""
-        resets = [i for i in self.opacity_resets if i <= iteration]
-        settle = self.config.reset_settle_steps * self.schedule.interval
-        return bool(resets) and settle > 0 and iteration - resets[-1] < settle
+        return settling_after_reset(iteration, self.opacity_resets,
+                                    self.config.reset_settle_steps * self.schedule.interval)
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to resume (plain Python values: JSON- and torch.save-friendly)."""

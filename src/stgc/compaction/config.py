@@ -12,7 +12,7 @@ iterations and the count moves by a few percent: 5,000 iterations give 59/99/138
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Literal, get_args
 
@@ -374,6 +374,13 @@ class PruningSchedule:
         if self.end <= self.start:
             return 0
         return (self.end - self.start - 1) // self.interval + 1
+
+
+def settling_after_reset(iteration: int, opacity_resets: Sequence[int], settle_iterations: int) -> bool:
+    """Whether a pruning step at `iteration` waits (compaction.reset_settle_steps): the latest opacity reset at or
+    before it came less than `settle_iterations` (the steps times the pruning interval) before it."""
+    latest = max((reset for reset in opacity_resets if reset <= iteration), default=None)
+    return latest is not None and settle_iterations > 0 and iteration - latest < settle_iterations
 
 
 def resolve_schedule(config: CompactionConfig, total_iterations: int) -> PruningSchedule:

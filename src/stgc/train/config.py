@@ -501,14 +501,14 @@ def _scaled(iteration: int, scale: float) -> int:
     return max(1, int(round(iteration * scale)))
 
 
-def first_opacity_reset(cfg: TrainConfig) -> int | None:
-    """The first iteration at which density control resets every opacity (the first of
-    `Schedule.opacity_resets`), or None when the run has none. It needs no data: the reset options are not left to
-    it."""
+def opacity_reset_iterations(cfg: TrainConfig) -> tuple[int, ...]:
+    """The iterations at which density control resets every opacity (`Schedule.opacity_resets`), known before the
+    data resolves the schedule: the reset options are not left to it."""
     d, s = cfg.densify, cfg.schedule_scale
-    interval = _scaled(d.opacity_reset_interval, s) if d.opacity_reset_interval > 0 else 0
-    return interval if interval and interval < _scaled(d.opacity_reset_until, s) and interval <= cfg.iterations \
-        else None
+    if d.opacity_reset_interval <= 0:
+        return ()
+    interval, until = _scaled(d.opacity_reset_interval, s), _scaled(d.opacity_reset_until, s)
+    return tuple(range(interval, min(until - 1, int(cfg.iterations)) + 1, interval))
 
 
 def resolve_schedule(cfg: TrainConfig) -> Schedule:
