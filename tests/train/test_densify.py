@@ -462,7 +462,10 @@ def test_clone_split_does_not_refill_what_compaction_removed():
 ])
 @pytest.mark.parametrize("scale", [0.05, 0.3, 1.0])
 def test_the_opacity_resets_are_known_before_the_data_resolves_the_schedule(reset_options, scale):
-    """`opacity_reset_iterations` (which option checks use before any data is read) is the schedule's resets."""
+    """`opacity_reset_iterations` (which option checks use before any data is read) and the resolved schedule's list
+    are the iterations at which training resets (`Schedule.is_opacity_reset`, asked at every iteration)."""
     cfg = replace(TrainConfig(iterations=9000, schedule_scale=scale),
                   densify=replace(DensifyConfig(), **reset_options))
-    assert opacity_reset_iterations(cfg) == resolve_schedule(cfg.resolved(sparse_cloud=True, family=None)).opacity_resets()
+    schedule = resolve_schedule(cfg.resolved(sparse_cloud=True, family=None))
+    resets = tuple(i for i in range(1, cfg.iterations + 1) if schedule.is_opacity_reset(i))
+    assert opacity_reset_iterations(cfg) == schedule.opacity_resets() == resets

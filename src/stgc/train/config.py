@@ -442,7 +442,7 @@ class Schedule:
 
     def opacity_resets(self) -> tuple[int, ...]:
         """The iterations at which density control resets every opacity (`is_opacity_reset`)."""
-        return tuple(i for i in range(1, self.iterations + 1) if self.is_opacity_reset(i))
+        return _reset_iterations(self.opacity_reset_interval, self.opacity_reset_until, self.iterations)
 
     def first_densify_step(self, start: int) -> int | None:
         """The first iteration >= `start` at which density control acts (is_densify_step), or None when the run
@@ -505,10 +505,13 @@ def opacity_reset_iterations(cfg: TrainConfig) -> tuple[int, ...]:
     """The iterations at which density control resets every opacity (`Schedule.opacity_resets`), known before the
     data resolves the schedule: the reset options are not left to it."""
     d, s = cfg.densify, cfg.schedule_scale
-    if d.opacity_reset_interval <= 0:
-        return ()
-    interval, until = _scaled(d.opacity_reset_interval, s), _scaled(d.opacity_reset_until, s)
-    return tuple(range(interval, min(until - 1, int(cfg.iterations)) + 1, interval))
+    interval = _scaled(d.opacity_reset_interval, s) if d.opacity_reset_interval > 0 else 0
+    return _reset_iterations(interval, _scaled(d.opacity_reset_until, s), int(cfg.iterations))
+
+
+def _reset_iterations(interval: int, until: int, iterations: int) -> tuple[int, ...]:
+    """Every multiple of `interval` (real iterations; 0 = none) below `until` and at most `iterations`."""
+    return tuple(range(interval, min(until - 1, iterations) + 1, interval)) if interval > 0 else ()
 
 
 def resolve_schedule(cfg: TrainConfig) -> Schedule:
