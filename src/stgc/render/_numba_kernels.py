@@ -66,16 +66,17 @@ def bin_tiles(gdata, radii, order, width, height, tile_size, n_chunks):
     """Tile binning: returns (offsets [T+1] int64, flat_ids [M] int32), each tile's list sorted by depth.
 
     A Gaussian's candidate tiles are its screen box [floor((m - r) / ts), ceil((m + r) / ts)) (gsplat's rule); of
-    those, only tiles its alpha >= 1/255 ellipse actually reaches are kept (_reaches_tile). `order` lists the ids
-    of every Gaussian with radii > 0 (it may leave out the others) by increasing depth. The (tile, Gaussian) pairs
-    are laid out in depth order (parallel over Gaussians), then a stable counting sort by tile makes every tile's
-    list depth-sorted without sorting the M pairs, in `n_chunks` (the thread count) chunks of pairs at a time."""
+    those, only tiles its alpha >= 1/255 ellipse actually reaches are kept (_reaches_tile, evaluated once per
+    candidate: the kept tiles are stored in the Gaussian's slice of a buffer as long as its box). `order` lists the
+    ids of every Gaussian with radii > 0 (it may leave out the others) by increasing depth. A stable counting sort
+    by tile over the Gaussians in depth order makes every tile's list depth-sorted without sorting the M pairs, in
+    `n_chunks` (the thread count) runs of the depth order with about as many pairs each."""
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     n_tiles = tiles_x * tiles_y
     n = radii.shape[0]
     rect = np.zeros((n, 4), dtype=np.int64)
-    per_gaussian = np.zeros(n, dtype=np.int64)
+    box_start = np.zeros(n + 1, dtype=np.int64)
     for g in prange(n):
         if not _has_a_tile(radii, g):
             continue
@@ -87,29 +88,13 @@ def bin_tiles(gdata, radii, order, width, height, tile_size, n_chunks):
         rect[g, 1] = min(max(np.floor(my - ry / tile_size), 0), tiles_y)
         rect[g, 2] = min(max(np.ceil(mx + rx / tile_size), 0), tiles_x)
         rect[g, 3] = min(max(np.ceil(my + ry / tile_size), 0), tiles_y)
-        count = 0
-        for ty in range(rect[g, 1], rect[g, 3]):
-            y0 = ty * tile_size + 0.5
-            y1 = min(ty * tile_size + tile_size, height) - 0.5
-            for tx in range(rect[g, 0], rect[g, 2]):
-                x0 = tx * tile_size + 0.5
-                x1 = min(tx * tile_size + tile_size, width) - 0.5
-                if _reaches_tile(gdata, g, x0, x1, y0, y1):
-                    count += 1
-        per_gaussian[g] = count
-    # Where each Gaussian's pairs start, with Gaussians in depth order.
-    first_pair = np.empty(n, dtype=np.int64)
-    total = 0
-    for k in range(order.shape[0]):
-        g = order[k]
-        first_pair[g] = total
-        total += per_gaussian[g]
-    pair_tile = np.empty(total, dtype=np.int32)
-    pair_gaussian = np.empty(total, dtype=np.int32)
+        box_start[g + 1] = (rect[g, 2] - rect[g, 0]) * (rect[g, 3] - rect[g, 1])
+    for g in range(n):
+        box_start[g + 1] += box_start[g]
+    kept_tiles = np.empty(box_start[n], dtype=np.int32)
+    per_gaussian = np.zeros(n, dtype=np.int64)
     for g in prange(n):
-        if per_gaussian[g] == 0:
-            continue
-        i = first_pair[g]
+        i = box_start[g]
         for ty in range(rect[g, 1], rect[g, 3]):
             y0 = ty * tile_size + 0.5
             y1 = min(ty * tile_size + tile_size, height) - 0.5
@@ -117,17 +102,31 @@ def bin_tiles(gdata, radii, order, width, height, tile_size, n_chunks):
                 x0 = tx * tile_size + 0.5
                 x1 = min(tx * tile_size + tile_size, width) - 0.5
                 if _reaches_tile(gdata, g, x0, x1, y0, y1):
-                    pair_tile[i] = ty * tiles_x + tx
-                    pair_gaussian[i] = g
+                    kept_tiles[i] = ty * tiles_x + tx
                     i += 1
-    # The counting sort by tile, in one chunk of pairs per thread: each chunk counts its pairs per tile, a chunk's
-    # pairs of a tile go after the earlier chunks' (so the sort stays stable: depth order within each tile).
+        per_gaussian[g] = i - box_start[g]
+    # Where the pairs of the k-th Gaussian in depth order start.
+    m = order.shape[0]
+    pair_start = np.empty(m + 1, dtype=np.int64)
+    total = 0
+    for k in range(m):
+        pair_start[k] = total
+        total += per_gaussian[order[k]]
+    pair_start[m] = total
     n_chunks = max(1, min(n_chunks, total))
     per_chunk = (total + n_chunks - 1) // n_chunks if total else 0
+    chunk_start = np.empty(n_chunks + 1, dtype=np.int64)
+    for c in range(n_chunks):
+        chunk_start[c] = np.searchsorted(pair_start, c * per_chunk)
+    chunk_start[n_chunks] = m
+    # Each chunk counts its pairs per tile; a chunk's pairs of a tile go after the earlier chunks' (so the sort
+    # stays stable: depth order within each tile).
     cursor = np.zeros((n_chunks, n_tiles), dtype=np.int64)
     for c in prange(n_chunks):
-        for i in range(c * per_chunk, min(total, (c + 1) * per_chunk)):
-            cursor[c, pair_tile[i]] += 1
+        for k in range(chunk_start[c], chunk_start[c + 1]):
+            g = order[k]
+            for i in range(box_start[g], box_start[g] + per_gaussian[g]):
+                cursor[c, kept_tiles[i]] += 1
     offsets = np.zeros(n_tiles + 1, dtype=np.int64)
     for t in range(n_tiles):
         at = offsets[t]
@@ -138,10 +137,12 @@ def bin_tiles(gdata, radii, order, width, height, tile_size, n_chunks):
         offsets[t + 1] = at
     flat = np.empty(total, dtype=np.int32)
     for c in prange(n_chunks):
-        for i in range(c * per_chunk, min(total, (c + 1) * per_chunk)):
-            t = pair_tile[i]
-            flat[cursor[c, t]] = pair_gaussian[i]
-            cursor[c, t] += 1
+        for k in range(chunk_start[c], chunk_start[c + 1]):
+            g = order[k]
+            for i in range(box_start[g], box_start[g] + per_gaussian[g]):
+                t = kept_tiles[i]
+                flat[cursor[c, t]] = g
+                cursor[c, t] += 1
     return offsets, flat
 
 
