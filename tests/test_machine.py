@@ -1,4 +1,7 @@
+import os
 import platform
+import subprocess
+import sys
 
 import pytest
 
@@ -26,3 +29,36 @@ def test_describe_reads_this_host():
         assert found["vector_isa"] in {"avx512", "avx2", "avx", "sse4.2"}
     line = machine.one_line(found)
     assert found["cpu_target"] in line and f"{found['cpus']} CPUs" in line
+
+
+_FAULTS_PER_ROUND = """
+import resource, sys
+import numpy as np
+import stgc
+def faults():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+counts = []
+for _ in range(3):  # a render's arrays, over and over: per-Gaussian rows, images, pair lists of a few MB
+    before = faults()
+    for size in (3 << 20, 24 << 20, 6 << 20, 12 << 20):
+        block = np.ones(size // 8)
+        del block
+    counts.append(faults() - before)
+print(counts[1], counts[2])
+"""
+
+
+@pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
+def test_importing_stgc_keeps_freed_blocks_for_the_next_allocations_unless_the_user_set_glibcs_own():
+    """Fresh pages cost a page fault each (stgc/__init__.py): after the first round the same allocations fault
+    no more. With the user's own MALLOC_MMAP_THRESHOLD_ (glibc's default value here), stgc leaves malloc alone,
+    and every round faults in its pages again (fewer than 45 MB / 4 kB: numpy asks for huge pages where it can)."""
+
+    def later_rounds(extra_env):
+        env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")} | extra_env
+        out = subprocess.run([sys.executable, "-c", _FAULTS_PER_ROUND], env=env, capture_output=True, text=True,
+                             check=True)  # fmt: skip
+        return [int(x) for x in out.stdout.split()]
+
+    assert max(later_rounds({})) < 100
+    assert min(later_rounds({"MALLOC_MMAP_THRESHOLD_": "131072"})) > 1000
