@@ -209,7 +209,7 @@ def test_numba_tile_lists_are_the_torch_binning_less_the_tiles_a_gaussian_cannot
     import numba
 
     from stgc.render import _numba_kernels as kernels
-    from stgc.render.projection import bin_tiles_torch, sigma_cutoff, tile_grid, tile_rects
+    from stgc.render.projection import ALPHA_MIN, SIGMA_CUT_MARGIN, bin_tiles_torch, tile_grid, tile_rects
 
     if threads > numba.config.NUMBA_NUM_THREADS:
         pytest.skip("needs two numba threads")
@@ -218,8 +218,14 @@ def test_numba_tile_lists_are_the_torch_binning_less_the_tiles_a_gaussian_cannot
     means, quats, scales, opacities = scene.params()[:4]
     proj = numba_backend.project_numba(means, quats, scales, opacities, scene.K, scene.viewmat, width, height,
                                        eps2d=0.3, near_plane=0.01)
-    gdata = numba_backend._pack(proj.means2d, proj.conics, opacities, sigma_cutoff(opacities).to(torch.float32),
-                                proj.depths, np.float32)
+    gdata = numba_backend._pack(proj.means2d, proj.conics, opacities, proj.depths, np.float32)
+    # The sigma above which o exp(-sigma) < 1/255 for certain (what binning tests tiles against), in numpy
+    o = opacities.numpy().astype(np.float64)
+    want_cut = np.log(np.maximum(o, ALPHA_MIN) * 255.0) + SIGMA_CUT_MARGIN
+    np.testing.assert_allclose(gdata[:, 6], want_cut, rtol=1e-6)
+    assert np.array_equal(gdata[:, [0, 1, 2, 3, 4, 5, 7]],
+                          np.column_stack([proj.means2d.numpy(), proj.conics.numpy(), opacities.numpy(),
+                                           proj.depths.numpy()]))
     radii = proj.radii.numpy()
     before = numba.get_num_threads()
     try:

@@ -24,27 +24,53 @@ GX, GY, GA, GB, GC, GO, GCUT, GDEPTH = range(8)
 N_GEOM_GRADS = 6
 
 
+@njit(parallel=True, cache=True, nogil=True)
+def pack_gaussians(means2d, conics, opacities, depths, alpha_min, sigma_margin, gdata):
+    """gdata[g] = (mean x, y, conic a, b, c, opacity, sigma cutoff, depth), in gdata's dtype. The cutoff is
+    projection.sigma_cutoff's (log(255 max(o, alpha_min)) + margin, in float64): the sigma above which
+    o exp(-sigma) < 1/255 for certain, which binning tests tiles against."""
+    for g in prange(gdata.shape[0]):
+        gdata[g, GX] = means2d[g, 0]
+        gdata[g, GY] = means2d[g, 1]
+        gdata[g, GA] = conics[g, 0]
+        gdata[g, GB] = conics[g, 1]
+        gdata[g, GC] = conics[g, 2]
+        gdata[g, GO] = opacities[g]
+        gdata[g, GCUT] = np.log(max(np.float64(opacities[g]), alpha_min) * 255.0) + sigma_margin
+        gdata[g, GDEPTH] = depths[g]
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _reaches_tile(gdata, g, x0, x1, y0, y1):
     """Whether some pixel centre in [x0, x1] x [y0, y1] has sigma <= the Gaussian's cutoff, i.e. could get
-    alpha >= 1/255. sigma is a convex quadratic, so when the mean is outside the rectangle its minimum over the
-    rectangle lies on one of the four edges; each edge is a 1-D quadratic minimised in closed form and clamped.
-    Exact (never drops a pixel the compositor would use): the box of pixel centres contains every centre."""
+    alpha >= 1/255. sigma is a strictly convex quadratic, so when the mean is outside the rectangle its minimum over
+    the rectangle lies on an edge that faces the mean (from any other boundary point, the way to the mean leads
+    into the rectangle and downhill): the left edge if the mean is left of it, and so on, one edge or two. Along an
+    edge sigma is a 1-D quadratic, minimised in closed form and clamped. Exact (never drops a pixel the compositor
+    would use): the box of pixel centres contains every centre."""
     mx = gdata[g, GX]
     my = gdata[g, GY]
-    if x0 <= mx <= x1 and y0 <= my <= y1:
+    left = mx < x0
+    right = mx > x1
+    above = my < y0
+    below = my > y1
+    if not (left or right or above or below):
         return True
     a = gdata[g, GA]
     b = gdata[g, GB]
     c = gdata[g, GC]
     cut = gdata[g, GCUT]
-    for edge in range(4):
-        if edge < 2:
-            dx = mx - (x0 if edge == 0 else x1)
+    for edge in range(2):
+        if edge == 0:
+            if not (left or right):
+                continue
+            dx = mx - (x0 if left else x1)
             dy = -b * dx / c if c > 0 else 0.0
             dy = min(max(dy, my - y1), my - y0)
         else:
-            dy = my - (y0 if edge == 2 else y1)
+            if not (above or below):
+                continue
+            dy = my - (y0 if above else y1)
             dx = -b * dy / a if a > 0 else 0.0
             dx = min(max(dx, mx - x1), mx - x0)
         # The compositor evaluates sigma in float32, where these terms can cancel (a c close to b^2): a margin
@@ -67,65 +93,77 @@ def bin_tiles(gdata, radii, order, width, height, tile_size, n_chunks):
 
     A Gaussian's candidate tiles are its screen box [floor((m - r) / ts), ceil((m + r) / ts)) (gsplat's rule); of
     those, only tiles its alpha >= 1/255 ellipse actually reaches are kept (_reaches_tile, evaluated once per
-    candidate: the kept tiles are stored in the Gaussian's slice of a buffer as long as its box). `order` lists the
-    ids of every Gaussian with radii > 0 (it may leave out the others) by increasing depth. A stable counting sort
-    by tile over the Gaussians in depth order makes every tile's list depth-sorted without sorting the M pairs, in
-    `n_chunks` (the thread count) runs of the depth order with about as many pairs each."""
+    candidate). `order` lists the ids of every Gaussian with radii > 0 (it may leave out the others) by increasing
+    depth. Everything after the first read of a Gaussian's data runs in that order: each Gaussian's kept tiles go
+    to its slice of a buffer laid out by depth rank, and a stable counting sort by tile reads the buffer front to
+    back in `n_chunks` (the thread count) runs of about as many pairs each, so every tile's list comes out
+    depth-sorted without sorting the M pairs, and no pass jumps about memory by Gaussian id."""
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     n_tiles = tiles_x * tiles_y
-    n = radii.shape[0]
-    rect = np.zeros((n, 4), dtype=np.int64)
-    box_start = np.zeros(n + 1, dtype=np.int64)
-    for g in prange(n):
+    m = order.shape[0]
+    rect = np.zeros((m, 4), dtype=np.int64)
+    box_start = np.zeros(m + 1, dtype=np.int64)
+    for k in prange(m):
+        g = order[k]
         if not _has_a_tile(radii, g):
             continue
         rx = radii[g, 0]
         ry = radii[g, 1]
         mx = gdata[g, GX] / tile_size
         my = gdata[g, GY] / tile_size
-        rect[g, 0] = min(max(np.floor(mx - rx / tile_size), 0), tiles_x)
-        rect[g, 1] = min(max(np.floor(my - ry / tile_size), 0), tiles_y)
-        rect[g, 2] = min(max(np.ceil(mx + rx / tile_size), 0), tiles_x)
-        rect[g, 3] = min(max(np.ceil(my + ry / tile_size), 0), tiles_y)
-        box_start[g + 1] = (rect[g, 2] - rect[g, 0]) * (rect[g, 3] - rect[g, 1])
-    for g in range(n):
-        box_start[g + 1] += box_start[g]
-    kept_tiles = np.empty(box_start[n], dtype=np.int32)
-    per_gaussian = np.zeros(n, dtype=np.int64)
-    for g in prange(n):
-        i = box_start[g]
-        for ty in range(rect[g, 1], rect[g, 3]):
+        rect[k, 0] = min(max(np.floor(mx - rx / tile_size), 0), tiles_x)
+        rect[k, 1] = min(max(np.floor(my - ry / tile_size), 0), tiles_y)
+        rect[k, 2] = min(max(np.ceil(mx + rx / tile_size), 0), tiles_x)
+        rect[k, 3] = min(max(np.ceil(my + ry / tile_size), 0), tiles_y)
+        box_start[k + 1] = (rect[k, 2] - rect[k, 0]) * (rect[k, 3] - rect[k, 1])
+    for k in range(m):
+        box_start[k + 1] += box_start[k]
+    kept_tiles = np.empty(box_start[m], dtype=np.int32)
+    kept = np.zeros(m, dtype=np.int64)
+    for k in prange(m):
+        g = order[k]
+        i = box_start[k]
+        for ty in range(rect[k, 1], rect[k, 3]):
             y0 = ty * tile_size + 0.5
             y1 = min(ty * tile_size + tile_size, height) - 0.5
-            for tx in range(rect[g, 0], rect[g, 2]):
-                x0 = tx * tile_size + 0.5
-                x1 = min(tx * tile_size + tile_size, width) - 0.5
-                if _reaches_tile(gdata, g, x0, x1, y0, y1):
-                    kept_tiles[i] = ty * tiles_x + tx
-                    i += 1
-        per_gaussian[g] = i - box_start[g]
-    # Where the pairs of the k-th Gaussian in depth order start.
-    m = order.shape[0]
-    pair_start = np.empty(m + 1, dtype=np.int64)
+            # The ellipse meets a row of tiles in a run of them (it is convex, and so is its part inside the row's
+            # band of pixel centres), so only the tiles outside that run and its two ends are tested.
+            first = rect[k, 0]
+            last = rect[k, 2] - 1
+            while first <= last and not _reaches_tile(gdata, g, first * tile_size + 0.5,
+                                                      min(first * tile_size + tile_size, width) - 0.5, y0, y1):
+                first += 1
+            while last > first and not _reaches_tile(gdata, g, last * tile_size + 0.5,
+                                                     min(last * tile_size + tile_size, width) - 0.5, y0, y1):
+                last -= 1
+            for tx in range(first, last + 1):
+                kept_tiles[i] = ty * tiles_x + tx
+                i += 1
+        kept[k] = i - box_start[k]
     total = 0
     for k in range(m):
-        pair_start[k] = total
-        total += per_gaussian[order[k]]
-    pair_start[m] = total
+        total += kept[k]
     n_chunks = max(1, min(n_chunks, total))
     per_chunk = (total + n_chunks - 1) // n_chunks if total else 0
     chunk_start = np.empty(n_chunks + 1, dtype=np.int64)
-    for c in range(n_chunks):
-        chunk_start[c] = np.searchsorted(pair_start, c * per_chunk)
     chunk_start[n_chunks] = m
+    c = 0
+    pairs = 0
+    for k in range(m):
+        while c < n_chunks and pairs >= c * per_chunk:
+            chunk_start[c] = k
+            c += 1
+        pairs += kept[k]
+    while c < n_chunks:
+        chunk_start[c] = m
+        c += 1
     # Each chunk counts its pairs per tile; a chunk's pairs of a tile go after the earlier chunks' (so the sort
     # stays stable: depth order within each tile).
     cursor = np.zeros((n_chunks, n_tiles), dtype=np.int64)
     for c in prange(n_chunks):
         for k in range(chunk_start[c], chunk_start[c + 1]):
-            g = order[k]
-            for i in range(box_start[g], box_start[g] + per_gaussian[g]):
+            for i in range(box_start[k], box_start[k] + kept[k]):
                 cursor[c, kept_tiles[i]] += 1
     offsets = np.zeros(n_tiles + 1, dtype=np.int64)
     for t in range(n_tiles):
@@ -139,7 +177,7 @@ def bin_tiles(gdata, radii, order, width, height, tile_size, n_chunks):
     for c in prange(n_chunks):
         for k in range(chunk_start[c], chunk_start[c + 1]):
             g = order[k]
-            for i in range(box_start[g], box_start[g] + per_gaussian[g]):
+            for i in range(box_start[k], box_start[k] + kept[k]):
                 t = kept_tiles[i]
                 flat[cursor[c, t]] = g
                 cursor[c, t] += 1

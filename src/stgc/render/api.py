@@ -14,7 +14,7 @@ from . import numba_backend as nb
 from . import torch_backend as tb
 from .gsplat_backend import gsplat_failure, load_gsplat, rasterize_gsplat
 from .output import T_MIN, RenderOutput
-from .projection import ALPHA_MIN, bin_tiles_torch, project_gaussians, sigma_cutoff, tile_rects
+from .projection import ALPHA_MIN, bin_tiles_torch, project_gaussians, tile_rects
 
 Backend = Literal["auto", "numba", "torch", "gsplat"]
 BACKENDS = get_args(Backend)
@@ -172,7 +172,7 @@ def rasterize(
         proj.means2d.retain_grad()
     if chosen == "numba":
         color, trans, depth, weights, n_isects = nb.composite_numba(
-            proj.means2d, proj.conics, opacities, features, sigma_cutoff(opacities), proj.depths, proj.radii,
+            proj.means2d, proj.conics, opacities, features, proj.depths, proj.radii,
             width, height, float(alpha_max), ALPHA_MIN, T_MIN, return_depth, return_weights,
         )  # fmt: skip
     else:

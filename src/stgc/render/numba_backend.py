@@ -12,7 +12,7 @@ from torch import Tensor
 
 from . import _numba_kernels as kernels
 from . import _numba_projection as projection_kernels
-from .projection import Projected, tile_grid
+from .projection import ALPHA_MIN, SIGMA_CUT_MARGIN, Projected, tile_grid
 
 # Tile edge in pixels. 8 beats 16 on CPU: per-tile lists are shorter relative to the pixels that walk them
 # (measured in benchmarks/rasterizer.py --tile-size; docs/rasterizer.md has the numbers).
@@ -23,15 +23,10 @@ def _consts(dtype: type[np.floating], alpha_max: float, alpha_min: float, t_min:
     return np.array([0.5, 1.0, alpha_max, alpha_min, t_min, 0.0], dtype=dtype)
 
 
-def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, sigma_cut: Tensor, depths: Tensor,
-          dtype: type[np.floating]) -> np.ndarray:
-    N = means2d.shape[0]
-    gdata = np.empty((N, 8), dtype=dtype)
-    gdata[:, 0:2] = means2d.detach().numpy()
-    gdata[:, 2:5] = conics.detach().numpy()
-    gdata[:, 5] = opacities.detach().numpy()
-    gdata[:, 6] = sigma_cut.numpy()
-    gdata[:, 7] = depths.numpy()
+def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, dtype: type[np.floating]) -> np.ndarray:
+    gdata = np.empty((means2d.shape[0], 8), dtype=dtype)
+    kernels.pack_gaussians(*(np.ascontiguousarray(t.detach().numpy()) for t in (means2d, conics, opacities, depths)),
+                           ALPHA_MIN, SIGMA_CUT_MARGIN, gdata)  # fmt: skip
     return gdata
 
 
@@ -185,7 +180,6 @@ def composite_numba(
     conics: Tensor,
     opacities: Tensor,
     colors: Tensor,
-    sigma_cut: Tensor,
     depths: Tensor,
     radii: Tensor,
     width: int,
@@ -201,7 +195,7 @@ def composite_numba(
     tile_size None = the module's TILE_SIZE (read at call time, so a benchmark can change it)."""
     tile_size = TILE_SIZE if tile_size is None else tile_size
     np_dtype = np.float64 if colors.dtype == torch.float64 else np.float32
-    gdata = _pack(means2d, conics, opacities, sigma_cut, depths, np_dtype)
+    gdata = _pack(means2d, conics, opacities, depths, np_dtype)
     radii_np = radii.numpy()
     order = depth_order(depths.detach().numpy(), radii_np)
     offsets, flat = kernels.bin_tiles(gdata, radii_np, order, width, height, tile_size, numba.get_num_threads())

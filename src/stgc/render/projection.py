@@ -154,12 +154,6 @@ def _screen_radii(
     return radii, visible
 
 
-def sigma_cutoff(opacities: Tensor) -> Tensor:
-    """Per-Gaussian sigma above which o * exp(-sigma) < 1/255 for certain: the exact "skip before exp" bound."""
-    o = opacities.detach().to(torch.float64).clamp(min=ALPHA_MIN)
-    return torch.log(o * 255.0) + SIGMA_CUT_MARGIN
-
-
 def tile_grid(width: int, height: int, tile_size: int) -> tuple[int, int]:
     return math.ceil(width / tile_size), math.ceil(height / tile_size)
 
