@@ -301,3 +301,16 @@ def test_a_footprint_beyond_every_bound_is_capped_and_renders_finite(backend):
     assert out.image.isfinite().all()
     out.image.sum().backward()  # numba's gradient stays finite; torch's autograd through the overflow is NaN
     assert overflow[0].grad is not None and (backend == "torch" or overflow[0].grad.isfinite().all())
+
+
+def test_interleaved_tiles_is_a_permutation_that_deals_every_thread_tiles_from_all_over_the_image():
+    from stgc.render import _numba_kernels as kernels
+
+    assert kernels.interleaved_tiles(10, 3).tolist() == [0, 3, 6, 9, 1, 4, 7, 2, 5, 8]
+    for n_tiles, n_threads in ((920, 2), (1024, 2), (7, 4), (3, 8), (1, 1), (0, 2)):
+        order = kernels.interleaved_tiles(n_tiles, n_threads)
+        assert sorted(order.tolist()) == list(range(n_tiles)) and order.dtype == np.int64
+    # numba's static schedule gives thread t the t-th contiguous block of the loop: with 2 threads over 920 tiles
+    # (a 320x180 image in 40 x 23 tiles of 8), each block holds every row of tiles, half of each.
+    first_block = kernels.interleaved_tiles(920, 2)[:460]
+    assert len(set((first_block // 40).tolist())) == 23

@@ -6,7 +6,8 @@ consts = [0.5, 1.0, alpha_max, alpha_min, transmittance_min, 0.0].
 
 Per-Gaussian data is packed row-wise in `gdata` [N, 8] so one Gaussian's data is contiguous:
     0 mean x, 1 mean y, 2 conic a, 3 conic b, 4 conic c, 5 opacity, 6 sigma cutoff (binning), 7 depth.
-Work is split by tile (`prange`): a tile's pixels are owned by one thread, so image writes never race. Per-Gaussian
+Work is split by tile (`prange` over `tile_order`, see interleaved_tiles): a tile's pixels are owned by one thread,
+so image writes never race. Per-Gaussian
 accumulations (gradients, importance weights) go to per-thread rows indexed by `numba.get_thread_id()` and are summed
 afterwards.
 """
@@ -324,9 +325,18 @@ def _dot(a, b, n):
     return s
 
 
+def interleaved_tiles(n_tiles: int, n_threads: int) -> np.ndarray:
+    """The order the compositing kernels' parallel loops take the tiles in: tiles 0, T, 2T, ..., then 1, T + 1, ...
+    (T threads). The loops hand each thread one contiguous block of that order, so each thread gets every T-th tile
+    of the image instead of one band of it. A real scene's work is far from even across bands (sky, floor, the
+    subject): in a panoptic training view the top half of the tiles held 31 % of the backward's work, and the
+    2-thread backward took 19.7 ms with bands, 18.2 ms interleaved (31 ms on one thread)."""
+    return np.concatenate([np.arange(j, n_tiles, n_threads, dtype=np.int64) for j in range(max(n_threads, 1))])
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def composite_forward(
-    gdata, colors, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts,
+    gdata, colors, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts, tile_order,
     want_depth, want_weights, out_color, out_trans, out_last, out_depth, weights_rows,
     scratch_geometry, scratch_colors, scratch_entries,
 ):  # fmt: skip
@@ -347,7 +357,8 @@ def composite_forward(
     zero = consts[ZERO]
     no_gaussians = np.empty(0, dtype=colors.dtype)
     n_tiles = offsets.shape[0] - 1
-    for tile in prange(n_tiles):
+    for i in prange(n_tiles):
+        tile = tile_order[i]
         start = offsets[tile]
         n = offsets[tile + 1] - start
         x0 = (tile % tiles_x) * tile_size
@@ -397,7 +408,7 @@ def composite_forward(
 
 @njit(parallel=True, cache=True, nogil=True)
 def composite_backward(
-    gdata, colors, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts,
+    gdata, colors, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts, tile_order,
     final_trans, last_ids, grad_color, grad_trans, grad_rows, scratch_geometry, scratch_colors, scratch_grads,
     scratch_entries,
 ):  # fmt: skip
@@ -424,7 +435,8 @@ def composite_backward(
     one = consts[ONE]
     zero = consts[ZERO]
     n_tiles = offsets.shape[0] - 1
-    for tile in prange(n_tiles):
+    for i in prange(n_tiles):
+        tile = tile_order[i]
         start = offsets[tile]
         x0 = (tile % tiles_x) * tile_size
         y0 = (tile // tiles_x) * tile_size

@@ -134,8 +134,9 @@ class _NumbaComposite(torch.autograd.Function):
         n_threads = numba.get_num_threads()
         weight_rows = np.zeros((n_threads, N) if want_weights else (1, 1), dtype=np_dtype)
         longest = int((offsets[1:] - offsets[:-1]).max()) if offsets.shape[0] > 1 else 0
+        tile_order = kernels.interleaved_tiles(offsets.shape[0] - 1, n_threads)
         kernels.composite_forward(
-            gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts,
+            gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts, tile_order,
             want_depth, want_weights, out_color, out_trans, out_last, out_depth, weight_rows,
             *_scratch(n_threads, longest, (8,), (C,), (2,), dtype=np_dtype),
         )  # fmt: skip
@@ -160,8 +161,8 @@ class _NumbaComposite(torch.autograd.Function):
         n_threads = numba.get_num_threads()
         rows = np.empty((n_threads, N, kernels.N_GEOM_GRADS + C), dtype=np_dtype)  # zeroed by the kernel
         kernels.composite_backward(
-            gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts, out_trans, out_last, gc, gt,
-            rows, *_scratch(n_threads, longest, (8,), (C,), (kernels.N_GEOM_GRADS + C,), (5,), dtype=np_dtype),
+            gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts,
+            kernels.interleaved_tiles(offsets.shape[0] - 1, n_threads), out_trans, out_last, gc, gt, rows, *_scratch(n_threads, longest, (8,), (C,), (kernels.N_GEOM_GRADS + C,), (5,), dtype=np_dtype),
         )  # fmt: skip
         if rows.shape[0] == 1:
             total = rows[0]
