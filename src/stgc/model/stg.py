@@ -345,7 +345,10 @@ class STGModel:
         if len(index) == self.num_gaussians:  # nothing culled (e.g. early training): skip the row copies
             rows, visible_opacity = self.params, opacity
         else:
-            rows, visible_opacity = {key: value[index] for key, value in self.params.items()}, opacity[index]
+            # index_select, not value[index]: its backward (index_add_) took about half the time of indexing's
+            # (index_put_ with accumulate) on CPU, for the same gradients.
+            rows = {key: value.index_select(0, index) for key, value in self.params.items()}
+            visible_opacity = opacity.index_select(0, index)
         cached = self._camera_tensors(camera)
         delta = _detached_delta(rows, t)
         raster = _render.rasterize(
