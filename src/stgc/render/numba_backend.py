@@ -25,8 +25,8 @@ def _consts(dtype: type[np.floating], alpha_max: float, alpha_min: float, t_min:
 
 def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, dtype: type[np.floating]) -> np.ndarray:
     gdata = np.empty((means2d.shape[0], 8), dtype=dtype)
-    kernels.pack_gaussians(*(np.ascontiguousarray(t.detach().numpy()) for t in (means2d, conics, opacities, depths)),
-                           ALPHA_MIN, SIGMA_CUT_MARGIN, gdata)  # fmt: skip
+    m2, co, op, de = (np.ascontiguousarray(t.detach().numpy()) for t in (means2d, conics, opacities, depths))
+    kernels.pack_gaussians(m2, co, op, de, ALPHA_MIN, SIGMA_CUT_MARGIN, gdata)
     return gdata
 
 
