@@ -7,9 +7,8 @@ consts = [0.5, 1.0, alpha_max, alpha_min, transmittance_min, 0.0].
 Per-Gaussian data is packed row-wise in `gdata` [N, 8] so one Gaussian's data is contiguous:
     0 mean x, 1 mean y, 2 conic a, 3 conic b, 4 conic c, 5 opacity, 6 sigma cutoff (binning), 7 depth.
 Work is split by tile (`prange` over `tile_order`, see interleaved_tiles): a tile's pixels are owned by one thread,
-so image writes never race. Per-Gaussian
-accumulations (gradients, importance weights) go to per-thread rows indexed by `numba.get_thread_id()` and are summed
-afterwards.
+so image writes never race. Per-Gaussian accumulations (gradients, importance weights) go to per-thread rows indexed
+by `numba.get_thread_id()` and are summed afterwards.
 """
 
 from __future__ import annotations
@@ -27,9 +26,9 @@ N_GEOM_GRADS = 6
 
 @njit(parallel=True, cache=True, nogil=True)
 def pack_gaussians(means2d, conics, opacities, depths, alpha_min, sigma_margin, gdata):
-    """gdata[g] = (mean x, y, conic a, b, c, opacity, sigma cutoff, depth), in gdata's dtype. The cutoff is
-    projection.sigma_cutoff's (log(255 max(o, alpha_min)) + margin, in float64): the sigma above which
-    o exp(-sigma) < 1/255 for certain, which binning tests tiles against."""
+    """gdata[g] = (mean x, y, conic a, b, c, opacity, sigma cutoff, depth), in gdata's dtype. The cutoff,
+    log(255 max(o, alpha_min)) + margin in float64, is the sigma above which o exp(-sigma) < 1/255 for certain
+    (the margin covers float32's exp and log rounding): what binning tests tiles against."""
     for g in prange(gdata.shape[0]):
         gdata[g, GX] = means2d[g, 0]
         gdata[g, GY] = means2d[g, 1]
@@ -95,10 +94,10 @@ def bin_tiles(gdata, radii, order, width, height, tile_size, n_chunks):
     A Gaussian's candidate tiles are its screen box [floor((m - r) / ts), ceil((m + r) / ts)) (gsplat's rule); of
     those, only tiles its alpha >= 1/255 ellipse actually reaches are kept (_reaches_tile, evaluated once per
     candidate). `order` lists the ids of every Gaussian with radii > 0 (it may leave out the others) by increasing
-    depth. Everything after the first read of a Gaussian's data runs in that order: each Gaussian's kept tiles go
-    to its slice of a buffer laid out by depth rank, and a stable counting sort by tile reads the buffer front to
-    back in `n_chunks` (the thread count) runs of about as many pairs each, so every tile's list comes out
-    depth-sorted without sorting the M pairs, and no pass jumps about memory by Gaussian id."""
+    depth, and every pass runs in that order: each Gaussian's kept tiles go to its slice of a buffer laid out by
+    depth rank, and a stable counting sort by tile reads that buffer front to back (not one Gaussian's slice here
+    and the next one's far away) in `n_chunks` (the thread count) runs of about as many pairs each, so every tile's
+    list comes out depth-sorted without sorting the M pairs."""
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     n_tiles = tiles_x * tiles_y
