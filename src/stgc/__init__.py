@@ -18,9 +18,13 @@ def _keep_freed_memory() -> None:
     """glibc's malloc returns freed blocks of more than a few MB to the OS, so the next render's per-Gaussian and
     per-pixel arrays come back as fresh pages, each zeroed by a page fault (about 5 us a page on the virtual
     machines measured: a 6 MB array 7 ms, and two threads faulting at once wait on each other). Blocks up to 32 MiB
-    (glibc's largest mmap threshold) then come from the heap, which keeps up to 256 MiB free at its top. The user's
-    own MALLOC_MMAP_THRESHOLD_ / MALLOC_TRIM_THRESHOLD_ win; not glibc (macOS, musl): nothing to do."""
-    if "MALLOC_MMAP_THRESHOLD_" in _os.environ or "MALLOC_TRIM_THRESHOLD_" in _os.environ:
+    (glibc's largest mmap threshold) then come from the heap, which keeps up to 256 MiB free at the top of each of
+    its arenas. The user's own settings win: MALLOC_MMAP_THRESHOLD_, MALLOC_TRIM_THRESHOLD_ or the same in
+    GLIBC_TUNABLES (glibc reads them when the process starts); not glibc (macOS, musl): nothing to do. Importing
+    stgc sets this for the whole process, like OMP_WAIT_POLICY above."""
+    tunables = _os.environ.get("GLIBC_TUNABLES", "")
+    if ("MALLOC_MMAP_THRESHOLD_" in _os.environ or "MALLOC_TRIM_THRESHOLD_" in _os.environ
+            or "malloc.mmap_threshold" in tunables or "malloc.trim_threshold" in tunables):
         return
     try:
         mallopt = _ctypes.CDLL("libc.so.6").mallopt

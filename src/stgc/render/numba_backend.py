@@ -23,10 +23,11 @@ def _consts(dtype: type[np.floating], alpha_max: float, alpha_min: float, t_min:
     return np.array([0.5, 1.0, alpha_max, alpha_min, t_min, 0.0], dtype=dtype)
 
 
-def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, dtype: type[np.floating]) -> np.ndarray:
+def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, dtype: type[np.floating],
+          alpha_min: float = ALPHA_MIN) -> np.ndarray:
     gdata = np.empty((means2d.shape[0], 8), dtype=dtype)
     m2, co, op, de = (np.ascontiguousarray(t.detach().numpy()) for t in (means2d, conics, opacities, depths))
-    kernels.pack_gaussians(m2, co, op, de, ALPHA_MIN, SIGMA_CUT_MARGIN, gdata)
+    kernels.pack_gaussians(m2, co, op, de, alpha_min, SIGMA_CUT_MARGIN, gdata)
     return gdata
 
 
@@ -162,7 +163,8 @@ class _NumbaComposite(torch.autograd.Function):
         rows = np.empty((n_threads, N, kernels.N_GEOM_GRADS + C), dtype=np_dtype)  # zeroed by the kernel
         kernels.composite_backward(
             gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts,
-            kernels.interleaved_tiles(offsets.shape[0] - 1, n_threads), out_trans, out_last, gc, gt, rows, *_scratch(n_threads, longest, (8,), (C,), (kernels.N_GEOM_GRADS + C,), (5,), dtype=np_dtype),
+            kernels.interleaved_tiles(offsets.shape[0] - 1, n_threads), out_trans, out_last, gc, gt, rows,
+            *_scratch(n_threads, longest, (8,), (C,), (kernels.N_GEOM_GRADS + C,), (5,), dtype=np_dtype),
         )  # fmt: skip
         if rows.shape[0] == 1:
             total = rows[0]
@@ -198,7 +200,7 @@ def composite_numba(
     tile_size None = the module's TILE_SIZE (read at call time, so a benchmark can change it)."""
     tile_size = TILE_SIZE if tile_size is None else tile_size
     np_dtype = np.float64 if colors.dtype == torch.float64 else np.float32
-    gdata = _pack(means2d, conics, opacities, depths, np_dtype)
+    gdata = _pack(means2d, conics, opacities, depths, np_dtype, alpha_min)
     radii_np = radii.numpy()
     order = depth_order(depths.detach().numpy(), radii_np)
     offsets, flat = kernels.bin_tiles(gdata, radii_np, order, width, height, tile_size, numba.get_num_threads())
