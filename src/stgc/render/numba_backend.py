@@ -141,7 +141,7 @@ class _NumbaComposite(torch.autograd.Function):
             want_depth, want_weights, out_color, out_trans, out_last, out_depth, weight_rows,
             *_scratch(n_threads, longest, (8,), (C,), (2,), dtype=np_dtype),
         )  # fmt: skip
-        ctx.arrays = (gdata, col, offsets, flat, centers_x, centers_y, consts, out_trans, out_last)
+        ctx.arrays = (gdata, col, offsets, flat, centers_x, centers_y, consts, tile_order, out_trans, out_last)
         ctx.layout = (tile_size, tiles_x, N, C, longest)
         depth = torch.from_numpy(out_depth) if want_depth else None
         weights = torch.from_numpy(weight_rows.sum(axis=0)) if want_weights else None
@@ -153,7 +153,7 @@ class _NumbaComposite(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, grad_color: Tensor | None, grad_trans: Tensor | None, _grad_depth: Tensor | None,
                  _grad_weights: Tensor | None) -> tuple[Tensor | None, ...]:
-        gdata, col, offsets, flat, centers_x, centers_y, consts, out_trans, out_last = ctx.arrays
+        gdata, col, offsets, flat, centers_x, centers_y, consts, tile_order, out_trans, out_last = ctx.arrays
         tile_size, tiles_x, N, C, longest = ctx.layout
         np_dtype = gdata.dtype.type
         H, W = out_trans.shape
@@ -162,8 +162,8 @@ class _NumbaComposite(torch.autograd.Function):
         n_threads = numba.get_num_threads()
         rows = np.empty((n_threads, N, kernels.N_GEOM_GRADS + C), dtype=np_dtype)  # zeroed by the kernel
         kernels.composite_backward(
-            gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts,
-            kernels.interleaved_tiles(offsets.shape[0] - 1, n_threads), out_trans, out_last, gc, gt, rows,
+            gdata, col, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts, tile_order, out_trans,
+            out_last, gc, gt, rows,
             *_scratch(n_threads, longest, (8,), (C,), (kernels.N_GEOM_GRADS + C,), (5,), dtype=np_dtype),
         )  # fmt: skip
         if rows.shape[0] == 1:
