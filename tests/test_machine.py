@@ -33,7 +33,7 @@ def test_describe_reads_this_host():
 
 
 _FAULTS_PER_ROUND = """
-import resource, sys
+import resource
 import numpy as np
 from numpy._core import multiarray
 import stgc

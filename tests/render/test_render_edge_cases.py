@@ -203,7 +203,8 @@ def test_depth_order_sorts_depths_over_every_bit_of_the_key(dtype):
 
 @pytest.mark.parametrize("threads", [1, 2])
 def test_numba_tile_lists_are_the_torch_binning_less_the_tiles_a_gaussian_cannot_reach(threads):
-    """bin_tiles (numba; its counting sort by tile runs in one chunk of pairs per thread) against bin_tiles_torch (a
+    """bin_tiles (numba; its counting sort by tile runs over one run of the depth order per thread, and each box
+    row keeps the run of tiles between the first and the last one reached) against bin_tiles_torch (a
     sort of (tile, depth rank) keys): every tile's list is the torch list, in the same order, without the Gaussians
     whose alpha >= 1/255 ellipse misses the tile (_reaches_tile, exact)."""
     import numba
