@@ -151,7 +151,11 @@ def test_extend_gives_new_rows_zero_moments_and_leaves_old_rows_alone(variant):
     reference.optimizer.step()
     beta1, beta2, eps, k = 0.9, 0.999, 1e-15, 3  # third step of the optimizer, first for the new rows
     for key in extended.params:
-        assert torch.equal(extended.params[key].detach()[:old_count], reference.params[key].detach())
+        # Equal to float32 rounding: the fused Adam kernel's rounding of an element can depend on the tensor's
+        # length (here one xyz value of 36 differs by 1 ulp after the extension), where a moment that moved with
+        # the wrong row would change the step by about a learning rate.
+        torch.testing.assert_close(extended.params[key].detach()[:old_count], reference.params[key].detach(),
+                                   rtol=1e-6, atol=1e-9)
         g = new_grads[key].double()
         m_hat = (1 - beta1) * g / (1 - beta1**k)
         v_hat = (1 - beta2) * g * g / (1 - beta2**k)

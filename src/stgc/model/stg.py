@@ -418,7 +418,10 @@ class STGModel:
         if self.decoder is not None:
             lr = float(lrs.get("decoder", decoder_lr))
             groups.append({"params": list(self.decoder.parameters()), "lr": lr, "name": "decoder"})
-        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        # Fused: one kernel per parameter instead of about eight elementwise ops, each a parallel region whose
+        # threads must be woken (measured: 8 % of a blender_toys iteration at 2 threads, benchmarks/RESULTS.md).
+        fused = self.device.type in ("cpu", "cuda")
+        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=fused)
         return self.optimizer
 
     def prune(self, keep: torch.Tensor) -> None:
