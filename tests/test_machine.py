@@ -30,6 +30,32 @@ def test_describe_reads_this_host():
         assert found["vector_isa"] in {"avx512", "avx2", "avx", "sse4.2"}
     line = machine.one_line(found)
     assert found["cpu_target"] in line and f"{found['cpus']} CPUs" in line
+    assert f"OpenMP {found['openmp_wait']}," in line
+    older = {key: value for key, value in found.items() if key != "openmp_wait"}  # a summary from before the key
+    assert "OpenMP" not in machine.one_line(older)
+
+
+@pytest.mark.parametrize(
+    ("environ", "expected"),
+    [
+        ({"OMP_WAIT_POLICY": "PASSIVE"}, "PASSIVE"),
+        ({"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": "3000"}, "PASSIVE, GOMP_SPINCOUNT=3000"),
+        ({}, "unset"),
+    ],
+)
+def test_openmp_wait_names_the_policy_and_a_spin_count(environ, expected):
+    assert machine.openmp_wait(environ) == expected
+
+
+def test_importing_stgc_makes_idle_openmp_threads_sleep():
+    # stgc sets the policy before torch can load its OpenMP runtime; the user's own setting wins.
+    probe = "import os, stgc; print(os.environ['OMP_WAIT_POLICY'])"
+    env = {key: value for key, value in os.environ.items() if key != "OMP_WAIT_POLICY"}
+    assert subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True,
+                          check=True).stdout.strip() == "PASSIVE"
+    env["OMP_WAIT_POLICY"] = "ACTIVE"
+    assert subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True,
+                          check=True).stdout.strip() == "ACTIVE"
 
 
 _FAULTS_PER_ROUND = """

@@ -42,21 +42,35 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def openmp_wait(environ: Mapping[str, str] = os.environ) -> str:
+    """How idle OpenMP threads wait between parallel regions, as torch's and numba's libgomp read it when they load:
+    OMP_WAIT_POLICY (stgc sets "PASSIVE" on import) and GOMP_SPINCOUNT when the user set it. With a passive wait
+    each parallel region wakes its sleeping threads (70-80 us a region on session 45's 2-CPU virtual machine); a
+    spin count keeps them awake for a while instead (docs/rasterizer.md, "OpenMP wait policy"). Timings depend on
+    it."""
+    policy = environ.get("OMP_WAIT_POLICY", "unset")
+    spin = environ.get("GOMP_SPINCOUNT")
+    return policy if spin is None else f"{policy}, GOMP_SPINCOUNT={spin}"
+
+
 def describe() -> dict[str, Any]:
-    """{cpu_model, cpu_target (LLVM's name for the host, what numba compiles for), vector_isa, cpus}."""
+    """{cpu_model, cpu_target (LLVM's name for the host, what numba compiles for), vector_isa, cpus, openmp_wait}."""
     features = llvm.get_host_cpu_features()
     return {
         "cpu_model": _cpu_model(),
         "cpu_target": str(llvm.get_host_cpu_name()),
         "vector_isa": vector_isa({name: bool(features[name]) for name in features}),
         "cpus": os.cpu_count(),
+        "openmp_wait": openmp_wait(),
     }
 
 
 def one_line(machine: Mapping[str, Any] | None = None) -> str:
-    """'AMD EPYC (znver3, avx2), 2 CPUs, load 1.23': the header line of a benchmark's output."""
+    """'AMD EPYC (znver3, avx2), 2 CPUs, OpenMP PASSIVE, load 1.23': the header line of a benchmark's output
+    (a description from before openmp_wait was recorded has no OpenMP part)."""
     m = describe() if machine is None else machine
-    return (f"{m['cpu_model']} ({m['cpu_target']}, {m['vector_isa']}), {m['cpus']} CPUs, "
+    wait = f", OpenMP {m['openmp_wait']}" if "openmp_wait" in m else ""
+    return (f"{m['cpu_model']} ({m['cpu_target']}, {m['vector_isa']}), {m['cpus']} CPUs{wait}, "
             f"load {os.getloadavg()[0]:.2f}")
 
 
