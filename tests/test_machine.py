@@ -39,7 +39,7 @@ def test_describe_reads_this_host():
     ("environ", "expected"),
     [
         ({"OMP_WAIT_POLICY": "PASSIVE"}, "PASSIVE"),
-        ({"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": "3000"}, "PASSIVE, GOMP_SPINCOUNT=3000"),
+        ({"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": "3000"}, "PASSIVE+GOMP_SPINCOUNT=3000"),
         ({}, "unset"),
     ],
 )
@@ -47,15 +47,17 @@ def test_openmp_wait_names_the_policy_and_a_spin_count(environ, expected):
     assert machine.openmp_wait(environ) == expected
 
 
-def test_importing_stgc_makes_idle_openmp_threads_sleep():
-    # stgc sets the policy before torch can load its OpenMP runtime; the user's own setting wins.
-    probe = "import os, stgc; print(os.environ['OMP_WAIT_POLICY'])"
-    env = {key: value for key, value in os.environ.items() if key != "OMP_WAIT_POLICY"}
+def test_importing_stgc_makes_idle_openmp_threads_sleep_and_records_the_setting():
+    # stgc sets the policy before torch can load its OpenMP runtime; the user's own setting wins. What a run
+    # records is the setting at import, not a later change to the environment (libgomp has read it by then).
+    probe = ("import os, stgc; from stgc import machine; os.environ['GOMP_SPINCOUNT'] = '7'; "
+             "print(os.environ['OMP_WAIT_POLICY'], machine.describe()['openmp_wait'])")
+    env = {key: value for key, value in os.environ.items() if key not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
     assert subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True,
-                          check=True).stdout.strip() == "PASSIVE"
-    env["OMP_WAIT_POLICY"] = "ACTIVE"
+                          check=True).stdout.split() == ["PASSIVE", "PASSIVE"]
+    env.update(OMP_WAIT_POLICY="ACTIVE", GOMP_SPINCOUNT="3000")
     assert subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True,
-                          check=True).stdout.strip() == "ACTIVE"
+                          check=True).stdout.split() == ["ACTIVE", "ACTIVE+GOMP_SPINCOUNT=3000"]
 
 
 _FAULTS_PER_ROUND = """

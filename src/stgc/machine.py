@@ -19,6 +19,10 @@ import llvmlite.binding as llvm
 import numba
 import torch
 
+# The OpenMP settings as torch's libgomp read them when it loaded (at the latest, during the import above; numba's
+# loads at its first parallel call): what `openmp_wait` records, whatever the environment says later.
+_OPENMP_AT_IMPORT = {key: os.environ[key] for key in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT") if key in os.environ}
+
 # Widest first: the first feature the host has names its vector width.
 _VECTOR_ISAS = (("avx512f", "avx512"), ("avx2", "avx2"), ("avx", "avx"), ("sse4.2", "sse4.2"),
                 ("sve", "sve"), ("neon", "neon"))  # fmt: skip
@@ -42,15 +46,16 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def openmp_wait(environ: Mapping[str, str] = os.environ) -> str:
-    """How idle OpenMP threads wait between parallel regions, as torch's and numba's libgomp read it when they load:
-    OMP_WAIT_POLICY (stgc sets "PASSIVE" on import) and GOMP_SPINCOUNT when the user set it. With a passive wait
-    each parallel region wakes its sleeping threads (70-80 us a region on session 45's 2-CPU virtual machine); a
-    spin count keeps them awake for a while instead (docs/rasterizer.md, "OpenMP wait policy"). Timings depend on
-    it."""
-    policy = environ.get("OMP_WAIT_POLICY", "unset")
-    spin = environ.get("GOMP_SPINCOUNT")
-    return policy if spin is None else f"{policy}, GOMP_SPINCOUNT={spin}"
+def openmp_wait(environ: Mapping[str, str] | None = None) -> str:
+    """How idle OpenMP threads wait between parallel regions: OMP_WAIT_POLICY (stgc sets "PASSIVE" on import) and
+    GOMP_SPINCOUNT when the user set it, e.g. "PASSIVE" or "PASSIVE+GOMP_SPINCOUNT=3000". By default as they stood
+    when this module imported torch, i.e. as libgomp read them. With a passive wait each parallel region wakes its
+    sleeping threads (70-81 us a region on session 45's 2-CPU virtual machine); a spin count keeps them awake for
+    a while instead (docs/rasterizer.md, "OpenMP wait policy"). Timings depend on it."""
+    env = _OPENMP_AT_IMPORT if environ is None else environ
+    policy = env.get("OMP_WAIT_POLICY", "unset")
+    spin = env.get("GOMP_SPINCOUNT")
+    return policy if spin is None else f"{policy}+GOMP_SPINCOUNT={spin}"
 
 
 def describe() -> dict[str, Any]:

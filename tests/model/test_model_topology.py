@@ -90,7 +90,10 @@ def test_prune_then_step_equals_step_then_prune(variant):
     pruned.optimizer.step()
     reference.optimizer.step()
     for key in pruned.params:
-        torch.testing.assert_close(pruned.params[key].detach(), reference.params[key].detach()[keep], rtol=0, atol=0)
+        # float32 rounding allowed: the fused Adam kernel's rounding of an element can depend on the tensor's length
+        # (see the extend test below); a moment on the wrong row changes the step by about a learning rate.
+        torch.testing.assert_close(pruned.params[key].detach(), reference.params[key].detach()[keep],
+                                   rtol=1e-6, atol=1e-9)
 
 
 

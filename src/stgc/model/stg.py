@@ -419,7 +419,8 @@ class STGModel:
             lr = float(lrs.get("decoder", decoder_lr))
             groups.append({"params": list(self.decoder.parameters()), "lr": lr, "name": "decoder"})
         # Fused: one kernel per parameter instead of about eight elementwise ops, each a parallel region whose
-        # threads must be woken (measured: 8 % of a blender_toys iteration at 2 threads, benchmarks/RESULTS.md).
+        # threads must be woken (6-12 % of a blender_toys iteration at 2 threads, benchmarks/RESULTS.md session 45).
+        # A resumed run keeps the optimizer it started with: load_state_dict restores the checkpoint's `fused`.
         fused = self.device.type in ("cpu", "cuda")
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=fused)
         return self.optimizer
