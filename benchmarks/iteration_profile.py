@@ -95,6 +95,18 @@ def split(prof, iterations: int) -> tuple[dict[str, float], dict[str, float]]:
     return parts, dict(sorted(other_nodes.items(), key=lambda kv: -kv[1])[:8])
 
 
+def steady_state_trainer(data: str, model_path: str, configs: dict, out: str) -> tuple[Trainer, int]:
+    """(the trainer `stgc train DATA --preset cpu` builds, on the trained model at `model_path` instead of the
+    initial points, writing to `out`; the iteration to start at). configs: `resolve_configs("cpu", ...)`, as `stgc
+    train --preset cpu --set ...` resolves them (an unknown section or key refused, not ignored). The start is half-way
+    through the schedule, past densification's rounds: the steady state."""
+    dataset = configs["data"].open(data)
+    model = STGModel.load(model_path, scene_extent=dataset.scene_extent())
+    train_cfg = apply_overrides(configs["train"], {"progress": "false", "tensorboard": "false"})
+    trainer = Trainer(dataset, configs["data"], configs["model"], train_cfg, None, out, model=model)
+    return trainer, trainer.schedule.iterations // 2
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True)
@@ -109,18 +121,13 @@ def main(argv: list[str] | None = None) -> int:
 
     machine.use_threads(args.threads)  # torch's and numba's (numba alone kept every core)
     try:
-        # As `stgc train --preset cpu --set ...` resolves them: an unknown section or key is refused, not ignored.
         configs = resolve_configs("cpu", {}, {}, parse_set_arguments(args.set))
     except StgcError as exc:
         ap.error(str(exc))
-    dataset = configs["data"].open(args.data)
-    model = STGModel.load(args.model, scene_extent=dataset.scene_extent())
     install_scopes()
     with tempfile.TemporaryDirectory() as out:
-        train_cfg = apply_overrides(configs["train"], {"progress": "false", "tensorboard": "false"})
-        trainer = Trainer(dataset, configs["data"], configs["model"], train_cfg, None, out, model=model)
-        # Past densification (half-way through the cpu schedule its rounds are done): the steady state.
-        start = trainer.schedule.iterations // 2
+        trainer, start = steady_state_trainer(args.data, args.model, configs, out)
+        dataset, model, train_cfg = trainer.dataset, trainer.model, trainer.cfg
         for i in range(start, start + args.warmup):
             trainer.train_step(i)
         t0 = time.perf_counter()

@@ -51,29 +51,24 @@ print(f"{1e6 * (t1 - t0) / n:.1f} {1e6 * (t2 - t1) / n:.1f}")
 
 _ITERATION = r"""
 import sys, tempfile, time
-import stgc
+import stgc  # first: its OMP_WAIT_POLICY must be set before torch loads libgomp
 from stgc import machine
-from stgc.config import apply_overrides, parse_set_arguments
-from stgc.model import STGModel
+from stgc.config import parse_set_arguments
 from stgc.options import resolve_configs
-from stgc.train import Trainer
-data, model_path, iterations, threads = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
-machine.use_threads(threads)
-configs = resolve_configs("cpu", {}, {}, parse_set_arguments([]))
-dataset = configs["data"].open(data)
-model = STGModel.load(model_path, scene_extent=dataset.scene_extent())
+data, model_path, iterations, threads, benchmarks = sys.argv[1:6]
+sys.path.insert(0, benchmarks)
+from iteration_profile import steady_state_trainer
+machine.use_threads(int(threads))
 with tempfile.TemporaryDirectory() as out:
-    train_cfg = apply_overrides(configs["train"], {"progress": "false", "tensorboard": "false"})
-    trainer = Trainer(dataset, configs["data"], configs["model"], train_cfg, None, out, model=model)
-    start = trainer.schedule.iterations // 2  # past densification: the steady state
+    trainer, start = steady_state_trainer(data, model_path, resolve_configs("cpu", {}, {}, parse_set_arguments([])), out)
     for i in range(start, start + 10):
         trainer.train_step(i)
     print("ready", flush=True)
     sys.stdin.readline()  # the parent starts every copy's timed iterations together
     t0 = time.perf_counter()
-    for i in range(start + 10, start + 10 + iterations):
+    for i in range(start + 10, start + 10 + int(iterations)):
         trainer.train_step(i)
-print(f"{(time.perf_counter() - t0) * 1e3 / iterations:.1f}")
+print(f"{(time.perf_counter() - t0) * 1e3 / int(iterations):.1f}")
 """
 
 
@@ -142,7 +137,8 @@ def main(argv: list[str] | None = None) -> int:
         numba_us, torch_us = _run(_REGIONS, [str(args.threads)], spin)[0].split()
         row = f"| {spin} | {numba_us} | {torch_us} |"
         if args.data:
-            iteration = [args.data, args.model, str(args.iterations), str(args.threads)]
+            iteration = [args.data, args.model, str(args.iterations), str(args.threads),
+                         os.path.dirname(os.path.abspath(__file__))]
             row += f" {_run(_ITERATION, iteration, spin, synchronised=True)[0]} |"
             if args.side_by_side:
                 row += " " + " / ".join(_run(_ITERATION, iteration, spin, copies=2, synchronised=True)) + " |"
