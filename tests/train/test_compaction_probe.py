@@ -10,6 +10,7 @@ import pytest
 import torch
 from scenes import write_panoptic_scene
 
+from stgc import machine
 from stgc.compaction import CompactionConfig
 from stgc.data import open_dataset
 from stgc.errors import DataError
@@ -151,7 +152,8 @@ def test_a_budget_run_reads_its_unpruned_reference_run_at_the_same_iterations(sc
     # A reference resumed with another thread count drifted between its sessions: the last session's count
     # (the summary's "threads", all that was checked before) does not describe it.
     ref_summary = json.loads((tmp_path / "ref" / "train_summary.json").read_text())
-    assert ref_summary["executions"] == [{"from_iteration": 0, "threads": trained_with, "backend": "numba"}]
+    assert ref_summary["executions"] == [{"from_iteration": 0, "threads": trained_with, "backend": "numba",
+                                          "openmp_wait": machine.openmp_wait()}]
     resumed = {**ref_summary, "executions": [{"from_iteration": 0, "threads": trained_with + 1, "backend": "numba"},
                                              {"from_iteration": 40, "threads": trained_with, "backend": "numba"}]}
     (tmp_path / "ref" / "train_summary.json").write_text(json.dumps(resumed))

@@ -830,8 +830,10 @@ class Trainer:
         if cfg.stop_after is not None:
             end = min(end, start + int(cfg.stop_after)) if start < end else end
         if start < end:
+            # openmp_wait: each session's, since a resume may run under another setting (the times depend on it)
             self.executions.append({"from_iteration": start, "threads": torch.get_num_threads(),
-                                    "backend": select_backend(cfg.backend, torch.device("cpu"))})
+                                    "backend": select_backend(cfg.backend, torch.device("cpu")),
+                                    "openmp_wait": machine.openmp_wait()})
         progress = Progress(sched.iterations, start, cfg.progress)
         tb = TensorBoard(self.out_run.path / "tensorboard", cfg.tensorboard, first_step=start + 1)
         t0 = time.perf_counter()
