@@ -315,3 +315,40 @@ def test_interleaved_tiles_is_a_permutation_that_deals_every_thread_tiles_from_a
     # (a 320x180 image in 40 x 23 tiles of 8), each block holds every row of tiles, half of each.
     first_block = kernels.interleaved_tiles(920, 2)[:460]
     assert len(set((first_block // 40).tolist())) == 23
+
+
+def test_reaches_tile_never_drops_a_pixel_for_conics_rounded_to_a_c_at_most_b_squared():
+    """_reaches_tile against a brute force over every pixel centre of the rectangle, for conics that float32 left
+    without a c > b^2 (not strictly convex; the edges that face the mean still suffice) and for ordinary ones. The
+    compositor uses a pixel whenever o exp(-sigma) >= 1/255, i.e. sigma <= the cutoff: such a pixel must never be
+    missed. It may answer True for a rectangle without one (conservative), which the counts below bound."""
+    from stgc.render import _numba_kernels as kernels
+
+    rng = np.random.default_rng(11)
+    outcomes = {"degenerate": [0, 0], "ordinary": [0, 0]}  # [reached, missed] with the mean outside the rectangle
+    for trial in range(3000):
+        degenerate = trial % 2 == 0
+        a, c = (np.float32(v) for v in rng.uniform(0.005, 0.5, 2))
+        root = np.sqrt(np.float64(a) * np.float64(c))
+        # degenerate: |b| at or just above sqrt(a c), so that a c <= b^2 in float32; ordinary: well inside
+        b = np.float32(rng.choice([-1, 1]) * root * (rng.uniform(1.0, 1.001) if degenerate else rng.uniform(0, 0.9)))
+        if degenerate:
+            assert not a * c > b * b
+        cut = np.float32(rng.uniform(0.5, 5.5))
+        mean = rng.uniform(-20, 60, 2).astype(np.float32)
+        x0, y0 = (int(v) for v in rng.integers(0, 40, 2))
+        width, height = (int(v) for v in rng.integers(1, 9, 2))
+        gdata = np.zeros((1, 8), np.float32)
+        gdata[0, :7] = [mean[0], mean[1], a, b, c, 1.0, cut]
+        px, py = np.meshgrid(np.arange(x0, x0 + width, dtype=np.float32) + np.float32(0.5),
+                             np.arange(y0, y0 + height, dtype=np.float32) + np.float32(0.5))
+        dx, dy = mean[0] - px, mean[1] - py
+        sigma = np.float32(0.5) * (a * dx * dx + c * dy * dy) + b * dx * dy
+        some_pixel = bool((sigma <= cut).any())
+        reaches = kernels._reaches_tile(gdata, 0, x0 + 0.5, x0 + width - 0.5, y0 + 0.5, y0 + height - 0.5)
+        assert reaches or not some_pixel, (trial, a, b, c, cut, mean, x0, y0, width, height)
+        inside = x0 <= mean[0] <= x0 + width and y0 <= mean[1] <= y0 + height
+        if not inside:
+            outcomes["degenerate" if degenerate else "ordinary"][0 if some_pixel else 1] += 1
+    # Both kinds met rectangles they reach from outside and rectangles they miss: the test saw both answers.
+    assert all(reached > 20 and missed > 20 for reached, missed in outcomes.values()), outcomes

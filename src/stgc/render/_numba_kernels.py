@@ -43,12 +43,13 @@ def pack_gaussians(means2d, conics, opacities, depths, alpha_min, sigma_margin, 
 @njit(cache=True, nogil=True, inline="always")
 def _reaches_tile(gdata, g, x0, x1, y0, y1):
     """Whether some pixel centre in [x0, x1] x [y0, y1] has sigma <= the Gaussian's cutoff, i.e. could get
-    alpha >= 1/255. sigma is a strictly convex quadratic, so when the mean is outside the rectangle its minimum over
-    the rectangle lies on an edge that faces the mean (from any other boundary point, the way to the mean leads
-    into the rectangle and downhill): the left edge if the mean is left of it, and so on, one edge or two (all four
-    for a conic that rounding left without a c > b^2). Along an edge sigma is a 1-D quadratic, minimised in closed
-    form and clamped. Exact (never drops a pixel the compositor would use): the box of pixel centres contains every
-    centre."""
+    alpha >= 1/255. sigma is a quadratic form in the offset from the mean, so along the segment from the mean to any
+    point p it grows as t^2 sigma(p): if p in the rectangle has sigma <= cutoff (>= 0), so does the point where that
+    segment enters the rectangle, which lies on an edge that faces the mean (the left edge if the mean is left of it,
+    and so on: one edge or two). That needs a and c > 0 only, not a c > b^2, so it holds for a conic that float32
+    rounding left without a c > b^2 too (tested). Along an edge sigma is a 1-D quadratic with a positive leading
+    coefficient, minimised in closed form and clamped. Exact (never drops a pixel the compositor would use): the box
+    of pixel centres contains every centre."""
     mx = gdata[g, GX]
     my = gdata[g, GY]
     left = mx < x0
@@ -61,17 +62,15 @@ def _reaches_tile(gdata, g, x0, x1, y0, y1):
     b = gdata[g, GB]
     c = gdata[g, GC]
     cut = gdata[g, GCUT]
-    # A conic that float32 rounded to a c <= b^2 is not strictly convex: then every edge is a candidate.
-    every_edge = not (a * c > b * b)
     for edge in range(4):
         if edge < 2:
-            if not (every_edge or (left if edge == 0 else right)):
+            if not (left if edge == 0 else right):
                 continue
             dx = mx - (x0 if edge == 0 else x1)
             dy = -b * dx / c if c > 0 else 0.0
             dy = min(max(dy, my - y1), my - y0)
         else:
-            if not (every_edge or (above if edge == 2 else below)):
+            if not (above if edge == 2 else below):
                 continue
             dy = my - (y0 if edge == 2 else y1)
             dx = -b * dy / a if a > 0 else 0.0
@@ -336,9 +335,9 @@ def _dot(a, b, n):
 def interleaved_tiles(n_tiles: int, n_threads: int) -> np.ndarray:
     """The order the compositing kernels' parallel loops take the tiles in: tiles 0, T, 2T, ..., then 1, T + 1, ...
     (T threads). numba's default (static) schedule hands each thread one contiguous block of a `prange`, so each
-    thread gets every T-th tile of the image instead of one band of it. A real scene's work is far from even across bands (sky, floor, the
-    subject): in a panoptic training view the top half of the tiles held 31 % of the backward's work, and the
-    2-thread backward took 19.7 ms with bands, 18.2 ms interleaved (31 ms on one thread)."""
+    thread gets every T-th tile of the image instead of one band of it. A real scene's work is far from even across
+    bands (sky, floor, the subject): in a panoptic training view the top half of the tiles held 31 % of the
+    backward's work, and the 2-thread backward took 19.7 ms with bands, 18.2 ms interleaved (31 ms on one thread)."""
     return np.concatenate([np.arange(j, n_tiles, n_threads, dtype=np.int64) for j in range(max(n_threads, 1))])
 
 
