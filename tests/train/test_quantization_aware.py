@@ -52,29 +52,32 @@ def _psnr(model: STGModel, dataset) -> float:
 def test_training_through_the_codec_loses_less_when_really_encoded(scene, tmp_path):
     """Three runs from the same start, identical for 200 iterations; the last 100: as before (plain), at the
     window's lower learning rates (control), or also through the codec's quantization (aware). Each model is then
-    really encoded and decoded at the coarsest quality and scored on the training views."""
+    really encoded and decoded at the coarsest quality and scored on the training views; three seeds, averaged."""
     dataset = open_dataset(scene.root)
-    decoded, floats = {}, {}
-    for name, config in (("plain", _config(0)), ("control", _config(100, simulate=False)), ("aware", _config(100))):
-        run = tmp_path / name
-        start = STGModel.from_ply_arrays(scene.model.to_ply_arrays(), "lite", None, scene_extent=3.3)
-        train(dataset, None, None, config, None, run, model=start)
-        floats[name] = _psnr(STGModel.load(run), dataset)
-        compress_run(run, tmp_path / f"{name}.stgc", config=CodecConfig(quality=QUALITY, allocation="ladder"))
-        decoded[name] = _psnr(load_model(tmp_path / f"{name}.stgc"), dataset)
-    print({k: (round(floats[k], 2), round(decoded[k], 2)) for k in floats})
-    # Measured (float / decoded dB) on three machines with the same code: plain 52.38 / 43.54, control 54.61 / 43.24,
-    # aware 50.76 / 44.35; (an AVX-512 CPU, session 12) plain 52.13 / 42.80, control 52.22 / 41.26, aware
-    # 48.91 / 42.72; (an AVX2-only Zen 3, session 22) plain 51.77 / 43.28, control 54.19 / 42.75, aware 51.49 / 43.81.
-    # What holds on all three is what the method claims: a quantization loss (float - decoded) smaller than the
-    # control's by 3.8-5.0 dB and a better decoded model than the control, which differs from it only by the
-    # quantization in the forward. Against plain training (other learning rates) the margin is chance on a scene
-    # this small (0.8-3.1 dB of quantization loss; decoded +0.81, -0.08 and +0.53 dB; with the kernels before issue
-    # #18's rewrite +4.5), so only its sign is asserted.
-    loss = {k: floats[k] - decoded[k] for k in floats}
+    decoded: dict[str, list[float]] = {"plain": [], "control": [], "aware": []}
+    floats: dict[str, list[float]] = {"plain": [], "control": [], "aware": []}
+    for seed in (1, 2, 3):
+        for name, config in (("plain", _config(0, seed=seed)), ("control", _config(100, simulate=False, seed=seed)),
+                             ("aware", _config(100, seed=seed))):  # fmt: skip
+            run = tmp_path / f"{name}{seed}"
+            start = STGModel.from_ply_arrays(scene.model.to_ply_arrays(), "lite", None, scene_extent=3.3)
+            train(dataset, None, None, config, None, run, model=start)
+            floats[name].append(_psnr(STGModel.load(run), dataset))
+            compress_run(run, tmp_path / f"{name}{seed}.stgc", config=CodecConfig(quality=QUALITY, allocation="ladder"))
+            decoded[name].append(_psnr(load_model(tmp_path / f"{name}{seed}.stgc"), dataset))
+    print({k: [(round(f, 2), round(d, 2)) for f, d in zip(floats[k], decoded[k])] for k in floats})
+    # One seed's run is chaotic at this size: the same code and seed at 1 and 2 threads (only the order of the
+    # rasterizer's sums differs) gave the aware run a quantization loss (float - decoded) of 6.4 and 2.8 dB, so one
+    # seed's margin over plain training was chance (-5.1 to +0.3 dB over seeds 1-4 and two versions of the code). The
+    # means over seeds 1-3, at 1 / 2 threads (session 46's code): loss plain 6.5 / 7.7, control 8.4 / 7.1, aware
+    # 4.7 / 3.4 dB; decoded control 42.5 / 43.6, aware 43.6 / 44.5 dB (before the fused rows at t, 1 thread: loss
+    # 6.7, 7.3, 3.9; decoded 43.5, 44.2). What the method claims: a smaller quantization loss than the control's,
+    # which differs only by the quantization in the forward, and than plain training's; a better decoded model than
+    # the control's.
+    loss = {k: float(np.mean(floats[k]) - np.mean(decoded[k])) for k in floats}
     assert loss["aware"] < loss["control"] - 2.0
-    assert loss["aware"] < loss["plain"]
-    assert decoded["aware"] > decoded["control"] + 0.5
+    assert loss["aware"] < loss["plain"] - 1.0
+    assert np.mean(decoded["aware"]) > np.mean(decoded["control"]) + 0.5
 
 
 def test_the_window_is_the_run_s_last_iterations(scene, tmp_path):

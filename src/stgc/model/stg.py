@@ -29,6 +29,7 @@ from stgc import render as _render
 from stgc.data.cameras import DEFAULT_NEAR_PLANE, Camera
 from stgc.errors import DataError, FormatError
 from stgc.fileio import read_json_object
+from stgc.model import _numba_at_time as _at_time
 from stgc.model import ply as _ply
 from stgc.model.config import DecoderActivation, ModelConfig
 from stgc.model.decoder import SandwichDecoder, camera_rays
@@ -335,26 +336,16 @@ class STGModel:
         """
         t = float(camera.time if t is None else t)
         raster_options.setdefault("near_plane", float(camera.near))
-        opacity = self.temporal_opacity(t)
-        if opacity_scale is not None:
-            if tuple(opacity_scale.shape) != (self.num_gaussians,):
-                raise ValueError(f"opacity_scale must have shape ({self.num_gaussians},), got {tuple(opacity_scale.shape)}")
-            opacity = opacity * opacity_scale
-        index = torch.nonzero(opacity.detach() >= MIN_VISIBLE_OPACITY, as_tuple=False)[:, 0]
-        rows: Mapping[str, torch.Tensor]
-        if len(index) == self.num_gaussians:  # nothing culled (e.g. early training): skip the row copies
-            rows, visible_opacity = self.params, opacity
-        else:
-            rows = {key: _visible_rows(value, index) for key, value in self.params.items()}
-            visible_opacity = _visible_rows(opacity, index)
+        if opacity_scale is not None and tuple(opacity_scale.shape) != (self.num_gaussians,):
+            raise ValueError(f"opacity_scale must have shape ({self.num_gaussians},), got {tuple(opacity_scale.shape)}")
+        rows = rows_at(self.params, t, opacity_scale)
         cached = self._camera_tensors(camera)
-        delta = _detached_delta(rows, t)
         raster = _render.rasterize(
-            _means_at(rows, delta),
-            _quaternions_at(rows, delta),
-            torch.exp(rows["scaling"]),
-            visible_opacity,
-            _features_at(rows, delta),
+            rows.means,
+            rows.quats,
+            rows.scales,
+            rows.opacity,
+            rows.features,
             cached["K"],
             cached["viewmat"],
             int(camera.width),
@@ -371,7 +362,8 @@ class STGModel:
         else:
             rgb = features
         depth = raster.depth if return_depth else None
-        return ModelRender(rgb=rgb, alpha=raster.alpha, depth=depth, raster=raster, index=index, features=features)
+        return ModelRender(rgb=rgb, alpha=raster.alpha, depth=depth, raster=raster, index=rows.index,
+                           features=features)
 
     def _background(self, background: torch.Tensor | Sequence[float] | None) -> torch.Tensor | None:
         if background is None:
@@ -639,6 +631,120 @@ def _temporal_opacity(params: Mapping[str, torch.Tensor], t: float | torch.Tenso
     x = torch.where(far, torch.zeros_like(delta), delta) / torch.where(unit, torch.ones_like(scale), scale)
     factor = torch.where(far, torch.zeros_like(x), torch.exp(-torch.square(x)))
     return (torch.sigmoid(params["opacity"]) * factor)[:, 0]
+
+
+@dataclass(frozen=True)
+class RowsAt:
+    """The Gaussians visible at time t (temporal opacity >= MIN_VISIBLE_OPACITY), as the rasterizer takes them: their
+    row ids [M] (ascending) and, per visible row, the position [M,3], unnormalised rotation [M,4], activated scales
+    [M,3], temporal opacity [M] and features [M,C] at t, differentiable in the parameters."""
+
+    index: torch.Tensor
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacity: torch.Tensor
+    features: torch.Tensor
+
+
+def rows_at(params: Mapping[str, torch.Tensor], t: float, opacity_scale: torch.Tensor | None = None,
+            fused: bool | None = None) -> RowsAt:  # fmt: skip
+    """The visible rows at t and their state (`RowsAt`). opacity_scale [N] multiplies every temporal opacity before
+    the cut. fused (default: on CPU in float32/float64) computes them with the numba kernels of `_numba_at_time`: one
+    parallel region per pass instead of one per torch op; otherwise with the torch formulas below. Both give the same
+    values and gradients up to rounding (tests/model/test_rows_at.py)."""
+    if fused is None:
+        fused = all(v.device.type == "cpu" and v.dtype in (torch.float32, torch.float64) for v in params.values())
+    if fused:
+        side: dict[str, torch.Tensor] = {}
+        keys = [k for k in PARAM_KEYS if k != "features_t"]
+        outputs = _FusedRowsAt.apply(float(t), side, *(params[k] for k in keys), params.get("features_t"),  # type: ignore[no-untyped-call]
+                                     opacity_scale)  # fmt: skip
+        return RowsAt(side["index"], *outputs)
+    opacity = _temporal_opacity(params, t)
+    if opacity_scale is not None:
+        opacity = opacity * opacity_scale
+    index = torch.nonzero(opacity.detach() >= MIN_VISIBLE_OPACITY, as_tuple=False)[:, 0]
+    rows: Mapping[str, torch.Tensor]
+    if len(index) == len(opacity):  # nothing culled (e.g. early training): skip the row copies
+        rows, visible_opacity = params, opacity
+    else:
+        rows = {key: _visible_rows(value, index) for key, value in params.items()}
+        visible_opacity = _visible_rows(opacity, index)
+    delta = _detached_delta(rows, t)
+    return RowsAt(index, _means_at(rows, delta), _quaternions_at(rows, delta), torch.exp(rows["scaling"]),
+                  visible_opacity, _features_at(rows, delta))  # fmt: skip
+
+
+def _array(value: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(value.detach().numpy())
+
+
+def _optional_columns(value: torch.Tensor | None, like: np.ndarray) -> np.ndarray:
+    """A [N, k] parameter that may be absent (lite has no features_t) as an array; [N, 0] when absent."""
+    return np.empty((like.shape[0], 0), like.dtype) if value is None else _array(value).astype(like.dtype, copy=False)
+
+
+def _optional_rows(value: torch.Tensor | None, like: np.ndarray) -> np.ndarray:
+    """opacity_scale [N] in the parameters' dtype; [0] when absent."""
+    return np.empty(0, like.dtype) if value is None else _array(value).astype(like.dtype, copy=False)
+
+
+class _FusedRowsAt(torch.autograd.Function):
+    """`rows_at` by the numba kernels: (t, side, the parameters in PARAM_KEYS order without features_t, features_t
+    or None, opacity_scale or None) -> (means, quats, scales, opacity, features); side["index"] gets the row ids."""
+
+    @staticmethod
+    def forward(ctx: Any, t: float, side: dict[str, torch.Tensor], *tensors: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
+        given, features_t_tensor, opacity_scale = tensors[:9], tensors[9], tensors[10]
+        xyz, scaling, rotation, omega, opacity, trbf_center, trbf_scale, motion, features_dc = (
+            _array(cast(torch.Tensor, v)) for v in given)
+        dtype = xyz.dtype
+        features_t = _optional_columns(features_t_tensor, xyz)
+        scale_rows = _optional_rows(opacity_scale, xyz)
+        cutoff = _gaussian_cutoff(cast(torch.Tensor, given[0]).dtype)
+        time = dtype.type(t)  # the time in the storage dtype, as the torch formulas' t - mu_t rounds it
+        values = np.empty(xyz.shape[0], dtype)
+        slot = np.empty(xyz.shape[0], np.int64)
+        m = _at_time.visible_rows(time, trbf_center, trbf_scale, opacity, scale_rows, opacity_scale is not None,
+                                  cutoff, dtype.type(MIN_VISIBLE_OPACITY), values, slot)  # fmt: skip
+        index = np.empty(m, np.int64)
+        means, quats, scales = np.empty((m, 3), dtype), np.empty((m, 4), dtype), np.empty((m, 3), dtype)
+        visible_opacity = np.empty(m, dtype)
+        features = np.empty((m, features_dc.shape[1] + features_t.shape[1]), dtype)
+        _at_time.rows_forward(time, slot, values, xyz, scaling, rotation, omega, trbf_center, motion, features_dc,
+                              features_t, index, means, quats, scales, visible_opacity, features)  # fmt: skip
+        # Saved as tensors, so that autograd refuses a backward after they were changed in place.
+        ctx.save_for_backward(*given, features_t_tensor, opacity_scale)
+        ctx.t, ctx.slot, ctx.cutoff = time, slot, cutoff
+        side["index"] = torch.from_numpy(index)
+        return tuple(torch.from_numpy(a) for a in (means, quats, scales, visible_opacity, features))
+
+    @staticmethod
+    def backward(ctx: Any, *grads: torch.Tensor | None) -> tuple[torch.Tensor | None, ...]:
+        saved = ctx.saved_tensors
+        scaling, opacity, trbf_center, trbf_scale, features_dc = (_array(saved[i]) for i in (1, 4, 5, 6, 8))
+        features_t = _optional_columns(saved[9], scaling)
+        scale_rows = _optional_rows(saved[10], scaling)
+        dtype, n = scaling.dtype, scaling.shape[0]
+        m = int(np.count_nonzero(ctx.slot >= 0))
+        shapes = ((m, 3), (m, 4), (m, 3), (m,), (m, features_dc.shape[1] + features_t.shape[1]))
+        g_means, g_quats, g_scales, g_opacity, g_features = (
+            np.zeros(shape, dtype) if g is None else np.ascontiguousarray(g.numpy(), dtype)
+            for g, shape in zip(grads, shapes))  # fmt: skip
+        d = {key: np.empty((n, width), dtype) for key, width in zip(PARAM_KEYS, (3, 3, 4, 4, 1, 1, 1, 9))}
+        d["features_dc"] = np.empty_like(features_dc)
+        d["features_t"] = np.empty_like(features_t)
+        d_scale_rows = np.empty_like(scale_rows)
+        _at_time.rows_backward(
+            ctx.t, ctx.slot, scaling, opacity, trbf_center, trbf_scale, features_t, scale_rows, saved[10] is not None,
+            ctx.cutoff, g_means, g_quats, g_scales, g_opacity, g_features, d["xyz"], d["scaling"], d["rotation"],
+            d["omega"], d["opacity"], d["trbf_center"], d["trbf_scale"], d["motion"], d["features_dc"],
+            d["features_t"], d_scale_rows,
+        )  # fmt: skip
+        grad = [torch.from_numpy(d[key]) for key in PARAM_KEYS]
+        return (None, None, *grad[:9], grad[9] if saved[9] is not None else None,
+                torch.from_numpy(d_scale_rows) if saved[10] is not None else None)
 
 
 def _visible_rows(value: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
