@@ -109,7 +109,8 @@ def project_numba(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
     side: dict[str, Tensor] = {}
     means2d, conics = _NumbaProjection.apply(means, quats, scales, opacities, camera, width, height, side)  # type: ignore[no-untyped-call]
     radii = side["radii"]
-    return Projected(means2d=means2d, conics=conics, depths=side["depths"], radii=radii, visible=(radii > 0).any(-1))
+    visible = torch.from_numpy((radii.numpy() > 0).any(axis=1))  # numpy: no parallel region (see render.api)
+    return Projected(means2d=means2d, conics=conics, depths=side["depths"], radii=radii, visible=visible)
 
 
 class _NumbaComposite(torch.autograd.Function):
