@@ -8,9 +8,9 @@ cli | demo | experiment -> eval -> train | compaction | codec -> model -> data |
 import ctypes as _ctypes
 import os as _os
 
-# torch and numba each run an OpenMP pool; with the default (active) wait policy the idle pool busy-waits and
-# steals the cores the other one needs (a 50k render measured 5.1 s instead of 0.28 s). Must be set before
-# either library starts its threads, i.e. before torch is imported.
+# torch and numba run OpenMP regions (on torch's libgomp, one pool, once torch is loaded; numba's layer binds to it);
+# with the default (active) wait policy idle threads busy-wait and steal the cores that other work needs (a 50k
+# render measured 5.1 s instead of 0.28 s under load). Must be set before libgomp loads, i.e. before torch is imported.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
