@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 from torch import nn
+from torch.autograd.function import once_differentiable
 
 from stgc import render as _render
 from stgc.data.cameras import DEFAULT_NEAR_PLANE, Camera
@@ -650,11 +651,13 @@ class RowsAt:
 def rows_at(params: Mapping[str, torch.Tensor], t: float, opacity_scale: torch.Tensor | None = None,
             fused: bool | None = None) -> RowsAt:  # fmt: skip
     """The visible rows at t and their state (`RowsAt`). opacity_scale [N] multiplies every temporal opacity before
-    the cut. fused (default: on CPU in float32/float64) computes them with the numba kernels of `_numba_at_time`: one
-    parallel region per pass instead of one per torch op; otherwise with the torch formulas below. Both give the same
-    values and gradients up to rounding (tests/model/test_rows_at.py)."""
+    the cut. fused (default: every tensor on CPU, the parameters all float32 or all float64) computes them with the
+    numba kernels of `_numba_at_time`: one parallel region per pass instead of one per torch op; otherwise with the
+    torch formulas below. Both give the same values and gradients up to rounding (tests/model/test_rows_at.py)."""
     if fused is None:
-        fused = all(v.device.type == "cpu" and v.dtype in (torch.float32, torch.float64) for v in params.values())
+        tensors = [*params.values(), *([] if opacity_scale is None else [opacity_scale])]
+        dtypes = {v.dtype for v in params.values()}
+        fused = all(v.device.type == "cpu" for v in tensors) and dtypes in ({torch.float32}, {torch.float64})
     if fused:
         side: dict[str, torch.Tensor] = {}
         keys = [k for k in PARAM_KEYS if k != "features_t"]
@@ -721,6 +724,7 @@ class _FusedRowsAt(torch.autograd.Function):
         return tuple(torch.from_numpy(a) for a in (means, quats, scales, visible_opacity, features))
 
     @staticmethod
+    @once_differentiable
     def backward(ctx: Any, *grads: torch.Tensor | None) -> tuple[torch.Tensor | None, ...]:
         saved = ctx.saved_tensors
         scaling, opacity, trbf_center, trbf_scale, features_dc = (_array(saved[i]) for i in (1, 4, 5, 6, 8))
@@ -744,7 +748,7 @@ class _FusedRowsAt(torch.autograd.Function):
         )  # fmt: skip
         grad = [torch.from_numpy(d[key]) for key in PARAM_KEYS]
         return (None, None, *grad[:9], grad[9] if saved[9] is not None else None,
-                torch.from_numpy(d_scale_rows) if saved[10] is not None else None)
+                None if saved[10] is None else torch.from_numpy(d_scale_rows).to(saved[10].dtype))
 
 
 def _visible_rows(value: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
