@@ -137,3 +137,10 @@ def test_a_render_through_the_fused_rows_matches_one_through_the_formulas(monkey
     for key in fused_grads:
         assert float(fused_grads[key].abs().max()) > 0.0, key
         torch.testing.assert_close(fused_grads[key], formula_grads[key], rtol=1e-9, atol=1e-12)
+
+
+def test_the_fused_kernels_are_the_default_on_cpu_for_one_float_dtype():
+    params = _params("full", torch.float32, count=50)
+    assert type(rows_at(params, 0.3).means.grad_fn).__name__ == "_FusedRowsAtBackward"
+    mixed = dict(params, xyz=params["xyz"].detach().double().requires_grad_())
+    assert type(rows_at(mixed, 0.3).means.grad_fn).__name__ != "_FusedRowsAtBackward"  # the formulas promote
