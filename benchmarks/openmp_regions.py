@@ -3,7 +3,8 @@
 With stgc's passive OpenMP wait every parallel region wakes a sleeping thread (about 75 us at 2 threads on the
 machines measured, benchmarks/RESULTS.md session 45), so the number of regions an iteration opens is a cost of its
 own, beside the arithmetic. This script counts them: it compiles a small shim (needs a C compiler: `cc`) that
-stands in for libgomp's `GOMP_parallel` through LD_PRELOAD, counts each call by its caller (torch, or numba's OpenMP
+stands in for libgomp's `GOMP_parallel` (the entry of every `#pragma omp parallel` that torch and numba's OpenMP layer
+compile to; the older GOMP_parallel_start/_loop_* entries are not counted) through LD_PRELOAD, counts each call by its caller (torch, or numba's OpenMP
 layer) and hands it to the libgomp the caller would have used (torch's bundled one: numba's layer binds to it too
 once torch is loaded). A child process then runs the trainer `iteration_profile.py` builds (the `cpu` preset at its
 steady state on a trained model) at 2 threads and reports the regions per iteration, and, under a
@@ -11,7 +12,9 @@ TorchDispatchMode, which torch op at which line of stgc opened them.
 
     .venv/bin/python benchmarks/openmp_regions.py --data ../shared/data/blender_toys --model runs/s39/bl-stg
 
-Linux with glibc only. Counting changes no result; the timings of a counted run are not meaningful.
+Linux with glibc only. Counting changes no result; the timings of a counted run are not meaningful. The counters
+are plain integers, incremented by the calling thread: regions opened from several threads at once (none in a
+training iteration) could be miscounted.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import torch  # only to find its libgomp: the child process counts
 _SHIM = r"""
 #define _GNU_SOURCE
 #include <dlfcn.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 typedef void (*gomp_parallel_t)(void (*)(void *), void *, unsigned, unsigned);
@@ -46,7 +50,11 @@ void GOMP_parallel(void (*fn)(void *), void *data, unsigned threads, unsigned fl
   else other_regions++;
   if (!real) {
     void *lib = dlopen(getenv("STGC_COUNTED_LIBGOMP"), RTLD_NOW | RTLD_NOLOAD);
-    real = (gomp_parallel_t)dlvsym(lib, "GOMP_parallel", "GOMP_4.0");
+    if (lib) real = (gomp_parallel_t)dlvsym(lib, "GOMP_parallel", "GOMP_4.0");
+    if (!real) {  /* a NULL handle would find this function again */
+      fprintf(stderr, "openmp_regions shim: GOMP_parallel not found in %s\n", getenv("STGC_COUNTED_LIBGOMP"));
+      abort();
+    }
   }
   real(fn, data, threads, flags);
 }
@@ -95,7 +103,8 @@ with tempfile.TemporaryDirectory() as out:
         for i in range(start + 5 + iterations, start + 5 + 2 * iterations):
             trainer.train_step(i)
 view = trainer.dataset.train[0]
-print(f"machine: {machine.one_line()}")
+import numba
+print(f"machine: {machine.one_line()}, numba threading layer {numba.threading_layer()} (only 'omp' regions are counted)")
 print(f"{trainer.dataset.name} {view.width}x{view.height}, {trainer.model.num_gaussians} Gaussians, batch "
       f"{trainer.cfg.batch}, {threads} threads: regions per iteration: torch {counts[0]:.1f}, numba {counts[1]:.1f}, "
       f"other {counts[2]:.1f}")

@@ -32,10 +32,10 @@ def _params(variant: str, dtype: torch.dtype, count: int = 600, seed: int = 0) -
     return {k: v.requires_grad_() for k, v in params.items()}
 
 
-def _run(params, opacity_scale, fused: bool):
+def _run(params, opacity_scale, fused: bool, t: float = 0.3):
     """rows_at's rows and the gradients of a loss whose weights follow the row ids (so that both paths' losses
     weigh a row alike even where one keeps a row the other culls)."""
-    rows = rows_at(params, 0.3, opacity_scale, fused=fused)
+    rows = rows_at(params, t, opacity_scale, fused=fused)
     n = params["xyz"].shape[0]
     loss = torch.zeros((), dtype=params["xyz"].dtype)
     for i, name in enumerate(OUTPUTS):
@@ -84,8 +84,11 @@ def test_fused_rows_match_the_torch_formulas_in_float32(variant):
     for name in OUTPUTS:
         torch.testing.assert_close(getattr(fused, name)[in_fused], getattr(formulas, name)[in_formulas],
                                    rtol=1e-5, atol=1e-5)  # fmt: skip
+    culled = torch.ones(4000, dtype=torch.bool)
+    culled[fused.index] = False
     for x, y in zip(fused_grads, formula_grads):
         torch.testing.assert_close(x[common], y[common], rtol=1e-4, atol=1e-5)
+        assert bool((x[culled] == 0).all())
 
 
 def test_fused_rows_pass_a_finite_difference_gradient_check():
@@ -144,3 +147,44 @@ def test_the_fused_kernels_are_the_default_on_cpu_for_one_float_dtype():
     assert type(rows_at(params, 0.3).means.grad_fn).__name__ == "_FusedRowsAtBackward"
     mixed = dict(params, xyz=params["xyz"].detach().double().requires_grad_())
     assert type(rows_at(mixed, 0.3).means.grad_fn).__name__ != "_FusedRowsAtBackward"  # the formulas promote
+    with pytest.raises(ValueError, match="fused=True"):
+        rows_at(mixed, 0.3, fused=True)
+
+
+def test_degenerate_lifetimes_in_float32_get_the_formulas_values_and_finite_gradients():
+    """Rows from the ordinary to the degenerate at t = 0.5 (trbf_scale -44 .. -200: exp(s)^2 underflows, exp(s)
+    itself below -103; at and far from their centres), float32 as in training: the same cut and values as the
+    guarded formulas, every gradient finite, and exactly 0 for the culled rows."""
+    scale = [-0.5, -1.0, -2.0, -3.0, -3.0, -5.0, -20.0, -44.0, -50.0, -90.0, -110.0, -200.0, 3.0, 40.0, -50.0, -120.0]
+    centre = [0.5, 0.2, 0.45, 0.4, 0.1, 0.3, 0.1, 0.1, 0.8, 0.0, 0.0, 1.0, 0.9, 0.3, 0.5, 0.5]
+    params = _params("full", torch.float32, count=len(scale), seed=3)
+    with torch.no_grad():
+        params["trbf_scale"].copy_(torch.tensor(scale)[:, None])
+        params["trbf_center"].copy_(torch.tensor(centre)[:, None])
+    fused, fused_grads = _run(params, None, fused=True, t=0.5)
+    formulas, formula_grads = _run(params, None, fused=False, t=0.5)
+    assert torch.equal(fused.index, formulas.index)
+    assert {14, 15} <= set(fused.index.tolist()) and {7, 8, 9, 10, 11} & set(fused.index.tolist()) == set()
+    for name in OUTPUTS:
+        torch.testing.assert_close(getattr(fused, name), getattr(formulas, name), rtol=1e-5, atol=1e-6)
+    culled = torch.ones(len(scale), dtype=torch.bool)
+    culled[fused.index] = False
+    for a, b in zip(fused_grads, formula_grads):
+        assert bool(torch.isfinite(a).all())
+        assert bool((a[culled] == 0).all())
+        torch.testing.assert_close(a[~culled], b[~culled], rtol=1e-4, atol=1e-6)
+
+
+def test_nothing_visible_gives_empty_rows_and_zero_gradients():
+    params = _params("lite", torch.float32, count=30)
+    with torch.no_grad():
+        params["trbf_scale"].fill_(-3.0)
+        params["trbf_center"].fill_(0.9)
+    opacity_scale = torch.rand(30, dtype=torch.float64, requires_grad=True)  # a dtype of its own
+    rows = rows_at(params, 0.1, opacity_scale)
+    assert rows.index.shape == (0,) and rows.means.shape == (0, 3) and rows.features.shape == (0, 3)
+    (rows.means.sum() + rows.opacity.sum()).backward()
+    for key, value in params.items():
+        assert value.grad is not None and bool((value.grad == 0).all()), key
+    assert opacity_scale.grad is not None and opacity_scale.grad.dtype == torch.float64
+    assert bool((opacity_scale.grad == 0).all())

@@ -26,8 +26,11 @@ import math
 import numpy as np
 from numba import njit, prange
 
+# error_model="numpy" everywhere: a division by an exp(s_t) that underflowed to 0 must give inf or NaN (which the
+# guards below expect), not raise ZeroDivisionError as njit's default Python error model would outside a prange.
 
-@njit(cache=True, nogil=True, inline="always")
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _opacity_terms(delta, log_scale, logit, cutoff):
     """(sigmoid(o), factor, x, unit, far) of one row; delta = t - mu_t computed in the storage dtype."""
     scale = math.exp(log_scale)
@@ -39,7 +42,7 @@ def _opacity_terms(delta, log_scale, logit, cutoff):
     return sig, factor, x, unit, far
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def visible_rows(t, trbf_center, trbf_scale, opacity, opacity_scale, scaled, cutoff, threshold, values, slot):
     """values[i] = row i's temporal opacity (in the storage dtype); slot[i] = row i's index among the rows whose
     value is >= threshold (in row order; NaN: culled), -1 if culled. Returns how many are visible."""
@@ -61,7 +64,7 @@ def visible_rows(t, trbf_center, trbf_scale, opacity, opacity_scale, scaled, cut
     return count
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def rows_forward(t, slot, values, xyz, scaling, rotation, omega, trbf_center, motion, features_dc, features_t,
                  index, means, quats, scales, visible_opacity, features):  # fmt: skip
     n = slot.shape[0]
@@ -88,8 +91,8 @@ def rows_forward(t, slot, values, xyz, scaling, rotation, omega, trbf_center, mo
             features[j, c_dc + k] = np.float64(features_t[i, k]) * d
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def rows_backward(t, slot, scaling, opacity, trbf_center, trbf_scale, features_t, opacity_scale, scaled, cutoff,
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def rows_backward(t, slot, scaling, opacity, trbf_center, trbf_scale, opacity_scale, scaled, cutoff,
                   g_means, g_quats, g_scales, g_opacity, g_features,
                   d_xyz, d_scaling, d_rotation, d_omega, d_opacity, d_center, d_log_scale, d_motion, d_dc, d_t,
                   d_opacity_scale):  # fmt: skip

@@ -654,10 +654,13 @@ def rows_at(params: Mapping[str, torch.Tensor], t: float, opacity_scale: torch.T
     the cut. fused (default: every tensor on CPU, the parameters all float32 or all float64) computes them with the
     numba kernels of `_numba_at_time`: one parallel region per pass instead of one per torch op; otherwise with the
     torch formulas below. Both give the same values and gradients up to rounding (tests/model/test_rows_at.py)."""
+    tensors = [*params.values(), *([] if opacity_scale is None else [opacity_scale])]
+    fusable = (all(v.device.type == "cpu" for v in tensors)
+               and {v.dtype for v in params.values()} in ({torch.float32}, {torch.float64}))  # fmt: skip
+    if fused and not fusable:
+        raise ValueError("rows_at(fused=True) needs every tensor on CPU and the parameters all float32 or all float64")
     if fused is None:
-        tensors = [*params.values(), *([] if opacity_scale is None else [opacity_scale])]
-        dtypes = {v.dtype for v in params.values()}
-        fused = all(v.device.type == "cpu" for v in tensors) and dtypes in ({torch.float32}, {torch.float64})
+        fused = fusable
     if fused:
         side: dict[str, torch.Tensor] = {}
         keys = [k for k in PARAM_KEYS if k != "features_t"]
@@ -717,38 +720,38 @@ class _FusedRowsAt(torch.autograd.Function):
         features = np.empty((m, features_dc.shape[1] + features_t.shape[1]), dtype)
         _at_time.rows_forward(time, slot, values, xyz, scaling, rotation, omega, trbf_center, motion, features_dc,
                               features_t, index, means, quats, scales, visible_opacity, features)  # fmt: skip
-        # Saved as tensors, so that autograd refuses a backward after they were changed in place.
-        ctx.save_for_backward(*given, features_t_tensor, opacity_scale)
-        ctx.t, ctx.slot, ctx.cutoff = time, slot, cutoff
+        # What the backward reads, saved as tensors, so that autograd refuses a backward after they were changed in
+        # place (the other parameters enter the outputs linearly: their gradients need only the row's Delta').
+        ctx.save_for_backward(given[1], given[4], given[5], given[6], opacity_scale)
+        ctx.t, ctx.slot, ctx.cutoff, ctx.visible = time, slot, cutoff, m
+        ctx.widths = (features_dc.shape[1], features_t.shape[1], features_t_tensor is not None)
         side["index"] = torch.from_numpy(index)
         return tuple(torch.from_numpy(a) for a in (means, quats, scales, visible_opacity, features))
 
     @staticmethod
     @once_differentiable
     def backward(ctx: Any, *grads: torch.Tensor | None) -> tuple[torch.Tensor | None, ...]:
-        saved = ctx.saved_tensors
-        scaling, opacity, trbf_center, trbf_scale, features_dc = (_array(saved[i]) for i in (1, 4, 5, 6, 8))
-        features_t = _optional_columns(saved[9], scaling)
-        scale_rows = _optional_rows(saved[10], scaling)
-        dtype, n = scaling.dtype, scaling.shape[0]
-        m = int(np.count_nonzero(ctx.slot >= 0))
-        shapes = ((m, 3), (m, 4), (m, 3), (m,), (m, features_dc.shape[1] + features_t.shape[1]))
+        scaling_tensor, opacity, trbf_center, trbf_scale, scale_tensor = ctx.saved_tensors
+        scaling, opacity, trbf_center, trbf_scale = (_array(v) for v in (scaling_tensor, opacity, trbf_center, trbf_scale))
+        scale_rows = _optional_rows(scale_tensor, scaling)
+        dtype, n, m = scaling.dtype, scaling.shape[0], ctx.visible
+        n_dc, n_t, has_features_t = ctx.widths
+        shapes = ((m, 3), (m, 4), (m, 3), (m,), (m, n_dc + n_t))
         g_means, g_quats, g_scales, g_opacity, g_features = (
-            np.zeros(shape, dtype) if g is None else np.ascontiguousarray(g.numpy(), dtype)
+            np.zeros(shape, dtype) if g is None else np.ascontiguousarray(g.detach().numpy(), dtype)
             for g, shape in zip(grads, shapes))  # fmt: skip
-        d = {key: np.empty((n, width), dtype) for key, width in zip(PARAM_KEYS, (3, 3, 4, 4, 1, 1, 1, 9))}
-        d["features_dc"] = np.empty_like(features_dc)
-        d["features_t"] = np.empty_like(features_t)
+        widths = (3, 3, 4, 4, 1, 1, 1, 9, n_dc, n_t)
+        d = {key: np.empty((n, width), dtype) for key, width in zip(PARAM_KEYS, widths)}
         d_scale_rows = np.empty_like(scale_rows)
         _at_time.rows_backward(
-            ctx.t, ctx.slot, scaling, opacity, trbf_center, trbf_scale, features_t, scale_rows, saved[10] is not None,
+            ctx.t, ctx.slot, scaling, opacity, trbf_center, trbf_scale, scale_rows, scale_tensor is not None,
             ctx.cutoff, g_means, g_quats, g_scales, g_opacity, g_features, d["xyz"], d["scaling"], d["rotation"],
             d["omega"], d["opacity"], d["trbf_center"], d["trbf_scale"], d["motion"], d["features_dc"],
             d["features_t"], d_scale_rows,
         )  # fmt: skip
         grad = [torch.from_numpy(d[key]) for key in PARAM_KEYS]
-        return (None, None, *grad[:9], grad[9] if saved[9] is not None else None,
-                None if saved[10] is None else torch.from_numpy(d_scale_rows).to(saved[10].dtype))
+        return (None, None, *grad[:9], grad[9] if has_features_t else None,
+                None if scale_tensor is None else torch.from_numpy(d_scale_rows).to(scale_tensor.dtype))
 
 
 def _visible_rows(value: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
