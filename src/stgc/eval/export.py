@@ -45,7 +45,7 @@ from stgc.data.dataset import Dataset
 from stgc.errors import DataError
 from stgc.eval.video import ModelSource, frame_selection, load_model_and_dataset
 from stgc.fileio import atomic_folder, atomic_path, write_json
-from stgc.model import MIN_VISIBLE_OPACITY, STGModel
+from stgc.model import MIN_VISIBLE_OPACITY, STGModel, rows_at
 
 log = logging.getLogger(__name__)
 
@@ -82,15 +82,13 @@ class StaticGaussians:
 def gaussians_at(model: STGModel, t: float, view_origin: np.ndarray) -> StaticGaussians:
     """The model's Gaussians visible at time t as static 3D Gaussians; a full model's colour is decoded along the
     ray from `view_origin` to each Gaussian."""
-    opacity = model.temporal_opacity(t)
-    keep = opacity >= MIN_VISIBLE_OPACITY
-    means = model.means_at(t)[keep]
-    rgb = _colour_per_gaussian(model, model.features_at(t)[keep], means, view_origin)
+    rows = rows_at(model.params, t)  # the rows a render at t keeps, by the same cut
+    rgb = _colour_per_gaussian(model, rows.features, rows.means, view_origin)
     return StaticGaussians(
-        means=means.numpy().astype(np.float32),
-        quats=model.rotations_at(t)[keep].numpy().astype(np.float32),
-        log_scales=model.params["scaling"].detach()[keep].numpy().astype(np.float32),
-        opacity=opacity[keep].numpy().astype(np.float32),
+        means=rows.means.numpy().astype(np.float32),
+        quats=torch.nn.functional.normalize(rows.quats, dim=1).numpy().astype(np.float32),
+        log_scales=model.params["scaling"].detach()[rows.index].numpy().astype(np.float32),
+        opacity=rows.opacity.numpy().astype(np.float32),
         rgb=rgb.numpy().astype(np.float32),
     )
 

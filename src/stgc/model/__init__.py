@@ -8,10 +8,12 @@ from stgc.model.stg import (
     NEAR_PLANE,
     PARAM_KEYS,
     ModelRender,
+    RowsAt,
     STGModel,
     initial_log_scales,
     param_widths,
     ply_columns,
+    rows_at,
 )
 
 __all__ = [
@@ -22,6 +24,7 @@ __all__ = [
     "VARIANTS",
     "ModelConfig",
     "ModelRender",
+    "RowsAt",
     "STGModel",
     "SandwichDecoder",
     "bytes_per_gaussian",
@@ -30,4 +33,5 @@ __all__ = [
     "param_widths",
     "ply_columns",
     "ply_fields",
+    "rows_at",
 ]
