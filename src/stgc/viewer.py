@@ -41,7 +41,7 @@ from stgc.eval.accounting import ModelSize, bitstream_size, model_size_of
 from stgc.eval.evaluate import dataset_duration_s, video_bitstream_segments
 from stgc.eval.video import load_model_and_dataset
 from stgc.metrics import psnr
-from stgc.model import MIN_VISIBLE_OPACITY, STGModel
+from stgc.model import STGModel, rows_at
 from stgc.run import Run
 
 log = logging.getLogger(__name__)
@@ -176,7 +176,7 @@ class ViewerScene:
         this view's PSNR when it is a dataset camera at a dataset frame."""
         segment = self.segment_at(frame)
         with torch.no_grad():
-            alive = int((segment.model.temporal_opacity(segment.time_of(frame)) >= MIN_VISIBLE_OPACITY).sum())
+            alive = len(rows_at(segment.model.params, segment.time_of(frame)).index)  # the rows a render keeps
         out: dict[str, Any] = {
             "frame": frame,
             "segment": self.segments.index(segment),
