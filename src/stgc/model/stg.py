@@ -688,7 +688,7 @@ def _array(value: torch.Tensor) -> np.ndarray:
 
 def _optional_columns(value: torch.Tensor | None, like: np.ndarray) -> np.ndarray:
     """A [N, k] parameter that may be absent (lite has no features_t) as an array; [N, 0] when absent."""
-    return np.empty((like.shape[0], 0), like.dtype) if value is None else _array(value).astype(like.dtype, copy=False)
+    return np.empty((like.shape[0], 0), like.dtype) if value is None else _array(value)
 
 
 def _optional_rows(value: torch.Tensor | None, like: np.ndarray) -> np.ndarray:
