@@ -204,3 +204,37 @@ def test_gaussians_below_the_cut_at_their_peak_never_show_so_leaving_them_out_ch
         # Equal up to float32 rounding: the temporal opacities are computed over all rows, and torch's vectorised
         # loops round an element differently depending on where it falls in a tensor of another length.
         torch.testing.assert_close(model.render(camera).rgb, pruned.render(camera).rgb, rtol=0, atol=1e-6, msg=str(t))
+
+
+@pytest.mark.parametrize("variant", ["full", "lite"])
+def test_render_views_shares_the_gaussians_at_t_and_matches_rendering_each_view(monkeypatch, variant):
+    """A training batch's views share t: render_views computes the Gaussians at t once, and gives the images and the
+    gradients that rendering the views one by one gives."""
+    import stgc.model.stg as stg_module
+
+    model = _scene(variant)
+    near = look_at_camera(time=0.5, distance=4.0)
+    side = dataclasses.replace(look_at_camera(time=0.5, distance=5.0), name="cam01")
+    side.w2c[0, 3] = 0.7  # a second viewpoint, shifted sideways
+    calls = []
+    real_rows_at = stg_module.rows_at
+    monkeypatch.setattr(stg_module, "rows_at", lambda *a, **k: calls.append(1) or real_rows_at(*a, **k))
+    weights = [torch.rand(16, 24, 3, generator=torch.Generator().manual_seed(s)) for s in (3, 4)]
+
+    together = model.render_views([near, side], 0.5, backend="numba")
+    assert len(calls) == 1
+    sum((out.rgb * w).sum() for out, w in zip(together, weights)).backward()
+    grads_together = {k: p.grad.clone() for k, p in model.params.items() if p.grad is not None}
+    for p in model.params.values():
+        p.grad = None
+
+    one_by_one = [model.render(camera, t=0.5, backend="numba") for camera in (near, side)]
+    assert len(calls) == 3
+    sum((out.rgb * w).sum() for out, w in zip(one_by_one, weights)).backward()
+    for a, b in zip(together, one_by_one):
+        assert torch.equal(a.rgb, b.rgb) and torch.equal(a.index, b.index)
+    assert not torch.equal(together[0].rgb, together[1].rgb)  # two different views
+    assert grads_together.keys() == {k for k, p in model.params.items() if p.grad is not None}
+    for key, grad in grads_together.items():
+        assert grad.abs().max() > 0, key
+        torch.testing.assert_close(grad, model.params[key].grad, rtol=1e-5, atol=1e-7, msg=key)

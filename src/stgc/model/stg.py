@@ -336,35 +336,52 @@ class STGModel:
         keep/drop mask: rows scaled to 0 are culled). Extra keyword arguments go to `stgc.render.rasterize`.
         """
         t = float(camera.time if t is None else t)
-        raster_options.setdefault("near_plane", float(camera.near))
+        return self.render_views([camera], t, background, backend, return_depth, return_weights, opacity_scale,
+                                 **raster_options)[0]  # fmt: skip
+
+    def render_views(
+        self,
+        cameras: Sequence[Camera],
+        t: float,
+        background: torch.Tensor | Sequence[float] | None = None,
+        backend: str = "auto",
+        return_depth: bool = False,
+        return_weights: bool = False,
+        opacity_scale: torch.Tensor | None = None,
+        **raster_options: Any,
+    ) -> list[ModelRender]:
+        """Render several cameras at one time t (a training batch: its views share the timestamp), as `render` would
+        one by one, with the Gaussians at t computed once for all of them: one pass of the per-Gaussian formulas
+        forward and, when a loss over every view is backpropagated at once, one backward through them instead of one
+        per view."""
         if opacity_scale is not None and tuple(opacity_scale.shape) != (self.num_gaussians,):
             raise ValueError(f"opacity_scale must have shape ({self.num_gaussians},), got {tuple(opacity_scale.shape)}")
-        rows = rows_at(self.params, t, opacity_scale)
-        cached = self._camera_tensors(camera)
-        raster = _render.rasterize(
-            rows.means,
-            rows.quats,
-            rows.scales,
-            rows.opacity,
-            rows.features,
-            cached["K"],
-            cached["viewmat"],
-            int(camera.width),
-            int(camera.height),
-            self._background(background),
-            backend=backend,
-            return_depth=return_depth,
-            return_weights=return_weights,
-            **raster_options,
-        )
-        features = raster.image
-        if self.decoder is not None:
-            rgb = self.decoder(features, self._rays(camera, cached))
-        else:
-            rgb = features
-        depth = raster.depth if return_depth else None
-        return ModelRender(rgb=rgb, alpha=raster.alpha, depth=depth, raster=raster, index=rows.index,
-                           features=features)
+        rows = rows_at(self.params, float(t), opacity_scale)
+        bg = self._background(background)
+        renders = []
+        for camera in cameras:
+            cached = self._camera_tensors(camera)
+            raster = _render.rasterize(
+                rows.means,
+                rows.quats,
+                rows.scales,
+                rows.opacity,
+                rows.features,
+                cached["K"],
+                cached["viewmat"],
+                int(camera.width),
+                int(camera.height),
+                bg,
+                backend=backend,
+                return_depth=return_depth,
+                return_weights=return_weights,
+                **{"near_plane": float(camera.near), **raster_options},
+            )
+            features = raster.image
+            rgb = features if self.decoder is None else self.decoder(features, self._rays(camera, cached))
+            renders.append(ModelRender(rgb=rgb, alpha=raster.alpha, depth=raster.depth if return_depth else None,
+                                       raster=raster, index=rows.index, features=features))  # fmt: skip
+        return renders
 
     def _background(self, background: torch.Tensor | Sequence[float] | None) -> torch.Tensor | None:
         if background is None:

@@ -1,8 +1,9 @@
 """The STG training loop (official `train.py`), with resumable checkpoints and compaction hooks.
 
-One iteration: draw one timestamp and `batch` training views of it; render each view, loss
-0.8·L1 + 0.2·(1 − SSIM) (+ `mask_loss` x L1 over the foreground where the view has a mask), backward of
-loss/batch (so the parameter gradients are the batch mean); one Adam step.
+One iteration: draw one timestamp and `batch` training views of it; render each view (the Gaussians at that
+time computed once for all of them), loss 0.8·L1 + 0.2·(1 − SSIM) (+ `mask_loss` x L1 over the foreground where the
+view has a mask), one backward of the views' summed loss / batch (so the parameter gradients are the batch mean);
+one Adam step.
 Then density control, opacity reset, the compaction controller, EMS, logging and checkpoints.
 
 Determinism: every random draw of iteration i comes from streams seeded by (seed, i) (frame and view choice,
@@ -696,27 +697,33 @@ class Trainer:
         # The learned mask keeps one logit per row: nothing may remove one while it learns (not even a row gone
         # non-finite: its render stops the run, as before the density control removed such rows between rounds).
         self.density.rows_fixed = mask is not None
-        for k, cam in enumerate(views):
+        # The batch's views share t: the Gaussians at t are computed once, and the summed loss goes back through
+        # them once (render_views).
+        with self.model.params_replaced(seen):
+            renders = self.model.render_views(views, t, background=self.background, backend=self.cfg.backend,
+                                              opacity_scale=None if mask is None else mask.keep_factor())
+        losses = []
+        for k, (cam, out) in enumerate(zip(views, renders)):
             gt = self.images.get(cam)
-            with self.model.params_replaced(seen):
-                out = self.model.render(cam, t=t, background=self.background, backend=self.cfg.backend,
-                                        opacity_scale=None if mask is None else mask.keep_factor())
             rgb = out.rgb if self.colour is None else self.colour.apply(out.rgb, cam.name)
             # Error-guided sampling picks its views by their SSIM, whether or not the loss has an SSIM term.
             loss, ssim_value = self.view_loss(rgb, gt, cam, need_ssim=self.ems.listening(iteration))
-            (loss / batch).backward()
+            losses.append(loss)
             if self.ems.observe(iteration, cam, ssim_value, last_of_batch=k == batch - 1):
                 ems_view = (cam, rgb.detach(), gt)
             total_loss += float(loss.detach())
             total_mse += float(((rgb.detach().clamp(0, 1) - gt) ** 2).mean())
-            self.density.observe(out, k, batch, self.model, cam, t)
         if not math.isfinite(total_loss):
             # Its gradients would make every Gaussian it reached non-finite, and the non-finite pruning would then
             # remove them all without a word.
             raise StgcError(f"{self.out_run.path}: training diverged at iteration {iteration}: the loss is "
                             f"{total_loss} (frame {frame}, views {', '.join(str(c.name) for c in views)})")
+        objective = sum(losses) / batch
         if rate_bits is not None:
-            (self.cfg.quantization_aware.rate_weight * rate_bits).backward()
+            objective = objective + self.cfg.quantization_aware.rate_weight * rate_bits
+        objective.backward()
+        for k, (cam, out) in enumerate(zip(views, renders)):
+            self.density.observe(out, k, batch, self.model, cam, t)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         if mask is not None:
