@@ -718,7 +718,7 @@ class Trainer:
             # remove them all without a word.
             raise StgcError(f"{self.out_run.path}: training diverged at iteration {iteration}: the loss is "
                             f"{total_loss} (frame {frame}, views {', '.join(str(c.name) for c in views)})")
-        objective = sum(losses) / batch
+        objective = torch.stack(losses).sum() / batch
         if rate_bits is not None:
             objective = objective + self.cfg.quantization_aware.rate_weight * rate_bits
         objective.backward()
