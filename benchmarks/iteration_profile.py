@@ -35,7 +35,7 @@ from stgc.train import Trainer
 
 # (scope label, owner, attribute): functions whose forward time becomes a labelled part.
 SCOPES = [
-    ("render (per-Gaussian formulas, culling)", STGModel, "render"),
+    ("render (per-Gaussian formulas, culling)", STGModel, "render_views"),  # render() calls it too
     ("projection", numba_backend, "project_numba"),  # what the numba backend calls (api.project_gaussians is torch's)
     ("depth sort", numba_backend, "depth_order"),
     ("tile binning", numba_backend.kernels, "bin_tiles"),

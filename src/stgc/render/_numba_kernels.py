@@ -413,69 +413,6 @@ def composite_forward(
                     out_depth[py, px] = depth
 
 
-# The backward's per-pixel arithmetic past alpha, compiled with floating-point contraction (a * b + c as one fused
-# multiply-add, rounded once): 16 % of the kernel's time at 50k Gaussians, 256x256, one thread (benchmarks/RESULTS.md,
-# session 47). Kept out of composite_backward itself so that alpha and exp(-sigma), which decide which entries
-# contribute and must match the forward's bit for bit, are computed without it. fastmath flags act on the
-# instructions of the function they are given to, also where LLVM inlines it.
-@njit(cache=True, nogil=True, fastmath={"contract"})
-def _color_dots(local_colors, gpix, last, color_dots):
-    """color_dots[k] = dot(colour of entry k, dL/dpixel colour) for k < last, summed in channel order."""
-    g0 = gpix[0]
-    row = local_colors[0]
-    for i in range(last):
-        k = np.uint64(i)
-        color_dots[k] = g0 * row[k]
-    for c in range(1, local_colors.shape[0]):
-        gc = gpix[c]
-        row = local_colors[c]
-        for i in range(last):
-            k = np.uint64(i)
-            color_dots[k] += gc * row[k]
-
-
-@njit(cache=True, nogil=True, fastmath={"contract"})
-def _alpha_grads(alphas, color_dots, T_final, g_trans, one, last, weights, d_alphas):
-    """The recursion, back to front: each entry's weight alpha T and dL/dalpha. A skipped entry has alpha 0: T and
-    behind_dot unchanged, weight 0. behind_dot = dot(colour composited behind entry k, dL/dpixel colour), carried
-    as a scalar since behind_{k-1} = alpha_k c_k + (1 - alpha_k) behind_k is linear in the colours."""
-    T = T_final
-    behind_dot = one - one
-    for k in range(last - 1, -1, -1):
-        alpha = alphas[k]
-        inv_one_minus = one / (one - alpha)
-        T = T * inv_one_minus
-        weights[k] = alpha * T
-        col_dot = color_dots[k]
-        d_alphas[k] = (col_dot - behind_dot) * T - g_trans * T_final * inv_one_minus
-        behind_dot = alpha * col_dot + (one - alpha) * behind_dot
-
-
-@njit(cache=True, nogil=True, fastmath={"contract"})
-def _pixel_grads(geometry, gaussians, d_alphas, weights, gpix, pcx, pcy, half, last, lgrad):
-    """Adds one pixel's gradients of every entry k < last to the tile's per-entry columns lgrad [6 + C, L]."""
-    gx, gy, ga, gb, gc, go = geometry[GX], geometry[GY], geometry[GA], geometry[GB], geometry[GC], geometry[GO]
-    lx, ly, la, lb, lc, lo = lgrad[GX], lgrad[GY], lgrad[GA], lgrad[GB], lgrad[GC], lgrad[GO]
-    for i in range(last):
-        k = np.uint64(i)
-        d_opacity = d_alphas[k] * gaussians[k]
-        d_sigma = -go[k] * d_opacity
-        dx = gx[k] - pcx
-        dy = gy[k] - pcy
-        lo[k] += d_opacity
-        lx[k] += d_sigma * (ga[k] * dx + gb[k] * dy)
-        ly[k] += d_sigma * (gc[k] * dy + gb[k] * dx)
-        la[k] += d_sigma * half * dx * dx
-        lb[k] += d_sigma * dx * dy
-        lc[k] += d_sigma * half * dy * dy
-    for c in range(gpix.shape[0]):
-        g = gpix[c]
-        row = lgrad[N_GEOM_GRADS + c]
-        for i in range(last):
-            k = np.uint64(i)
-            row[k] += weights[k] * g
-
-
 @njit(parallel=True, cache=True, nogil=True)
 def composite_backward(
     gdata, colors, offsets, flat, centers_x, centers_y, tile_size, tiles_x, consts, tile_order,
@@ -548,10 +485,44 @@ def composite_backward(
                 if not any_grad:
                     continue
                 pcx = centers_x[px]
-                _color_dots(local_colors, gpix, last, color_dots)
+                # dot(c_k, dL/dpixel color) of every entry, summed in channel order
+                g0 = gpix[0]
+                for k in range(last):
+                    color_dots[k] = g0 * local_colors[0, k]
+                for c in range(1, n_colors):
+                    gc = gpix[c]
+                    for k in range(last):
+                        color_dots[k] += gc * local_colors[c, k]
                 _alphas(geometry, 0, last, pcx, pcy, consts, alphas, gaussians)
-                _alpha_grads(alphas, color_dots, final_trans[py, px], g_trans, one, last, weights, d_alphas)
-                _pixel_grads(geometry, gaussians, d_alphas, weights, gpix, pcx, pcy, half, last, lgrad)
+                # The recursion, back to front. A skipped entry has alpha 0: T, behind_dot unchanged, weight 0.
+                # behind_dot = dot(color composited behind entry k, dL/dpixel color), carried as a scalar since
+                # behind_{k-1} = alpha_k c_k + (1 - alpha_k) behind_k is linear in the colors.
+                T_final = final_trans[py, px]
+                T = T_final
+                behind_dot = zero
+                for k in range(last - 1, -1, -1):
+                    alpha = alphas[k]
+                    inv_one_minus = one / (one - alpha)
+                    T = T * inv_one_minus
+                    weights[k] = alpha * T
+                    col_dot = color_dots[k]
+                    d_alphas[k] = (col_dot - behind_dot) * T - g_trans * T_final * inv_one_minus
+                    behind_dot = alpha * col_dot + (one - alpha) * behind_dot
+                for k in range(last):
+                    d_opacity = d_alphas[k] * gaussians[k]
+                    d_sigma = -geometry[GO, k] * d_opacity
+                    dx = geometry[GX, k] - pcx
+                    dy = geometry[GY, k] - pcy
+                    lgrad[GO, k] += d_opacity
+                    lgrad[GX, k] += d_sigma * (geometry[GA, k] * dx + geometry[GB, k] * dy)
+                    lgrad[GY, k] += d_sigma * (geometry[GC, k] * dy + geometry[GB, k] * dx)
+                    lgrad[GA, k] += d_sigma * half * dx * dx
+                    lgrad[GB, k] += d_sigma * dx * dy
+                    lgrad[GC, k] += d_sigma * half * dy * dy
+                for c in range(n_colors):
+                    gc = gpix[c]
+                    for k in range(last):
+                        lgrad[N_GEOM_GRADS + c, k] += weights[k] * gc
         for k in range(used):
             g = flat[start + k]
             for f in range(n_grads):
