@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+import stgc.model.stg as stg_module
 import stgc.render
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel, camera_rays
 
@@ -210,8 +211,6 @@ def test_gaussians_below_the_cut_at_their_peak_never_show_so_leaving_them_out_ch
 def test_render_views_shares_the_gaussians_at_t_and_matches_rendering_each_view(monkeypatch, variant):
     """A training batch's views share t: render_views computes the Gaussians at t once, and gives the images and the
     gradients that rendering the views one by one gives."""
-    import stgc.model.stg as stg_module
-
     model = _scene(variant)
     near = look_at_camera(time=0.5, distance=4.0)
     side = dataclasses.replace(look_at_camera(time=0.5, distance=5.0), name="cam01")
