@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 RENDER_AND_DIGEST = """
 import hashlib
 import numba, torch
@@ -43,6 +45,7 @@ def _digest(cache: Path) -> str:
     return done.stdout.strip().splitlines()[-1]
 
 
+@pytest.mark.slow  # a fresh compile of the rasterizer's kernels: about 25 s
 def test_kernels_compiled_in_the_process_and_loaded_from_the_cache_render_and_differentiate_identically(tmp_path):
     cache = tmp_path / "numba_cache"
     compiled = _digest(cache)

@@ -2,7 +2,7 @@
 # Interleaved rasterizer A/B, 50k Gaussians, C = 9, 256x256, 1 and 2 threads: worktree $1 against worktree $2,
 # rounds $3, then any extra benchmark flags (--stages: the split by kernel). Run from the repository root.
 #   rast_ab.sh <A> <B> 3 > rast_ab.log;   rast_ab.sh <A> <B> 3 --stages > rast_stages_ab.log
-A=$1; B=$2; R=${3:-3}; shift 3
+A=$1; B=$2; R=${3:?rounds}; shift 3
 for r in $(seq 1 $R); do
   for t in 1 2; do
     for side in A B; do

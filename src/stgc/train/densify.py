@@ -286,9 +286,10 @@ class DensityControl:
 
     def observe(self, render: Any, view_index: int, batch: int, model: STGModel | None = None,
                 camera: Camera | None = None, t: float = 0.0) -> None:
-        """After the backward of view `view_index` of a `batch`-view step: add its screen-space gradients. With
-        `stats_count` 'in_frustum' (needs `model`, `camera` and the view's time `t`), the Gaussians the render culled
-        as temporally invisible count the view too, where their 3-sigma box reaches it."""
+        """After the backward of a `batch`-view step (one backward of the views' summed loss): add view
+        `view_index`'s screen-space gradients. With `stats_count` 'in_frustum' (needs `model`, `camera` and the view's
+        time `t`), the Gaussians the render culled as temporally invisible count the view too, where their 3-sigma box
+        reaches it."""
         if not self.collecting or (self.cfg.stats_views == "last" and view_index != batch - 1):
             return
         # Each view's screen-space gradient is its own (a render's means2d is its own tensor); it came from
