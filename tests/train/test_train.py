@@ -289,3 +289,53 @@ def test_the_trainer_keeps_no_images_beside_the_datasets_bounded_cache(tiny_toys
     uses = cfg.iterations * cfg.batch
     assert uses > len(dataset.train)  # some views drawn twice: a private copy would have served them
     assert dataset._cache.misses >= uses and len(dataset._cache._items) == 0
+
+
+@pytest.mark.parametrize("stats_views", ["all", "last"])
+def test_one_backward_per_batch_gives_the_gradients_and_densification_statistics_of_one_backward_per_view(
+        tiny_toys, make_model, tmp_path, stats_views):
+    """train_step backpropagates the batch's summed loss once. Worked out the other way, as the official code does
+    (each view rendered and backpropagated on its own, its loss divided by the batch size): the same parameter
+    gradients and the same screen-space statistics for densification."""
+    import copy
+
+    cfg = _short_config(batch=3, densify=DensifyConfig(start=1, interval=50, rounds=1, stats_views=stats_views,
+                                                       grad_threshold=1e-5))
+    trainer = Trainer(tiny_toys, None, None, cfg, None, tmp_path / "run", model=make_model(tiny_toys, 200))
+    assert trainer.density.collecting and trainer.colour is None
+    before = copy.deepcopy(trainer.model)
+    drawn, grads = [], {}
+    render_views = trainer.model.render_views
+    trainer.model.render_views = lambda views, t, **kw: drawn.append((list(views), t)) or render_views(views, t, **kw)
+    optimizer_step = trainer.optimizer.step
+
+    def step_keeping_the_gradients(*args, **kwargs):
+        grads.update({k: p.grad.clone() for k, p in trainer.model.params.items() if p.grad is not None})
+        grads.update({f"decoder.{k}": p.grad.clone() for k, p in trainer.model.decoder.named_parameters()})
+        return optimizer_step(*args, **kwargs)
+
+    trainer.optimizer.step = step_keeping_the_gradients
+    trainer.train_step(1)
+    trainer.close()
+    [(views, t)] = drawn
+    assert len(views) == 3 and len({cam.name for cam in views}) > 1
+
+    grad_sum = torch.zeros(before.num_gaussians, dtype=torch.float64)
+    count = torch.zeros(before.num_gaussians, dtype=torch.int64)
+    for k, cam in enumerate(views):
+        out = before.render(cam, t=t, background=trainer.background, backend=cfg.backend)
+        (trainer.view_loss(out.rgb, trainer.images.get(cam), cam)[0] / len(views)).backward()
+        if stats_views == "all" or k == len(views) - 1:
+            rows = out.index[out.raster.visible]
+            grad_sum.index_add_(0, rows, (out.raster.means2d_grad_ndc_norm() * len(views))[out.raster.visible]
+                                .to(torch.float64))
+            count.index_add_(0, rows, torch.ones_like(rows))
+    assert count.sum() > 0 and grad_sum.max() > 0
+    assert torch.equal(trainer.density.stats.count, count)
+    torch.testing.assert_close(trainer.density.stats.grad_sum, grad_sum, rtol=1e-5, atol=1e-12)
+    expected = {k: p.grad for k, p in before.params.items() if p.grad is not None}
+    expected.update({f"decoder.{k}": p.grad for k, p in before.decoder.named_parameters()})
+    assert grads.keys() == expected.keys() and "decoder.mlp2.weight" in grads and "xyz" in grads
+    for key, grad in grads.items():
+        assert grad.abs().max() > 0, key
+        torch.testing.assert_close(grad, expected[key], rtol=1e-4, atol=1e-7, msg=key)
