@@ -15,6 +15,7 @@ from stgc.codec import (
     decompress,
     encode,
     load_model,
+    model_digest,
     read_stgc,
     read_stgc_header,
     stgc_bytes_per_gaussian,
@@ -22,6 +23,7 @@ from stgc.codec import (
 )
 from stgc.codec.synthetic import synthetic_model
 from stgc.errors import DataError, FormatError
+from stgc.fileio import file_sha256
 from stgc.model import STGModel
 
 
@@ -56,6 +58,10 @@ def test_compress_then_decompress_restores_an_equivalent_run(run_dir, tmp_path):
     assert f"{result.file_bytes} bytes" in str(result) and "B per stored Gaussian" in str(result)
     assert f"{invisible} Gaussians left out" in str(result)
     assert read_stgc(run / "model.stgc").metadata["dropped_invisible"] == invisible
+    # The model compressed, by its PLY's digest (stgc eval tells another run's file apart by it).
+    assert read_stgc(run / "model.stgc").metadata["source_digest"] == model_digest(
+        run / "point_cloud" / "iteration_1200" / "point_cloud.ply") == file_sha256(
+        run / "point_cloud" / "iteration_1200" / "point_cloud.ply")[:16]
     kept = compress_run(run, tmp_path / "all.stgc", config=CodecConfig(drop_invisible=False))
     assert kept.num_gaussians == 2000 and kept.dropped_invisible == 0
     assert "dropped_invisible" not in read_stgc(tmp_path / "all.stgc").metadata

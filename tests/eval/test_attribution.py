@@ -127,12 +127,12 @@ def test_write_eval_refuses_to_file_another_models_scores_as_the_runs(tmp_path: 
 # ------------------------------------------------------------------------------ another run's .stgc
 
 
-def _bitstream(path: Path, run_config: dict[str, Any] | None, iteration: int = 10) -> Path:
+def _bitstream(path: Path, run_config: dict[str, Any] | None, iteration: int = 10, **more: Any) -> Path:
     from stgc.codec.format import encode
     from stgc.codec.synthetic import synthetic_model
 
     arrays, _ = synthetic_model(20, "lite", seed=1)
-    metadata: dict[str, Any] = {"iteration": iteration}
+    metadata: dict[str, Any] = {"iteration": iteration, **more}
     if run_config is not None:
         metadata["run_config"] = run_config
     path.write_bytes(encode(arrays, "lite", None, 2, metadata=metadata))
@@ -189,6 +189,35 @@ def test_the_runs_own_bitstream_is_its_codec_point_also_after_its_data_moved(tmp
     # A file written without its run config cannot be told apart: it is the folder's run's, as before.
     record = _score(_bitstream(run / "bare.stgc", None))
     assert "foreign" not in record and record["training_finished"] is True
+
+
+def test_a_bitstream_of_another_run_of_the_same_config_is_told_apart_by_its_models_digest(tmp_path: Path) -> None:
+    """Seeds of one plan and ST-KNN cases differ only in training options, which a file does not embed: another
+    seed's file in a run's folder passed every check and was reported as the run's codec point. The file records
+    the digest of the PLY it was compressed from (`stgc compress`), compared with the run's saved model."""
+    from stgc.codec import model_digest
+
+    seed0, seed1 = _run(tmp_path / "stg"), tmp_path / "stg-seed1"
+    _write_ply(seed1 / "point_cloud" / "iteration_10" / "point_cloud.ply", rows=8)
+    own, other = model_digest(seed0), model_digest(seed1)
+    assert own != other and len(own) == 16
+    copied = _bitstream(seed0 / "model_q3.stgc", _embedded(CONFIG), source_digest=other)
+    record = _score(copied)
+    assert "compressed from another model than the run's of iteration 10" in record["foreign"]
+    assert record.get("training_finished") is None and record["train_seconds"] is None
+    assert [row.extra.get("bitstream") for row in rows_from_run(seed0)] == [None]
+    # Its own file, and one of an iteration the run did not keep (nothing to compare), are the run's.
+    for name, iteration in (("own.stgc", 10), ("earlier.stgc", 5)):
+        record = _score(_bitstream(seed0 / name, _embedded(CONFIG), iteration, source_digest=own if iteration == 10
+                                   else other))
+        assert "foreign" not in record, name
+    # A run restored from a file holds the decoded model, not the PLY the file was compressed from.
+    restored = tmp_path / "restored"
+    _write_ply(restored / "point_cloud" / "iteration_10" / "point_cloud.ply", rows=20)
+    (restored / "config.json").write_text(json.dumps(CONFIG))
+    (restored / "restored_from.json").write_text(json.dumps({"bitstream": str(copied), "iteration": 10}))
+    shutil.copy(copied, restored / "model_q3.stgc")
+    assert "foreign" not in _score(restored / "model_q3.stgc")
 
 
 def test_a_whole_video_bitstream_is_the_videos_only_where_each_segment_is_its_segment_runs(tmp_path: Path) -> None:

@@ -13,7 +13,7 @@ from tqdm import tqdm
 from stgc.config import check
 from stgc.data.config import open_run_dataset
 from stgc.errors import DataError, FormatError, StgcError
-from stgc.fileio import atomic_open, write_json
+from stgc.fileio import atomic_open, file_sha256, write_json
 from stgc.model import MIN_VISIBLE_OPACITY, STGModel
 from stgc.model.layout import bytes_per_gaussian as ply_bytes_per_gaussian
 from stgc.model.ply import resolve_ply_path
@@ -395,7 +395,7 @@ def _encode_model(source: Path, out_path: Path, config: CodecConfig) -> tuple[by
         model.prune(model.peak_temporal_opacity() >= MIN_VISIBLE_OPACITY * (1.0 - 1e-3))
     arrays = model.to_ply_arrays()
     # scene_extent is not stored: the official files do not carry it (it comes from the dataset's cameras).
-    metadata: dict[str, Any] = {"source": source.name}
+    metadata: dict[str, Any] = {"source": source.name, "source_digest": model_digest(source)}
     if model.decoder_activation is not None:  # not in the official files; renders depend on it
         metadata["decoder_activation"] = model.decoder_activation
     iteration = iteration_of(source)
@@ -447,6 +447,17 @@ def _encode_model(source: Path, out_path: Path, config: CodecConfig) -> tuple[by
     return data, CompressResult(out_path, model.num_gaussians, model.variant, len(data),
                                 input_gaussians * ply_bytes_per_gaussian(model.variant),
                                 allocation.summary() if allocation else None, input_gaussians - model.num_gaussians)
+
+
+SOURCE_DIGEST_DIGITS = 16
+
+
+def model_digest(path: str | Path) -> str:
+    """The first 16 hex digits of the SHA-256 of a saved model's PLY (`path`: the PLY, its iteration folder or its
+    run): what a bitstream records of the model it was compressed from (metadata `source_digest`). Two runs whose
+    configs differ only in training options (seeds, compaction cases) embed the same run config; this tells their
+    files apart (`stgc.eval.evaluate.foreign_model`)."""
+    return file_sha256(resolve_ply_path(path))[:SOURCE_DIGEST_DIGITS]
 
 
 def _training_dataset(run_dir: Path | None, source: Path, required: bool) -> Any:

@@ -30,6 +30,7 @@ from stgc.codec import (
     is_video_stgc,
     load_model,
     load_video_segment,
+    model_digest,
     read_stgc_metadata,
     read_video_index,
 )
@@ -263,7 +264,7 @@ def write_eval(
         metadata = read_stgc_metadata(bitstream)
         # Another run's file copied into this folder was scored on its own test set and stamped with this run's
         # training time and final iteration: `stgc report` then showed it as this run's codec point.
-        foreign = foreign_model(run, metadata.get("run_config"))
+        foreign = foreign_model(run, metadata)
         if foreign is not None:
             log.warning("%s holds the model of another run than %s (%s): its record says so, and reports leave it "
                         "out of this run's points", bitstream, run.path, foreign)
@@ -573,21 +574,34 @@ def dataset_identity(dataset: Any) -> dict[str, Any]:
     return {"data": str(dataset.root), "downscale": None if downscale is None else float(downscale)}
 
 
-def foreign_model(run: Run, embedded: Any) -> str | None:
-    """Why a bitstream embedding the run config `embedded` (its `run_config` metadata) holds a model of another run
-    than the one in `run` (the folder it lies in), or None where it is that run's or the files cannot tell (a file
-    written without its config, codec.embed_run_config=false, or a folder holding no run). Compared: the sections
-    the encoder embeds (data, model), as `config_differences` reads them."""
-    if not isinstance(embedded, dict):
-        return None
+def foreign_model(run: Run, metadata: Mapping[str, Any]) -> str | None:
+    """Why a bitstream whose metadata is `metadata` holds a model of another run than the one in `run` (the folder
+    it lies in), or None where it is that run's or the files cannot tell (a folder holding no run, a file written
+    without its config and digest). Compared: the sections the encoder embeds (`run_config`: data, model), as
+    `config_differences` reads them, and the digest of the model it was compressed from (`source_digest`, files
+    written since 2026-11-30) against the run's saved model of the file's iteration, which tells apart runs of one
+    config but their training options (seeds, compaction cases)."""
+    embedded = metadata.get("run_config")
+    restored = (run.path / Run.RESTORED_FROM).is_file()
     saved = run.read_config(strict=False)
     if saved is None:
-        if (run.path / Run.RESTORED_FROM).is_file():
+        if restored and isinstance(embedded, dict):
             # Restored from a file without its run's config, the run compresses to files without one again.
             return "the run has no config (restored from a file without one), the file embeds one"
         return None
-    differences = config_differences(embedded, saved)
-    return "; ".join(differences[:4]) + (" ..." if len(differences) > 4 else "") if differences else None
+    if isinstance(embedded, dict):
+        differences = config_differences(embedded, saved)
+        if differences:
+            return "; ".join(differences[:4]) + (" ..." if len(differences) > 4 else "")
+    digest, iteration = metadata.get("source_digest"), metadata.get("iteration")
+    # A restored run's model is the decoded one, not the PLY the file was compressed from.
+    if isinstance(digest, str) and isinstance(iteration, int) and not restored:
+        saved_model = run.saved_iterations().get(iteration)
+        own = None if saved_model is None else model_digest(saved_model)
+        if own is not None and own != digest:
+            return (f"compressed from another model than the run's of iteration {iteration} (the PLY digests "
+                    f"{digest} and {own})")
+    return None
 
 
 _SECTION_CLASSES: dict[str, type] = {"data": DataConfig, "model": ModelConfig}
@@ -738,8 +752,7 @@ def foreign_video(path: Path, index: Any) -> str | None:
     if [(int(s["start"]), int(s["duration"])) for s in plan] != frames:
         return f"its segments cover frames {frames}, the video's {[(s['start'], s['duration']) for s in plan]}"
     for k, segment in enumerate(plan):
-        why = foreign_model(Run(beside.path / str(segment["name"])),
-                            read_video_segment_metadata(path, k, index).get("run_config"))
+        why = foreign_model(Run(beside.path / str(segment["name"])), read_video_segment_metadata(path, k, index))
         if why is not None:
             return f"segment {k}: {why}"
     return None

@@ -944,7 +944,7 @@ def _unlike_model(data: bytes, source: str, run: Run, codec: CodecConfig) -> str
         return "was written without the run's config (codec.embed_run_config=false)"
     if not codec.embed_run_config and "run_config" in metadata:
         return "embeds the run's config (codec.embed_run_config=true)"
-    foreign = foreign_model(run, metadata.get("run_config"))
+    foreign = foreign_model(run, metadata)
     if foreign is not None:  # `stgc eval` records it as `foreign` and every report leaves it out
         return f"holds another run's model ({foreign})"
     return None
