@@ -123,5 +123,9 @@ def test_errors_explain_themselves() -> None:
         bd_rate([0, 2], [30, 31], [1, 2], [30, 31])
     with pytest.raises(BDError, match="repeated"):
         bd_rate([1, 2, 3], [30, 30, 31], [1, 2, 3], [30, 30.5, 31])
+    with pytest.raises(BDError, match="test: not an RD curve: PSNR falls from 35 to 33 as the rate rises from 2 to 3"):
+        bd_rate([1, 2, 3, 4], [30, 32, 34, 36], [1, 2, 3, 4], [30, 35, 33, 36])  # gave -2.37 % without a word
+    with pytest.raises(BDError, match="anchor: not an RD curve"):
+        bd_psnr([4, 1, 2], [30, 31, 32], [1, 2, 3], [30, 31, 32])  # the order given does not matter; the rates' does
     with pytest.raises(BDError, match="unknown"):
         bd_rate([1, 2], [30, 31], [1, 2], [30, 31], method="akima")  # type: ignore[arg-type]

@@ -12,7 +12,8 @@ Two interpolators:
   overshoot between points. Needs >= 2 points per curve.
 - "cubic": G. Bjøntegaard, VCEG-M33 (2001): a least-squares cubic polynomial per curve (exact through 4
   points), integrated analytically. Needs >= 4 points per curve.
-The log base cancels out, so natural logs are used throughout.
+The log base cancels out, so natural logs are used throughout. Each curve must be an RD curve: PSNR never falls as
+the rate rises (a report passes each family's Pareto front).
 """
 
 from __future__ import annotations
@@ -40,6 +41,14 @@ def _curve(rate: Sequence[float], psnr: Sequence[float], name: str) -> tuple[np.
         raise BDError(f"{name}: rates and PSNRs must be finite")
     if np.any(r <= 0):
         raise BDError(f"{name}: rates must be positive")
+    # Both fits take the curve as a function (PSNR of rate, and rate of PSNR): a point below an earlier one at more
+    # rate is no RD curve, and interpolating through it gave a number without a word.
+    order = np.argsort(r, kind="stable")
+    falls = np.flatnonzero(np.diff(q[order]) < 0)
+    if falls.size:
+        a, b = order[falls[0]], order[falls[0] + 1]
+        raise BDError(f"{name}: not an RD curve: PSNR falls from {q[a]:g} to {q[b]:g} as the rate rises from "
+                      f"{r[a]:g} to {r[b]:g}; compare the curves' Pareto fronts (what `stgc report` does)")
     return np.log(r), q
 
 
