@@ -159,7 +159,7 @@ def test_evaluate_run_with_injected_model_and_dataset(tmp_path: Path) -> None:
     _seven_gaussian_run(tmp_path)
     it = tmp_path / "point_cloud" / "iteration_10"
     record = evaluate_run(tmp_path, load_model=lambda p: FakeModel(), open_dataset=lambda p: FakeDataset())
-    assert record["num_gaussians"] == 7 and record["duration_s"] == 2.0
+    assert record["num_gaussians"] == 7 and record["duration_s"] == 2.0 and record["video_fps"] == 2.0  # 4 frames
     assert record["file_bytes"] == {"point_cloud.ply": (it / "point_cloud.ply").stat().st_size}
     assert record["mbps"] == pytest.approx(7 * 128 * 8 / 1e6 / 2.0)
     assert record["fps"] > 0

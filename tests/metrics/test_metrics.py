@@ -220,3 +220,14 @@ def test_psnr_of_an_error_is_the_images_psnr():
     assert psnr_of_mse(error * 255 ** 2, 255.0) == pytest.approx(psnr_of_mse(error), abs=1e-9)
     assert psnr_of_mse(0.01) == pytest.approx(20.0) and psnr_of_mse(0.0) == float("inf")
     assert math.isnan(psnr_of_mse(-1.0)) and math.isnan(psnr_of_mse(float("nan")))
+
+
+def test_an_lpips_record_names_the_input_range_that_scored_it(monkeypatch) -> None:
+    """LPIPS of [0, 1] images fed directly (3DGS/STG's scripts) and mapped to [-1, 1] (the lpips package) differ by
+    more than methods do: the record's note says which one scored it."""
+    from stgc.metrics import image
+
+    monkeypatch.setattr(image, "lpips_status", lambda net: (True, "available"))
+    monkeypatch.setattr(image.LPIPS, "__init__", lambda self, net="alex", rescale=True: None)
+    assert image.LPIPS.create("alex")[1] == "LPIPS-alex, images [0, 1] mapped to [-1, 1] as the lpips package expects"
+    assert "fed directly, as the 3DGS/STG" in image.LPIPS.create("vgg", rescale=False)[1]

@@ -331,8 +331,8 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
     console = Console(file=buf, width=100, color_system=None, force_terminal=False)
     console.print(table)
     note = record.get("lpips_note")
-    if note and record.get("lpips") is None:
-        console.print(f"LPIPS {note}")
+    if note:  # why it is missing, or which convention scored it
+        console.print(f"LPIPS {note}" if record.get("lpips") is None else f"LPIPS: {note}")
     for seam in record.get("seams") or []:
         console.print(f"{seam['segment']}: frames {seam['first_frame']}-{seam['last_frame']}, PSNR first / middle / "
                       f"last {seam['psnr_first']:.2f} / {seam['psnr_middle']:.2f} / {seam['psnr_last']:.2f} dB "
@@ -567,11 +567,14 @@ def refuse_misfiled_model(target: Path, owner: Run | None = None) -> None:
 
 def dataset_identity(dataset: Any) -> dict[str, Any]:
     """What an evaluation record names of the test set it scored, besides the `cameras` and `frames` it lists: the
-    data folder and the downscale of its images. A report compares rates and PSNRs only where all of them agree."""
+    data folder and the downscale of its images (a report compares rates and PSNRs only where all of them agree),
+    and the video's frame rate that its Mbps assume (`video_fps`: the data's, or 30 where the data states none)."""
     downscale = getattr(dataset, "downscale", None)
     if isinstance(downscale, bool) or not isinstance(downscale, (int, float)):
         downscale = None  # a stand-in dataset (tests) has none
-    return {"data": str(dataset.root), "downscale": None if downscale is None else float(downscale)}
+    fps = getattr(dataset, "fps", None)
+    return {"data": str(dataset.root), "downscale": None if downscale is None else float(downscale),
+            "video_fps": float(fps) if isinstance(fps, (int, float)) and not isinstance(fps, bool) else None}
 
 
 def foreign_model(run: Run, metadata: Mapping[str, Any]) -> str | None:

@@ -318,7 +318,10 @@ class LPIPS:
         if not ok:
             return None, reason
         try:
-            return cls(net, rescale), "available"
+            # The record says which convention scored it: the two differ by more than methods do.
+            inputs = "[0, 1] mapped to [-1, 1] as the lpips package expects" if rescale else \
+                "[0, 1] fed directly, as the 3DGS/STG evaluation scripts do"
+            return cls(net, rescale), f"LPIPS-{net}, images {inputs}"
         except Exception as exc:  # a broken optional install must not break evaluation
             return None, f"skipped: could not load LPIPS-{net}: {exc}"
 
