@@ -170,3 +170,24 @@ def test_a_gif_plays_at_its_frame_rate_though_the_format_counts_hundredths(tmp_p
             delays.append(gif.info["duration"])
     assert len(delays) == frames_kept and set(delays) <= delays_allowed
     assert sum(delays) == 1000
+
+
+def test_a_whole_video_plays_a_frame_list_in_its_order_with_its_repeats_across_segments(monkeypatch, tmp_path):
+    """frame_selection keeps a list's order and repeats; the whole video's player put it in a set and played the
+    segments' frames in time order once each."""
+    from types import SimpleNamespace
+
+    from stgc.eval import video
+
+    played = []
+    monkeypatch.setattr(video, "_camera_at", lambda dataset, name, frame: (dataset.label, name, frame))
+    monkeypatch.setattr(video, "render_image", lambda model, camera, t, background: camera)
+    monkeypatch.setattr(video, "write_video", lambda out, images, rate: played.extend(images) or out)
+    segments = [("m0", SimpleNamespace(label="s0", frames=[0, 1, 2], test=[SimpleNamespace(name="cam00")], fps=30,
+                                       background=(0, 0, 0))),
+                ("m1", SimpleNamespace(label="s1", frames=[3, 4, 5], test=[], fps=30, background=(0, 0, 0)))]
+    video._render_across_segments(segments, tmp_path / "v.mp4", None, "4,1,4", None, None)
+    assert played == [("s1", "cam00", 4), ("s0", "cam00", 1), ("s1", "cam00", 4)]
+    played.clear()
+    video._render_across_segments(segments, tmp_path / "v.mp4", "cam03", "2:4", None, None)
+    assert played == [("s0", "cam03", 2), ("s1", "cam03", 3)]

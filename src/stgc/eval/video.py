@@ -325,12 +325,16 @@ def render_video(
 
 def _render_across_segments(segments: Sequence[tuple[STGModel, Dataset]], out: str | Path, camera_name: str | None,
                             frames: Any, fps: float | None, background: Sequence[float] | None) -> Path:
-    chosen = set(frame_selection(frames, [f for _, d in segments for f in d.frames]))
+    holder: dict[int, tuple[STGModel, Dataset]] = {}  # each frame's segment (segments hold disjoint frames)
+    for model, dataset in segments:
+        for frame in dataset.frames:
+            holder.setdefault(int(frame), (model, dataset))
     first = segments[0][1]
     name = camera_name or str((first.test or first.train)[0].name)
     rate = float(fps or getattr(first, "fps", 30) or 30)
-    images = (render_image(model, _camera_at(dataset, name, f), None, _background(dataset, background))
-              for model, dataset in segments for f in dataset.frames if f in chosen)
+    # In the selection's order, repeats kept, as for one model (frame_selection)
+    images = (render_image(holder[f][0], _camera_at(holder[f][1], name, f), None, _background(holder[f][1], background))
+              for f in frame_selection(frames, list(holder)))
     return write_video(out, images, rate)
 
 
