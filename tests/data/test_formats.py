@@ -20,6 +20,7 @@ from stgc.data.colmap_io import (
     write_model,
 )
 from stgc.data.yuv import detect_bit_depth, write_yuv420
+from stgc.errors import DataError
 
 VIEWS = ["cam00", "cam03", "cam06", "cam09"]
 FRAMES = [0, 1, 2]
@@ -260,6 +261,14 @@ def test_technicolor_round_trip(toys, blender_toys, tmp_path):
     for cam in data.cameras:
         ref = next(c for c in full.cameras if c.name == cam.name and c.frame == cam.frame - 151)
         _same_cameras(cam, ref, tol=1e-6)
+    # Parameters of images twice the size (the file states none): refused, not read with K unscaled.
+    doubled = [lines[0]] + [" ".join(repr(float(v) * (2 if k < 3 else 1)) for k, v in enumerate(line.split()))
+                            for line in lines[1:]]
+    (tmp_path / "cameras_parameters.txt").write_text("\n".join(doubled) + "\n")
+    with pytest.raises(DataError, match=r"line 2 \(camera cam00\): principal point .* far from the middle of its "
+                                         r"\d+x\d+ images \(Toys_undist_00151_00.png\)") as info:
+        open_dataset(tmp_path)
+    assert info.value.path == tmp_path / "cameras_parameters.txt"
 
 
 def test_dnerf_monocular(tmp_path):
