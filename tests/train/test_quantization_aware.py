@@ -433,7 +433,7 @@ def test_a_run_killed_while_the_mask_learns_resumes_to_the_same_model(scene, tmp
         assert torch.equal(value, models["resumed"].params[key]), key
 
 
-def test_a_mask_window_that_density_control_or_compaction_could_edit_is_refused_before_training(scene, tmp_path):
+def test_a_rate_aware_window_that_density_control_or_compaction_could_edit_is_refused_before_training(scene, tmp_path):
     """The mask keeps a logit per row, so a run in which something else may remove Gaussians inside the window is
     refused when the trainer is built (not hours later, when the rows first change), naming what overlaps."""
     from stgc.compaction import CompactionConfig
@@ -459,6 +459,18 @@ def test_a_mask_window_that_density_control_or_compaction_could_edit_is_refused_
     Trainer(dataset, None, None, config, CompactionConfig(method="st-knn", case=1), tmp_path / "case1", model=start)
     # Refused before the run's folder is written: the corrected command found "already holds a run".
     assert not (tmp_path / "early").exists() and not (tmp_path / "stknn").exists()
+    # Without the mask the rows may change, but the compaction's probe renders the float model while the window
+    # trains the quantized one: its damage budget would hold for another model than the one it prunes.
+    simulated = dataclasses.replace(config, quantization_aware=dataclasses.replace(config.quantization_aware,
+                                                                                   mask=False))
+    Trainer(dataset, None, None, dataclasses.replace(simulated, schedule_scale=0.01), None, tmp_path / "rounds",
+            model=start)  # density control may edit rows under a window without the mask
+    with pytest.raises(ValueError, match=r"train.quantization_aware: the rate-aware window \(iterations 51-100\) "
+                                         r"overlaps ST-KNN compaction .*: the compaction's probe would measure the float"):
+        Trainer(dataset, None, None, simulated, CompactionConfig(method="st-knn", case=0, window_start=0.3,
+                                                                 window_end=1.0), tmp_path / "stknn2", model=start)
+    Trainer(dataset, None, None, simulated, CompactionConfig(method="st-knn", case=1), tmp_path / "case1b",
+            model=start)
 
 
 def test_the_straight_through_gradient_of_a_rotation_stored_with_its_sign_flipped_still_descends():

@@ -256,11 +256,13 @@ def check_trainable(dataset: Dataset, train_cfg: TrainConfig, *, evaluate: bool)
 
 
 def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig | None) -> None:
-    """The learned mask keeps one logit per row: refuse, before training (and before the run's folder is written),
-    a run in which something else may add or remove Gaussians inside the rate-aware window (the mask would lose
-    track of its rows mid-run). `train_cfg`'s densification options must be resolved."""
+    """Refuse, before training (and before the run's folder is written), a rate-aware window that overlaps what
+    cannot share it: ST-KNN compaction, whose probe measures the float model while the window trains the model as the
+    codec stores it (its damage budget would hold for another model than the one pruned), and, with the learned
+    mask, which keeps one logit per row, anything else that may add or remove Gaussians inside the window (the mask
+    would lose track of its rows mid-run). `train_cfg`'s densification options must be resolved."""
     window = train_cfg.quantization_aware
-    if not (window.iterations > 0 and window.simulate and window.mask):
+    if not (window.iterations > 0 and window.simulate):
         return
     sched = resolve_schedule(train_cfg)
     first = sched.iterations - window.iterations + 1
@@ -271,19 +273,22 @@ def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig |
         last_prune = pruning.iterations()[-1] if pruning.num_steps else 0
         if last_prune >= first:
             overlapping.append(f"ST-KNN compaction (it prunes until iteration {last_prune}; compact first, then "
-                               "fine-tune the pruned run)")
-    if train_cfg.ems.enabled:
-        overlapping.append("error-guided sampling (turn it off for the window: train.ems.enabled=false)")
-    if step is not None and sched.densify_end >= step:
-        overlapping.append(f"clone/split rounds (until iteration {sched.densify_end}; fine-tune the finished run "
-                           "instead: stgc finetune RUN --out NEW ...)")
-    if step is not None and sched.prune_until > step:
-        overlapping.append(f"low-opacity pruning (until iteration {sched.prune_until}; fine-tune the finished run "
-                           "instead: stgc finetune RUN --out NEW ...)")
+                               "fine-tune the pruned run: stgc finetune RUN --out NEW ...)")
+    if window.mask:
+        if train_cfg.ems.enabled:
+            overlapping.append("error-guided sampling (turn it off for the window: train.ems.enabled=false)")
+        if step is not None and sched.densify_end >= step:
+            overlapping.append(f"clone/split rounds (until iteration {sched.densify_end}; fine-tune the finished "
+                               "run instead: stgc finetune RUN --out NEW ...)")
+        if step is not None and sched.prune_until > step:
+            overlapping.append(f"low-opacity pruning (until iteration {sched.prune_until}; fine-tune the finished "
+                               "run instead: stgc finetune RUN --out NEW ...)")
     if overlapping:
+        why = "they change the Gaussians the mask learns over" if window.mask else \
+            "the compaction's probe would measure the float model while the window trains the quantized one"
         raise ConfigError(
-            f"train.quantization_aware.mask: the rate-aware window (iterations {first}-{sched.iterations}) overlaps "
-            f"{'; '.join(overlapping)}: they change the Gaussians the mask learns over")
+            f"train.quantization_aware{'.mask' if window.mask else ''}: the rate-aware window (iterations "
+            f"{first}-{sched.iterations}) overlaps {'; '.join(overlapping)}: {why}")
 
 
 def views_by_camera(views: Sequence[Camera]) -> list[list[Camera]]:
