@@ -346,3 +346,26 @@ def test_an_empty_frame_range_is_called_empty_not_outside_the_data(scene, tmp_pa
     assert main(["export", str(run), "--out", str(tmp_path / "out"), "--frames", "1:1"]) == 2
     err = capsys.readouterr().err
     assert "frames 1:1 is empty" in err and "1:2" in err and not (tmp_path / "out").exists()
+
+
+def test_a_zero_quaternion_is_exported_as_no_rotation_not_nan(scene, tmp_path):
+    """A Gaussian whose rotation and angular velocity are zero (an official error-guided insertion never trained) is
+    drawn unrotated by stgc and gsplat; exported as normalised zeros, readers that divide by the norm got NaN."""
+    from stgc.eval.export import export_splatv
+
+    dataset = open_dataset(scene.root)
+    model = moving_model(scene.model)
+    with torch.no_grad():
+        model.params["rotation"][:2] = 0.0
+        model.params["omega"][0] = 0.0  # row 1 keeps its angular velocity: q + omega dt turns it away from t = mu_t
+        model.params["trbf_center"][:2] = 0.5
+    static = gaussians_at(model, 0.5, training_view_origin(dataset))
+    assert static.quats[:2].tolist() == [[1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]]
+    [path] = export_ply_frames(model, tmp_path / "frames", frames=[1], dataset=dataset)  # frame 1 of 3: t = 1/3
+    assert np.isfinite(read_inria_ply(path).quats).all()
+    _, words, halves = _read_splatv(export_splatv(model, tmp_path / "m.splatv", dataset=dataset))
+    rows = words[: 16 * model.num_gaussians].reshape(-1, 16)
+    quats = np.concatenate([halves(rows[:, 3]), halves(rows[:, 4])], axis=1)
+    assert quats[0].tolist() == [1.0, 0.0, 0.0, 0.0]  # the viewer normalises q + omega dt: never 0 now
+    assert quats[1].tolist() == [0.0, 0.0, 0.0, 0.0]  # as stored: q + omega dt is not 0 away from mu_t
+    np.testing.assert_allclose(quats[2:], model.params["rotation"].detach().numpy()[2:], rtol=1e-3, atol=1e-3)

@@ -3,7 +3,7 @@ ply-frames`), in the INRIA layout that SuperSplat, gsplat, nerfstudio and the 3D
 model as one `.splatv` file for splaTV, the browser viewer the official STG README points to (`--format splatv`).
 
 A Spacetime Gaussian at time t is a static 3D Gaussian: its polynomial motion gives the position, its angular
-velocity the rotation, and its temporal radial basis scales the opacity (`sigmoid(o) exp(-((t - mu_t) / s_t)^2)`).
+velocity the rotation, and its temporal radial basis scales the opacity (`sigmoid(o) exp(-((t - mu_t) / exp(s_t))^2)`).
 Those three are exact. Gaussians whose opacity at t is below 1/255 cannot touch a pixel and are left out.
 
 Colour is where a static splat loses something:
@@ -78,6 +78,14 @@ class StaticGaussians:
         return int(self.means.shape[0])
 
 
+def _unit_quaternions(quats: torch.Tensor) -> torch.Tensor:
+    """Normalised; a zero quaternion (an official error-guided insertion never trained, at t = mu_t) as (1, 0, 0, 0):
+    stgc, gsplat and the official rasterizer draw it unrotated, and a reader that divides by the norm gets NaN."""
+    unit = torch.nn.functional.normalize(quats, dim=1)
+    unit[(quats == 0).all(dim=1)] = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=unit.dtype)
+    return unit
+
+
 @torch.no_grad()
 def gaussians_at(model: STGModel, t: float, view_origin: np.ndarray) -> StaticGaussians:
     """The model's Gaussians visible at time t as static 3D Gaussians; a full model's colour is decoded along the
@@ -86,7 +94,7 @@ def gaussians_at(model: STGModel, t: float, view_origin: np.ndarray) -> StaticGa
     rgb = _colour_per_gaussian(model, rows.features, rows.means, view_origin)
     return StaticGaussians(
         means=rows.means.numpy().astype(np.float32),
-        quats=torch.nn.functional.normalize(rows.quats, dim=1).numpy().astype(np.float32),
+        quats=_unit_quaternions(rows.quats).numpy().astype(np.float32),
         log_scales=model.params["scaling"].detach()[rows.index].numpy().astype(np.float32),
         opacity=rows.opacity.numpy().astype(np.float32),
         rgb=rgb.numpy().astype(np.float32),
@@ -265,7 +273,10 @@ def write_splatv(path: str | Path, model: STGModel, dataset: Dataset) -> Path:
     rows = texels[: 16 * count].reshape(count, 16)
     rows[:, 0:3] = p["xyz"].view(np.uint32)
     # The stored quaternion as it is: the viewer normalises q + omega dt, as STG does (normalising q first would not).
-    quats = p["rotation"]
+    # One that stays zero (no angular velocity either) is drawn unrotated by stgc: written as (1, 0, 0, 0), since the
+    # viewer's normalisation would make it NaN.
+    quats = p["rotation"].copy()
+    quats[~(quats.any(axis=1) | p["omega"].any(axis=1))] = (1.0, 0.0, 0.0, 0.0)
     rows[:, 3], rows[:, 4] = _half_pairs(quats[:, 0], quats[:, 1]), _half_pairs(quats[:, 2], quats[:, 3])
     scales = np.exp(p["scaling"])
     rows[:, 5], rows[:, 6] = _half_pairs(scales[:, 0], scales[:, 1]), _half_pairs(scales[:, 2], np.zeros(count))
