@@ -220,6 +220,26 @@ def test_a_bitstream_of_another_run_of_the_same_config_is_told_apart_by_its_mode
     assert "foreign" not in _score(restored / "model_q3.stgc")
 
 
+def test_a_segments_file_without_its_run_config_in_the_whole_videos_folder_is_refused(tmp_path: Path) -> None:
+    """The folder's config is the whole video's: a segment's model was scored at the video's times, on every frame."""
+    from stgc.eval.evaluate import open_run_dataset
+    from stgc.run import Run
+
+    video = tmp_path / "video"
+    Run(video).write_video({"segment_frames": 1, "data_path": str(tmp_path),
+                            "segments": [{"name": f"segment_{k:03d}", "start": k, "duration": 1} for k in (0, 1)]})
+    (video / "config.json").write_text(json.dumps(CONFIG))
+    bare = _bitstream(video / "seg1.stgc", None)
+    with pytest.raises(DataError, match="without its run config .* which segment's frames it covers is unknown"):
+        open_run_dataset(video, None, bare)
+    with pytest.raises(DataError, match="which segment's frames"):
+        _score_real(bare)
+
+
+def _score_real(target: Path) -> dict[str, Any]:
+    return evaluate_run(target, load_model=lambda p: Model(), measure_fps=False)
+
+
 def test_a_whole_video_bitstream_is_the_videos_only_where_each_segment_is_its_segment_runs(tmp_path: Path) -> None:
     from stgc.codec.format import encode
     from stgc.codec.synthetic import synthetic_model

@@ -372,6 +372,13 @@ def open_run_dataset(run_dir: Path, data_path: str | Path | None = None, bitstre
         metadata = read_stgc_metadata(bitstream)
         if embedded_data_section(metadata) is not None or not Run(run_dir).has_config():
             return open_embedded_dataset(metadata, bitstream, data_path)
+        if Run(run_dir).is_video():
+            # The video's config spans every segment's frames: a segment's model would be scored (and rendered) at
+            # the whole video's times, on frames it was not trained on.
+            raise DataError(bitstream, f"a single model's file without its run config (codec.embed_run_config="
+                                       f"false) in the whole video's folder {run_dir}: which segment's frames it "
+                                       "covers is unknown; put it in its segment's folder (segment_<k>/) or "
+                                       "compress with the run config embedded")
     return open_saved_run_dataset(run_dir, data_path)
 
 
@@ -430,7 +437,11 @@ def video_bitstream_segments(path: str | Path, data_path: str | Path | None = No
     path = Path(path)
     index = read_video_index(path)
     beside = Run(path.parent)
-    plan = beside.read_video()["segments"] if beside.is_video() and data_path is None else []
+    # --data naming the video's own data is no other data: its segments' runs still give their data options and
+    # training times (without them a file written without its configs was scored with default options).
+    saved = saved_run_data(beside.path) if beside.is_video() and data_path is not None else None
+    own_data = data_path is None or (saved is not None and saved[1] is not None and same_place(data_path, saved[1]))
+    plan = beside.read_video()["segments"] if beside.is_video() and own_data else []
     # The run's segments when they are the file's (else another video's: the configs the file embeds are used).
     same = ([(int(s["start"]), int(s["duration"])) for s in plan]
             == [(e.first_frame, e.num_frames) for e in index.entries])
@@ -442,7 +453,7 @@ def video_bitstream_segments(path: str | Path, data_path: str | Path | None = No
         embedded = embedded_data_section(decoded.metadata)
         if run is not None and embedded is not None and (run.read_config(strict=False) or {}).get("data") != embedded:
             run = None  # another video's segment of the same frames
-        dataset = open_saved_run_dataset(run.path) if run and embedded is None else \
+        dataset = open_saved_run_dataset(run.path, data_path) if run and embedded is None else \
             open_embedded_dataset(decoded.metadata, source, data_path, (entry.first_frame, entry.num_frames))
         frames = sorted(int(f) for f in dataset.frames)
         if frames != list(range(entry.first_frame, entry.last_frame + 1)):
