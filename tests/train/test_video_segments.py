@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -14,6 +16,7 @@ from scenes import write_panoptic_scene
 
 from stgc.cli import main
 from stgc.codec import load_video_segment, read_video_index
+from stgc.compaction import CompactionConfig
 from stgc.eval.video import _camera_at as camera_at
 from stgc.eval.video import load_model_and_dataset, render_image
 from stgc.run import Run
@@ -416,3 +419,11 @@ def test_a_whole_video_loss_reference_gives_each_segment_its_own(scene, tmp_path
                  *budget[:-1], f"compaction.loss_reference={single}"]) == 2
     assert "is a single run" in capsys.readouterr().err
     assert not other.exists()
+    # A single run for a video of one segment is its reference, handed to the worker as an absolute path (a Ray
+    # worker on another node reads a relative one against its own working directory).
+    from stgc.train.video import _segment_loss_references
+
+    relative = os.path.relpath(single)
+    compaction = dataclasses.replace(CompactionConfig(), loss_reference=relative)
+    plan = [{"name": "segment_000", "start": 0, "duration": 3}]
+    assert _segment_loss_references({"compaction": compaction}, plan) == [str(single.resolve())]

@@ -134,7 +134,7 @@ def _segment_loss_references(configs: dict[str, Any], plan: list[dict[str, Any]]
             raise StgcError(f"{reference_run.path}: compaction.loss_reference is a single run; a video of "
                             f"{len(plan)} segments compares each with the same segment of a reference video (train "
                             "it with compaction.method=reference and the same --segment-frames)")
-        return None
+        return [str(reference_run.path.resolve())]  # absolute, as the data and out paths: a worker's cwd differs
     segments = reference_run.read_video()["segments"]
     theirs = [(int(s["start"]), int(s["duration"])) for s in segments]
     mine = [(int(s["start"]), int(s["duration"])) for s in plan]
