@@ -54,7 +54,7 @@ from stgc.run import Run
 from stgc.train import train
 from stgc.train.config import PRESETS, refuse_unused_window_options
 from stgc.train.continuation import check_continuable, continuation_configs, start_continuation
-from stgc.train.loop import check_mask_window
+from stgc.train.loop import check_rate_aware_window
 from stgc.train.video import train_video
 from stgc.viewer import serve
 
@@ -173,7 +173,7 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     configs = continuation_configs(configs_from_run(Path(args.run)), args.run, args.iterations, overrides)
     refuse_unused_feature_options(configs, overrides)  # (EMS options without EMS, ...) as stgc train refuses them
     if configs["train"].densify.is_resolved:  # (as the source saved them) before NEW is written
-        check_mask_window(configs["train"], configs["compaction"])
+        check_rate_aware_window(configs["train"], configs["compaction"])
     # The trainer gets an evaluator: a continuation without test views to score is refused before NEW is written.
     data_path = start_continuation(args.run, out, args.iterations, configs, overrides, overwrite=args.overwrite,
                                    data_path=_resumed_data_path(Path(args.run), args.data, configs["data_path"]),

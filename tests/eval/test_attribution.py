@@ -211,6 +211,11 @@ def test_a_bitstream_of_another_run_of_the_same_config_is_told_apart_by_its_mode
         record = _score(_bitstream(seed0 / name, _embedded(CONFIG), iteration, source_digest=own if iteration == 10
                                    else other))
         assert "foreign" not in record, name
+    # A folder without a config (an official run's) is told apart by the digest alone.
+    official = tmp_path / "official"
+    _write_ply(official / "point_cloud" / "iteration_10" / "point_cloud.ply", rows=9)
+    record = _score(_bitstream(official / "model_q3.stgc", None, source_digest=other))
+    assert "compressed from another model" in record["foreign"]
     # A run restored from a file holds the decoded model, not the PLY the file was compressed from.
     restored = tmp_path / "restored"
     _write_ply(restored / "point_cloud" / "iteration_10" / "point_cloud.ply", rows=20)

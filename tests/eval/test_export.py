@@ -362,7 +362,8 @@ def test_a_zero_quaternion_is_exported_as_no_rotation_not_nan(scene, tmp_path):
     static = gaussians_at(model, 0.5, training_view_origin(dataset))
     assert static.quats[:2].tolist() == [[1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]]
     [path] = export_ply_frames(model, tmp_path / "frames", frames=[1], dataset=dataset)  # frame 1 of 3: t = 1/3
-    assert np.isfinite(read_inria_ply(path).quats).all()
+    quats = read_inria_ply(path).quats
+    assert np.isfinite(quats).all() and [1.0, 0.0, 0.0, 0.0] in quats.tolist()  # row 0 is there, unrotated
     _, words, halves = _read_splatv(export_splatv(model, tmp_path / "m.splatv", dataset=dataset))
     rows = words[: 16 * model.num_gaussians].reshape(-1, 16)
     quats = np.concatenate([halves(rows[:, 3]), halves(rows[:, 4])], axis=1)

@@ -466,9 +466,15 @@ def test_a_rate_aware_window_that_density_control_or_compaction_could_edit_is_re
     Trainer(dataset, None, None, dataclasses.replace(simulated, schedule_scale=0.01), None, tmp_path / "rounds",
             model=start)  # density control may edit rows under a window without the mask
     with pytest.raises(ValueError, match=r"train.quantization_aware: the rate-aware window \(iterations 51-100\) "
-                                         r"overlaps ST-KNN compaction .*: the compaction's probe would measure the float"):
+                                         r"overlaps ST-KNN compaction .*: the compaction's renders .* would measure "
+                                         r"the float model"):
         Trainer(dataset, None, None, simulated, CompactionConfig(method="st-knn", case=0, window_start=0.3,
                                                                  window_end=1.0), tmp_path / "stknn2", model=start)
+    # The paper's rule reads the training loss, which the window renders quantized, and renders nothing else.
+    from stgc.compaction.config import PAPER_RULE
+
+    paper = CompactionConfig(method="st-knn", case=0, window_start=0.3, window_end=1.0, prune_trials=0, **PAPER_RULE)
+    Trainer(dataset, None, None, simulated, paper, tmp_path / "paper", model=start)
     Trainer(dataset, None, None, simulated, CompactionConfig(method="st-knn", case=1), tmp_path / "case1b",
             model=start)
 

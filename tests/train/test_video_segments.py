@@ -202,6 +202,7 @@ def test_a_whole_video_is_one_bitstream_that_evaluates_renders_and_restores(scen
     # config of its own: the folder's is the video's).
     assert main(["eval", str(bitstream), "--data", str(scene.root), "--no-fps"]) == 0
     assert sorted(p.name for p in out.glob("eval_video*.json")) == ["eval_video.json"]
+    assert record["video_fps"] == 30.0  # the frame rate its Mbps assume, as a single model's record names it
     again = json.loads((out / "eval_video.json").read_text())
     # ... and its segments are still its runs' (their training time was wiped from the record).
     assert again["train_seconds"] == record["train_seconds"] > 0 and again["psnr"] == record["psnr"]

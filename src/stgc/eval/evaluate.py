@@ -331,8 +331,10 @@ def format_eval_table(record: Mapping[str, Any]) -> str:
     console = Console(file=buf, width=100, color_system=None, force_terminal=False)
     console.print(table)
     note = record.get("lpips_note")
-    if note:  # why it is missing, or which convention scored it
-        console.print(f"LPIPS {note}" if record.get("lpips") is None else f"LPIPS: {note}")
+    if note and record.get("lpips") is None:  # why it is missing
+        console.print(f"LPIPS {note}")
+    elif note and note != "available":  # which convention scored it (records before 2026-11-30 say "available")
+        console.print(note)
     for seam in record.get("seams") or []:
         console.print(f"{seam['segment']}: frames {seam['first_frame']}-{seam['last_frame']}, PSNR first / middle / "
                       f"last {seam['psnr_first']:.2f} / {seam['psnr_middle']:.2f} / {seam['psnr_last']:.2f} dB "
@@ -430,18 +432,17 @@ def video_bitstream_segments(path: str | Path, data_path: str | Path | None = No
     """The segments of a whole-video .stgc in time order, decoded one at a time (random access: each reads only
     its own bytes). A segment's dataset is the one its embedded run config names (`data_path` replaces its
     location), as for a single model's file; without one, its training run's when the file lies in the whole-video
-    run it was written from (RUN/<name>.stgc). The run beside the file is the segment's (its name and training
+    run it was written from (RUN/<name>.stgc; `data_path` relocates its data). The run beside the file is the segment's (its name and training
     time) only where its frames and data are the embedded ones: a container copied into another video's folder
     of the same frames is scored on its own data. A dataset whose frames are not the segment's is an error, never
     a silently shifted timeline."""
     path = Path(path)
     index = read_video_index(path)
     beside = Run(path.parent)
-    # --data naming the video's own data is no other data: its segments' runs still give their data options and
-    # training times (without them a file written without its configs was scored with default options).
-    saved = saved_run_data(beside.path) if beside.is_video() and data_path is not None else None
-    own_data = data_path is None or (saved is not None and saved[1] is not None and same_place(data_path, saved[1]))
-    plan = beside.read_video()["segments"] if beside.is_video() and own_data else []
+    # With --data too (the data moved, or other data): the segments' runs still give their data options and training
+    # times, as a single model's run does for its file (without them a file written without its configs was scored
+    # with default options, and the record lost its training time); `data_path` relocates their data.
+    plan = beside.read_video()["segments"] if beside.is_video() else []
     # The run's segments when they are the file's (else another video's: the configs the file embeds are used).
     same = ([(int(s["start"]), int(s["duration"])) for s in plan]
             == [(e.first_frame, e.num_frames) for e in index.entries])
@@ -598,23 +599,22 @@ def foreign_model(run: Run, metadata: Mapping[str, Any]) -> str | None:
     embedded = metadata.get("run_config")
     restored = (run.path / Run.RESTORED_FROM).is_file()
     saved = run.read_config(strict=False)
-    if saved is None:
-        if restored and isinstance(embedded, dict):
-            # Restored from a file without its run's config, the run compresses to files without one again.
-            return "the run has no config (restored from a file without one), the file embeds one"
-        return None
-    if isinstance(embedded, dict):
+    if saved is None and restored and isinstance(embedded, dict):
+        # Restored from a file without its run's config, the run compresses to files without one again.
+        return "the run has no config (restored from a file without one), the file embeds one"
+    if saved is not None and isinstance(embedded, dict):
         differences = config_differences(embedded, saved)
         if differences:
             return "; ".join(differences[:4]) + (" ..." if len(differences) > 4 else "")
     digest, iteration = metadata.get("source_digest"), metadata.get("iteration")
-    # A restored run's model is the decoded one, not the PLY the file was compressed from.
+    # A restored run's model is the decoded one, not the PLY the file was compressed from. (A folder without a
+    # config, an official run's, is compared too: the digest needs only its saved models.)
     if isinstance(digest, str) and isinstance(iteration, int) and not restored:
         saved_model = run.saved_iterations().get(iteration)
         own = None if saved_model is None else model_digest(saved_model)
         if own is not None and own != digest:
             return (f"compressed from another model than the run's of iteration {iteration} (the PLY digests "
-                    f"{digest} and {own})")
+                    f"{digest} and {own}), or the run's model was saved again since")
     return None
 
 
@@ -754,8 +754,7 @@ def _evaluate_video_bitstream(target: Path, data_path: str | Path | None, *, lpi
 def foreign_video(path: Path, index: Any) -> str | None:
     """Why a whole-video .stgc (its `index`, `read_video_index`) is not the video of the run in its folder, or None
     where it is or the folder holds no run: `foreign_model` for each segment against the folder's segment of the
-    same frames. Told apart whatever data the evaluation is given (`video_bitstream_segments` keeps the folder's
-    segments only when no --data is given)."""
+    same frames, whatever data the evaluation is given."""
     beside = Run(path.parent)
     if not beside.is_video():
         if beside.has_config() or (beside.path / Run.RESTORED_FROM).is_file():
@@ -836,7 +835,7 @@ def aggregate_video_records(records: Sequence[tuple[str, Mapping[str, Any]]]) ->
     # The test set, as a single model's record names it: reports compare only records of one test set.
     video["cameras"] = sorted({str(c) for r in rows for c in (r.get("cameras") or [])}) or cameras
     video["frames"] = sorted({int(f) for r in rows for f in (r.get("frames") or [])})
-    for key in ("data", "downscale"):
+    for key in ("data", "downscale", "video_fps"):
         values = {json.dumps(r.get(key)) for r in rows}
         video[key] = rows[0].get(key) if len(values) == 1 else None  # segments on different data: unknown
     video["per_camera"] = {c: {key: _finite(_weighted([r["per_camera"][c] for r in rows

@@ -79,10 +79,11 @@ class StaticGaussians:
 
 
 def _unit_quaternions(quats: torch.Tensor) -> torch.Tensor:
-    """Normalised; a zero quaternion (an official error-guided insertion never trained, at t = mu_t) as (1, 0, 0, 0):
-    stgc, gsplat and the official rasterizer draw it unrotated, and a reader that divides by the norm gets NaN."""
-    unit = torch.nn.functional.normalize(quats, dim=1)
-    unit[(quats == 0).all(dim=1)] = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=unit.dtype)
+    """Normalised; a zero quaternion (an official error-guided insertion never trained, at t = mu_t), or one below
+    normalisation's epsilon, as (1, 0, 0, 0): stgc, gsplat and the official rasterizer draw it unrotated, and a
+    reader that divides by the norm gets NaN (or, renormalising a tiny one, another rotation)."""
+    unit = torch.nn.functional.normalize(quats, dim=1, eps=1e-12)
+    unit[quats.norm(dim=1) < 1e-12] = unit.new_tensor([1.0, 0.0, 0.0, 0.0])
     return unit
 
 

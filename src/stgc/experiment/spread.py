@@ -160,8 +160,8 @@ def spread_markdown(spreads: Sequence[EntrySpread], baseline: str | None) -> str
              f"Each run trained once per seed; a row's numbers are means over its seeds. The change against "
              f"`{baseline}` (its float model, also where the BD deltas' baseline is a codec curve) is taken seed by "
              "seed (the runs of one seed share everything up to where they differ), then averaged: mean ± sample "
-             "standard deviation [min, max]. A codec point's Gaussians are those its file stores (no Gaussian "
-             "that no frame shows).", "",
+             "standard deviation [min, max]. A codec point's Gaussians are those its file stores (with the default "
+             "codec.drop_invisible, none that no frame shows).", "",
              "| run | seeds | Gaussians | PSNR dB | PSNR sd | vs baseline dB | removed vs baseline | Mbps |",
              "|---|---|---:|---:|---:|---|---|---:|"]
     for spread in spreads:

@@ -312,7 +312,7 @@ class DensityControl:
         if bool(nonfinite.any()):
             self._check_nonfinite(iteration, model, nonfinite, sched.is_densify_step(iteration))
         if sched.is_densify_step(iteration):
-            # Rounds are the schedule's up to its last (densify_end), as check_mask_window and config.json say: a
+            # Rounds are the schedule's up to its last (densify_end), as check_rate_aware_window and config.json say: a
             # continuation past it that owes rounds (densification switched on, more rounds) clones no more.
             self.past_rounds = self.past_rounds or iteration > sched.densify_end
             if self.collecting:

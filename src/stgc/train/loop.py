@@ -255,10 +255,11 @@ def check_trainable(dataset: Dataset, train_cfg: TrainConfig, *, evaluate: bool)
         raise ConfigError(f"train.backend: {exc}") from None
 
 
-def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig | None) -> None:
+def check_rate_aware_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig | None) -> None:
     """Refuse, before training (and before the run's folder is written), a rate-aware window that overlaps what
-    cannot share it: ST-KNN compaction, whose probe measures the float model while the window trains the model as the
-    codec stores it (its damage budget would hold for another model than the one pruned), and, with the learned
+    cannot share it: ST-KNN compaction that renders the float model to decide (a probe-measured budget, prune
+    trials, the weight order or the importance criterion), while the window trains the model as the codec stores it
+    (its damage budget would hold for another model than the one pruned), and, with the learned
     mask, which keeps one logit per row, anything else that may add or remove Gaussians inside the window (the mask
     would lose track of its rows mid-run). `train_cfg`'s densification options must be resolved."""
     window = train_cfg.quantization_aware
@@ -268,7 +269,12 @@ def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig |
     first = sched.iterations - window.iterations + 1
     step = sched.first_densify_step(first)  # clone/split, opacity and floater pruning act only at these steps
     overlapping = []
-    if compaction_cfg is not None and compaction_cfg.method == "st-knn":
+    # A controller on the training loss alone, with the paper's pair order and criteria, reads the window's own
+    # (quantized) renders; a probe, trial or blending-weight render measures the float model.
+    float_renders = compaction_cfg is not None and (
+        compaction_cfg.loss_signal != "training" or compaction_cfg.pair_order == "weight"
+        or compaction_cfg.criterion == "importance")
+    if compaction_cfg is not None and compaction_cfg.method == "st-knn" and (window.mask or float_renders):
         pruning = resolve_compaction_schedule(compaction_cfg, sched.iterations)
         last_prune = pruning.iterations()[-1] if pruning.num_steps else 0
         if last_prune >= first:
@@ -285,7 +291,8 @@ def check_mask_window(train_cfg: TrainConfig, compaction_cfg: CompactionConfig |
                                "run instead: stgc finetune RUN --out NEW ...)")
     if overlapping:
         why = "they change the Gaussians the mask learns over" if window.mask else \
-            "the compaction's probe would measure the float model while the window trains the quantized one"
+            ("the compaction's renders (its probe, trials or blending weights) would measure the float model while "
+             "the window trains the quantized one")
         raise ConfigError(
             f"train.quantization_aware{'.mask' if window.mask else ''}: the rate-aware window (iterations "
             f"{first}-{sched.iterations}) overlaps {'; '.join(overlapping)}: {why}")
@@ -364,7 +371,7 @@ class Trainer:
         # Before the run's folder is touched: the compactor reads and checks a loss reference run's log.
         self.compactor = self._make_compactor()
         self._check_loss_reference()
-        check_mask_window(train_cfg, compaction_cfg)
+        check_rate_aware_window(train_cfg, compaction_cfg)
         # Claimed before anything in the folder is removed, truncated or written (a folder yet to be made, once made).
         self.lock = RunLock(out_dir)
         if Path(out_dir).is_dir():

@@ -122,8 +122,8 @@ def _refuse_a_restored_video(run: Run, plan: list[dict[str, Any]]) -> None:
 def _segment_loss_references(configs: dict[str, Any], plan: list[dict[str, Any]]) -> list[str] | None:
     """Each segment's compaction.loss_reference when the video's names a whole-video reference run: its segment
     of the same frames (a video holds its logs per segment; every segment was handed the video's folder, and
-    failed after the run folder was written). None when there is no reference, or a single run for a video of one
-    segment (whose own check then says whether it fits); a single run for more segments is refused."""
+    failed after the run folder was written), as absolute paths. None when there is no reference; a single run is
+    the reference of a video of one segment (whose own check then says whether it fits), refused for more."""
     compaction = configs.get("compaction")
     reference = getattr(compaction, "loss_reference", None)
     if not reference:

@@ -24,6 +24,7 @@ def read_technicolor(path: Path, options: ReaderOptions) -> SourceScene:
     root = path.parent if path.is_file() else path
     meta_file = root / "cameras_parameters.txt"
     rows = []
+    line_numbers = []  # each row's line in the file (blank lines are skipped)
     try:
         lines = meta_file.read_text(encoding="utf-8").splitlines()
     except FileNotFoundError:
@@ -40,6 +41,7 @@ def read_technicolor(path: Path, options: ReaderOptions) -> SourceScene:
         if len(values) < 12:
             raise DataError(meta_file, f"line {number}: expected 12 numbers (f cx cy _ _ qw qx qy qz tx ty tz)")
         rows.append(values)
+        line_numbers.append(number)
     pattern = re.compile(r"(.+)_undist_(\d+)_(\d+)$")
     by_cam: dict[int, dict[int, Path]] = {}
     for f in sorted(root.iterdir()):
@@ -62,7 +64,7 @@ def read_technicolor(path: Path, options: ReaderOptions) -> SourceScene:
         # The file states no image size: resized images under full-size intrinsics would load without a word
         # (K is not scaled to them). A real camera's principal point lies near the middle of its image.
         if not (width / 4 < row[1] < 3 * width / 4 and height / 4 < row[2] < 3 * height / 4):
-            raise DataError(meta_file, f"line {idx + 2} (camera {name}): principal point ({row[1]:g}, {row[2]:g}) "
+            raise DataError(meta_file, f"line {line_numbers[idx]} (camera {name}): principal point ({row[1]:g}, {row[2]:g}) "
                                        f"is far from the middle of its {width}x{height} images "
                                        f"({files[min(files)].name}): the parameters are for images of another size "
                                        "(the official scenes' are 2048x1088); scale f, cx and cy with the images")
