@@ -230,7 +230,8 @@ class CompactionConfig:
             "help": "the keeper of a pruned pair takes over its loser's opacity: its base opacity becomes the union "
             "1 - (1 - a_keeper)(1 - a_loser), so a pair of near duplicates keeps the coverage both gave at their "
             "centre; false = the loser's opacity goes with it (paper). Under the default damage budget with prune "
-            "trials it removed less: 21 and 42 % against 49.8 and 49.3 % (benchmarks/RESULTS.md, session 48)"
+            "trials it removed less: 21 and 42 percent of panoptic against 49.8 and 49.3 (benchmarks/RESULTS.md, "
+            "session 48)"
         },
     )
     min_gaussians: int = field(default=0, metadata={"help": "never prune below this many Gaussians"})
