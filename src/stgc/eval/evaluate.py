@@ -432,9 +432,9 @@ def video_bitstream_segments(path: str | Path, data_path: str | Path | None = No
     """The segments of a whole-video .stgc in time order, decoded one at a time (random access: each reads only
     its own bytes). A segment's dataset is the one its embedded run config names (`data_path` replaces its
     location), as for a single model's file; without one, its training run's when the file lies in the whole-video
-    run it was written from (RUN/<name>.stgc; `data_path` relocates its data). The run beside the file is the segment's (its name and training
-    time) only where its frames and data are the embedded ones: a container copied into another video's folder
-    of the same frames is scored on its own data. A dataset whose frames are not the segment's is an error, never
+    run it was written from (RUN/<name>.stgc; `data_path` relocates its data). The run beside the file is the
+    segment's (its name and training time) only where its frames and data are the embedded ones: a container copied
+    into another video's folder of the same frames is scored on its own data. A dataset whose frames are not the segment's is an error, never
     a silently shifted timeline."""
     path = Path(path)
     index = read_video_index(path)

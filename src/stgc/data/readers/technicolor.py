@@ -64,8 +64,8 @@ def read_technicolor(path: Path, options: ReaderOptions) -> SourceScene:
         # The file states no image size: resized images under full-size intrinsics would load without a word
         # (K is not scaled to them). A real camera's principal point lies near the middle of its image.
         if not (width / 4 < row[1] < 3 * width / 4 and height / 4 < row[2] < 3 * height / 4):
-            raise DataError(meta_file, f"line {line_numbers[idx]} (camera {name}): principal point ({row[1]:g}, {row[2]:g}) "
-                                       f"is far from the middle of its {width}x{height} images "
+            raise DataError(meta_file, f"line {line_numbers[idx]} (camera {name}): principal point ({row[1]:g}, "
+                                       f"{row[2]:g}) is far from the middle of its {width}x{height} images "
                                        f"({files[min(files)].name}): the parameters are for images of another size "
                                        "(the official scenes' are 2048x1088); scale f, cx and cy with the images")
         K = intrinsics(row[0], row[0], row[1], row[2])
