@@ -125,6 +125,8 @@ def test_errors_explain_themselves() -> None:
         bd_rate([1, 2, 3], [30, 30, 31], [1, 2, 3], [30, 30.5, 31])
     with pytest.raises(BDError, match="test: not an RD curve: PSNR falls from 35 to 33 as the rate rises from 2 to 3"):
         bd_rate([1, 2, 3, 4], [30, 32, 34, 36], [1, 2, 3, 4], [30, 35, 33, 36])  # gave -2.37 % without a word
+    with pytest.raises(BDError, match="repeated"):  # two points at one rate: named as such, not as a fall
+        bd_psnr([1, 2, 2, 3], [30, 32, 31, 33], [1, 2, 3, 4], [30, 31, 32, 33])
     with pytest.raises(BDError, match="anchor: not an RD curve"):
         bd_psnr([4, 1, 2], [30, 31, 32], [1, 2, 3], [30, 31, 32])  # the order given does not matter; the rates' does
     with pytest.raises(BDError, match="unknown"):

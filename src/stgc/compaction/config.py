@@ -230,14 +230,20 @@ class CompactionConfig:
             "help": "the keeper of a pruned pair takes over its loser's opacity: its base opacity becomes the union "
             "1 - (1 - a_keeper)(1 - a_loser), so a pair of near duplicates keeps the coverage both gave at their "
             "centre; false = the loser's opacity goes with it (paper). Under the default damage budget with prune "
-            "trials it removed less: 21 and 42 percent of panoptic against 49.8 and 49.3 (benchmarks/RESULTS.md, "
-            "session 48)"
+            "trials it removes less, not more (benchmarks/RESULTS.md, session 48)"
         },
     )
     min_gaussians: int = field(default=0, metadata={"help": "never prune below this many Gaussians"})
 
     # How a run saved before these options existed pruned (stgc.config.from_saved; the experiment runner's reuse
     # check compares a plan's value with them, so an older run is not taken for one that asks for another).
+    @property
+    def renders_model(self) -> bool:
+        """Whether the controller or the pair order renders the model to decide (a probe-measured signal and its
+        trials, the weight order's or the importance criterion's blending weights), rather than reading the
+        training loss alone."""
+        return self.loss_signal in PROBE_SIGNALS or self.pair_order == "weight" or self.criterion == "importance"
+
     SAVED_BEFORE: ClassVar[dict[str, Any]] = {"keeper_time_coverage": 0.0, "merge_opacity": False,
                                               "pair_order": "distance", "loss_signal": "training",
                                               "loss_budget_db": 0.0, "ratio_increase": "additive",

@@ -43,7 +43,7 @@ def _curve(rate: Sequence[float], psnr: Sequence[float], name: str) -> tuple[np.
         raise BDError(f"{name}: rates must be positive")
     # Both fits take the curve as a function (PSNR of rate, and rate of PSNR): a point below an earlier one at more
     # rate is no RD curve, and interpolating through it gave a number without a word.
-    order = np.argsort(r, kind="stable")
+    order = np.lexsort((q, r))  # by rate, ties by PSNR (equal rates reach the repeated-values check)
     falls = np.flatnonzero(np.diff(q[order]) < 0)
     if falls.size:
         a, b = order[falls[0]], order[falls[0] + 1]

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
+from stgc.compaction.matching import canonical_quaternions
 from stgc.data.dataset import Dataset
 from stgc.errors import DataError
 from stgc.eval.video import ModelSource, frame_selection, load_model_and_dataset
@@ -78,15 +79,6 @@ class StaticGaussians:
         return int(self.means.shape[0])
 
 
-def _unit_quaternions(quats: torch.Tensor) -> torch.Tensor:
-    """Normalised; a zero quaternion (an official error-guided insertion never trained, at t = mu_t), or one below
-    normalisation's epsilon, as (1, 0, 0, 0): stgc, gsplat and the official rasterizer draw it unrotated, and a
-    reader that divides by the norm gets NaN (or, renormalising a tiny one, another rotation)."""
-    unit = torch.nn.functional.normalize(quats, dim=1, eps=1e-12)
-    unit[quats.norm(dim=1) < 1e-12] = unit.new_tensor([1.0, 0.0, 0.0, 0.0])
-    return unit
-
-
 @torch.no_grad()
 def gaussians_at(model: STGModel, t: float, view_origin: np.ndarray) -> StaticGaussians:
     """The model's Gaussians visible at time t as static 3D Gaussians; a full model's colour is decoded along the
@@ -95,7 +87,9 @@ def gaussians_at(model: STGModel, t: float, view_origin: np.ndarray) -> StaticGa
     rgb = _colour_per_gaussian(model, rows.features, rows.means, view_origin)
     return StaticGaussians(
         means=rows.means.numpy().astype(np.float32),
-        quats=_unit_quaternions(rows.quats).numpy().astype(np.float32),
+        # Unit, and a zero one (an official error-guided insertion never trained, at t = mu_t) as (1, 0, 0, 0), as
+        # the renderers draw it: a reader that divides by the norm made it NaN.
+        quats=canonical_quaternions(rows.quats.numpy()).astype(np.float32),
         log_scales=model.params["scaling"].detach()[rows.index].numpy().astype(np.float32),
         opacity=rows.opacity.numpy().astype(np.float32),
         rgb=rgb.numpy().astype(np.float32),

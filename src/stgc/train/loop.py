@@ -269,12 +269,10 @@ def check_rate_aware_window(train_cfg: TrainConfig, compaction_cfg: CompactionCo
     first = sched.iterations - window.iterations + 1
     step = sched.first_densify_step(first)  # clone/split, opacity and floater pruning act only at these steps
     overlapping = []
-    # A controller on the training loss alone, with the paper's pair order and criteria, reads the window's own
-    # (quantized) renders; a probe, trial or blending-weight render measures the float model.
-    float_renders = compaction_cfg is not None and (
-        compaction_cfg.loss_signal != "training" or compaction_cfg.pair_order == "weight"
-        or compaction_cfg.criterion == "importance")
-    if compaction_cfg is not None and compaction_cfg.method == "st-knn" and (window.mask or float_renders):
+    # A controller on the training loss alone reads the window's own (quantized) renders; a probe, trial or
+    # blending-weight render (`renders_model`) measures the float model.
+    if compaction_cfg is not None and compaction_cfg.method == "st-knn" and (
+            window.mask or compaction_cfg.renders_model):
         pruning = resolve_compaction_schedule(compaction_cfg, sched.iterations)
         last_prune = pruning.iterations()[-1] if pruning.num_steps else 0
         if last_prune >= first:

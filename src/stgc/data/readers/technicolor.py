@@ -58,7 +58,8 @@ def read_technicolor(path: Path, options: ReaderOptions) -> SourceScene:
     for idx, row in enumerate(rows):
         name = f"cam{idx:02d}"
         if idx not in by_cam:
-            raise DataError(meta_file, f"camera {name} (row {idx + 2}) has no images (cameras without images)")
+            raise DataError(meta_file, f"camera {name} (line {line_numbers[idx]}) has no images (cameras without "
+                                       "images)")
         files = by_cam[idx]
         width, height = image_size(files[min(files)])
         # The file states no image size: resized images under full-size intrinsics would load without a word
