@@ -235,8 +235,6 @@ class CompactionConfig:
     )
     min_gaussians: int = field(default=0, metadata={"help": "never prune below this many Gaussians"})
 
-    # How a run saved before these options existed pruned (stgc.config.from_saved; the experiment runner's reuse
-    # check compares a plan's value with them, so an older run is not taken for one that asks for another).
     @property
     def renders_model(self) -> bool:
         """Whether the controller or the pair order renders the model to decide (a probe-measured signal and its
@@ -244,6 +242,8 @@ class CompactionConfig:
         training loss alone."""
         return self.loss_signal in PROBE_SIGNALS or self.pair_order == "weight" or self.criterion == "importance"
 
+    # How a run saved before these options existed pruned (stgc.config.from_saved; the experiment runner's reuse
+    # check compares a plan's value with them, so an older run is not taken for one that asks for another).
     SAVED_BEFORE: ClassVar[dict[str, Any]] = {"keeper_time_coverage": 0.0, "merge_opacity": False,
                                               "pair_order": "distance", "loss_signal": "training",
                                               "loss_budget_db": 0.0, "ratio_increase": "additive",
